@@ -1,0 +1,194 @@
+"""A thin, typed wrapper over one real Zenoh session.
+
+* ``publish`` / ``subscribe`` carry :class:`eqa.messages.Message` objects; a payload that does not decode
+  into the expected type is logged and dropped, a handler that raises is logged, and the subscriber keeps
+  running either way.
+* ``declare_queryable`` / ``query`` carry request/reply messages (the scorer pool).
+* ``declare_alive`` holds the liveliness token ``eqa/v1/alive/{service}/{instance}``; ``alive`` lists the
+  tokens present; ``watch_alive`` reports appearances and disappearances.
+
+Callbacks run on Zenoh threads. Services hand work to their own worker (``eqa.service``); the gateway hands
+it to asyncio with ``loop.call_soon_threadsafe``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+from collections.abc import Callable
+from typing import Any
+
+import zenoh
+
+from eqa import keys
+from eqa.codec import CodecError
+from eqa.messages import ErrorReply, M, Message, decode, encode
+from eqa.settings import Settings
+
+log = logging.getLogger(__name__)
+
+Handler = Callable[[str, Any], None]
+
+
+def zenoh_config(settings: Settings) -> zenoh.Config:
+    """Zenoh configuration from settings: mode, listen/connect endpoints, multicast scouting."""
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps(settings.zenoh_mode))
+    conf.insert_json5("scouting/multicast/enabled", json.dumps(bool(settings.zenoh_multicast)))
+    if settings.zenoh_listen:
+        conf.insert_json5("listen/endpoints", json.dumps(list(settings.zenoh_listen)))
+    if settings.zenoh_connect:
+        conf.insert_json5("connect/endpoints", json.dumps(list(settings.zenoh_connect)))
+    return conf
+
+
+class Bus:
+    """One Zenoh session of one service instance. Use as a context manager."""
+
+    def __init__(self, settings: Settings, service: str, instance: str | None = None) -> None:
+        self.settings = settings
+        self.service = keys.check_id(service, "service")
+        self.instance = keys.check_id(instance or settings.instance, "instance")
+        self._session: zenoh.Session | None = None
+        self._entities: list[Any] = []
+        self._lock = threading.Lock()
+
+    # ---- lifecycle ------------------------------------------------------------------------------------
+    def open(self) -> Bus:
+        if self._session is None:
+            self._session = zenoh.open(zenoh_config(self.settings))
+        return self
+
+    def close(self) -> None:
+        with self._lock:
+            entities, self._entities = self._entities, []
+        for ent in reversed(entities):
+            try:
+                ent.undeclare()
+            except Exception:  # already gone with the session
+                log.debug("undeclare failed", exc_info=True)
+        if self._session is not None:
+            self._session.close()
+            self._session = None
+
+    def __enter__(self) -> Bus:
+        return self.open()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def session(self) -> zenoh.Session:
+        if self._session is None:
+            raise RuntimeError("bus is not open")
+        return self._session
+
+    def _keep(self, entity: Any) -> Any:
+        with self._lock:
+            self._entities.append(entity)
+        return entity
+
+    # ---- pub/sub --------------------------------------------------------------------------------------
+    def publish(self, key: str, msg: Message) -> None:
+        self.session.put(key, encode(msg))
+
+    def publish_raw(self, key: str, payload: bytes) -> None:
+        """Publish bytes as they are (tests use it to send garbage)."""
+        self.session.put(key, payload)
+
+    def subscribe(self, key: str, expected: type[M] | tuple[type[M], ...], handler: Handler) -> Any:
+        """Call ``handler(key, message)`` for each well-formed message on ``key``; log and drop the rest."""
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            skey = str(sample.key_expr)
+            try:
+                msg = decode(sample.payload.to_bytes(), expected)
+            except CodecError as exc:
+                log.warning("dropped malformed message on %s: %s", skey, exc)
+                return
+            try:
+                handler(skey, msg)
+            except Exception:
+                log.exception("handler for %s failed; going on", skey)
+
+        return self._keep(self.session.declare_subscriber(key, on_sample))
+
+    # ---- queries --------------------------------------------------------------------------------------
+    def declare_queryable(
+        self, key: str, expected: type[M] | tuple[type[M], ...], handler: Callable[[M], Message]
+    ) -> Any:
+        """Answer each query on ``key`` with ``handler(request)``; malformed requests and handler errors are
+        answered with :class:`ErrorReply` carrying the reason, and the queryable keeps serving."""
+
+        def on_query(query: zenoh.Query) -> None:
+            payload = query.payload.to_bytes() if query.payload is not None else b""
+            try:
+                request = decode(payload, expected)
+            except CodecError as exc:
+                log.warning("malformed query on %s: %s", query.key_expr, exc)
+                reply: Message = ErrorReply(source=f"{self.service}/{self.instance}", reason=str(exc))
+            else:
+                try:
+                    reply = handler(request)
+                except Exception as exc:
+                    log.exception("query handler on %s failed", query.key_expr)
+                    reply = ErrorReply(
+                        source=f"{self.service}/{self.instance}",
+                        reason=f"{type(exc).__name__}: {exc}",
+                        request_id=getattr(request, "request_id", None),
+                    )
+            try:
+                query.reply(key, encode(reply))
+            except Exception:
+                log.exception("could not reply on %s", query.key_expr)
+
+        return self._keep(self.session.declare_queryable(key, on_query))
+
+    def query(self, key: str, msg: Message, timeout: float, expected: type[M] | tuple[type[M], ...] | None = None
+              ) -> list[tuple[str, Message]]:
+        """Send ``msg`` to every queryable matching ``key``; return ``(replier key, reply)`` pairs.
+        Malformed replies are logged and skipped; an :class:`ErrorReply` is returned as it is."""
+        out: list[tuple[str, Message]] = []
+        replies = self.session.get(key, payload=encode(msg), timeout=timeout)
+        for reply in replies:
+            if reply.ok is None:
+                log.warning("query %s: error reply %s", key, reply.err.payload.to_bytes()[:200] if reply.err else "")
+                continue
+            try:
+                allowed = ((expected,) if not isinstance(expected, tuple) else expected) if expected else None
+                decoded = decode(reply.ok.payload.to_bytes(), None)
+                if allowed is not None and not isinstance(decoded, (*allowed, ErrorReply)):
+                    raise CodecError(f"unexpected reply kind {decoded.kind}")
+            except CodecError as exc:
+                log.warning("malformed reply on %s: %s", reply.ok.key_expr, exc)
+                continue
+            out.append((str(reply.ok.key_expr), decoded))
+        return out
+
+    # ---- liveliness -----------------------------------------------------------------------------------
+    def declare_alive(self) -> Any:
+        return self._keep(self.session.liveliness().declare_token(keys.alive(self.service, self.instance)))
+
+    def alive(self, selector: str = keys.ALIVE_ANY, timeout: float = 1.0) -> list[tuple[str, str]]:
+        """``(service, instance)`` of every liveliness token matching ``selector``."""
+        found = []
+        for reply in self.session.liveliness().get(selector, timeout=timeout):
+            if reply.ok is not None:
+                try:
+                    found.append(keys.parse_alive(str(reply.ok.key_expr)))
+                except ValueError:
+                    continue
+        return sorted(set(found))
+
+    def watch_alive(self, selector: str, callback: Callable[[str, str, bool], None]) -> Any:
+        """``callback(service, instance, alive)`` for tokens already present and for each change."""
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            try:
+                service, instance = keys.parse_alive(str(sample.key_expr))
+                callback(service, instance, sample.kind == zenoh.SampleKind.PUT)
+            except Exception:
+                log.exception("liveliness callback failed")
+
+        return self._keep(self.session.liveliness().declare_subscriber(selector, on_sample, history=True))

@@ -1,0 +1,430 @@
+"""Typed messages of the bus (schema version 1).
+
+Conventions used by every service:
+
+* World frame: metres, ``x``/``y`` horizontal, ``z`` up, the floor of the current storey at ``z = 0``.
+* :class:`Pose2D` is the robot base: position ``(x, y)`` and heading ``yaw`` (radians, counter-clockwise
+  from ``+x``).
+* Camera poses are 4x4 camera-to-world matrices in the OpenCV camera convention (``x`` right, ``y`` down,
+  ``z`` forward); intrinsics are 3x3 pinhole matrices in pixels.
+* Answers are letters ``A``, ``B``, ... indexing :attr:`Question.choices`.
+* A step ``t`` is one stop of the robot with one frame; steps count from 0; ``max_steps`` frames at most.
+
+Every message carries ``kind`` and ``schema_version``; :func:`encode` / :func:`decode` put them on the
+wire with msgpack (see :mod:`eqa.codec`). A decoder refuses a newer major schema with a clear error.
+"""
+
+from __future__ import annotations
+
+import math
+import string
+import time
+import uuid
+from typing import Annotated, Any, ClassVar, Literal, TypeVar
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from eqa import keys
+from eqa.codec import CodecError, NDArray, ZNDArray, packb, unpackb
+
+SCHEMA_VERSION = 1
+LETTERS = string.ascii_uppercase
+MAX_CHOICES = len(LETTERS)
+PADDING_CHOICE = "(Do not choose this option)"
+NOT_LISTED_CHOICE = "An option not listed here"
+
+Strategy = Literal["fbe", "semantic", "no_lsv", "no_gsv", "nearest"]
+StopRule = Literal["cp", "entropy", "relevance", "max_steps"]
+EpisodeState = Literal["queued", "running", "stopped", "failed", "cancelled"]
+ScorerBackend = Literal["oracle", "hf", "remote"]
+
+
+def letters(n: int) -> list[str]:
+    """The answer labels of ``n`` choices: ``A``, ``B``, ..."""
+    if not 1 <= n <= MAX_CHOICES:
+        raise ValueError(f"number of choices must be 1..{MAX_CHOICES}, got {n}")
+    return list(LETTERS[:n])
+
+
+def new_id(prefix: str = "ep") -> str:
+    return f"{prefix}-{uuid.uuid4().hex[:12]}"
+
+
+class Message(BaseModel):
+    """Base of every bus message."""
+
+    model_config = ConfigDict(arbitrary_types_allowed=True, extra="forbid", frozen=False)
+    kind: ClassVar[str] = "message"
+    schema_version: int = SCHEMA_VERSION
+    sent_at: float = Field(default_factory=time.time)
+
+
+class Pose2D(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    x: float
+    y: float
+    yaw: float = 0.0
+
+    @model_validator(mode="after")
+    def _finite(self) -> Pose2D:
+        if not all(math.isfinite(v) for v in (self.x, self.y, self.yaw)):
+            raise ValueError("pose values must be finite numbers (no NaN or inf)")
+        return self
+
+    def xy(self) -> np.ndarray:
+        return np.array([self.x, self.y], dtype=np.float64)
+
+
+class Question(BaseModel):
+    """A question about one scene. ``answer`` and ``evidence_ids`` are ground truth, known for benchmark
+    questions only; no scorer backend reads them."""
+
+    model_config = ConfigDict(extra="forbid")
+    id: str = Field(default_factory=lambda: new_id("q"))
+    text: Annotated[str, Field(min_length=1, max_length=2000)]
+    choices: list[Annotated[str, Field(min_length=1, max_length=300)]] = Field(default_factory=list)
+    scene: str
+    floor: int = 0
+    category: str | None = None
+    answer: str | None = None
+    evidence_ids: list[int] = Field(default_factory=list)
+    start_pose: Pose2D | None = None
+    max_steps: int | None = Field(default=None, ge=1, le=10_000)
+
+    @field_validator("text")
+    @classmethod
+    def _text_not_blank(cls, v: str) -> str:
+        if not v.strip():
+            raise ValueError("question text is empty")
+        return v
+
+    @field_validator("choices")
+    @classmethod
+    def _choices_count(cls, v: list[str]) -> list[str]:
+        if v and not 2 <= len(v) <= MAX_CHOICES:
+            raise ValueError(f"give between 2 and {MAX_CHOICES} choices (or none), got {len(v)}")
+        return v
+
+    @model_validator(mode="after")
+    def _answer_is_letter(self) -> Question:
+        if self.answer is not None and self.choices and self.answer not in letters(len(self.choices)):
+            raise ValueError(f"answer {self.answer!r} is not one of the choice letters")
+        return self
+
+    @property
+    def labels(self) -> list[str]:
+        return letters(len(self.choices)) if self.choices else []
+
+    def formatted(self) -> str:
+        """The HM-EQA prompt form: ``Q? A) x B) y ... Answer:``."""
+        opts = " ".join(f"{k}) {c}" for k, c in zip(self.labels, self.choices, strict=True))
+        return f"{self.text} {opts}. Answer:" if opts else f"{self.text} Answer:"
+
+
+class StopConfig(BaseModel):
+    """How an episode decides to stop (Explore-EQA section V)."""
+
+    model_config = ConfigDict(extra="forbid")
+    rule: StopRule = "cp"
+    eps: float = Field(default=0.2, gt=0.0, lt=1.0, description="CP miscoverage: 1-eps is the success wanted")
+    threshold: float | None = Field(default=None, description="entropy (nats) or relevance threshold")
+
+
+class EpisodeStart(Message):
+    kind: ClassVar[str] = "episode_start"
+    episode_id: str
+    robot: str
+    question: Question
+    strategy: Strategy = "semantic"
+    stop: StopConfig = Field(default_factory=StopConfig)
+    max_steps: int = Field(ge=1, le=10_000)
+    seed: int = 0
+    record: bool = True
+
+    @field_validator("episode_id", "robot")
+    @classmethod
+    def _safe(cls, v: str) -> str:
+        return keys.check_id(v)
+
+
+class EpisodeCancel(Message):
+    kind: ClassVar[str] = "episode_cancel"
+    episode_id: str
+    reason: str = "cancelled by user"
+
+
+class InstanceLabel(BaseModel):
+    """Ground-truth label of one instance id visible in a simulated frame (what a perfect detector would
+    report). Only instances with at least one pixel in the frame are listed."""
+
+    model_config = ConfigDict(extra="forbid")
+    id: int
+    category: str
+    room: str | None = None
+    room_kind: str | None = None
+    attributes: dict[str, str] = Field(default_factory=dict)
+    pixels: int = 0
+
+
+class Frame(Message):
+    """One RGB-D observation at step ``step``."""
+
+    kind: ClassVar[str] = "frame"
+    episode_id: str
+    step: int = Field(ge=0)
+    pose: Pose2D
+    camera_pose: NDArray  # 4x4 float64 camera-to-world
+    intrinsics: NDArray  # 3x3 float64
+    rgb: NDArray  # HxWx3 uint8
+    depth: NDArray  # HxW float32 metres along the optical axis, 0 or inf where nothing was hit
+    instances: NDArray | None = None  # HxW int32 instance ids, -1 for none (simulator only)
+    labels: list[InstanceLabel] = Field(default_factory=list)
+    scene: str = ""
+    floor_area_m2: float | None = None
+
+
+class Frontier(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    x: float
+    y: float
+    nx: float  # unit normal pointing into unknown space
+    ny: float
+    size: int  # cells in the cluster
+    weight: float = 1.0  # Eq. A6
+    sv: float = 1.0
+    sv_normal: float = 1.0
+
+
+class PromptPoint(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    label: str
+    x: float
+    y: float
+    u: float  # pixel column
+    v: float  # pixel row
+
+
+class GridSpec(BaseModel):
+    """A 2D grid over the floor: cell ``(i, j)`` (row, column) covers
+    ``x in [origin_x + j*res, +res)``, ``y in [origin_y + i*res, +res)``."""
+
+    model_config = ConfigDict(extra="forbid")
+    origin_x: float
+    origin_y: float
+    resolution: float = Field(gt=0)
+    rows: int = Field(ge=1)
+    cols: int = Field(ge=1)
+
+
+class MapUpdate(Message):
+    kind: ClassVar[str] = "map_update"
+    episode_id: str
+    step: int = Field(ge=0)
+    grid: GridSpec
+    occupied: ZNDArray  # rows x cols bool
+    free: ZNDArray  # rows x cols bool: free up to camera height and reachable from the robot
+    explored: ZNDArray  # rows x cols bool
+    values: dict[str, ZNDArray] = Field(default_factory=dict)  # semantic value layers, float32
+    frontiers: list[Frontier] = Field(default_factory=list)
+    prompt_points: list[PromptPoint] = Field(default_factory=list)
+    pose: Pose2D
+    explored_area_m2: float = 0.0
+    timing_ms: dict[str, float] = Field(default_factory=dict)
+
+
+class ScoreRequest(Message):
+    """The four queries of one step (Explore-EQA Eq. 1, 2, 5 and the answer distribution)."""
+
+    kind: ClassVar[str] = "score_request"
+    request_id: str = Field(default_factory=lambda: new_id("req"))
+    episode_id: str
+    step: int = Field(ge=0)
+    question: Question
+    rgb: NDArray
+    prompt_points: list[PromptPoint] = Field(default_factory=list)
+    # Simulator ground truth of the frame, read only by the oracle backend.
+    instances: NDArray | None = None
+    labels: list[InstanceLabel] = Field(default_factory=list)
+    depth: NDArray | None = None
+    seed: int = 0
+
+
+class ScoreResult(Message):
+    kind: ClassVar[str] = "score_result"
+    request_id: str
+    episode_id: str
+    step: int
+    answer_probs: list[float]  # f(x^t) over the choices, sums to 1
+    relevance: float  # Rel(x^t), Eq. 5
+    lsv: list[float] = Field(default_factory=list)  # Eq. 1, one per prompt point
+    gsv: float = 0.0  # Eq. 2
+    backend: str
+    model: str = ""
+    replica: str = ""
+    latency_ms: float = 0.0
+    proposed_choices: list[str] = Field(default_factory=list)  # questions without choices (VI-A)
+
+
+class ErrorReply(Message):
+    kind: ClassVar[str] = "error"
+    source: str
+    reason: str
+    episode_id: str | None = None
+    step: int | None = None
+    request_id: str | None = None
+
+
+class StepScores(Message):
+    """What the stopper needs of one step: the answer distribution and the relevance."""
+
+    kind: ClassVar[str] = "step_scores"
+    episode_id: str
+    step: int = Field(ge=0)
+    answer_probs: list[float]
+    relevance: float
+    lsv: list[float] = Field(default_factory=list)
+    gsv: float = 0.0
+    backend: str = ""
+    choices: list[str] = Field(default_factory=list)
+
+
+class Decision(Message):
+    kind: ClassVar[str] = "decision"
+    episode_id: str
+    step: int = Field(ge=0)
+    rule: StopRule
+    stop: bool
+    reason: str
+    prediction_set: list[str] = Field(default_factory=list)  # running intersection (CP)
+    step_set: list[str] = Field(default_factory=list)  # C^t of this step (CP)
+    scores: dict[str, float] = Field(default_factory=dict)  # rho^t_y (CP) or other rule's statistic
+    answer: str | None = None
+    q_hat: float | None = None
+
+
+class Goal(Message):
+    """The planner's next pose, or the end of exploration (``done``) with its reason."""
+
+    kind: ClassVar[str] = "goal"
+    episode_id: str
+    step: int = Field(ge=0)  # the step this goal follows; the sim renders step + 1 there
+    pose: Pose2D | None = None
+    path: list[tuple[float, float]] = Field(default_factory=list)
+    frontier: Frontier | None = None
+    weights: list[float] = Field(default_factory=list)
+    done: bool = False
+    reason: str = ""
+
+
+class EpisodeEnd(Message):
+    kind: ClassVar[str] = "episode_end"
+    episode_id: str
+    robot: str
+    state: EpisodeState
+    reason: str
+    answer: str | None = None
+    answer_text: str | None = None
+    prediction_set: list[str] = Field(default_factory=list)
+    steps: int = 0
+    max_steps: int = 1
+    correct: bool | None = None
+    recording: str | None = None
+
+    @property
+    def normalized_steps(self) -> float:
+        return self.steps / max(self.max_steps, 1)
+
+
+class EpisodeStatus(BaseModel):
+    """What the gateway reports about an episode (also the stored record)."""
+
+    model_config = ConfigDict(extra="forbid")
+    episode_id: str
+    robot: str
+    state: EpisodeState
+    question: Question
+    strategy: Strategy
+    stop: StopConfig
+    max_steps: int
+    step: int = -1
+    created_at: float = Field(default_factory=time.time)
+    updated_at: float = Field(default_factory=time.time)
+    answer: str | None = None
+    answer_text: str | None = None
+    prediction_set: list[str] = Field(default_factory=list)
+    steps: int = 0
+    normalized_steps: float = 0.0
+    stop_reason: str | None = None
+    correct: bool | None = None
+    recording: str | None = None
+
+
+MESSAGE_TYPES: dict[str, type[Message]] = {
+    cls.kind: cls
+    for cls in (
+        EpisodeStart,
+        EpisodeCancel,
+        Frame,
+        MapUpdate,
+        ScoreRequest,
+        ScoreResult,
+        ErrorReply,
+        StepScores,
+        Decision,
+        Goal,
+        EpisodeEnd,
+    )
+}
+
+STREAM_TYPES: dict[tuple[str, str], tuple[type[Message], ...]] = {
+    keys.EPISODE_START: (EpisodeStart,),
+    keys.EPISODE_CANCEL: (EpisodeCancel,),
+    keys.EPISODE_END: (EpisodeEnd,),
+    keys.SIM_FRAME: (Frame,),
+    keys.SIM_ERROR: (ErrorReply,),
+    keys.MAPPER_MAP: (MapUpdate,),
+    keys.MAPPER_SCORES: (StepScores,),
+    keys.MAPPER_ERROR: (ErrorReply,),
+    keys.STOPPER_DECISION: (Decision,),
+    keys.PLANNER_GOAL: (Goal,),
+}
+
+M = TypeVar("M", bound=Message)
+
+
+def encode(msg: Message) -> bytes:
+    """Message -> bytes (msgpack map with ``kind`` and the fields; arrays as raw bytes)."""
+    body = msg.model_dump(mode="python")
+    body["kind"] = msg.kind
+    return packb(body)
+
+
+def decode(payload: bytes, expected: type[M] | tuple[type[M], ...] | None = None) -> M:
+    """Bytes -> message, checked against ``expected``. Raises :class:`CodecError` with the reason."""
+    body = unpackb(payload)
+    if not isinstance(body, dict):
+        raise CodecError(f"payload is a {type(body).__name__}, expected a message map")
+    kind = body.pop("kind", None)
+    cls = MESSAGE_TYPES.get(kind) if isinstance(kind, str) else None
+    if cls is None:
+        raise CodecError(f"unknown message kind {kind!r}")
+    version = body.get("schema_version", SCHEMA_VERSION)
+    if not isinstance(version, int) or version > SCHEMA_VERSION:
+        raise CodecError(f"{kind} has schema version {version!r}; this build understands <= {SCHEMA_VERSION}")
+    if expected is not None:
+        allowed = expected if isinstance(expected, tuple) else (expected,)
+        if cls not in allowed:
+            names = ", ".join(c.kind for c in allowed)
+            raise CodecError(f"got a {kind} message where {names} was expected")
+    try:
+        return cls.model_validate(body)  # type: ignore[return-value]
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(str(p) for p in first.get("loc", ()))
+        raise CodecError(f"invalid {kind}: {where}: {first.get('msg')}") from exc
+
+
+def model_json(model: BaseModel) -> dict[str, Any]:
+    """JSON-safe dict of a model (arrays as dtype/shape/base64)."""
+    return model.model_dump(mode="json")

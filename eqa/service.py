@@ -1,0 +1,164 @@
+"""The shell every service shares: a bus, a store, a liveliness token and one ordered worker.
+
+A service subclasses :class:`Service`, names itself, and in :meth:`Service.setup` declares handlers with
+:meth:`Service.on` for the streams it consumes (over all robots). Zenoh delivers on its own threads; the
+shell decodes there (malformed payloads are logged and dropped) and queues the message, and one worker
+thread runs the handlers in arrival order, so service code needs no locks. A handler that raises is logged
+and the service goes on.
+
+``python -m services.<name>`` calls :func:`main` with the service class.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import queue
+import signal
+import sys
+import threading
+from collections.abc import Callable
+from typing import Any
+
+from eqa import keys
+from eqa.bus import Bus
+from eqa.messages import STREAM_TYPES, Message
+from eqa.settings import Settings
+from eqa.store import Store, open_store
+
+log = logging.getLogger(__name__)
+
+_STOP = object()
+
+
+def setup_logging(level: str = "INFO", service: str = "eqa") -> None:
+    logging.basicConfig(
+        level=getattr(logging, level.upper(), logging.INFO),
+        format=f"%(asctime)s %(levelname)s {service} %(name)s: %(message)s",
+        stream=sys.stderr,
+        force=True,
+    )
+
+
+class Service:
+    """Base of the service shells. Subclasses set ``name`` and implement :meth:`setup`."""
+
+    name: str = "service"
+    description: str = ""
+
+    def __init__(self, settings: Settings, bus: Bus | None = None, store: Store | None = None) -> None:
+        self.settings = settings
+        self.bus = bus or Bus(settings, self.name)
+        self._store = store
+        self._queue: queue.Queue[Any] = queue.Queue()
+        self._stopped = threading.Event()
+        self._worker: threading.Thread | None = None
+
+    @property
+    def store(self) -> Store:
+        if self._store is None:
+            self._store = open_store(self.settings)
+        return self._store
+
+    # ---- for subclasses ---------------------------------------------------------------------------------
+    def setup(self) -> None:
+        """Declare subscriptions / queryables. Called once the bus is open."""
+
+    def teardown(self) -> None:
+        """Release resources. Called once after the worker stopped."""
+
+    def on(self, pair: tuple[str, str], handler: Callable[[str, Any], None]) -> None:
+        """Run ``handler(robot, message)`` on the worker for every message of stream ``pair`` of any robot."""
+        expected = STREAM_TYPES[pair]
+
+        def enqueue(key: str, msg: Message) -> None:
+            self._queue.put((handler, keys.robot_of(key), msg))
+
+        self.bus.subscribe(keys.any_robot(pair), expected, enqueue)
+
+    def submit(self, fn: Callable[..., None], *args: Any) -> None:
+        """Run ``fn(*args)`` on the worker (after what is already queued)."""
+        self._queue.put((fn, *args))
+
+    def publish(self, robot: str, pair: tuple[str, str], msg: Message) -> None:
+        self.bus.publish(keys.stream(robot, pair), msg)
+
+    # ---- lifecycle --------------------------------------------------------------------------------------
+    def start(self) -> None:
+        """Open the bus, declare handlers and the liveliness token, start the worker (non-blocking)."""
+        self.bus.open()
+        self.setup()
+        self._worker = threading.Thread(target=self._work, name=f"{self.name}-worker", daemon=True)
+        self._worker.start()
+        self.bus.declare_alive()
+        log.info("%s %s up", self.name, self.bus.instance)
+
+    def _work(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is _STOP:
+                return
+            fn, *args = item
+            try:
+                fn(*args)
+            except Exception:
+                log.exception("%s: handler %s failed; going on", self.name, getattr(fn, "__name__", fn))
+
+    def stop(self) -> None:
+        if self._stopped.is_set():
+            return
+        self._stopped.set()
+        self._queue.put(_STOP)
+        if self._worker is not None:
+            self._worker.join(timeout=10)
+        try:
+            self.teardown()
+        finally:
+            self.bus.close()
+            if self._store is not None:
+                self._store.close()
+        log.info("%s stopped", self.name)
+
+    def drain(self, timeout: float = 10.0) -> bool:
+        """Wait until the worker has handled everything queued so far (tests)."""
+        done = threading.Event()
+        self.submit(done.set)
+        return done.wait(timeout)
+
+    def run_forever(self) -> None:
+        """Start, then block until SIGINT/SIGTERM."""
+        stop = threading.Event()
+
+        def on_signal(signum: int, _frame: Any) -> None:
+            log.info("%s: signal %d, stopping", self.name, signum)
+            stop.set()
+
+        signal.signal(signal.SIGTERM, on_signal)
+        signal.signal(signal.SIGINT, on_signal)
+        self.start()
+        try:
+            while not stop.wait(0.5):
+                if self._worker is not None and not self._worker.is_alive():
+                    raise RuntimeError(f"{self.name} worker died")
+        finally:
+            self.stop()
+
+
+def main(service_cls: type[Service], argv: list[str] | None = None) -> int:
+    """Entry point of ``python -m services.<name>``: settings from ``EQA_*`` variables."""
+    parser = argparse.ArgumentParser(
+        prog=f"python -m services.{service_cls.name}",
+        description=(service_cls.description or service_cls.__doc__ or "").strip()
+        + "\n\nConfigured by EQA_* environment variables (see eqa/settings.py); runs until SIGTERM/SIGINT.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--log-level", default=None, help="override EQA_LOG_LEVEL")
+    args = parser.parse_args(argv)
+    try:
+        settings = Settings()
+    except Exception as exc:
+        print(f"error: invalid EQA_* settings: {exc}", file=sys.stderr)
+        return 2
+    setup_logging(args.log_level or settings.log_level, service_cls.name)
+    service_cls(settings).run_forever()
+    return 0

@@ -1,0 +1,110 @@
+"""All configuration, read from ``EQA_*`` environment variables in one class.
+
+Lists (endpoints, tokens) are comma-separated. Nothing deep in the code reads the environment: services
+receive a :class:`Settings` instance. ``docker-compose.yml`` sets exactly these variables (a test checks).
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+from pathlib import Path
+from typing import Annotated, Literal
+
+from pydantic import Field, field_validator
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+
+CsvList = Annotated[list[str], NoDecode]
+
+
+def default_instance() -> str:
+    host = "".join(c if c.isalnum() or c in "_-" else "-" for c in socket.gethostname())[:40]
+    return f"{host}-{os.getpid()}"
+
+
+class Settings(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="EQA_", extra="ignore")
+
+    # --- process ---
+    instance: str = Field(default_factory=default_instance, description="this process' instance id")
+    log_level: str = "INFO"
+    data_dir: Path = Path("var")
+
+    # --- zenoh ---
+    zenoh_mode: Literal["peer", "client", "router"] = "peer"
+    zenoh_listen: CsvList = Field(default_factory=list, description="endpoints to listen on, e.g. tcp/127.0.0.1:7447")
+    zenoh_connect: CsvList = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
+    zenoh_multicast: bool = False
+
+    # --- store ---
+    redis_url: str | None = Field(default=None, description="redis://host:port/db; unset = embedded SQLite store")
+
+    # --- simulator ---
+    scenes_dir: Path | None = None  # default data_dir/scenes
+    sim_width: int = Field(default=640, ge=16, le=4096)
+    sim_height: int = Field(default=480, ge=12, le=4096)
+    hm3d_dir: Path | None = None
+
+    # --- scorer ---
+    scorer_backend: Literal["oracle", "hf", "remote"] = "oracle"
+    scorer_timeout_s: float = Field(default=20.0, gt=0)
+    scorer_replica: str | None = None  # replica id; default = instance
+    hf_model_path: Path | None = None
+    hf_device: str = "cpu"
+    remote_base_url: str | None = None
+    remote_model: str | None = None
+    remote_api_key: str | None = None
+    remote_timeout_s: float = Field(default=30.0, gt=0)
+    remote_max_retries: int = Field(default=4, ge=0)
+    oracle_accuracy: float = Field(default=0.8, ge=0.0, le=1.0)
+
+    # --- planner ---
+    tau_lsv: float = 1.0
+    tau_gsv: float = 1.0
+    tau_sv: float = 1.0
+    tau_sv_normal: float = 1.0
+
+    # --- gateway ---
+    gateway_host: str = "127.0.0.1"
+    gateway_port: int = Field(default=8080, ge=0, le=65535)
+    api_tokens: CsvList = Field(default_factory=list, description="bearer tokens; empty = auth off")
+    rate_limit_per_s: float = Field(default=50.0, gt=0)
+    cors_origins: CsvList = Field(default_factory=list)
+    busy_policy: Literal["queue", "refuse"] = "queue"
+    robots: CsvList = Field(default_factory=lambda: ["robot0"])
+    episode_timeout_s: float = Field(default=120.0, gt=0, description="no-progress time before an episode fails")
+
+    # --- monitoring ---
+    rerun_url: str | None = Field(default=None, description="rerun+http://host:9876/proxy for live viewing")
+    record: bool = True
+
+    @field_validator("zenoh_listen", "zenoh_connect", "api_tokens", "cors_origins", "robots", mode="before")
+    @classmethod
+    def _split_csv(cls, v: object) -> object:
+        if isinstance(v, str):
+            return [p.strip() for p in v.split(",") if p.strip()]
+        return v
+
+    @property
+    def scenes_path(self) -> Path:
+        return self.scenes_dir or self.data_dir / "scenes"
+
+    @property
+    def recordings_path(self) -> Path:
+        return self.data_dir / "recordings"
+
+    def env(self) -> dict[str, str]:
+        """This configuration as ``EQA_*`` variables (to hand to child processes)."""
+        out: dict[str, str] = {}
+        for name, value in self.model_dump().items():
+            if value is None:
+                continue
+            if isinstance(value, list):
+                value = ",".join(value)
+            out[f"EQA_{name.upper()}"] = str(value)
+        return out
+
+
+def env_names() -> set[str]:
+    """Every environment variable the code reads."""
+    return {f"EQA_{name.upper()}" for name in Settings.model_fields}

@@ -1,0 +1,234 @@
+"""State store: one interface, a Redis backend and an embedded (SQLite file) backend.
+
+Used for episode records, their event streams (append-only, resumable by id, like Redis Streams),
+calibration tables and map snapshots. The embedded backend is a SQLite file under ``data_dir`` so that
+separate service processes on one machine share it without any server; with ``EQA_REDIS_URL`` set every
+process uses Redis instead. Values are bytes; :meth:`Store.get_json`/:meth:`Store.set_json` wrap JSON.
+
+Stream ids have the Redis form ``<ms>-<seq>`` and increase strictly within a stream on both backends.
+"""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+import threading
+import time
+from abc import ABC, abstractmethod
+from pathlib import Path
+from typing import Any
+
+from eqa.settings import Settings
+
+
+class StoreError(RuntimeError):
+    pass
+
+
+def _id_tuple(entry_id: str) -> tuple[int, int]:
+    try:
+        ms, _, seq = entry_id.partition("-")
+        return int(ms), int(seq or 0)
+    except ValueError as exc:
+        raise StoreError(f"bad stream id {entry_id!r}: expected <ms>-<seq>") from exc
+
+
+class Store(ABC):
+    """Key/value bytes with optional expiry, plus append-only streams."""
+
+    @abstractmethod
+    def get(self, key: str) -> bytes | None: ...
+
+    @abstractmethod
+    def set(self, key: str, value: bytes, ttl_s: float | None = None) -> None: ...
+
+    @abstractmethod
+    def delete(self, key: str) -> None: ...
+
+    @abstractmethod
+    def keys(self, prefix: str) -> list[str]: ...
+
+    @abstractmethod
+    def set_if_absent(self, key: str, value: bytes, ttl_s: float | None = None) -> bool:
+        """Atomically set ``key`` if it does not exist; True when set (a lock)."""
+
+    @abstractmethod
+    def append(self, stream: str, value: bytes) -> str:
+        """Append to a stream; return the new entry id."""
+
+    @abstractmethod
+    def read(self, stream: str, after: str = "0-0", count: int = 1000) -> list[tuple[str, bytes]]:
+        """Entries with id strictly greater than ``after``, oldest first."""
+
+    @abstractmethod
+    def stream_len(self, stream: str) -> int: ...
+
+    @abstractmethod
+    def close(self) -> None: ...
+
+    def ping(self) -> bool:
+        return True
+
+    # ---- JSON helpers -----------------------------------------------------------------------------------
+    def get_json(self, key: str) -> Any:
+        raw = self.get(key)
+        return None if raw is None else json.loads(raw)
+
+    def set_json(self, key: str, value: Any, ttl_s: float | None = None) -> None:
+        self.set(key, json.dumps(value).encode(), ttl_s)
+
+    def __enter__(self) -> Store:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class RedisStore(Store):
+    def __init__(self, url: str) -> None:
+        import redis
+
+        self.url = url
+        self._r = redis.Redis.from_url(url, socket_timeout=10, socket_connect_timeout=5)
+        try:
+            self._r.ping()
+        except redis.RedisError as exc:
+            raise StoreError(f"cannot reach Redis at {url}: {exc} (check EQA_REDIS_URL or unset it)") from exc
+
+    def get(self, key: str) -> bytes | None:
+        return self._r.get(key)
+
+    def set(self, key: str, value: bytes, ttl_s: float | None = None) -> None:
+        self._r.set(key, value, px=int(ttl_s * 1000) if ttl_s else None)
+
+    def delete(self, key: str) -> None:
+        self._r.delete(key)
+
+    def keys(self, prefix: str) -> list[str]:
+        return sorted(k.decode() for k in self._r.scan_iter(match=prefix.replace("*", r"\*") + "*", count=500))
+
+    def set_if_absent(self, key: str, value: bytes, ttl_s: float | None = None) -> bool:
+        return bool(self._r.set(key, value, nx=True, px=int(ttl_s * 1000) if ttl_s else None))
+
+    def append(self, stream: str, value: bytes) -> str:
+        return self._r.xadd(stream, {"v": value}).decode()
+
+    def read(self, stream: str, after: str = "0-0", count: int = 1000) -> list[tuple[str, bytes]]:
+        _id_tuple(after)
+        rows = self._r.xrange(stream, min=f"({after}", max="+", count=count)
+        return [(rid.decode(), fields[b"v"]) for rid, fields in rows]
+
+    def stream_len(self, stream: str) -> int:
+        return int(self._r.xlen(stream))
+
+    def ping(self) -> bool:
+        try:
+            return bool(self._r.ping())
+        except Exception:
+            return False
+
+    def close(self) -> None:
+        self._r.close()
+
+
+class EmbeddedStore(Store):
+    """SQLite file store (WAL mode), safe across processes and threads of one machine."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._local = threading.local()
+        with self._conn() as c:
+            c.execute("PRAGMA journal_mode=WAL")
+            c.execute("CREATE TABLE IF NOT EXISTS kv (k TEXT PRIMARY KEY, v BLOB NOT NULL, exp REAL)")
+            c.execute(
+                "CREATE TABLE IF NOT EXISTS streams (s TEXT NOT NULL, ms INTEGER NOT NULL, seq INTEGER NOT NULL,"
+                " v BLOB NOT NULL, PRIMARY KEY (s, ms, seq))"
+            )
+
+    def _conn(self) -> sqlite3.Connection:
+        conn = getattr(self._local, "conn", None)
+        if conn is None:
+            conn = sqlite3.connect(self.path, timeout=30, isolation_level=None, check_same_thread=False)
+            conn.execute("PRAGMA busy_timeout=30000")
+            conn.execute("PRAGMA synchronous=NORMAL")
+            self._local.conn = conn
+        return conn
+
+    def get(self, key: str) -> bytes | None:
+        row = self._conn().execute("SELECT v, exp FROM kv WHERE k=?", (key,)).fetchone()
+        if row is None or (row[1] is not None and row[1] < time.time()):
+            return None
+        return bytes(row[0])
+
+    def set(self, key: str, value: bytes, ttl_s: float | None = None) -> None:
+        exp = time.time() + ttl_s if ttl_s else None
+        self._conn().execute("INSERT OR REPLACE INTO kv (k, v, exp) VALUES (?, ?, ?)", (key, value, exp))
+
+    def delete(self, key: str) -> None:
+        self._conn().execute("DELETE FROM kv WHERE k=?", (key,))
+
+    def keys(self, prefix: str) -> list[str]:
+        now = time.time()
+        rows = self._conn().execute(
+            "SELECT k FROM kv WHERE substr(k, 1, ?) = ? AND (exp IS NULL OR exp >= ?) ORDER BY k",
+            (len(prefix), prefix, now),
+        )
+        return [r[0] for r in rows]
+
+    def set_if_absent(self, key: str, value: bytes, ttl_s: float | None = None) -> bool:
+        conn = self._conn()
+        conn.execute("BEGIN IMMEDIATE")
+        try:
+            if self.get(key) is not None:
+                conn.execute("COMMIT")
+                return False
+            self.set(key, value, ttl_s)
+            conn.execute("COMMIT")
+            return True
+        except Exception:
+            conn.execute("ROLLBACK")
+            raise
+
+    def append(self, stream: str, value: bytes) -> str:
+        conn = self._conn()
+        conn.execute("BEGIN IMMEDIATE")
+        try:
+            ms = int(time.time() * 1000)
+            last = conn.execute(
+                "SELECT ms, seq FROM streams WHERE s=? ORDER BY ms DESC, seq DESC LIMIT 1", (stream,)
+            ).fetchone()
+            seq = 0
+            if last is not None and last[0] >= ms:
+                ms, seq = last[0], last[1] + 1
+            conn.execute("INSERT INTO streams (s, ms, seq, v) VALUES (?, ?, ?, ?)", (stream, ms, seq, value))
+            conn.execute("COMMIT")
+        except Exception:
+            conn.execute("ROLLBACK")
+            raise
+        return f"{ms}-{seq}"
+
+    def read(self, stream: str, after: str = "0-0", count: int = 1000) -> list[tuple[str, bytes]]:
+        ms, seq = _id_tuple(after)
+        rows = self._conn().execute(
+            "SELECT ms, seq, v FROM streams WHERE s=? AND (ms > ? OR (ms = ? AND seq > ?))"
+            " ORDER BY ms, seq LIMIT ?",
+            (stream, ms, ms, seq, count),
+        )
+        return [(f"{r[0]}-{r[1]}", bytes(r[2])) for r in rows]
+
+    def stream_len(self, stream: str) -> int:
+        return int(self._conn().execute("SELECT COUNT(*) FROM streams WHERE s=?", (stream,)).fetchone()[0])
+
+    def close(self) -> None:
+        conn = getattr(self._local, "conn", None)
+        if conn is not None:
+            conn.close()
+            self._local.conn = None
+
+
+def open_store(settings: Settings) -> Store:
+    """Redis when ``EQA_REDIS_URL`` is set, else the embedded store under ``data_dir``."""
+    if settings.redis_url:
+        return RedisStore(settings.redis_url)
+    return EmbeddedStore(settings.data_dir / "store.sqlite")

@@ -1,0 +1,104 @@
+"""Shared fixtures: free ports, a private redis-server, real Zenoh settings on loopback, both stores."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import socket
+import subprocess
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+os.environ.setdefault("RERUN_TELEMETRY_ENABLED", "false")
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
+
+from eqa.settings import Settings  # noqa: E402
+from eqa.store import EmbeddedStore, RedisStore, Store  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def wait_port(port: int, timeout: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        with socket.socket() as s:
+            if s.connect_ex(("127.0.0.1", port)) == 0:
+                return
+        time.sleep(0.05)
+    raise TimeoutError(f"nothing listens on 127.0.0.1:{port}")
+
+
+@pytest.fixture(scope="session")
+def redis_url(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
+    """A private redis-server on a free port for this test session (never the machine's shared one)."""
+    exe = shutil.which("redis-server")
+    if exe is None:
+        pytest.fail("redis-server is not installed: run `make test` (it installs it) or apt-get install redis-server")
+    port = free_port()
+    workdir = tmp_path_factory.mktemp("redis")
+    proc = subprocess.Popen(
+        [exe, "--port", str(port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no", "--dir", str(workdir)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    try:
+        wait_port(port)
+        yield f"redis://127.0.0.1:{port}/0"
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
+
+
+@pytest.fixture
+def zenoh_port() -> int:
+    return free_port()
+
+
+@pytest.fixture
+def settings(tmp_path: Path, zenoh_port: int) -> Settings:
+    """Settings for one test: a private data dir and a private Zenoh 'hub' port.
+
+    The first bus opened with ``hub_settings`` listens on the port; every other one (``settings``) connects
+    to it. Multicast scouting is off, so tests never see each other's traffic.
+    """
+    return Settings(
+        data_dir=tmp_path / "var",
+        zenoh_mode="peer",
+        zenoh_listen=["tcp/127.0.0.1:0"],
+        zenoh_connect=[f"tcp/127.0.0.1:{zenoh_port}"],
+        zenoh_multicast=False,
+        record=False,
+        sim_width=160,
+        sim_height=120,
+    )
+
+
+@pytest.fixture
+def hub_settings(settings: Settings, zenoh_port: int) -> Settings:
+    """The same as ``settings`` but listening on the hub port (open one Bus with it first)."""
+    return settings.model_copy(update={"zenoh_listen": [f"tcp/127.0.0.1:{zenoh_port}"], "zenoh_connect": []})
+
+
+@pytest.fixture(params=["embedded", "redis"])
+def store(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Store]:
+    """Each store test runs against both backends."""
+    if request.param == "embedded":
+        s: Store = EmbeddedStore(tmp_path / "store.sqlite")
+    else:
+        url = request.getfixturevalue("redis_url")
+        s = RedisStore(url)
+        s._r.flushdb()  # type: ignore[attr-defined]
+    try:
+        yield s
+    finally:
+        s.close()
