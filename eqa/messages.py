@@ -87,6 +87,10 @@ class Question(BaseModel):
     scene: str
     floor: int = 0
     category: str | None = None
+    # Structured parse of what the question asks (what a language model reads from the text, never the
+    # answer): keys "type" (identification|counting|existence|state|location), "category", optionally
+    # "room_kind", "attribute" (e.g. "color", "state"), "value" (the asked state, e.g. "on"), "color".
+    query: dict[str, str] = Field(default_factory=dict)
     answer: str | None = None
     evidence_ids: list[int] = Field(default_factory=list)
     start_pose: Pose2D | None = None
