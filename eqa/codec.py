@@ -66,7 +66,8 @@ def _decode_array(code: int, data: bytes) -> Any:
             body = zlib.decompress(body)
         count = int(np.prod(shape, dtype=np.int64)) if shape else 1
         if count * dtype.itemsize != len(body):
-            raise CodecError(f"array body has {len(body)} bytes, shape {shape} of {dtype} needs {count * dtype.itemsize}")
+            need = count * dtype.itemsize
+            raise CodecError(f"array body has {len(body)} bytes, shape {shape} of {dtype} needs {need}")
         return np.frombuffer(body, dtype=dtype).reshape(shape)
     except CodecError:
         raise

@@ -57,12 +57,20 @@ class Settings(BaseSettings):
     remote_timeout_s: float = Field(default=30.0, gt=0)
     remote_max_retries: int = Field(default=4, ge=0)
     oracle_accuracy: float = Field(default=0.8, ge=0.0, le=1.0)
+    # simulated perception model (services/vlm_scorer/backends/oracle.py documents each knob)
+    oracle_evidence_confidence: float = Field(default=0.8, gt=0.0, lt=1.0)
+    oracle_bias_confidence: float = Field(default=0.7, gt=0.0, lt=1.0)
+    oracle_temperature: float = Field(default=1.0, gt=0.0, description=">1 flatter, <1 over-confident")
+    oracle_relevance_scale: float = Field(default=0.55, gt=0.0, le=1.0)
 
     # --- planner ---
     tau_lsv: float = 1.0
     tau_gsv: float = 1.0
     tau_sv: float = 1.0
     tau_sv_normal: float = 1.0
+
+    # --- stopper ---
+    calibration_name: str = Field(default="default", description="CP calibration table name (eqa calibrate)")
 
     # --- gateway ---
     gateway_host: str = "127.0.0.1"

@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import threading
 import time
 
 import numpy as np
 
 from eqa import keys
 from eqa.bus import Bus
-from eqa.messages import ErrorReply, Frame, Pose2D, ScoreRequest, ScoreResult, StepScores, Question
+from eqa.messages import ErrorReply, Frame, Pose2D, Question, ScoreRequest, ScoreResult, StepScores
 
 
 def _frame(step: int = 0) -> Frame:

@@ -1,0 +1,256 @@
+"""``eqa ask``: one question end to end through the real services, printing the answer.
+
+Without ``--url`` it starts the whole fleet (every service as its own process, talking only over Zenoh, and
+the gateway on a free port), submits the question over HTTP, follows the episode's event stream, prints the
+answer, the steps used and where the recording went, and stops the fleet. With ``--url`` it uses a running
+gateway (``eqa up``). Without a question it asks a built-in demo question from a generated house, whose
+ground truth is known, so the output also says whether the answer is right.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from eqa.messages import MAX_CHOICES, Pose2D, Question, letters
+
+log = logging.getLogger(__name__)
+
+DEMO_SCENE = "gen-00003"
+DEMO_SEED = 7
+ORACLE_LABEL = (
+    "oracle scorer = a simulated perception model reading ground-truth labels of the visible pixels, not a VLM"
+)
+
+
+class AskError(Exception):
+    """A problem the user can fix: one line, exit code 2."""
+
+
+def parse_pose(text: str) -> Pose2D:
+    """``x,y[,yaw]`` in metres/radians (argparse type)."""
+    parts = [p.strip() for p in text.split(",")]
+    if len(parts) not in (2, 3):
+        raise argparse.ArgumentTypeError(f"pose must be x,y or x,y,yaw (numbers), got {text!r}")
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"pose must be numbers like 1.5,-2,0.7, got {text!r}") from None
+    if not all(math.isfinite(v) for v in values):
+        raise argparse.ArgumentTypeError(f"pose values must be finite, got {text!r}")
+    return Pose2D(x=values[0], y=values[1], yaw=values[2] if len(values) == 3 else 0.0)
+
+
+def demo_question(scenes_dir: Path) -> Question:
+    """A deterministic benchmark-style question about a generated house (ground truth known)."""
+    import numpy as np
+
+    from services.sim.questions import generate_questions
+    from services.sim.scene import load_or_generate
+
+    scene = load_or_generate(DEMO_SCENE, scenes_dir)
+    questions = generate_questions(scene, np.random.default_rng(DEMO_SEED))
+    preferred = [q for q in questions if q.category in ("existence", "state")]
+    return (preferred or questions)[0]
+
+
+def check_scene(scene: str, scenes_dir: Path) -> float:
+    """Floor area of a scene the simulator can load; :class:`AskError` naming what exists otherwise."""
+    from services.sim.scene import SceneNotFound, load_or_generate
+
+    try:
+        return float(load_or_generate(scene, scenes_dir).floor_area_m2)
+    except SceneNotFound as exc:
+        raise AskError(str(exc).splitlines()[0]) from None
+
+
+@dataclass
+class Outcome:
+    status: dict[str, Any]
+    events: int
+    seconds: float
+
+
+def follow(url: str, body: dict[str, Any], token: str | None, timeout: float, quiet: bool) -> Outcome:
+    """Submit over HTTP, print progress from the SSE stream, return the final status."""
+    import httpx
+
+    headers = {"Authorization": f"Bearer {token}"} if token else {}
+    t0 = time.monotonic()
+    with httpx.Client(base_url=url, headers=headers, timeout=httpx.Timeout(30.0, read=timeout)) as client:
+        r = client.post("/v1/questions", json=body)
+        if r.status_code == 422:
+            raise AskError(f"the gateway refused the question: {r.json().get('detail')}")
+        if r.status_code >= 400:
+            raise AskError(f"the gateway answered {r.status_code}: {r.text[:300]}")
+        episode_id = r.json()["episode_id"]
+        if not quiet:
+            print(f"episode {episode_id} on {r.json().get('robot')}", flush=True)
+        n = 0
+        with client.stream("GET", f"/v1/episodes/{episode_id}/events") as stream:
+            for line in stream.iter_lines():
+                if not line.startswith("data:"):
+                    continue
+                n += 1
+                event = json.loads(line[5:].strip())
+                if not quiet:
+                    _print_event(event)
+                if event.get("kind") in ("episode_end",) or event.get("state") in ("stopped", "failed", "cancelled"):
+                    break
+        status = client.get(f"/v1/episodes/{episode_id}").json()
+    return Outcome(status=status, events=n, seconds=time.monotonic() - t0)
+
+
+def _print_event(event: dict[str, Any]) -> None:
+    kind = event.get("kind")
+    if kind == "decision":
+        pset = "{" + ",".join(event.get("prediction_set") or []) + "}"
+        print(f"  step {event.get('step'):>3}: set {pset:<11} {event.get('reason', '')}", flush=True)
+    elif kind == "error":
+        print(f"  error from {event.get('source')}: {event.get('reason')}", flush=True)
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "ask",
+        help="ask one question end to end (starts the fleet unless --url is given)",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("question", nargs="?", help="the question; omit it for the built-in demo question")
+    p.add_argument("--choice", action="append", dest="choices", default=None,
+                   help=f"one answer choice (repeat, 2..{MAX_CHOICES}); none = the scorer proposes answers")
+    p.add_argument("--scene", help=f"scene id, e.g. gen-00042 (generated from seed 42); demo: {DEMO_SCENE}")
+    p.add_argument("--pose", type=parse_pose, help="start pose x,y[,yaw]; default: sampled")
+    p.add_argument("--strategy", default="semantic", choices=["semantic", "fbe", "no_lsv", "no_gsv", "nearest"])
+    p.add_argument("--stop-rule", default="cp", choices=["cp", "entropy", "relevance", "max_steps"])
+    p.add_argument("--eps", type=float, default=0.2, help="CP: 1-eps is the wanted success probability")
+    p.add_argument("--threshold", type=float, default=None, help="entropy/relevance threshold")
+    p.add_argument("--max-steps", type=int, default=None, help="step budget (default 3*sqrt(floor area))")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--url", default=None, help="use a running gateway (eqa up) instead of starting a fleet")
+    p.add_argument("--token", default=None, help="bearer token for --url")
+    p.add_argument("--scorers", type=int, default=1, help="scorer replicas to start (default 1)")
+    p.add_argument("--timeout", type=float, default=600.0, help="seconds to wait for the answer")
+    p.add_argument("--json", action="store_true", help="print the final status as JSON only")
+    p.set_defaults(func=run)
+
+
+def _body(args: argparse.Namespace, scenes_dir: Path) -> tuple[dict[str, Any], Question | None]:
+    if args.question is None:
+        if args.choices or args.scene:
+            raise AskError("give a question with --choice/--scene, or none of them for the demo question")
+        q = demo_question(scenes_dir)
+        body: dict[str, Any] = {
+            "question": q.text, "choices": q.choices, "scene": q.scene, "answer": q.answer,
+            "start_pose": q.start_pose.model_dump() if q.start_pose else None, "max_steps": q.max_steps,
+        }
+        demo: Question | None = q
+    else:
+        if not args.question.strip():
+            raise AskError("the question is empty")
+        if args.choices is not None and not 2 <= len(args.choices) <= MAX_CHOICES:
+            raise AskError(f"give between 2 and {MAX_CHOICES} --choice options (or none), got {len(args.choices)}")
+        if not args.scene:
+            raise AskError("give --scene (e.g. --scene gen-00042)")
+        body = {"question": args.question, "choices": args.choices, "scene": args.scene,
+                "start_pose": args.pose.model_dump() if args.pose else None, "max_steps": args.max_steps}
+        demo = None
+    if not 0.0 < args.eps < 1.0:
+        raise AskError(f"--eps must be between 0 and 1 (exclusive), got {args.eps}")
+    if args.max_steps is not None:
+        if args.max_steps < 1:
+            raise AskError("--max-steps must be at least 1")
+        body["max_steps"] = args.max_steps
+    if args.pose is not None:
+        body["start_pose"] = args.pose.model_dump()
+    body.update(strategy=args.strategy, stop_rule=args.stop_rule, eps=args.eps, seed=args.seed)
+    if args.threshold is not None:
+        body["threshold"] = args.threshold
+    return {k: v for k, v in body.items() if v is not None}, demo
+
+
+def run(args: argparse.Namespace) -> int:
+    from eqa.cli import UsageError, load_settings
+    from eqa.service import setup_logging
+
+    settings = load_settings()
+    setup_logging("WARNING" if args.json else settings.log_level, "eqa-ask")
+    logging.getLogger("eqa.launcher").setLevel(logging.WARNING)
+    try:
+        body, demo = _body(args, settings.scenes_path)
+        if args.url is None:
+            check_scene(body["scene"], settings.scenes_path)
+    except AskError as exc:
+        raise UsageError(str(exc)) from None
+    if not args.json:
+        print(f"question: {body['question']}")
+        for label, choice in zip(letters(len(body.get("choices") or [])), body.get("choices") or [], strict=True):
+            print(f"  {label}) {choice}")
+        print(f"scene: {body['scene']}   strategy: {body['strategy']}   stop rule: {body['stop_rule']}"
+              f" (eps {body['eps']})", flush=True)
+    try:
+        if args.url is not None:
+            outcome = follow(args.url, body, args.token, args.timeout, args.json)
+        else:
+            outcome = _with_fleet(settings, body, args)
+    except AskError as exc:
+        raise UsageError(str(exc)) from None
+    _report(outcome, settings, demo, args.json)
+    return 0 if outcome.status.get("state") == "stopped" else 1
+
+
+def _with_fleet(settings: Any, body: dict[str, Any], args: argparse.Namespace) -> Outcome:
+    from eqa.launcher import ALL_SERVICES, Fleet, LaunchError, free_port
+
+    port = free_port()
+    fleet_settings = settings.model_copy(update={"gateway_host": "127.0.0.1", "gateway_port": port, "api_tokens": []})
+    if not args.json:
+        print(f"starting the fleet ({', '.join(ALL_SERVICES)}; {args.scorers} scorer replica(s)) ...", flush=True)
+    t0 = time.monotonic()
+    try:
+        with Fleet(fleet_settings, services=ALL_SERVICES, scorers=args.scorers) as fleet:
+            if not args.json:
+                print(f"fleet up in {time.monotonic() - t0:.1f} s: {len(fleet.children)} processes over Zenoh "
+                      f"({fleet.endpoint})", flush=True)
+            return follow(f"http://127.0.0.1:{port}", body, None, args.timeout, args.json)
+    except LaunchError as exc:
+        raise AskError(f"the fleet did not start: {exc}") from None
+
+
+def _report(outcome: Outcome, settings: Any, demo: Question | None, as_json: bool) -> None:
+    s = outcome.status
+    if as_json:
+        print(json.dumps(s))
+        return
+    q = s.get("question") or {}
+    choices = q.get("choices") or []
+    answer = s.get("answer")
+    text = s.get("answer_text") or (choices[letters(len(choices)).index(answer)] if answer and choices else "")
+    print()
+    if s.get("state") != "stopped":
+        print(f"no answer: episode {s.get('state')}: {s.get('stop_reason')}")
+    else:
+        print(f"answer: {answer}) {text}")
+    print(f"steps: {s.get('steps')} of {s.get('max_steps')} (normalised {s.get('normalized_steps', 0):.2f}); "
+          f"stop reason: {s.get('stop_reason')}")
+    if s.get("prediction_set"):
+        print(f"prediction set: {{{', '.join(s['prediction_set'])}}}")
+    if demo is not None and demo.answer is not None:
+        verdict = "correct" if answer == demo.answer else "wrong"
+        truth = demo.choices[letters(len(demo.choices)).index(demo.answer)]
+        print(f"ground truth: {demo.answer}) {truth} -> {verdict}")
+    if settings.scorer_backend == "oracle":
+        print(f"note: {ORACLE_LABEL}")
+    rec = s.get("recording")
+    print(f"recording: {rec if rec else 'off'}" + (f" (merged .rrd: GET /v1/episodes/{s['episode_id']}/recording)"
+                                                    if rec else ""))
+    print(f"time: {outcome.seconds:.1f} s, {outcome.events} events")
+    sys.stdout.flush()

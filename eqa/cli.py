@@ -1,0 +1,124 @@
+"""``eqa``: the command line of the system.
+
+    eqa ask ["QUESTION" --choice A --choice B ... --scene S]   run one question end to end and print the answer
+    eqa up [--scorers N]                                      run the fleet until Ctrl-C
+    eqa health SERVICE...                                     exit 0 when each service has a live instance
+    eqa sim ...  eqa calibrate ...  eqa bench ...  eqa gateway   (see each --help)
+
+Every command is configured by ``EQA_*`` environment variables (eqa/settings.py); flags override them.
+Bad input gives a one-line error and exit code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import signal
+import sys
+import threading
+
+from eqa.settings import Settings
+
+log = logging.getLogger(__name__)
+
+# Modules that add sub-commands with ``register(subparsers)``.
+_SUBCOMMAND_MODULES = ("eqa.ask", "services.sim.cli", "services.stopper.cli", "gateway.cli")
+
+
+class UsageError(Exception):
+    """Bad input from the user: printed as one line, exit code 2."""
+
+
+def load_settings() -> Settings:
+    try:
+        return Settings()
+    except Exception as exc:
+        raise UsageError(f"invalid EQA_* settings: {exc}") from exc
+
+
+def cmd_up(args: argparse.Namespace) -> int:
+    from eqa.launcher import ALL_SERVICES, PIPELINE, Fleet, LaunchError
+    from eqa.service import setup_logging
+
+    settings = load_settings()
+    setup_logging(settings.log_level, "eqa-up")
+    services = list(PIPELINE if args.no_gateway else ALL_SERVICES)
+    if args.port is not None:
+        settings = settings.model_copy(update={"gateway_port": args.port})
+    fleet = Fleet(settings, services=services, scorers=args.scorers)
+    try:
+        fleet.start(timeout=args.timeout)
+    except LaunchError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    print(f"fleet up: {len(fleet.children)} processes, zenoh router at {fleet.endpoint}", flush=True)
+    if not args.no_gateway:
+        print(f"gateway: http://{settings.gateway_host}:{settings.gateway_port}/docs", flush=True)
+    print(f"logs: {settings.data_dir / 'logs'}; Ctrl-C stops", flush=True)
+    done = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: done.set())
+    try:
+        done.wait()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        fleet.stop()
+    return 0
+
+
+def cmd_health(args: argparse.Namespace) -> int:
+    from eqa.health import check
+
+    settings = load_settings()
+    missing = check(settings, args.services, timeout=args.timeout)
+    if missing:
+        print(f"not alive: {', '.join(missing)}", file=sys.stderr)
+        return 1
+    print("alive: " + ", ".join(args.services))
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="eqa",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    up = sub.add_parser("up", help="start every service as its own process and keep them running")
+    up.add_argument("--scorers", type=int, default=1, help="number of scorer replicas (default 1)")
+    up.add_argument("--no-gateway", action="store_true", help="run the pipeline services only")
+    up.add_argument("--port", type=int, default=None, help="gateway port (default EQA_GATEWAY_PORT=8080)")
+    up.add_argument("--timeout", type=float, default=90.0, help="seconds to wait until all are alive")
+    up.set_defaults(func=cmd_up)
+
+    health = sub.add_parser("health", help="check that services hold a liveliness token (compose health checks)")
+    health.add_argument("services", nargs="+", help="service names, e.g. sim mapper")
+    health.add_argument("--timeout", type=float, default=2.0)
+    health.set_defaults(func=cmd_health)
+
+    for name in _SUBCOMMAND_MODULES:
+        importlib.import_module(name).register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except UsageError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

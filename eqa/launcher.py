@@ -1,0 +1,277 @@
+"""Start the fleet as separate processes, wait until all are alive, keep them alive, stop them cleanly.
+
+The launcher opens its own Zenoh session in router mode on a loopback port (free, or ``EQA_ZENOH_LISTEN``)
+and hands every child ``EQA_ZENOH_CONNECT`` to it; the children are peers (multicast scouting off) that find
+each other through the router's gossip and then talk directly, so the fleet keeps working even while the
+launcher's session is busy. Each child is ``python -m services.<name>`` (or ``python -m gateway``) with its
+own ``EQA_INSTANCE``; output goes to ``{data_dir}/logs/<instance>.log``.
+
+A supervisor thread restarts a child that exits unexpectedly (with backoff, at most ``max_restarts`` times);
+the services restore their per-episode state from the store, so the episode goes on.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from eqa import keys
+from eqa.bus import Bus
+from eqa.settings import Settings
+
+log = logging.getLogger(__name__)
+
+PIPELINE = ("sim", "mapper", "vlm_scorer", "planner", "stopper")
+ALL_SERVICES = (*PIPELINE, "gateway")
+
+
+class LaunchError(RuntimeError):
+    pass
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+
+
+def module_of(service: str) -> str:
+    """The ``python -m`` module that runs a service."""
+    return "gateway" if service == "gateway" else f"services.{service}"
+
+
+@dataclass
+class Child:
+    service: str
+    instance: str
+    env: dict[str, str]
+    log_path: Path
+    proc: subprocess.Popen[bytes] | None = None
+    restarts: int = 0
+    started_at: float = 0.0
+    history: list[str] = field(default_factory=list)
+
+    @property
+    def alive(self) -> bool:
+        return self.proc is not None and self.proc.poll() is None
+
+
+class Fleet:
+    """The services of one deployment as local processes. Use as a context manager."""
+
+    def __init__(
+        self,
+        settings: Settings,
+        services: tuple[str, ...] | list[str] = PIPELINE,
+        scorers: int = 1,
+        extra_env: dict[str, str] | None = None,
+        restart: bool = True,
+        max_restarts: int = 5,
+    ) -> None:
+        unknown = set(services) - set(ALL_SERVICES)
+        if unknown:
+            raise LaunchError(f"unknown services {sorted(unknown)}; known: {', '.join(ALL_SERVICES)}")
+        if scorers < 1 and "vlm_scorer" in services:
+            raise LaunchError("--scorers must be at least 1")
+        self.settings = settings
+        self.services = tuple(services)
+        self.scorers = scorers
+        self.extra_env = dict(extra_env or {})
+        self.restart_enabled = restart
+        self.max_restarts = max_restarts
+        self.children: list[Child] = []
+        self._hub: Bus | None = None
+        self._alive: set[tuple[str, str]] = set()
+        self._alive_changed = threading.Condition()
+        self._stop = threading.Event()
+        self._supervisor: threading.Thread | None = None
+        self.endpoint = ""
+        self.run_id = f"{os.getpid()}-{int(time.time())}"
+
+    # ---- setup --------------------------------------------------------------------------------------------
+    def _hub_settings(self) -> Settings:
+        listen = list(self.settings.zenoh_listen) or [f"tcp/127.0.0.1:{free_port()}"]
+        return self.settings.model_copy(
+            update={"zenoh_mode": "router", "zenoh_listen": listen, "zenoh_connect": [], "instance": "launcher"}
+        )
+
+    def _child_env(self, service: str, instance: str) -> dict[str, str]:
+        env = {k: v for k, v in os.environ.items() if not k.startswith("EQA_")}
+        env.update(self.settings.env())
+        env.update(
+            {
+                "EQA_INSTANCE": instance,
+                "EQA_ZENOH_MODE": "peer",
+                "EQA_ZENOH_LISTEN": "tcp/127.0.0.1:0",
+                "EQA_ZENOH_CONNECT": self.endpoint,
+                "EQA_DATA_DIR": str(Path(self.settings.data_dir).resolve()),
+                "PYTHONUNBUFFERED": "1",
+                "RERUN_TELEMETRY_ENABLED": "false",
+            }
+        )
+        if service == "vlm_scorer":
+            env["EQA_SCORER_REPLICA"] = instance
+        env.update(self.extra_env)
+        return env
+
+    def _plan(self) -> None:
+        logs = Path(self.settings.data_dir) / "logs"
+        logs.mkdir(parents=True, exist_ok=True)
+        for service in self.services:
+            count = self.scorers if service == "vlm_scorer" else 1
+            for i in range(count):
+                instance = f"{service.replace('_', '-')}-{i}-{self.run_id}"
+                self.children.append(
+                    Child(service, instance, self._child_env(service, instance), logs / f"{service}-{i}.log")
+                )
+
+    # ---- lifecycle ----------------------------------------------------------------------------------------
+    def start(self, timeout: float = 90.0) -> Fleet:
+        hub_settings = self._hub_settings()
+        self.endpoint = hub_settings.zenoh_listen[0].replace("0.0.0.0", "127.0.0.1")
+        self._hub = Bus(hub_settings, "launcher", "launcher").open()
+        self._hub.watch_alive(keys.ALIVE_ANY, self._on_alive)
+        self._plan()
+        for child in self.children:
+            self._spawn(child)
+        try:
+            self.wait_alive(timeout)
+        except LaunchError:
+            self.stop()
+            raise
+        self._supervisor = threading.Thread(target=self._supervise, name="fleet-supervisor", daemon=True)
+        self._supervisor.start()
+        return self
+
+    def _on_alive(self, service: str, instance: str, up: bool) -> None:
+        with self._alive_changed:
+            if up:
+                self._alive.add((service, instance))
+            else:
+                self._alive.discard((service, instance))
+            self._alive_changed.notify_all()
+
+    def _spawn(self, child: Child) -> None:
+        out = open(child.log_path, "ab")  # noqa: SIM115 - handed to the child, closed with it
+        child.proc = subprocess.Popen(
+            [sys.executable, "-m", module_of(child.service)],
+            env=child.env,
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
+        )
+        out.close()
+        child.started_at = time.monotonic()
+        log.info("started %s (pid %d), log %s", child.instance, child.proc.pid, child.log_path)
+
+    def missing(self) -> list[Child]:
+        with self._alive_changed:
+            return [c for c in self.children if (c.service, c.instance) not in self._alive]
+
+    def wait_alive(self, timeout: float = 90.0, children: list[Child] | None = None) -> None:
+        """Block until every child (or the given ones) holds its liveliness token."""
+        deadline = time.monotonic() + timeout
+        wanted = children or self.children
+        with self._alive_changed:
+            while True:
+                missing = [c for c in wanted if (c.service, c.instance) not in self._alive]
+                if not missing:
+                    return
+                dead = [c for c in missing if c.proc is not None and c.proc.poll() is not None]
+                if dead:
+                    c = dead[0]
+                    raise LaunchError(
+                        f"{c.service} exited with code {c.proc.returncode if c.proc else '?'} before it was up; "
+                        f"its log: {c.log_path}\n{tail(c.log_path)}"
+                    )
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    names = ", ".join(c.instance for c in missing)
+                    raise LaunchError(f"not alive after {timeout:.0f} s: {names}; logs in {missing[0].log_path.parent}")
+                self._alive_changed.wait(min(left, 0.5))
+
+    def _supervise(self) -> None:
+        while not self._stop.wait(0.5):
+            for child in self.children:
+                if self._stop.is_set() or child.proc is None or child.proc.poll() is None:
+                    continue
+                code = child.proc.returncode
+                child.history.append(f"exited with {code}")
+                if not self.restart_enabled or child.restarts >= self.max_restarts:
+                    log.error("%s exited with %s; not restarting (restarts: %d)", child.instance, code, child.restarts)
+                    child.proc = None
+                    continue
+                child.restarts += 1
+                delay = min(0.2 * 2**child.restarts, 5.0)
+                log.warning("%s exited with %s; restarting in %.1f s", child.instance, code, delay)
+                time.sleep(delay)
+                if not self._stop.is_set():
+                    self._spawn(child)
+
+    def child(self, service: str, index: int = 0) -> Child:
+        matches = [c for c in self.children if c.service == service]
+        if index >= len(matches):
+            raise LaunchError(f"no {service} #{index} in this fleet")
+        return matches[index]
+
+    def kill(self, service: str, index: int = 0, sig: int = signal.SIGKILL) -> Child:
+        """Kill one child (tests: the supervisor restarts it when restarts are on)."""
+        child = self.child(service, index)
+        if child.proc is not None and child.proc.poll() is None:
+            os.killpg(child.proc.pid, sig)
+            child.proc.wait(timeout=10)
+        return child
+
+    def stop(self, timeout: float = 10.0) -> None:
+        self._stop.set()
+        if self._supervisor is not None:
+            self._supervisor.join(timeout=5)
+        procs = [c.proc for c in self.children if c.proc is not None and c.proc.poll() is None]
+        for p in procs:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(p.pid, signal.SIGTERM)
+        deadline = time.monotonic() + timeout
+        for p in procs:
+            try:
+                p.wait(timeout=max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                log.warning("pid %d did not stop in %.0f s; killing", p.pid, timeout)
+                os.killpg(p.pid, signal.SIGKILL)
+                p.wait(timeout=5)
+        if self._hub is not None:
+            self._hub.close()
+            self._hub = None
+
+    def __enter__(self) -> Fleet:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    @property
+    def hub(self) -> Bus:
+        if self._hub is None:
+            raise LaunchError("fleet is not started")
+        return self._hub
+
+    def client_settings(self) -> Settings:
+        """Settings for another peer (a test, the CLI) joining this fleet."""
+        return self.settings.model_copy(
+            update={"zenoh_mode": "peer", "zenoh_listen": ["tcp/127.0.0.1:0"], "zenoh_connect": [self.endpoint]}
+        )
+
+
+def tail(path: Path, lines: int = 20) -> str:
+    try:
+        return "\n".join(path.read_text(errors="replace").splitlines()[-lines:])
+    except OSError:
+        return ""

@@ -1,0 +1,75 @@
+"""The same store contract on the embedded (SQLite) and Redis backends."""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import time
+from pathlib import Path
+
+import pytest
+
+from eqa.settings import Settings
+from eqa.store import EmbeddedStore, RedisStore, StoreError, open_store
+
+
+def test_kv_roundtrip_prefix_and_expiry(store):
+    store.set("eqa:ep:1", b"one")
+    store.set("eqa:ep:2", b"two")
+    store.set("eqa:other", b"x")
+    assert store.get("eqa:ep:1") == b"one"
+    assert store.keys("eqa:ep:") == ["eqa:ep:1", "eqa:ep:2"]
+    store.delete("eqa:ep:1")
+    assert store.get("eqa:ep:1") is None
+    store.set_json("eqa:j", {"a": [1, 2]})
+    assert store.get_json("eqa:j") == {"a": [1, 2]}
+    store.set("eqa:tmp", b"t", ttl_s=0.05)
+    time.sleep(0.15)
+    assert store.get("eqa:tmp") is None
+
+
+def test_set_if_absent_is_a_lock(store):
+    assert store.set_if_absent("eqa:lock", b"a")
+    assert not store.set_if_absent("eqa:lock", b"b")
+    assert store.get("eqa:lock") == b"a"
+
+
+def test_streams_are_ordered_and_resumable(store):
+    ids = [store.append("eqa:events:1", f"e{i}".encode()) for i in range(50)]
+    assert len(set(ids)) == 50
+    assert [tuple(map(int, i.split("-"))) for i in ids] == sorted(tuple(map(int, i.split("-"))) for i in ids)
+    first = store.read("eqa:events:1", count=20)
+    assert [v for _, v in first] == [f"e{i}".encode() for i in range(20)]
+    rest = store.read("eqa:events:1", after=first[-1][0])
+    assert [v for _, v in rest] == [f"e{i}".encode() for i in range(20, 50)]
+    assert store.read("eqa:events:1", after=ids[-1]) == []
+    assert store.stream_len("eqa:events:1") == 50
+    with pytest.raises(StoreError):
+        store.read("eqa:events:1", after="not-an-id")
+
+
+def _writer(path: str, n: int) -> None:
+    s = EmbeddedStore(Path(path))
+    for i in range(n):
+        s.append("eqa:shared", str(i).encode())
+    s.close()
+
+
+def test_embedded_store_is_shared_between_processes(tmp_path):
+    path = tmp_path / "s.sqlite"
+    ctx = mp.get_context("spawn")
+    procs = [ctx.Process(target=_writer, args=(str(path), 100)) for _ in range(3)]
+    for p in procs:
+        p.start()
+    for p in procs:
+        p.join(60)
+        assert p.exitcode == 0
+    s = EmbeddedStore(path)
+    rows = s.read("eqa:shared", count=1000)
+    assert len(rows) == 300 and len({r[0] for r in rows}) == 300
+
+
+def test_open_store_picks_backend(tmp_path, redis_url):
+    assert isinstance(open_store(Settings(data_dir=tmp_path)), EmbeddedStore)
+    assert isinstance(open_store(Settings(data_dir=tmp_path, redis_url=redis_url)), RedisStore)
+    with pytest.raises(StoreError, match="EQA_REDIS_URL"):
+        RedisStore("redis://127.0.0.1:1/0")
