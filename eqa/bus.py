@@ -91,11 +91,13 @@ class Bus:
 
     # ---- pub/sub --------------------------------------------------------------------------------------
     def publish(self, key: str, msg: Message) -> None:
-        self.session.put(key, encode(msg))
+        """Publish reliably: the pipeline is a choreography in which a lost message stalls an episode, so
+        puts block on congestion instead of being dropped (Zenoh's default for data is to drop)."""
+        self.session.put(key, encode(msg), congestion_control=zenoh.CongestionControl.BLOCK)
 
     def publish_raw(self, key: str, payload: bytes) -> None:
         """Publish bytes as they are (tests use it to send garbage)."""
-        self.session.put(key, payload)
+        self.session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
 
     def subscribe(self, key: str, expected: type[M] | tuple[type[M], ...], handler: Handler) -> Any:
         """Call ``handler(key, message)`` for each well-formed message on ``key``; log and drop the rest."""

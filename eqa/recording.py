@@ -2,9 +2,13 @@
 
 Each service opens an :class:`EpisodeRecorder` for an episode; all use ``recording_id = episode_id`` and
 ``application_id = "eqa"``, so a viewer shows them as one recording. By default each service writes
-``{data_dir}/recordings/{episode_id}/{service}.rrd`` (the gateway merges them for download); with
-``EQA_RERUN_URL`` set the data also streams live to that viewer. Library code passes the recorder's own
-``RecordingStream`` (never the global one).
+``{data_dir}/recordings/{episode_id}/{service}.rrd`` (the gateway merges them with ``rerun rrd merge`` for
+download: plain concatenation is not a valid rerun 0.41 file); with ``EQA_RERUN_URL`` set the data also
+streams live to that viewer (``rerun+http://host:9876/proxy``). Library code passes the recorder's own
+``RecordingStream`` (never the global one). The time line is ``step`` (``rr.set_time("step", sequence=t)``).
+
+:data:`ENTITIES` names the entity path of each thing the design asks to see; services log under these
+paths so that the merged recording of an episode is complete (the fleet test checks them).
 """
 
 from __future__ import annotations
@@ -18,8 +22,26 @@ from eqa.settings import Settings
 
 log = logging.getLogger(__name__)
 APPLICATION_ID = "eqa"
+TIMELINE = "step"
 
 os.environ.setdefault("RERUN_TELEMETRY_ENABLED", "false")
+
+# Entity paths of one episode (world frame: x/y horizontal, z up; maps are images over the floor grid).
+ENTITIES: dict[str, str] = {
+    "rgb": "world/robot/camera/rgb",  # sim: rr.Image of the frame (camera pinhole at world/robot/camera)
+    "depth": "world/robot/camera/depth",  # sim: rr.DepthImage (metres)
+    "camera": "world/robot/camera",  # sim: rr.Transform3D (camera-to-world) + rr.Pinhole
+    "pose": "world/robot",  # sim: rr.Transform3D of the base / rr.Points3D of the position
+    "trajectory": "world/trajectory",  # sim: rr.LineStrips3D of the poses so far
+    "occupancy": "map/occupied",  # mapper: rr.Image / rr.SegmentationImage of the occupied cells
+    "explored": "map/explored",  # mapper
+    "value": "map/value",  # mapper: semantic value layer(s), map/value/<name> allowed
+    "frontiers": "map/frontiers",  # mapper/planner: rr.Points2D, radii or labels = Eq. A6 weights
+    "prompt_points": "world/robot/camera/rgb/prompt_points",  # mapper: rr.Points2D in pixels, with labels
+    "goal": "map/goal",  # planner: rr.Points2D of the chosen pose, path as map/path
+    "prediction_set": "stopper/prediction_set",  # stopper: rr.TextLog of the set per step
+    "scores": "stopper/scores",  # stopper: rr.Scalars per answer (stopper/scores/<letter>)
+}
 
 
 def recording_dir(settings: Settings, episode_id: str) -> Path:
@@ -27,7 +49,10 @@ def recording_dir(settings: Settings, episode_id: str) -> Path:
 
 
 class EpisodeRecorder:
-    """A RecordingStream for one (episode, service); a no-op when recording is off."""
+    """A RecordingStream for one (episode, service); a no-op when recording is off.
+
+    Never raises into service code: a failing log call is logged and dropped.
+    """
 
     def __init__(self, settings: Settings, episode_id: str, service: str, enabled: bool = True) -> None:
         self.enabled = bool(enabled and settings.record)
@@ -48,7 +73,7 @@ class EpisodeRecorder:
 
     def set_step(self, step: int) -> None:
         if self.stream is not None:
-            self.stream.set_time("step", sequence=int(step))
+            self.stream.set_time(TIMELINE, sequence=int(step))
 
     def log(self, entity: str, archetype: Any, static: bool = False) -> None:
         if self.stream is None:
@@ -66,3 +91,9 @@ class EpisodeRecorder:
             except Exception:
                 log.debug("rerun close failed", exc_info=True)
             self.stream = None
+
+    def __enter__(self) -> EpisodeRecorder:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,4 @@
+from eqa.service import main
+from services.mapper.service import MapperService
+
+raise SystemExit(main(MapperService))

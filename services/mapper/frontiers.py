@@ -1,0 +1,167 @@
+"""Frontiers (Explore-EQA section IV-B) and their sampling weights (section IV-D, appendix B, Eq. A6).
+
+A frontier cell is a reachable free cell that has been explored and touches (8-neighbourhood) a cell that is
+neither explored nor occupied, or the edge of the grid. Frontier cells are grouped into 8-connected
+clusters; a cluster longer than ``max_cluster_cells`` is split with k-means so each candidate covers one
+stretch of boundary. Each cluster gives one candidate: its cell nearest the cluster centroid, with the unit
+outward normal = the normalised sum of the unit vectors from the cluster's cells to their unexplored
+neighbours (it points into unknown space).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from eqa.messages import Frontier
+
+_EIGHT = np.ones((3, 3), dtype=bool)
+_OFFSETS = [(dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1) if dr or dc]
+
+
+@dataclass(frozen=True)
+class FrontierConfig:
+    min_cluster_cells: int = 3
+    max_cluster_cells: int = 30
+    d_sv: float = 3.0  # appendix B: SV_p,normal averages the value up to 3 m along the normal
+
+
+def frontier_cells(
+    free: np.ndarray, explored: np.ndarray, occupied: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(frontier mask, unknown mask). ``unknown`` = neither explored nor occupied."""
+    unknown = ~explored & ~occupied
+    padded = np.pad(unknown, 1, constant_values=True)  # outside the grid is unknown
+    touches = ndimage.binary_dilation(padded, structure=_EIGHT)[1:-1, 1:-1]
+    return free & explored & touches, unknown
+
+
+def _split(cells: np.ndarray, k: int, iters: int = 8) -> np.ndarray:
+    """Deterministic k-means of cell coordinates (farthest-point initialisation). Returns labels."""
+    pts = cells.astype(np.float64)
+    centers = [pts[0]]
+    for _ in range(1, k):
+        d = np.min([np.sum((pts - c) ** 2, axis=1) for c in centers], axis=0)
+        centers.append(pts[int(np.argmax(d))])
+    C = np.array(centers)
+    labels = np.zeros(len(pts), dtype=np.int64)
+    for _ in range(iters):
+        labels = np.argmin(((pts[:, None, :] - C[None]) ** 2).sum(-1), axis=1)
+        for j in range(k):
+            if np.any(labels == j):
+                C[j] = pts[labels == j].mean(axis=0)
+    return labels
+
+
+def find_frontiers(
+    free: np.ndarray,
+    explored: np.ndarray,
+    occupied: np.ndarray,
+    origin: tuple[float, float],
+    resolution: float,
+    robot_xy: tuple[float, float],
+    config: FrontierConfig | None = None,
+) -> list[Frontier]:
+    """Frontier candidates (weight 1; see :func:`weigh_frontiers`), sorted by position for determinism."""
+    config = config or FrontierConfig()
+    mask, unknown = frontier_cells(free, explored, occupied)
+    labels, n = ndimage.label(mask, structure=_EIGHT)
+    if n == 0:
+        return []
+    ny, nx = mask.shape
+    unknown_p = np.pad(unknown, 1, constant_values=True)
+    # per frontier cell: sum of unit vectors towards unknown neighbours
+    normal = np.zeros((ny, nx, 2), dtype=np.float64)
+    for dr, dc in _OFFSETS:
+        nb = unknown_p[1 + dr : 1 + dr + ny, 1 + dc : 1 + dc + nx]
+        inv = 1.0 / math.hypot(dr, dc)
+        normal[..., 0] += nb * (dc * inv)  # x = columns
+        normal[..., 1] += nb * (dr * inv)  # y = rows
+    out: list[Frontier] = []
+    objects = ndimage.find_objects(labels)
+    for lab, sl in enumerate(objects, start=1):
+        if sl is None:
+            continue
+        rr, cc = np.nonzero(labels[sl] == lab)
+        rr = rr + sl[0].start
+        cc = cc + sl[1].start
+        if rr.size < config.min_cluster_cells:
+            continue
+        cells = np.stack([rr, cc], axis=1)
+        k = math.ceil(rr.size / config.max_cluster_cells)
+        parts = _split(cells, k) if k > 1 else np.zeros(rr.size, dtype=np.int64)
+        for j in range(k):
+            sel = parts == j
+            if sel.sum() < config.min_cluster_cells:
+                continue
+            pr, pc = rr[sel], cc[sel]
+            cr, cc_ = pr.mean(), pc.mean()
+            best = int(np.argmin((pr - cr) ** 2 + (pc - cc_) ** 2))
+            r, c = int(pr[best]), int(pc[best])
+            x = origin[0] + (c + 0.5) * resolution
+            y = origin[1] + (r + 0.5) * resolution
+            n_vec = normal[pr, pc].sum(axis=0)
+            norm = float(np.hypot(*n_vec))
+            if norm < 1e-9:  # symmetric boundary: face away from the robot
+                n_vec = np.array([x - robot_xy[0], y - robot_xy[1]])
+                norm = float(np.hypot(*n_vec)) or 1.0
+                if norm == 1.0 and not n_vec.any():
+                    n_vec = np.array([1.0, 0.0])
+            out.append(
+                Frontier(x=x, y=y, nx=float(n_vec[0] / norm), ny=float(n_vec[1] / norm), size=int(sel.sum()))
+            )
+    out.sort(key=lambda f: (round(f.y, 3), round(f.x, 3)))
+    return out
+
+
+def value_at(
+    layer: np.ndarray, origin: tuple[float, float], resolution: float, x: np.ndarray, y: np.ndarray
+) -> np.ndarray:
+    """Nearest-cell lookup of a value layer; 0 outside the grid (never scored)."""
+    col = np.floor((np.asarray(x) - origin[0]) / resolution).astype(np.int64)
+    row = np.floor((np.asarray(y) - origin[1]) / resolution).astype(np.int64)
+    ny, nx = layer.shape
+    inside = (row >= 0) & (row < ny) & (col >= 0) & (col < nx)
+    out = np.zeros(np.shape(col), dtype=np.float64)
+    out[inside] = layer[row[inside], col[inside]]
+    return out
+
+
+def sv_normal(
+    layer: np.ndarray, origin: tuple[float, float], resolution: float, f: Frontier, d_sv: float
+) -> float:
+    """SV_p,normal (section IV-D): mean semantic value of the points at distances ``resolution, 2 resolution,
+    ..., d_sv`` from the frontier ``p`` along its normal."""
+    s = np.arange(1, round(d_sv / resolution) + 1) * resolution
+    return float(value_at(layer, origin, resolution, f.x + s * f.nx, f.y + s * f.ny).mean())
+
+
+def frontier_weight(sv_p: float, sv_p_normal: float, tau_sv: float, tau_sv_normal: float) -> float:
+    """Eq. A6: ``w_p = exp(tau_SV * SV_p + tau_SV,Normal * SV_p,normal)``."""
+    return float(math.exp(tau_sv * sv_p + tau_sv_normal * sv_p_normal))
+
+
+def weigh_frontiers(
+    frontiers: list[Frontier],
+    layer: np.ndarray | None,
+    origin: tuple[float, float],
+    resolution: float,
+    tau_sv: float,
+    tau_sv_normal: float,
+    d_sv: float = 3.0,
+) -> list[Frontier]:
+    """Fill ``sv``, ``sv_normal`` and ``weight`` (Eq. A6) of each frontier from a semantic value layer.
+    ``layer=None`` (strategies without semantic values: fbe, nearest) gives every frontier weight 1."""
+    out = []
+    for f in frontiers:
+        if layer is None:
+            out.append(f.model_copy(update={"sv": 0.0, "sv_normal": 0.0, "weight": 1.0}))
+            continue
+        sv_p = float(value_at(layer, origin, resolution, np.array([f.x]), np.array([f.y]))[0])
+        sv_n = sv_normal(layer, origin, resolution, f, d_sv)
+        w = frontier_weight(sv_p, sv_n, tau_sv, tau_sv_normal)
+        out.append(f.model_copy(update={"sv": sv_p, "sv_normal": sv_n, "weight": w}))
+    return out

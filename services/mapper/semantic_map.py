@@ -1,0 +1,67 @@
+"""Semantic value map (Explore-EQA section IV-C, Eq. 3; HELIOS section 3.1.2: one layer per search target).
+
+Each prompt point ``p`` gets ``SV_p = exp(tau_LSV * LSV_p + tau_GSV * GSV_p)`` (Eq. 3). "We apply Gaussian
+smoothing such that each value creates a Gaussian distribution around the point": a step writes
+``S_t(x) = max_p SV_p * exp(-|x - p|^2 / (2 sigma^2))`` (cut at 3 sigma).
+
+Fusion over steps: per-cell maximum, ``V_t = max(V_{t-1}, S_t)``. A region once judged worth exploring
+keeps its value until it is explored (frontiers there disappear), overlapping Gaussians of one or several
+steps do not pile up into values no single observation supported, and the result does not depend on the
+order in which the robot happened to look at a region. Never-scored cells hold 0, below every written value
+(``SV >= 1`` whenever the temperatures are non-negative).
+
+Strategies (``EpisodeStart.strategy``): ``semantic`` uses both terms, ``no_lsv`` treats ``tau_LSV`` as 0,
+``no_gsv`` treats ``tau_GSV`` as 0, ``fbe`` / ``nearest`` write nothing (every frontier weighs 1).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+SEMANTIC_STRATEGIES = ("semantic", "no_lsv", "no_gsv")
+QUESTION_LAYER = "question"
+
+
+def temperatures(strategy: str, tau_lsv: float, tau_gsv: float) -> tuple[float, float] | None:
+    """(tau_LSV, tau_GSV) of a strategy, or None when the strategy uses no semantic values."""
+    if strategy == "semantic":
+        return tau_lsv, tau_gsv
+    if strategy == "no_lsv":
+        return 0.0, tau_gsv
+    if strategy == "no_gsv":
+        return tau_lsv, 0.0
+    return None
+
+
+def semantic_value(lsv: float, gsv: float, tau_lsv: float, tau_gsv: float) -> float:
+    """Eq. 3: ``SV_p = exp(tau_LSV * LSV_p + tau_GSV * GSV_p)``."""
+    return float(math.exp(tau_lsv * lsv + tau_gsv * gsv))
+
+
+def write_values(
+    layer: np.ndarray,
+    origin: tuple[float, float],
+    resolution: float,
+    points: list[tuple[float, float]],
+    values: list[float],
+    sigma: float = 1.0,
+) -> None:
+    """Max-fuse one Gaussian per point (peak ``value`` at the point, std ``sigma`` metres) into ``layer``
+    in place."""
+    ny, nx = layer.shape
+    radius = math.ceil(3 * sigma / resolution)
+    for (x, y), value in zip(points, values, strict=True):
+        c = math.floor((x - origin[0]) / resolution)
+        r = math.floor((y - origin[1]) / resolution)
+        r0, r1 = max(r - radius, 0), min(r + radius + 1, ny)
+        c0, c1 = max(c - radius, 0), min(c + radius + 1, nx)
+        if r0 >= r1 or c0 >= c1:
+            continue
+        ys = origin[1] + (np.arange(r0, r1) + 0.5) * resolution
+        xs = origin[0] + (np.arange(c0, c1) + 0.5) * resolution
+        d2 = (ys[:, None] - y) ** 2 + (xs[None, :] - x) ** 2
+        g = (value * np.exp(-d2 / (2 * sigma * sigma))).astype(layer.dtype)
+        g[d2 > (3 * sigma) ** 2] = 0
+        np.maximum(layer[r0:r1, c0:c1], g, out=layer[r0:r1, c0:c1])

@@ -1,0 +1,261 @@
+"""The mapper service shell: Frame -> TSDF map, prompt points, scores, semantic values, frontiers.
+
+Per step (one :class:`Frame`): validate and integrate it, project to 2D, compute the prompt points, ask the
+scorer pool for the step's scores, write the semantic values (Eq. 3), compute the frontiers with their
+Eq. A6 weights, publish :class:`MapUpdate` and :class:`StepScores`, having first snapshotted the
+episode's map to the store (key ``mapper/episode/{episode_id}``), so that a restarted mapper picks the
+episode up from there when the next frame arrives.
+
+Errors go to ``MAPPER_ERROR`` as :class:`ErrorReply` with the reason: a bad frame (the map is unchanged), an
+unknown episode, a scorer failure (the map update is still published, the stopper gets no scores for that
+step). A frame whose step is not newer than the last integrated one is a re-delivery and is ignored.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from eqa import keys
+from eqa.messages import (
+    EpisodeCancel,
+    EpisodeEnd,
+    EpisodeStart,
+    ErrorReply,
+    Frame,
+    ScoreRequest,
+    ScoreResult,
+    StepScores,
+)
+from eqa.recording import EpisodeRecorder
+from eqa.service import Service
+from services.mapper.episode_map import EpisodeMap, MapperConfig, Timer
+from services.mapper.tsdf import FrameError
+
+log = logging.getLogger(__name__)
+
+Scorer = Callable[[ScoreRequest], ScoreResult]
+
+
+def snapshot_key(episode_id: str) -> str:
+    return f"mapper/episode/{episode_id}"
+
+
+SNAPSHOT_TTL_S = 7 * 24 * 3600.0
+
+
+class MapperService(Service):
+    """TSDF mapping, frontiers, prompt points and the semantic value map (Explore-EQA IV-B..D)."""
+
+    name = "mapper"
+    description = (
+        "Mapper: TSDF fusion, 2D maps, frontiers with Eq. A6 weights, prompt points, semantic values."
+    )
+
+    def __init__(
+        self, settings: Any, bus: Any = None, store: Any = None, scorer: Scorer | None = None
+    ) -> None:
+        super().__init__(settings, bus, store)
+        self._scorer = scorer
+        self.config = MapperConfig(
+            tau_lsv=settings.tau_lsv,
+            tau_gsv=settings.tau_gsv,
+            tau_sv=settings.tau_sv,
+            tau_sv_normal=settings.tau_sv_normal,
+        )
+        self.episodes: dict[str, EpisodeMap] = {}
+        self.recorders: dict[str, EpisodeRecorder] = {}
+        self.last_timing_ms: dict[str, float] = {}
+
+    def setup(self) -> None:
+        self.on(keys.EPISODE_START, self.on_start)
+        self.on(keys.EPISODE_CANCEL, self.on_finish)
+        self.on(keys.EPISODE_END, self.on_finish)
+        self.on(keys.SIM_FRAME, self.on_frame)
+
+    def teardown(self) -> None:
+        for rec in self.recorders.values():
+            rec.close()
+        self.recorders.clear()
+
+    # ---- scorer -----------------------------------------------------------------------------------------
+    def scorer(self) -> Scorer:
+        if self._scorer is None:
+            from eqa.scorer_client import ScorerClient  # written alongside; imported when first needed
+
+            self._scorer = ScorerClient(self.bus, self.settings).score
+        return self._scorer
+
+    # ---- handlers ---------------------------------------------------------------------------------------
+    def on_start(self, robot: str, msg: EpisodeStart) -> None:
+        if msg.episode_id in self.episodes:
+            log.info("episode %s already mapped; duplicate start ignored", msg.episode_id)
+            return
+        em = EpisodeMap(msg, self.config)
+        self.episodes[msg.episode_id] = em
+        self.recorders[msg.episode_id] = EpisodeRecorder(
+            self.settings, msg.episode_id, "mapper", enabled=msg.record
+        )
+        self._save(em)
+        log.info("episode %s: mapping for robot %s (strategy %s)", msg.episode_id, robot, msg.strategy)
+
+    def on_finish(self, robot: str, msg: EpisodeCancel | EpisodeEnd) -> None:
+        em = self.episodes.pop(msg.episode_id, None)
+        rec = self.recorders.pop(msg.episode_id, None)
+        if rec is not None:
+            rec.close()
+        self.store.delete(snapshot_key(msg.episode_id))
+        if em is not None:
+            log.info("episode %s finished (%s); map dropped", msg.episode_id, msg.kind)
+
+    def _episode(self, episode_id: str) -> EpisodeMap | None:
+        em = self.episodes.get(episode_id)
+        if em is not None:
+            return em
+        data = self.store.get(snapshot_key(episode_id))
+        if data is None:
+            return None
+        try:
+            em = EpisodeMap.restore(data, self.config)
+        except Exception as exc:
+            log.error("episode %s: snapshot unreadable (%s)", episode_id, exc)
+            return None
+        self.episodes[episode_id] = em
+        self.recorders[episode_id] = EpisodeRecorder(
+            self.settings, episode_id, "mapper", enabled=em.start.record
+        )
+        log.info("episode %s: restored from snapshot at step %d", episode_id, em.step)
+        return em
+
+    def _error(self, robot: str, episode_id: str | None, step: int | None, reason: str) -> None:
+        log.warning("episode %s step %s: %s", episode_id, step, reason)
+        self.publish(
+            robot,
+            keys.MAPPER_ERROR,
+            ErrorReply(source="mapper", episode_id=episode_id, step=step, reason=reason),
+        )
+
+    def on_frame(self, robot: str, frame: Frame) -> None:
+        em = self._episode(frame.episode_id)
+        if em is None:
+            self._error(
+                robot, frame.episode_id, frame.step, "unknown episode: no EpisodeStart seen and no snapshot"
+            )
+            return
+        if frame.step <= em.step:
+            log.info(
+                "episode %s: frame %d already integrated (last %d); ignored",
+                em.episode_id,
+                frame.step,
+                em.step,
+            )
+            return
+        t_start = time.perf_counter()
+        timer = Timer()
+        try:
+            em.integrate(frame, timer)
+        except FrameError as exc:
+            self._error(robot, frame.episode_id, frame.step, f"frame rejected, map unchanged: {exc}")
+            return
+
+        result = self._score(robot, em, frame)
+        t0 = time.perf_counter()
+        if result is not None:
+            try:
+                em.apply_scores(result.lsv, result.gsv)
+            except ValueError as exc:
+                self._error(robot, em.episode_id, frame.step, f"semantic values not written: {exc}")
+        t0 = timer.lap("semantic_values", t0)
+        em.compute_frontiers(timer=timer)
+        # Persist before publishing: whatever a consumer has seen survives a crash of this process.
+        t0 = time.perf_counter()
+        self._save(em)
+        timer.lap("snapshot", t0)
+        timer.ms["step"] = (time.perf_counter() - t_start) * 1000.0
+        self.publish(robot, keys.MAPPER_MAP, em.map_update(timer.ms))
+        if result is not None:
+            self.publish(
+                robot,
+                keys.MAPPER_SCORES,
+                StepScores(
+                    episode_id=em.episode_id,
+                    step=frame.step,
+                    answer_probs=result.answer_probs,
+                    relevance=result.relevance,
+                    lsv=result.lsv,
+                    gsv=result.gsv,
+                    backend=result.backend,
+                    choices=em.start.question.choices,
+                ),
+            )
+        t0 = time.perf_counter()
+        self._record(em, frame)
+        timer.lap("record", t0)
+        self.last_timing_ms = timer.ms
+
+    def _score(self, robot: str, em: EpisodeMap, frame: Frame) -> ScoreResult | None:
+        request = ScoreRequest(
+            episode_id=em.episode_id,
+            step=frame.step,
+            question=em.start.question,
+            rgb=frame.rgb,
+            prompt_points=em.prompts,
+            instances=frame.instances,
+            labels=frame.labels,
+            depth=frame.depth,
+            seed=em.start.seed,
+        )
+        try:
+            result = self.scorer()(request)
+        except Exception as exc:
+            self._error(robot, em.episode_id, frame.step, f"scorer failed: {type(exc).__name__}: {exc}")
+            return None
+        if isinstance(result, ErrorReply):
+            self._error(robot, em.episode_id, frame.step, f"scorer failed: {result.reason}")
+            return None
+        return result
+
+    def _save(self, em: EpisodeMap) -> None:
+        try:
+            self.store.set(snapshot_key(em.episode_id), em.snapshot(), ttl_s=SNAPSHOT_TTL_S)
+        except Exception:
+            log.exception("episode %s: snapshot not saved", em.episode_id)
+
+    # ---- monitoring -------------------------------------------------------------------------------------
+    def _record(self, em: EpisodeMap, frame: Frame) -> None:
+        rec = self.recorders.get(em.episode_id)
+        if rec is None or rec.stream is None or em.maps is None:
+            return
+        import rerun as rr
+
+        m = em.maps
+        rec.set_step(frame.step)
+        occ = np.zeros(m.free.shape, dtype=np.uint8)  # 0 unknown, 128 free, 255 occupied (y up)
+        occ[m.free] = 128
+        occ[m.occupied] = 255
+        rec.log("map/occupancy", rr.Image(np.flipud(occ)))
+        rec.log("map/explored", rr.Image(np.flipud(m.explored.astype(np.uint8) * 255)))
+        for name in em.layers:
+            rec.log(f"map/value/{name}", rr.Image(np.flipud(em.layer(name))))
+        ny = m.free.shape[0]
+        res = em.resolution
+        if em.frontiers:
+            pos = [((f.x - em.origin[0]) / res, ny - (f.y - em.origin[1]) / res) for f in em.frontiers]
+            w = np.array([f.weight for f in em.frontiers])
+            rec.log(
+                "map/frontiers",
+                rr.Points2D(
+                    pos,
+                    radii=1.0 + 2.0 * w / max(float(w.max()), 1e-9),
+                    labels=[f"{f.weight:.2f}" for f in em.frontiers],
+                ),
+            )
+        if em.prompts:
+            rec.log(
+                "camera/prompt_points",
+                rr.Points2D([(p.u, p.v) for p in em.prompts], labels=[p.label for p in em.prompts]),
+            )

@@ -1,0 +1,90 @@
+"""Choosing the next frontier (Explore-EQA section IV-D and appendix B).
+
+* ``semantic``, ``no_lsv``, ``no_gsv``: sample a frontier with probability proportional to its weight
+  ``w_p = exp(tau_SV SV_p + tau_SV,Normal SV_p,normal)`` (Eq. A6). The mapper computes ``Frontier.weight``
+  for the episode's strategy (without LSV / GSV for the ablations); this module only samples.
+* ``fbe``: frontier-based exploration without semantic value: uniform over the reachable frontiers.
+* ``nearest``: deterministic, the reachable frontier with the shortest geodesic distance.
+
+Sampling is seeded per (episode seed, step, attempt), so a run is reproducible and a retry after a refused
+goal draws again.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+from eqa.messages import Strategy
+
+WEIGHTED: frozenset[str] = frozenset({"semantic", "no_lsv", "no_gsv"})
+
+
+def step_rng(seed: int, step: int, attempt: int = 0) -> np.random.Generator:
+    """The random generator of one planning attempt: a pure function of (seed, step, attempt)."""
+    return np.random.default_rng([int(seed) % (2**63), int(step), int(attempt)])
+
+
+def valid_weights(weights: Sequence[float]) -> np.ndarray:
+    """Mask of weights usable for sampling: finite and non-negative."""
+    w = np.asarray(weights, dtype=np.float64)
+    return np.isfinite(w) & (w >= 0.0)
+
+
+def probabilities(strategy: Strategy, weights: Sequence[float], candidates: Sequence[bool]) -> tuple[np.ndarray, str]:
+    """Sampling probabilities over all frontiers (0 for non-candidates) and a note on what was done.
+
+    ``fbe`` gives equal probability to every candidate. The weighted strategies use Eq. A6 weights; a
+    candidate whose weight is NaN, infinite or negative gets probability 0; when no candidate has a usable
+    weight (or they sum to 0) the candidates are sampled uniformly and the note says so."""
+    cand = np.asarray(candidates, dtype=bool)
+    n = cand.size
+    p = np.zeros(n)
+    if not cand.any():
+        return p, "no candidate frontier"
+    if strategy in WEIGHTED:
+        w = np.asarray(weights, dtype=np.float64)
+        ok = valid_weights(w) & cand
+        bad = int((cand & ~valid_weights(w)).sum())
+        with np.errstate(over="ignore"):
+            total = float(w[ok].sum()) if ok.any() else 0.0
+        if ok.any() and math.isfinite(total) and total > 0.0:
+            p[ok] = w[ok] / total
+            note = f"{strategy}: weighted by Eq. A6"
+            if bad:
+                note += f" ({bad} frontier(s) with invalid weight ignored)"
+            return p, note
+        if ok.any() and not math.isfinite(total):  # finite weights whose sum overflows: scale first
+            ws = w[ok] / w[ok].max()
+            p[ok] = ws / ws.sum()
+            return p, f"{strategy}: weighted by Eq. A6 (rescaled)"
+        p[cand] = 1.0 / cand.sum()
+        return p, f"{strategy}: no usable weight ({bad} invalid), sampled uniformly"
+    p[cand] = 1.0 / cand.sum()
+    return p, f"{strategy}: uniform over reachable frontiers"
+
+
+def choose(
+    strategy: Strategy,
+    weights: Sequence[float],
+    candidates: Sequence[bool],
+    geodesic_m: Sequence[float],
+    rng: np.random.Generator,
+) -> tuple[int | None, np.ndarray, str]:
+    """Index of the chosen frontier (None when there is no candidate), the probabilities, and a note."""
+    cand = np.asarray(candidates, dtype=bool)
+    if strategy == "nearest":
+        p = np.zeros(cand.size)
+        if not cand.any():
+            return None, p, "no candidate frontier"
+        d = np.where(cand, np.asarray(geodesic_m, dtype=np.float64), np.inf)
+        i = int(np.argmin(d))
+        p[i] = 1.0
+        return i, p, f"nearest reachable frontier ({d[i]:.1f} m)"
+    p, note = probabilities(strategy, weights, cand)
+    if not cand.any():
+        return None, p, note
+    i = int(rng.choice(p.size, p=p / p.sum()))
+    return i, p, note

@@ -1,0 +1,304 @@
+"""The planner service: MapUpdate(t) + Decision(t) -> Goal(t).
+
+Per episode it waits for both the mapper's :class:`MapUpdate` and the stopper's :class:`Decision` of a step
+(either may come first). When the decision is to stop it does nothing (the stopper ends the episode);
+otherwise it plans with :func:`services.planner.step.plan_step` and publishes a :class:`Goal`: the next pose
+with the path to it, the chosen frontier, and the sampling probability of every frontier of the map in
+``Goal.weights`` (0 for frontiers that were not candidates), or ``done=True`` with the reason when nothing
+is left to explore. When the simulator refuses the goal (``ErrorReply`` on ``sim/error`` for that episode
+and step) the planner avoids that pose and that frontier and plans again for the same step; after
+``MAX_REFUSALS`` refusals it turns in place, and if even that is refused it ends with the reason.
+
+Monitoring (Rerun, per episode): ``world/plan/path`` (line strip to the goal), ``world/plan/full_path``,
+``world/plan/target`` (approach point of the chosen frontier), ``world/plan/goal`` (goal pose and heading),
+``world/frontiers`` (every frontier, radius and label by its sampling probability).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from eqa import keys
+from eqa.messages import (
+    Decision,
+    EpisodeCancel,
+    EpisodeEnd,
+    EpisodeStart,
+    ErrorReply,
+    Goal,
+    MapUpdate,
+    Pose2D,
+    Strategy,
+)
+from eqa.recording import EpisodeRecorder
+from eqa.service import Service
+from services.planner.sampling import step_rng
+from services.planner.step import Memory, PlannerParams, StepPlan, plan_step
+
+log = logging.getLogger(__name__)
+
+MAX_REFUSALS = 4
+_KEEP_STEPS = 3
+
+
+@dataclass
+class _Pending:
+    """The goal published for one step, kept to plan again if the simulator refuses it."""
+
+    step: int
+    map: MapUpdate
+    memory_before: Memory
+    plan: StepPlan
+    attempt: int = 0
+    excluded: list[tuple[float, float]] = field(default_factory=list)
+    refused: list[tuple[float, float]] = field(default_factory=list)
+
+
+@dataclass
+class _Episode:
+    episode_id: str
+    robot: str
+    strategy: Strategy
+    seed: int
+    recorder: EpisodeRecorder | None
+    started: bool = False  # an EpisodeStart was seen
+    memory: Memory = field(default_factory=Memory)
+    maps: dict[int, MapUpdate] = field(default_factory=dict)
+    decisions: dict[int, Decision] = field(default_factory=dict)
+    planned: int = -1
+    pending: _Pending | None = None
+    done: bool = False
+
+
+class PlannerService(Service):
+    """Frontier sampling (Eq. A6 weights), collision-free paths with clearance, next pose (Explore-EQA)."""
+
+    name = "planner"
+
+    def __init__(self, *args: object, params: PlannerParams | None = None, **kwargs: object) -> None:
+        super().__init__(*args, **kwargs)  # type: ignore[arg-type]
+        self.params = params or PlannerParams()
+        self.episodes: dict[str, _Episode] = {}
+
+    def setup(self) -> None:
+        self.on(keys.EPISODE_START, self.on_start)
+        self.on(keys.EPISODE_CANCEL, self.on_cancel)
+        self.on(keys.EPISODE_END, self.on_end)
+        self.on(keys.MAPPER_MAP, self.on_map)
+        self.on(keys.STOPPER_DECISION, self.on_decision)
+        self.on(keys.SIM_ERROR, self.on_sim_error)
+
+    def teardown(self) -> None:
+        for ep in list(self.episodes.values()):
+            self._close(ep)
+        self.episodes.clear()
+
+    # ---- episode lifecycle ---------------------------------------------------------------------------------
+    def on_start(self, robot: str, msg: EpisodeStart) -> None:
+        rec = EpisodeRecorder(self.settings, msg.episode_id, self.name, enabled=msg.record)
+        old = self.episodes.get(msg.episode_id)
+        if old is not None and not old.started and not old.done and old.planned < 0:
+            # the map or decision of step 0 overtook the start (streams on different keys are not ordered
+            # with respect to each other): keep what arrived, take the episode's settings
+            old.robot, old.strategy, old.seed, old.recorder, old.started = robot, msg.strategy, msg.seed, rec, True
+            self._try_plan(old, 0)
+        else:
+            if old is not None:
+                self._close(old)
+            ep = _Episode(msg.episode_id, robot, msg.strategy, msg.seed, rec, started=True)
+            self.episodes[msg.episode_id] = ep
+        log.info("episode %s on %s: strategy %s, seed %d", msg.episode_id, robot, msg.strategy, msg.seed)
+
+    def on_cancel(self, robot: str, msg: EpisodeCancel) -> None:
+        ep = self.episodes.pop(msg.episode_id, None)
+        if ep is not None:
+            self._close(ep)
+
+    def on_end(self, robot: str, msg: EpisodeEnd) -> None:
+        ep = self.episodes.pop(msg.episode_id, None)
+        if ep is not None:
+            self._close(ep)
+
+    def _close(self, ep: _Episode) -> None:
+        if ep.recorder is not None:
+            ep.recorder.close()
+            ep.recorder = None
+
+    def _episode(self, robot: str, episode_id: str) -> _Episode:
+        ep = self.episodes.get(episode_id)
+        if ep is None:
+            log.warning(
+                "episode %s: no EpisodeStart seen yet; step 0 waits for it, later steps (planner restarted "
+                "mid-episode) are planned with strategy 'semantic', seed 0",
+                episode_id,
+            )
+            ep = _Episode(episode_id, robot, "semantic", 0, None)
+            self.episodes[episode_id] = ep
+        return ep
+
+    # ---- inputs --------------------------------------------------------------------------------------------
+    def on_map(self, robot: str, msg: MapUpdate) -> None:
+        ep = self._episode(robot, msg.episode_id)
+        ep.maps[msg.step] = msg
+        self._try_plan(ep, msg.step)
+
+    def on_decision(self, robot: str, msg: Decision) -> None:
+        ep = self._episode(robot, msg.episode_id)
+        ep.decisions[msg.step] = msg
+        self._try_plan(ep, msg.step)
+
+    def on_sim_error(self, robot: str, msg: ErrorReply) -> None:
+        if msg.episode_id is None or msg.step is None:
+            return
+        ep = self.episodes.get(msg.episode_id)
+        if ep is None or ep.done or ep.pending is None or ep.pending.step != msg.step:
+            return
+        self._replan_after_refusal(ep, msg)
+
+    # ---- planning ------------------------------------------------------------------------------------------
+    def _try_plan(self, ep: _Episode, step: int) -> None:
+        if ep.done or step <= ep.planned or step not in ep.maps or step not in ep.decisions:
+            return
+        if not ep.started and step == 0:
+            return  # the EpisodeStart (strategy, seed) is on its way: on_start plans
+        decision = ep.decisions[step]
+        ep.planned = step
+        for old in [s for s in ep.maps if s <= step - _KEEP_STEPS]:
+            del ep.maps[old]
+        for old in [s for s in ep.decisions if s <= step]:
+            del ep.decisions[old]
+        if decision.stop:
+            log.debug("episode %s step %d: stopper stops (%s); no goal", ep.episode_id, step, decision.reason)
+            return
+        mu = ep.maps[step]
+        pending = _Pending(step=step, map=mu, memory_before=ep.memory.copy(), plan=StepPlan("done", ""))
+        ep.pending = pending
+        self._plan_and_publish(ep, pending)
+
+    def _plan_and_publish(self, ep: _Episode, pending: _Pending, forced: StepPlan | None = None) -> None:
+        mu = pending.map
+        if forced is not None:
+            plan = forced
+        else:
+            memory = pending.memory_before.copy()
+            memory.refused.extend(pending.refused)
+            plan = plan_step(
+                mu.grid,
+                mu.free,
+                mu.occupied,
+                mu.pose,
+                mu.frontiers,
+                ep.strategy,
+                memory,
+                step_rng(ep.seed, pending.step, pending.attempt),
+                self.params,
+                exclude=pending.excluded,
+            )
+        pending.plan = plan
+        ep.memory = plan.memory
+        goal = Goal(
+            episode_id=ep.episode_id,
+            step=pending.step,
+            pose=plan.pose,
+            path=plan.path,
+            frontier=plan.frontier,
+            weights=plan.probabilities,
+            done=plan.done,
+            reason=plan.reason,
+        )
+        if plan.done:
+            ep.done = True
+        log.info(
+            "episode %s step %d: %s (%s) in %.0f ms",
+            ep.episode_id,
+            pending.step,
+            plan.kind,
+            plan.reason,
+            plan.timing_ms.get("step", 0.0),
+        )
+        self.publish(ep.robot, keys.PLANNER_GOAL, goal)
+        self._record(ep, pending.step, mu, plan)
+
+    def _replan_after_refusal(self, ep: _Episode, err: ErrorReply) -> None:
+        pending = ep.pending
+        assert pending is not None
+        plan = pending.plan
+        pending.attempt += 1
+        log.info(
+            "episode %s step %d: simulator refused the goal (%s); attempt %d",
+            ep.episode_id,
+            pending.step,
+            err.reason,
+            pending.attempt,
+        )
+        mu = pending.map
+        if plan.kind == "turn" or plan.pose is None:
+            why = f"the simulator refused {pending.attempt} goal(s) at step {pending.step}, the last: {err.reason}"
+            self._plan_and_publish(
+                ep,
+                pending,
+                StepPlan("done", why, memory=pending.memory_before.copy(), probabilities=[0.0] * len(mu.frontiers)),
+            )
+            return
+        if plan.frontier is not None:
+            pending.excluded.append((plan.frontier.x, plan.frontier.y))
+        if math.hypot(plan.pose.x - mu.pose.x, plan.pose.y - mu.pose.y) > 0.05:
+            pending.refused.append((plan.pose.x, plan.pose.y))
+        if pending.attempt > MAX_REFUSALS:
+            mem = pending.memory_before.copy()
+            mem.target = None
+            yaw = mu.pose.yaw + math.radians(self.params.turn_deg)
+            turn = StepPlan(
+                "turn",
+                f"the simulator refused {pending.attempt} goal(s) ({err.reason}): turning in place",
+                pose=Pose2D(x=mu.pose.x, y=mu.pose.y, yaw=math.atan2(math.sin(yaw), math.cos(yaw))),
+                path=[(mu.pose.x, mu.pose.y)],
+                probabilities=[0.0] * len(mu.frontiers),
+                memory=mem,
+            )
+            self._plan_and_publish(ep, pending, turn)
+            return
+        self._plan_and_publish(ep, pending)
+
+    # ---- monitoring ----------------------------------------------------------------------------------------
+    def _record(self, ep: _Episode, step: int, mu: MapUpdate, plan: StepPlan) -> None:
+        rec = ep.recorder
+        if rec is None or not rec.enabled:
+            return
+        import rerun as rr
+
+        rec.set_step(step)
+        z = 0.05
+        if plan.path:
+            rec.log(
+                "world/plan/path",
+                rr.LineStrips3D([[(x, y, z) for x, y in plan.path]], colors=[(255, 140, 0)], radii=[0.03]),
+            )
+        if plan.full_path:
+            rec.log(
+                "world/plan/full_path",
+                rr.LineStrips3D([[(x, y, z) for x, y in plan.full_path]], colors=[(255, 200, 120)], radii=[0.015]),
+            )
+            tx, ty = plan.full_path[-1]
+            rec.log("world/plan/target", rr.Points3D([(tx, ty, z)], colors=[(255, 0, 0)], radii=[0.12]))
+        if plan.pose is not None:
+            p = plan.pose
+            heading = (0.5 * math.cos(p.yaw), 0.5 * math.sin(p.yaw), 0.0)
+            rec.log(
+                "world/plan/goal",
+                rr.Arrows3D(origins=[(p.x, p.y, z)], vectors=[heading], colors=[(255, 140, 0)]),
+            )
+        if mu.frontiers:
+            probs = np.asarray(plan.probabilities or [0.0] * len(mu.frontiers), dtype=np.float64)
+            pts = [(f.x, f.y, z) for f in mu.frontiers]
+            top = float(probs.max()) if probs.size and probs.max() > 0 else 1.0
+            radii = [0.05 + 0.2 * float(v) / top for v in probs]
+            colors = [(int(255 * float(v) / top), 80, int(255 * (1 - float(v) / top))) for v in probs]
+            labels = [f"w={f.weight:.3g} p={float(v):.2f}" for f, v in zip(mu.frontiers, probs, strict=False)]
+            rec.log("world/frontiers", rr.Points3D(pts, radii=radii, colors=colors, labels=labels))
+        if plan.done:
+            rec.log("world/plan/status", rr.TextLog(f"done: {plan.reason}"))

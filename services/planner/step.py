@@ -1,0 +1,340 @@
+"""One planning step: from the map of step t to the next pose (Explore-EQA IV-B, IV-D, appendix B).
+
+Rules, in order:
+
+1. Frontiers that are malformed (non-finite), outside the map, near a frontier the robot already went to
+   (it faced it from up close and it stayed unknown), or excluded for this step (the simulator refused a
+   goal at it) are not candidates.
+2. The robot's reachable space is searched at the full clearance (0.3 m); when no candidate is reachable
+   there, once more at the reduced clearance (0.2 m) (:mod:`services.planner.paths`).
+3. A candidate is reachable when a reachable traversable point lies within ``approach_radius_m`` of it:
+   its *approach point* (the reachable point nearest the frontier).
+4. The committed far target of earlier steps is kept while a candidate lies within ``commit_radius_m`` of
+   it; otherwise a new frontier is chosen by the strategy (:mod:`services.planner.sampling`).
+5. The robot moves along the path at most ``max_step_m`` (3 m). On arrival at the approach point it faces
+   along the frontier normal (into the unknown) and the frontier is marked visited; on the way it faces
+   along the path.
+6. With no reachable candidate the robot turns in place by ``turn_deg`` to look around; after a full turn
+   without any candidate the episode is done, with the reason.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from eqa.messages import Frontier, GridSpec, Pose2D, Strategy
+from services.planner import sampling
+from services.planner.paths import MapError, PlanningGrid, check_map, path_length, planning_grid, truncate
+
+
+class PlannerParams(BaseModel):
+    """Planner constants (Explore-EQA: 3 m between poses; clearance kept from obstacles and unknown)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    max_step_m: float = Field(default=3.0, gt=0)
+    clearances_m: tuple[float, ...] = (0.3, 0.2)
+    coarse_m: float = Field(default=0.2, gt=0)
+    max_blocks: int = Field(default=400_000, ge=100)
+    snap_radius_m: float = Field(default=1.0, ge=0)
+    approach_radius_m: float = Field(default=1.5, gt=0)
+    commit_radius_m: float = Field(default=1.0, ge=0)
+    max_commit_steps: int = Field(default=12, ge=1)
+    visited_radius_m: float = Field(default=0.75, ge=0)
+    refused_radius_m: float = Field(default=0.35, ge=0)
+    turn_deg: float = Field(default=60.0, gt=0, le=180)
+
+
+@dataclass
+class Memory:
+    """What the planner remembers of one episode between steps (copied, never shared, per attempt)."""
+
+    target: Frontier | None = None
+    committed_steps: int = 0
+    visited: list[tuple[float, float]] = field(default_factory=list)
+    refused: list[tuple[float, float]] = field(default_factory=list)
+    turns: int = 0
+
+    def copy(self) -> Memory:
+        return dataclasses.replace(self, visited=list(self.visited), refused=list(self.refused))
+
+
+@dataclass
+class StepPlan:
+    """The outcome of one step: a move, a turn in place, or done."""
+
+    kind: str  # "move" | "turn" | "done"
+    reason: str
+    pose: Pose2D | None = None
+    path: list[tuple[float, float]] = field(default_factory=list)  # robot -> goal pose (<= max_step_m)
+    full_path: list[tuple[float, float]] = field(default_factory=list)  # robot -> approach point
+    frontier: Frontier | None = None
+    frontier_index: int | None = None
+    probabilities: list[float] = field(default_factory=list)  # per frontier, 0 when not a candidate
+    clearance_m: float | None = None
+    memory: Memory = field(default_factory=Memory)
+    timing_ms: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def done(self) -> bool:
+        return self.kind == "done"
+
+
+def wrap(a: float) -> float:
+    return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+def _valid_frontier(f: Frontier, grid: GridSpec) -> str | None:
+    if not all(math.isfinite(v) for v in (f.x, f.y, f.nx, f.ny)):
+        return "non-finite position or normal"
+    x1 = grid.origin_x + grid.cols * grid.resolution
+    y1 = grid.origin_y + grid.rows * grid.resolution
+    if not (grid.origin_x <= f.x < x1 and grid.origin_y <= f.y < y1):
+        return "outside the map"
+    return None
+
+
+def _near(points: list[tuple[float, float]], x: float, y: float, r: float) -> bool:
+    return any(math.hypot(px - x, py - y) <= r for px, py in points)
+
+
+def _disk_mask(grid: GridSpec, points: list[tuple[float, float]], r: float) -> np.ndarray | None:
+    if not points or r <= 0:
+        return None
+    mask = np.zeros((grid.rows, grid.cols), dtype=bool)
+    rc = math.ceil(r / grid.resolution)
+    for x, y in points:
+        ci = math.floor((y - grid.origin_y) / grid.resolution)
+        cj = math.floor((x - grid.origin_x) / grid.resolution)
+        i0, i1 = max(0, ci - rc), min(grid.rows, ci + rc + 1)
+        j0, j1 = max(0, cj - rc), min(grid.cols, cj + rc + 1)
+        if i0 >= i1 or j0 >= j1:
+            continue
+        ii, jj = np.mgrid[i0:i1, j0:j1]
+        cx = grid.origin_x + (jj + 0.5) * grid.resolution
+        cy = grid.origin_y + (ii + 0.5) * grid.resolution
+        mask[i0:i1, j0:j1] |= np.hypot(cx - x, cy - y) <= r
+    return mask
+
+
+def approach_points(
+    pg: PlanningGrid, frontiers: list[Frontier], ok: np.ndarray, radius_m: float
+) -> tuple[list[tuple[int, int] | None], np.ndarray]:
+    """For each frontier: the reachable block nearest to it within ``radius_m`` (None if none) and the
+    geodesic distance robot -> block -> frontier (inf if unreachable)."""
+    assert pg.dist is not None
+    R, C = pg.dist.shape
+    rad = math.ceil(radius_m / pg.block_m) + 1
+    out: list[tuple[int, int] | None] = []
+    geo = np.full(len(frontiers), np.inf)
+    for n, f in enumerate(frontiers):
+        if not ok[n]:
+            out.append(None)
+            continue
+        bi, bj = pg.block_of(f.x, f.y)
+        r0, r1 = max(0, bi - rad), min(R, bi + rad + 1)
+        c0, c1 = max(0, bj - rad), min(C, bj + rad + 1)
+        if r0 >= r1 or c0 >= c1:
+            out.append(None)
+            continue
+        win = pg.dist[r0:r1, c0:c1]
+        ii, jj = np.nonzero(np.isfinite(win))
+        if ii.size == 0:
+            out.append(None)
+            continue
+        cx, cy = pg.block_centre(ii + r0, jj + c0)
+        e = np.hypot(cx - f.x, cy - f.y)
+        within = e <= radius_m
+        if not within.any():
+            out.append(None)
+            continue
+        # nearest to the frontier; ties (same ring) broken by the geodesic distance from the robot
+        score = np.where(within, e + 1e-3 * win[ii, jj], np.inf)
+        m = int(np.argmin(score))
+        out.append((int(ii[m] + r0), int(jj[m] + c0)))
+        geo[n] = float(win[ii[m], jj[m]] + e[m])
+    return out, geo
+
+
+def plan_step(
+    grid: GridSpec,
+    free: np.ndarray,
+    occupied: np.ndarray,
+    pose: Pose2D,
+    frontiers: list[Frontier],
+    strategy: Strategy,
+    memory: Memory,
+    rng: np.random.Generator,
+    params: PlannerParams | None = None,
+    exclude: list[tuple[float, float]] | None = None,
+) -> StepPlan:
+    """Plan the next pose of one step (module doc). Never raises for bad maps: returns ``done`` with the
+    reason instead. ``memory`` is not modified; the plan carries the memory to keep if the goal is taken."""
+    params = params or PlannerParams()
+    t_start = time.perf_counter()
+    mem = memory.copy()
+    timing: dict[str, float] = {}
+
+    def finish(plan: StepPlan) -> StepPlan:
+        timing["step"] = (time.perf_counter() - t_start) * 1e3
+        plan.timing_ms = timing
+        return plan
+
+    try:
+        check_map(grid, free, occupied)
+    except MapError as exc:
+        return finish(StepPlan("done", f"malformed map: {exc}", memory=mem))
+    x1 = grid.origin_x + grid.cols * grid.resolution
+    y1 = grid.origin_y + grid.rows * grid.resolution
+    if not (grid.origin_x <= pose.x < x1 and grid.origin_y <= pose.y < y1):
+        return finish(
+            StepPlan(
+                "done",
+                f"robot pose ({pose.x:.2f}, {pose.y:.2f}) is outside the map "
+                f"x [{grid.origin_x:.2f}, {x1:.2f}) y [{grid.origin_y:.2f}, {y1:.2f})",
+                memory=mem,
+            )
+        )
+
+    n = len(frontiers)
+    dropped: dict[str, int] = {}
+    ok = np.zeros(n, dtype=bool)
+    for i, f in enumerate(frontiers):
+        why = _valid_frontier(f, grid)
+        if why is None and _near(mem.visited, f.x, f.y, params.visited_radius_m):
+            why = "visited already"
+        if why is None and exclude and _near(exclude, f.x, f.y, 0.5):
+            why = "refused by the simulator this step"
+        if why is None:
+            ok[i] = True
+        else:
+            dropped[why] = dropped.get(why, 0) + 1
+    dropped_note = "; ".join(f"{v} frontier(s) {k}" for k, v in dropped.items())
+
+    extra = _disk_mask(grid, mem.refused, params.refused_radius_m)
+    pg: PlanningGrid | None = None
+    approach: list[tuple[int, int] | None] = [None] * n
+    geo = np.full(n, np.inf)
+    reach = np.zeros(n, dtype=bool)
+    start_found = False
+    for clearance in params.clearances_m:
+        pg = planning_grid(grid, free, occupied, clearance, params.coarse_m, params.max_blocks, extra)
+        started = pg.search_from(pose.x, pose.y, params.snap_radius_m)
+        for key, v in pg.timing_ms.items():
+            timing[key] = timing.get(key, 0.0) + v
+        if not started:
+            continue
+        start_found = True
+        if not ok.any():
+            break
+        approach, geo = approach_points(pg, frontiers, ok, params.approach_radius_m)
+        reach = np.isfinite(geo)
+        if reach.any():
+            break
+    timing["search"] = timing.get("traversable", 0.0) + timing.get("dijkstra", 0.0)
+    assert pg is not None
+
+    if not reach.any():
+        if not start_found:
+            why = (
+                f"no free cell with {min(params.clearances_m):.2f} m clearance within "
+                f"{params.snap_radius_m:.1f} m of the robot"
+            )
+        elif n == 0:
+            why = "no frontier left: the map is fully explored"
+        elif not ok.any():
+            why = f"no usable frontier ({dropped_note})"
+        else:
+            why = f"none of {int(ok.sum())} frontier(s) is reachable with clearance"
+        full_turn = math.ceil(360.0 / params.turn_deg)
+        if mem.turns >= full_turn:
+            return finish(
+                StepPlan(
+                    "done",
+                    f"{why}, even after turning in place a full circle",
+                    memory=mem,
+                    probabilities=[0.0] * n,
+                )
+            )
+        mem.turns += 1
+        mem.target = None
+        mem.committed_steps = 0
+        yaw = wrap(pose.yaw + math.radians(params.turn_deg))
+        return finish(
+            StepPlan(
+                "turn",
+                f"{why}: turning in place to look around ({mem.turns}/{full_turn})",
+                pose=Pose2D(x=pose.x, y=pose.y, yaw=yaw),
+                path=[(pose.x, pose.y)],
+                probabilities=[0.0] * n,
+                memory=mem,
+            )
+        )
+
+    # ---- choose the frontier: the committed target if still there, else the strategy's pick ----------
+    idx: int | None = None
+    probs = np.zeros(n)
+    note = ""
+    if mem.target is not None and mem.committed_steps < params.max_commit_steps:
+        d = np.array(
+            [
+                math.hypot(f.x - mem.target.x, f.y - mem.target.y) if reach[i] else np.inf
+                for i, f in enumerate(frontiers)
+            ]
+        )
+        if d.size and float(d.min()) <= params.commit_radius_m:
+            idx = int(np.argmin(d))
+            probs[idx] = 1.0
+            note = f"kept the committed target (step {mem.committed_steps + 1} towards it)"
+    if idx is None:
+        mem.committed_steps = 0
+        idx, probs, note = sampling.choose(strategy, [f.weight for f in frontiers], reach, geo, rng)
+        assert idx is not None
+    frontier = frontiers[idx]
+    target_block = approach[idx]
+    assert target_block is not None
+    pulled, complete, full = pg.world_path(target_block, params.max_step_m)
+    if not pulled:
+        return finish(StepPlan("done", "internal: no path to a reachable block", memory=mem))
+    path, fits = truncate(pulled, params.max_step_m)
+    arrived = fits and complete
+    gx, gy = path[-1]
+    if arrived:
+        yaw = math.atan2(frontier.ny, frontier.nx)
+        mem.visited.append((frontier.x, frontier.y))
+        mem.target = None
+        mem.committed_steps = 0
+        what = "arrives at"
+    else:
+        (ax, ay), (bx, by) = path[-2], path[-1]
+        yaw = math.atan2(by - ay, bx - ax) if math.hypot(bx - ax, by - ay) > 1e-6 else pose.yaw
+        mem.target = frontier
+        mem.committed_steps += 1
+        what = "heads for"
+    mem.turns = 0
+    moved = path_length(path)
+    reason = (
+        f"{note}; {what} frontier {idx} ({frontier.x:.1f}, {frontier.y:.1f}) "
+        f"moving {moved:.1f} of {float(geo[idx]):.1f} m (clearance {pg.clearance_m:.2f} m)"
+    )
+    if dropped_note:
+        reason += f"; {dropped_note}"
+    return finish(
+        StepPlan(
+            "move",
+            reason,
+            pose=Pose2D(x=gx, y=gy, yaw=wrap(yaw)),
+            path=path,
+            full_path=full,
+            frontier=frontier,
+            frontier_index=idx,
+            probabilities=[float(v) for v in probs],
+            clearance_m=pg.clearance_m,
+            memory=mem,
+        )
+    )

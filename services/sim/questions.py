@@ -1,0 +1,352 @@
+"""Questions about generated houses in the five HM-EQA categories, and the fixed benchmark.
+
+Categories and their shares in HM-EQA (Explore-EQA section VI): identification 16 %, counting 16 %,
+existence 22 %, state 20 %, location 26 %. Yes/no questions use the HM-EQA form: four choices, "Yes" and
+"No" at random places and two "(Do not choose this option)" paddings. Every question carries its ground
+truth (``answer``), the ids of the objects that are the evidence (empty for a "no" existence question:
+there the whole room is the evidence), ``max_steps = int(3 * sqrt(floor area))`` (appendix B), a start
+pose with 0.5 m clearance, and ``query``: the structured parse of the text (never the answer) that the
+oracle scorer reads instead of parsing English.
+
+Only objects that are visible from at least one pose the robot can reach are asked about: for each object
+rays are cast from reachable camera positions (1.5 m high) to points on it, within the vertical field of
+view of the tilted camera; :func:`witness_poses` returns one such pose per visible object.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import Counter, defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from eqa.messages import PADDING_CHOICE, Pose2D, Question
+from services.sim import catalog
+from services.sim.camera import CAMERA_HEIGHT, HFOV_DEG, TILT_DEG, vfov_deg
+from services.sim.catalog import OPPOSITE_STATE, display_name, plural
+from services.sim.motion import START_CLEARANCE, reachable_map, sample_start_pose
+from services.sim.scene import Scene, load_or_generate
+
+log = logging.getLogger(__name__)
+
+CATEGORIES = ("identification", "counting", "existence", "state", "location")
+SHARES = {"identification": 0.16, "counting": 0.16, "existence": 0.22, "state": 0.20, "location": 0.26}
+NUMBER_WORDS = ("None", "One", "Two", "Three", "Four", "Five", "Six", "Seven", "Eight", "Nine", "Ten")
+BENCHMARK_SIZE = 500
+CALIBRATION_SIZE = 300
+QUESTIONS_PER_HOUSE = 3
+VIEW_MIN, VIEW_MAX = 0.6, 3.5  # m, distances from which an object is looked at
+
+
+def max_steps_for(area_m2: float) -> int:
+    """Step limit ``T = int(3 * sqrt(area))`` (Explore-EQA appendix B)."""
+    return max(1, int(3.0 * math.sqrt(max(area_m2, 0.0))))
+
+
+# ---- visibility -----------------------------------------------------------------------------------------
+
+
+def witness_poses(scene: Scene, start: Pose2D | None = None, ids: list[int] | None = None,
+                  candidates: int = 32) -> dict[int, Pose2D]:
+    """For each object (or each of ``ids``) visible from a reachable pose, one such pose, facing it.
+
+    A pose witnesses an object when a ray from the camera centre (1.5 m above the pose) to its centre or
+    its top first hits that object, at an elevation inside the tilted camera's vertical field of view.
+    """
+    import open3d as o3d
+
+    objs = [scene.instances[i] for i in ids] if ids is not None else scene.objects()
+    if not objs:
+        return {}
+    reach, ox, oy = reachable_map(scene, start)
+    step = 5  # every 0.25 m
+    sub = reach[::step, ::step]
+    ii, jj = np.nonzero(sub)
+    cams = np.stack([ox + (jj * step + 0.5) * 0.05, oy + (ii * step + 0.5) * 0.05], axis=1)
+    half_v = vfov_deg(4, 3, HFOV_DEG) / 2.0 - 3.0
+    lo_el, hi_el = math.radians(TILT_DEG - half_v), math.radians(TILT_DEG + half_v)
+    rays_l, owner_l, cam_l, dist_l = [], [], [], []
+    for o in objs:
+        p = np.asarray(o.position, np.float64)
+        dist = np.hypot(cams[:, 0] - p[0], cams[:, 1] - p[1])
+        near = np.flatnonzero((dist > VIEW_MIN) & (dist < VIEW_MAX))
+        if near.size == 0:
+            continue
+        near = near[np.argsort(dist[near], kind="stable")]
+        if near.size > candidates:
+            near = near[np.linspace(0, near.size - 1, candidates).astype(int)]
+        origins = np.column_stack([cams[near], np.full(near.size, CAMERA_HEIGHT)])
+        top = p + np.array([0.0, 0.0, o.size[2] / 2 - 0.01])
+        for target in (p, top):
+            d = target[None, :] - origins
+            n = np.linalg.norm(d, axis=1)
+            el = np.arcsin(d[:, 2] / n)
+            keep = (el >= lo_el) & (el <= hi_el)
+            rays_l.append(np.column_stack([origins[keep], d[keep] / n[keep, None]]))
+            owner_l.append(np.full(int(keep.sum()), o.id))
+            cam_l.append(near[keep])
+            dist_l.append(n[keep])
+    rays = np.concatenate(rays_l) if rays_l else np.zeros((0, 6))
+    owners = np.concatenate(owner_l) if owner_l else np.zeros(0, int)
+    cam_idx = np.concatenate(cam_l) if cam_l else np.zeros(0, int)
+    dists = np.concatenate(dist_l) if dist_l else np.zeros(0)
+    if len(rays) == 0:
+        return {}
+    rc = o3d.t.geometry.RaycastingScene()
+    rc.add_triangles(o3d.core.Tensor(scene.vertices), o3d.core.Tensor(scene.triangles.astype(np.uint32)))
+    out = rc.cast_rays(o3d.core.Tensor(np.asarray(rays, np.float32)))
+    prim = out["primitive_ids"].numpy()
+    t = out["t_hit"].numpy()
+    ok = np.isfinite(t)
+    ok[ok] = scene.triangle_instance[prim[ok]] == owners[ok]
+    found: dict[int, tuple[float, int]] = {}
+    for oid, c, n in zip(owners[ok].tolist(), cam_idx[ok].tolist(), dists[ok].tolist(), strict=True):
+        score = abs(n - 1.6)  # prefer a comfortable viewing distance
+        if oid not in found or score < found[oid][0]:
+            found[oid] = (score, c)
+    poses = {}
+    for oid, (_, c) in found.items():
+        p = scene.instances[oid].position
+        yaw = math.atan2(p[1] - cams[c, 1], p[0] - cams[c, 0])
+        poses[oid] = Pose2D(x=round(float(cams[c, 0]), 3), y=round(float(cams[c, 1]), 3), yaw=round(yaw, 4))
+    return poses
+
+
+# ---- question generation ----------------------------------------------------------------------------------
+
+
+def _yes_no(rng: np.random.Generator, yes: bool, yes_text: str = "Yes", no_text: str = "No") -> tuple[list[str], str]:
+    """HM-EQA yes/no choices: Yes and No at two random places of four, paddings elsewhere."""
+    slots = rng.permutation(4)
+    choices = [PADDING_CHOICE] * 4
+    choices[int(slots[0])] = yes_text
+    choices[int(slots[1])] = no_text
+    answer = "ABCD"[int(slots[0]) if yes else int(slots[1])]
+    return choices, answer
+
+
+def _shuffled(rng: np.random.Generator, correct: str, distractors: list[str]) -> tuple[list[str], str]:
+    choices = [correct, *distractors[:3]]
+    order = rng.permutation(len(choices))
+    out = [choices[int(k)] for k in order]
+    return out, "ABCD"[out.index(correct)]
+
+
+def _article(word: str) -> str:
+    return ("an " if word[0] in "aeiou" else "a ") + word
+
+
+def _pick(rng: np.random.Generator, items: list) -> object:
+    return items[int(rng.integers(0, len(items)))]
+
+
+def generate_questions(scene: Scene, rng: np.random.Generator, per_category: int = 2) -> list[Question]:
+    """Up to ``per_category`` questions of each of the five categories about ``scene`` (fewer when the
+    house offers no fitting object); every answer is ground truth from the scene graph and every evidence
+    object is visible from a reachable pose."""
+    start = sample_start_pose(scene, rng, START_CLEARANCE)
+    visible = witness_poses(scene, start)
+    objs = scene.objects()
+    kinds_in_house = Counter(r.kind for r in scene.rooms)
+    unique_kinds = {k for k, n in kinds_in_house.items() if n == 1}
+    by_cat_kind: dict[tuple[str, str], list[int]] = defaultdict(list)
+    by_cat: dict[str, list[int]] = defaultdict(list)
+    by_cat_color: dict[tuple[str, str], list[int]] = defaultdict(list)
+    for o in objs:
+        by_cat_kind[(o.category, o.room_kind or "")].append(o.id)
+        by_cat[o.category].append(o.id)
+        by_cat_color[(o.category, o.attributes.get("color", ""))].append(o.id)
+    small = [o for o in objs if o.category in catalog.SMALL_OBJECTS and o.id in visible]
+    # an object "the X in the Y" is unambiguous when it is the only X in the only room of kind Y
+    singles = [o for o in small if o.room_kind in unique_kinds and len(by_cat_kind[(o.category, o.room_kind)]) == 1]
+    max_steps = max_steps_for(scene.floor_area_m2)
+    out: dict[str, list[tuple[str, list[str], str, list[int], dict[str, str]]]] = defaultdict(list)
+
+    # identification: the colour of a unique object in a unique room
+    for o in rng.permutation(len(singles))[: per_category * 2]:
+        ob = singles[int(o)]
+        color = ob.attributes["color"]
+        others = [c for c in catalog.SMALL_OBJECTS[ob.category].colors if c != color]
+        others += [c for c in catalog.COLORS if c != color and c not in others]
+        distract = [others[int(k)] for k in rng.permutation(min(len(others), 6))[:3]]
+        if len(distract) < 3:
+            continue
+        room = display_name(ob.room_kind or "")
+        text = str(_pick(rng, [f"What color is the {display_name(ob.category)} in the {room}?",
+                               f"Which color is the {display_name(ob.category)} in the {room}?"]))
+        choices, answer = _shuffled(rng, color.capitalize(), [d.capitalize() for d in distract])
+        q = {"type": "identification", "category": ob.category, "room_kind": ob.room_kind or "",
+             "attribute": "color"}
+        out["identification"].append((text, choices, answer, [ob.id], q))
+
+    # counting: how many of a category in a unique room, or in the whole house (all of them visible)
+    count_cands = []
+    for (cat, kind), ids in by_cat_kind.items():
+        if kind in unique_kinds and 1 <= len(ids) <= 5 and all(i in visible for i in ids):
+            count_cands.append((cat, kind, ids))
+    for cat, ids in by_cat.items():
+        if 2 <= len(ids) <= 6 and all(i in visible for i in ids):
+            count_cands.append((cat, "", ids))
+    for k in rng.permutation(len(count_cands))[:per_category]:
+        cat, kind, ids = count_cands[int(k)]
+        n = len(ids)
+        where = f"in the {display_name(kind)}" if kind else "in the house"
+        text = f"How many {plural(cat)} are there {where}?"
+        pool = [w for m, w in enumerate(NUMBER_WORDS[:8]) if m != n and m >= 1]
+        distract = [pool[int(j)] for j in rng.permutation(len(pool))[:3]]
+        choices, answer = _shuffled(rng, NUMBER_WORDS[n], distract)
+        q = {"type": "counting", "category": cat}
+        if kind:
+            q["room_kind"] = kind
+        out["counting"].append((text, choices, answer, sorted(ids), q))
+
+    # existence: is there an X in the Y (yes: a visible X there; no: none anywhere in that room kind)
+    for _ in range(per_category):
+        yes = bool(rng.random() < 0.5)
+        if yes and singles:
+            ob = singles[int(rng.integers(0, len(singles)))]
+            cat, kind, ev = ob.category, ob.room_kind or "", [ob.id]
+        else:
+            kinds = sorted(unique_kinds)
+            if not kinds:
+                continue
+            kind = str(_pick(rng, kinds))
+            absent = [c for c in catalog.SMALL_OBJECTS if not by_cat_kind.get((c, kind))]
+            if not absent:
+                continue
+            cat, ev, yes = str(_pick(rng, absent)), [], False
+        text = f"Is there {_article(display_name(cat))} in the {display_name(kind)}?"
+        choices, answer = _yes_no(rng, yes)
+        out["existence"].append((text, choices, answer, ev, {"type": "existence", "category": cat, "room_kind": kind}))
+
+    # state: is the X in the Y <state>?
+    stateful = [o for o in singles if "state" in o.attributes]
+    for k in rng.permutation(len(stateful))[:per_category]:
+        ob = stateful[int(k)]
+        actual = ob.attributes["state"]
+        yes = bool(rng.random() < 0.5)
+        asked = actual if yes else OPPOSITE_STATE[actual]
+        text = f"Is the {display_name(ob.category)} in the {display_name(ob.room_kind or '')} {asked}?"
+        choices, answer = _yes_no(rng, yes)
+        q = {"type": "state", "category": ob.category, "room_kind": ob.room_kind or "", "attribute": "state",
+             "value": asked}
+        out["state"].append((text, choices, answer, [ob.id], q))
+
+    # location: where is the <colour> X (the only one of that colour in the house)
+    located = [o for o in small if len(by_cat_color[(o.category, o.attributes.get("color", ""))]) == 1]
+    for k in rng.permutation(len(located))[:per_category]:
+        ob = located[int(k)]
+        kind = ob.room_kind or ""
+        color = ob.attributes["color"]
+        others = [r for r in dict.fromkeys(sorted(kinds_in_house)) if r != kind]
+        others += [r for r in catalog.ROOM_KINDS if r != kind and r not in others]
+        distract = [others[int(j)] for j in rng.permutation(min(len(others), 5))[:3]]
+        text = str(_pick(rng, [f"Where is the {color} {display_name(ob.category)}?",
+                               f"In which room did I leave the {color} {display_name(ob.category)}?"]))
+        wrong = [f"In the {display_name(r)}" for r in distract]
+        choices, answer = _shuffled(rng, f"In the {display_name(kind)}", wrong)
+        q = {"type": "location", "category": ob.category, "color": color}
+        out["location"].append((text, choices, answer, [ob.id], q))
+
+    questions = []
+    for cat in CATEGORIES:
+        for k, (text, choices, answer, ev, q) in enumerate(out[cat][:per_category]):
+            questions.append(Question(
+                id=f"{scene.id}-{cat[:3]}{k}", text=text, choices=choices, scene=scene.id, category=cat,
+                query=q, answer=answer, evidence_ids=ev, start_pose=start, max_steps=max_steps,
+            ))
+    return questions
+
+
+# ---- the fixed benchmark -----------------------------------------------------------------------------------
+
+
+@dataclass
+class Benchmark:
+    """A fixed question set: ``calibration`` (300 questions, for conformal calibration) and ``test`` (200)."""
+
+    seed: int
+    calibration: list[Question] = field(default_factory=list)
+    test: list[Question] = field(default_factory=list)
+
+    @property
+    def questions(self) -> list[Question]:
+        return self.calibration + self.test
+
+    @property
+    def scenes(self) -> list[str]:
+        return sorted({q.scene for q in self.questions})
+
+    def to_json(self) -> dict[str, object]:
+        return {
+            "seed": self.seed,
+            "calibration": [q.model_dump(mode="json") for q in self.calibration],
+            "test": [q.model_dump(mode="json") for q in self.test],
+        }
+
+    def save(self, path: Path) -> Path:
+        import json
+
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(self.to_json(), indent=1, sort_keys=True) + "\n")
+        return path
+
+    @classmethod
+    def load(cls, path: Path) -> Benchmark:
+        import json
+
+        data = json.loads(Path(path).read_text())
+        return cls(seed=int(data["seed"]), calibration=[Question.model_validate(q) for q in data["calibration"]],
+                   test=[Question.model_validate(q) for q in data["test"]])
+
+
+def benchmark_scene_id(seed: int, index: int) -> str:
+    return f"gen-{seed * 10000 + index:05d}"
+
+
+def benchmark(seed: int = 0, scenes_dir: Path | None = None, size: int = BENCHMARK_SIZE,
+              calibration: int = CALIBRATION_SIZE) -> Benchmark:
+    """The fixed benchmark of ``seed``: ``size`` questions in the HM-EQA category proportions over
+    ``size / 3`` generated houses (houses ``gen-{seed*10000 + i}``), split ``calibration`` / rest with the
+    same proportions on both sides. Deterministic; houses are cached in ``scenes_dir`` when given."""
+    from services.sim.housegen import generate_house
+
+    quota = {c: round(SHARES[c] * size) for c in CATEGORIES}
+    quota[CATEGORIES[-1]] += size - sum(quota.values())
+    picked: dict[str, list[Question]] = defaultdict(list)
+    index = 0
+    while sum(len(v) for v in picked.values()) < size:
+        if index > size * 2:
+            raise RuntimeError("benchmark: houses ran out of questions for the category quotas")
+        sid = benchmark_scene_id(seed, index)
+        scene = load_or_generate(sid, scenes_dir) if scenes_dir is not None else generate_house(seed * 10000 + index)
+        rng = np.random.default_rng([seed, index, 11])
+        index += 1
+        cands: dict[str, list[Question]] = defaultdict(list)
+        for q in generate_questions(scene, rng):
+            cands[q.category or ""].append(q)
+        order = sorted(CATEGORIES, key=lambda c: -(quota[c] - len(picked[c])) / quota[c])
+        taken = 0
+        for cat in order:
+            if taken >= QUESTIONS_PER_HOUSE or len(picked[cat]) >= quota[cat] or not cands[cat]:
+                continue
+            picked[cat].append(cands[cat][0])
+            taken += 1
+    split_rng = np.random.default_rng([seed, 99])
+    cal, test = [], []
+    for cat in CATEGORIES:
+        qs = picked[cat]
+        n_cal = round(len(qs) * calibration / size)
+        order = split_rng.permutation(len(qs))
+        cal += [qs[int(k)] for k in order[:n_cal]]
+        test += [qs[int(k)] for k in order[n_cal:]]
+    # rounding per category may leave the split off by one; move questions to hit the exact sizes
+    while len(cal) > calibration:
+        test.append(cal.pop())
+    while len(cal) < calibration:
+        cal.append(test.pop(0))
+    return Benchmark(seed=seed, calibration=cal, test=test)

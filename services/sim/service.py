@@ -1,0 +1,217 @@
+"""The simulator service: renders the robot's view for each episode step.
+
+On ``EpisodeStart`` it loads (or generates) the question's scene, places the robot at the question's
+start pose (or samples one with 0.5 m clearance, seeded by ``EpisodeStart.seed``) and publishes step 0;
+on a ``Goal`` of that episode it moves the robot to the goal pose and publishes the next step. A bad scene,
+a pose in collision, off the floor or not finite, or a mesh that does not parse gets an ``ErrorReply`` on
+``sim/error`` (with episode and step), and the service goes on serving every robot.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from eqa import keys
+from eqa.messages import EpisodeCancel, EpisodeEnd, EpisodeStart, ErrorReply, Frame, Goal, Pose2D
+from eqa.recording import EpisodeRecorder
+from eqa.service import Service
+from eqa.settings import Settings
+from services.sim import hmeqa
+from services.sim.camera import camera_pose, intrinsics
+from services.sim.motion import START_CLEARANCE, pose_error, sample_start_pose
+from services.sim.render import Renderer
+from services.sim.scene import GEN_ID, Scene, SceneLoadError, SceneNotFound, load_mesh_scene, load_or_generate
+
+log = logging.getLogger(__name__)
+MAX_CACHED_SCENES = 4
+
+
+@dataclass
+class _Episode:
+    episode_id: str
+    scene: Scene
+    renderer: Renderer
+    pose: Pose2D
+    max_steps: int
+    step: int = 0
+    trajectory: list[tuple[float, float]] = field(default_factory=list)
+    recorder: EpisodeRecorder | None = None
+
+
+def load_scene(settings: Settings, scene_id: str, floor: int = 0) -> Scene:
+    """A scene by id: generated houses from ``scenes_path``; HM3D scans from ``hm3d_dir`` (floor height
+    from ``scene_init_poses.csv`` there when present); other meshes from ``scenes_path``."""
+    if not GEN_ID.match(scene_id) and settings.hm3d_dir is not None:
+        path = hmeqa.scan_path(settings.hm3d_dir, scene_id)
+        if path is not None:
+            floor_z = 0.0
+            poses_file = Path(settings.hm3d_dir) / hmeqa.POSES_FILE
+            if poses_file.is_file():
+                init = hmeqa.load_init_poses(poses_file).get((scene_id, floor))
+                floor_z = init.floor_height if init else 0.0
+            return load_mesh_scene(path, scene_id=scene_id, floor_z=floor_z)
+    return load_or_generate(scene_id, settings.scenes_path, settings.hm3d_dir)
+
+
+class SimService(Service):
+    """Simulator: scenes, RGB-D + instance rendering, robot motion."""
+
+    name = "sim"
+    description = "Simulator: renders RGB, depth and instance ids of generated houses or real meshes."
+
+    def __init__(self, settings: Settings, *args: object, **kwargs: object) -> None:
+        super().__init__(settings, *args, **kwargs)  # type: ignore[arg-type]
+        self._episodes: dict[str, _Episode] = {}
+        self._scenes: OrderedDict[tuple[str, int], Renderer] = OrderedDict()
+        self._K = intrinsics(settings.sim_width, settings.sim_height)
+
+    def setup(self) -> None:
+        self.on(keys.EPISODE_START, self.on_start)
+        self.on(keys.PLANNER_GOAL, self.on_goal)
+        self.on(keys.EPISODE_CANCEL, self.on_cancel)
+        self.on(keys.EPISODE_END, self.on_end)
+
+    def teardown(self) -> None:
+        for ep in self._episodes.values():
+            if ep.recorder is not None:
+                ep.recorder.close()
+        self._episodes.clear()
+
+    # ---- helpers -----------------------------------------------------------------------------------------
+    def renderer(self, scene_id: str, floor: int = 0) -> Renderer:
+        """The cached renderer of a scene (at most a few scenes are kept)."""
+        key = (scene_id, int(floor))
+        r = self._scenes.get(key)
+        if r is None:
+            r = Renderer(load_scene(self.settings, scene_id, floor))
+            self._scenes[key] = r
+            while len(self._scenes) > MAX_CACHED_SCENES:
+                self._scenes.popitem(last=False)
+        else:
+            self._scenes.move_to_end(key)
+        return r
+
+    def _error(self, robot: str, episode_id: str | None, step: int | None, reason: str) -> None:
+        log.warning("robot %s episode %s step %s: %s", robot, episode_id, step, reason)
+        self.publish(robot, keys.SIM_ERROR, ErrorReply(source="sim", episode_id=episode_id, step=step, reason=reason))
+
+    def _close(self, robot: str) -> None:
+        ep = self._episodes.pop(robot, None)
+        if ep is not None and ep.recorder is not None:
+            ep.recorder.close()
+
+    # ---- handlers ----------------------------------------------------------------------------------------
+    def on_start(self, robot: str, msg: EpisodeStart) -> None:
+        self._close(robot)
+        q = msg.question
+        try:
+            renderer = self.renderer(q.scene, q.floor)
+        except (SceneNotFound, SceneLoadError, hmeqa.HMEQAError) as exc:
+            self._error(robot, msg.episode_id, 0, str(exc))
+            return
+        scene = renderer.scene
+        if q.start_pose is not None:
+            pose = q.start_pose
+            reason = pose_error(scene, pose)
+            if reason is not None:
+                self._error(robot, msg.episode_id, 0, f"start pose refused: {reason}")
+                return
+        else:
+            try:
+                pose = sample_start_pose(scene, np.random.default_rng(msg.seed), START_CLEARANCE)
+            except ValueError as exc:
+                self._error(robot, msg.episode_id, 0, str(exc))
+                return
+        ep = _Episode(msg.episode_id, scene, renderer, pose, msg.max_steps)
+        if msg.record and self.settings.record:
+            ep.recorder = EpisodeRecorder(self.settings, msg.episode_id, "sim", enabled=True)
+            self._log_static(ep)
+        self._episodes[robot] = ep
+        self._emit(robot, ep)
+
+    def on_goal(self, robot: str, goal: Goal) -> None:
+        ep = self._episodes.get(robot)
+        if ep is None or ep.episode_id != goal.episode_id:
+            log.debug("goal for unknown episode %s of robot %s ignored", goal.episode_id, robot)
+            return
+        if goal.done:
+            return
+        if goal.step != ep.step:
+            log.warning("robot %s: goal for step %d while at step %d ignored", robot, goal.step, ep.step)
+            return
+        if goal.pose is None:
+            self._error(robot, ep.episode_id, goal.step, "goal has no pose and is not done")
+            return
+        if ep.step + 1 >= ep.max_steps:
+            self._error(robot, ep.episode_id, goal.step, f"step limit {ep.max_steps} reached")
+            return
+        reason = pose_error(ep.scene, goal.pose)
+        if reason is not None:
+            self._error(robot, ep.episode_id, goal.step, f"goal refused: {reason}")
+            return
+        ep.pose = goal.pose
+        ep.step += 1
+        self._emit(robot, ep)
+
+    def on_cancel(self, robot: str, msg: EpisodeCancel) -> None:
+        ep = self._episodes.get(robot)
+        if ep is not None and ep.episode_id == msg.episode_id:
+            log.info("robot %s: episode %s cancelled (%s)", robot, msg.episode_id, msg.reason)
+            self._close(robot)
+
+    def on_end(self, robot: str, msg: EpisodeEnd) -> None:
+        ep = self._episodes.get(robot)
+        if ep is not None and ep.episode_id == msg.episode_id:
+            self._close(robot)
+
+    # ---- rendering ---------------------------------------------------------------------------------------
+    def render_frame(self, ep: _Episode) -> Frame:
+        w, h = self.settings.sim_width, self.settings.sim_height
+        T = camera_pose(ep.pose)
+        out = ep.renderer.render(T, self._K, w, h)
+        return Frame(
+            episode_id=ep.episode_id, step=ep.step, pose=ep.pose, camera_pose=T, intrinsics=self._K,
+            rgb=out.rgb, depth=out.depth, instances=out.instances, labels=ep.renderer.labels(out.instances),
+            scene=ep.scene.id, floor_area_m2=ep.scene.floor_area_m2,
+        )
+
+    def _emit(self, robot: str, ep: _Episode) -> None:
+        frame = self.render_frame(ep)
+        ep.trajectory.append((ep.pose.x, ep.pose.y))
+        self.publish(robot, keys.SIM_FRAME, frame)
+        self._log_step(ep, frame)
+
+    def _log_static(self, ep: _Episode) -> None:
+        rec = ep.recorder
+        if rec is None or not rec.enabled:
+            return
+        import rerun as rr
+
+        sc = ep.scene
+        if sc.triangle_colors is not None and len(sc.triangles) < 200_000:
+            rec.log("world/scene", rr.Mesh3D(vertex_positions=sc.vertices[sc.triangles].reshape(-1, 3),
+                                             vertex_colors=np.repeat(sc.triangle_colors, 3, axis=0)), static=True)
+
+    def _log_step(self, ep: _Episode, frame: Frame) -> None:
+        rec = ep.recorder
+        if rec is None or not rec.enabled:
+            return
+        import rerun as rr
+
+        rec.set_step(frame.step)
+        rec.log("camera/rgb", rr.Image(frame.rgb))
+        rec.log("camera/depth", rr.DepthImage(frame.depth, meter=1.0))
+        T = frame.camera_pose
+        rec.log("world/camera", rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]))
+        rec.log("world/camera", rr.Pinhole(image_from_camera=frame.intrinsics,
+                                           resolution=[frame.rgb.shape[1], frame.rgb.shape[0]]))
+        p = frame.pose
+        rec.log("world/robot", rr.Arrows3D(origins=[[p.x, p.y, 0.05]],
+                                           vectors=[[0.5 * np.cos(p.yaw), 0.5 * np.sin(p.yaw), 0.0]]))
+        pts = [[x, y, 0.05] for x, y in ep.trajectory]
+        rec.log("world/trajectory", rr.LineStrips3D([pts]))

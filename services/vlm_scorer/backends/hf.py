@@ -1,0 +1,142 @@
+"""Local transformers vision-language model (``scorer_backend=hf``), loaded from a directory.
+
+Supported families (by ``config.model_type``): ``qwen2_vl`` and ``qwen2_5_vl`` (Qwen2-VL chat format).
+The probabilities are read from the next-token logits at the end of the assistant prompt and normalised
+over the candidate tokens (letters or Yes/No), i.e. a softmax restricted to the candidate logits. The
+four prompts of a step run as one left-padded batch (:meth:`HFBackend.candidate_probs`).
+
+Inputs are built from the directory's tokenizer and image processor (``AutoTokenizer``,
+``AutoImageProcessor``) rather than ``Qwen2VLProcessor``: the processor insists on a video processor that
+needs torchvision, which cannot be installed beside torch 2.13.0 here. Building them ourselves is what the
+processor does for images: expand ``<|image_pad|>`` to ``prod(image_grid_thw) / merge_size**2`` tokens and
+mark those tokens in ``mm_token_type_ids`` (1 = image) for M-RoPE. Without torchvision
+``AutoImageProcessor`` gives ``Qwen2VLImageProcessorPil``.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from pathlib import Path
+
+import numpy as np
+
+from services.vlm_scorer import prompts
+from services.vlm_scorer.backends.base import BackendUnavailable, BadRequest, ModelBackend
+
+log = logging.getLogger(__name__)
+
+QWEN_FAMILIES = {"qwen2_vl", "qwen2_5_vl"}
+IMAGE_PAD = "<|image_pad|>"
+
+
+def qwen_chat(text: str, system: str = prompts.SYSTEM) -> str:
+    """Qwen2-VL chat format with one image before the user text, ending where the answer starts."""
+    return (
+        f"<|im_start|>system\n{system}<|im_end|>\n"
+        f"<|im_start|>user\n<|vision_start|>{IMAGE_PAD}<|vision_end|>{text}<|im_end|>\n"
+        "<|im_start|>assistant\n"
+    )
+
+
+def single_token_id(tokenizer: object, text: str) -> int:
+    """The id of ``text`` as one token; a clear error when the tokenizer splits it or cannot encode it."""
+    ids = tokenizer.encode(text, add_special_tokens=False)  # type: ignore[attr-defined]
+    if len(ids) != 1:
+        pieces = tokenizer.convert_ids_to_tokens(ids) if ids else []  # type: ignore[attr-defined]
+        raise BadRequest(
+            f"candidate {text!r} is not a single token of this model's tokenizer (encodes to {pieces!r}); "
+            "its probability cannot be read from the next-token distribution"
+        )
+    return int(ids[0])
+
+
+class HFBackend(ModelBackend):
+    name = "hf"
+
+    def __init__(self, path: str | Path, device: str = "cpu") -> None:
+        import torch
+        from transformers import AutoConfig, AutoImageProcessor, AutoModelForImageTextToText, AutoTokenizer
+
+        self.path = Path(path)
+        if not self.path.is_dir():
+            raise BackendUnavailable(
+                f"hf model directory {str(self.path)!r} does not exist "
+                "(set EQA_HF_MODEL_PATH to a saved model)"
+            )
+        if not (self.path / "config.json").is_file():
+            raise BackendUnavailable(
+                f"{str(self.path)!r} has no config.json: not a transformers model directory"
+            )
+        try:
+            config = AutoConfig.from_pretrained(self.path, local_files_only=True)
+        except Exception as exc:
+            raise BackendUnavailable(f"cannot read the model config in {str(self.path)!r}: {exc}") from exc
+        model_type = getattr(config, "model_type", "?")
+        if model_type not in QWEN_FAMILIES or getattr(config, "vision_config", None) is None:
+            raise BackendUnavailable(
+                f"{str(self.path)!r} holds a {model_type!r} model, not a supported vision-language model "
+                f"(supported: {', '.join(sorted(QWEN_FAMILIES))})"
+            )
+        self.torch = torch
+        self.device = torch.device(device)
+        self.tokenizer = AutoTokenizer.from_pretrained(self.path, local_files_only=True)
+        self.tokenizer.padding_side = "left"
+        if self.tokenizer.pad_token_id is None:
+            self.tokenizer.pad_token = self.tokenizer.eos_token
+        self.image_processor = AutoImageProcessor.from_pretrained(self.path, local_files_only=True)
+        self.net = AutoModelForImageTextToText.from_pretrained(self.path, local_files_only=True)
+        self.net.to(self.device).eval()
+        self.image_token_id = int(config.image_token_id)
+        self.merge = int(getattr(self.image_processor, "merge_size", 2))
+        self.model_name = f"{model_type}:{self.path.name}"
+        self._lock = threading.Lock()
+        self._token_cache: dict[str, int] = {}
+        log.info("hf backend: %s (%s) on %s", self.path, model_type, self.device)
+
+    def token_id(self, text: str) -> int:
+        if text not in self._token_cache:
+            self._token_cache[text] = single_token_id(self.tokenizer, text)
+        return self._token_cache[text]
+
+    # ---- inputs ---------------------------------------------------------------------------------------
+    def _inputs(self, images: list[np.ndarray], texts: list[str]) -> dict[str, object]:
+        from PIL import Image
+
+        vis = self.image_processor(images=[Image.fromarray(i) for i in images], return_tensors="pt")
+        grid = vis["image_grid_thw"]
+        chats = []
+        for k, text in enumerate(texts):
+            n = int(grid[k].prod().item()) // (self.merge**2)
+            chats.append(qwen_chat(text).replace(IMAGE_PAD, IMAGE_PAD * n))
+        enc = self.tokenizer(chats, padding=True, return_tensors="pt", add_special_tokens=False)
+        ids = enc["input_ids"]
+        return {
+            "input_ids": ids.to(self.device),
+            "attention_mask": enc["attention_mask"].to(self.device),
+            "mm_token_type_ids": (ids == self.image_token_id).to(self.torch.int32).to(self.device),
+            "pixel_values": vis["pixel_values"].to(self.device),
+            "image_grid_thw": grid.to(self.device),
+        }
+
+    def candidate_probs(
+        self, rgb: np.ndarray, annotated: np.ndarray | None, queries: list[prompts.Query]
+    ) -> list[dict[str, float]]:
+        """One forward pass over the batch; softmax of the last logits over each query's candidates."""
+        cand_ids = [[self.token_id(c) for c in q.candidates] for q in queries]
+        images = [annotated if (q.annotated and annotated is not None) else rgb for q in queries]
+        inputs = self._inputs(images, [q.text for q in queries])
+        with self._lock, self.torch.inference_mode():
+            logits = self.net(**inputs).logits[:, -1, :].float()
+        out = []
+        for row, q, ids in zip(logits, queries, cand_ids, strict=True):
+            p = self.torch.softmax(row[ids], dim=-1).cpu().numpy()
+            out.append({c: float(v) for c, v in zip(q.candidates, p, strict=True)})
+        return out
+
+    def generate(self, rgb: np.ndarray, text: str, max_new_tokens: int = 48) -> str:
+        inputs = self._inputs([rgb], [text])
+        with self._lock, self.torch.inference_mode():
+            out = self.net.generate(**inputs, max_new_tokens=max_new_tokens, do_sample=False)
+        new = out[0, inputs["input_ids"].shape[1] :]  # type: ignore[union-attr]
+        return str(self.tokenizer.decode(new, skip_special_tokens=True))

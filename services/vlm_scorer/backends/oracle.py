@@ -1,0 +1,396 @@
+"""SIMULATED PERCEPTION MODEL (``scorer_backend=oracle``) - not a VLM.
+
+The simulator's default scorer for benchmarks and demos without a GPU. It stands in for a VLM and is
+always labelled as simulated (``ScoreResult.backend == "oracle"``, ``model == "simulated-perception"``).
+
+What it reads: the labels of the instances *visible in the current frame* (``ScoreRequest.labels``, the
+``instances`` id image, ``depth``), the prompt points, and the question's text, choices and structured
+parse ``question.query``. It never reads ``question.answer`` or ``question.evidence_ids`` and never sees a
+part of the scene outside the frame.
+
+How it behaves (the knobs are :class:`OracleParams`, from settings ``EQA_ORACLE_*``):
+
+* Perception: a target (an instance of the asked category, in the asked room when one is asked) counts as
+  seen with a quality ``E`` in [0, 1] from its pixel share (``min_pixels_frac`` .. ``full_pixels_frac``) and
+  its distance (full up to ``near_m``, none past ``max_range_m``). On a view with evidence the model reads
+  the answer from what it sees (colour, state, count, room), right with probability ``accuracy`` - the draw
+  is per (episode, target instance), so the model is consistently right or wrong about one object, as a
+  real VLM is about one view of it.
+* Answer distribution f(x^t): with evidence, the read answer gets a top probability around
+  ``evidence_confidence``; without evidence (or with probability 1 - E on weak views) the model answers
+  anyway, confidently and biased (Explore-EQA VII-G): a per-question bias choice gets a top probability
+  around ``bias_confidence``. ``temperature`` (>1 flatter, <1 sharper) miscalibrates both. Padding choices
+  "(Do not choose this option)" never get more than ``padding_floor``.
+* Relevance Rel(x^t) (Eq. 5): ``relevance_scale * E`` with log-normal noise, so it runs low even on good
+  views (appendix C, Fig. A5); about ``relevance_floor`` on views without evidence.
+* LSV (Eq. 1): per prompt point, the rooms and objects whose instance ids lie within ``window_frac`` of the
+  short image side around the point's pixel (floors and walls carry the room kind) scored with the
+  commonsense prior of :mod:`services.vlm_scorer.commonsense`, a bonus for a seen target and for
+  connectors (doors, stairs) when the asked room is not in view; softmax with ``lsv_temperature``; with
+  probability 1 - ``accuracy`` the scores are shuffled (a confused model).
+* GSV (Eq. 2): P(Yes) from the best prior among the rooms in view, connectors and seen targets, plus noise.
+
+Every draw comes from a generator seeded by (``ScoreRequest.seed``, episode id, step), so the same request
+gives the same numbers. The defaults aim at the paper's 56-65 % success at the full step budget for open
+VLMs; the same defaults serve every exploration and stopping strategy.
+"""
+
+from __future__ import annotations
+
+import re
+import zlib
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+from eqa.messages import NOT_LISTED_CHOICE, PADDING_CHOICE, InstanceLabel, Question, ScoreRequest
+from eqa.settings import Settings
+from services.vlm_scorer import commonsense as cs
+from services.vlm_scorer.backends.base import Backend, Scores, validate_request
+
+MODEL_LABEL = "simulated-perception"
+
+NUMBER_WORDS = {
+    "none": 0,
+    "zero": 0,
+    "no": 0,
+    "one": 1,
+    "single": 1,
+    "two": 2,
+    "three": 3,
+    "four": 4,
+    "five": 5,
+    "six": 6,
+    "seven": 7,
+    "eight": 8,
+    "nine": 9,
+    "ten": 10,
+}
+COLORS = (
+    "white",
+    "black",
+    "gray",
+    "grey",
+    "brown",
+    "beige",
+    "red",
+    "orange",
+    "yellow",
+    "green",
+    "blue",
+    "purple",
+    "pink",
+    "silver",
+    "gold",
+    "tan",
+    "cream",
+    "navy",
+    "teal",
+    "wooden",
+)
+
+
+@dataclass(frozen=True)
+class OracleParams:
+    """The knobs of the simulated perception model (documented in the module docstring)."""
+
+    accuracy: float = 0.8
+    evidence_confidence: float = 0.8
+    bias_confidence: float = 0.7
+    bias_stickiness: float = 0.75  # P(the no-evidence answer is the question's bias choice)
+    temperature: float = 1.0
+    relevance_scale: float = 0.55
+    relevance_floor: float = 0.06
+    relevance_noise: float = 0.35  # sd of the log-normal noise on Rel
+    min_pixels_frac: float = 0.002
+    full_pixels_frac: float = 0.03
+    near_m: float = 2.0
+    max_range_m: float = 6.0
+    padding_floor: float = 1e-3
+    window_frac: float = 0.12
+    lsv_temperature: float = 0.35
+
+    @classmethod
+    def from_settings(cls, settings: Settings) -> OracleParams:
+        kw = {}
+        for f in fields(cls):
+            value = getattr(settings, f"oracle_{f.name}", None)
+            if value is not None:
+                kw[f.name] = float(value)
+        return cls(**kw)
+
+
+@dataclass(frozen=True)
+class Target:
+    """What the question is about, from ``question.query`` or the free-text fallback."""
+
+    type: str
+    category: str | None
+    room_kind: str | None
+    attribute: str | None
+    value: str | None
+
+
+def parse_target(question: Question) -> Target:
+    """The structured parse; a free-text question without ``query`` falls back to matching catalog names."""
+    q = {k.lower(): v for k, v in question.query.items()}
+    text = question.text.lower()
+    qtype = q.get("type")
+    category = q.get("category")
+    room_kind = q.get("room_kind")
+    if category is None:
+        category = next((c for c in cs.known_categories() if re.search(rf"\b{re.escape(c)}s?\b", text)), None)
+    if room_kind is None and not q:
+        room_kind = next((rk for rk in cs.ROOM_KINDS if cs.room_display(rk) in text), None)
+    if qtype is None:
+        if "how many" in text:
+            qtype = "counting"
+        elif "color" in text or "colour" in text:
+            qtype = "identification"
+        elif text.startswith("where"):
+            qtype = "location"
+        elif any(c.split(",")[0].strip().lower() in ("yes", "no") for c in question.choices):
+            qtype = "existence"
+        else:
+            qtype = "identification"
+    return Target(
+        qtype, cs.norm_category(category) if category else None, room_kind, q.get("attribute"), q.get("value")
+    )
+
+
+def _words(s: str) -> list[str]:
+    return re.findall(r"[a-z0-9]+", s.lower())
+
+
+def choice_number(choice: str) -> int | None:
+    for w in _words(choice):
+        if w.isdigit():
+            return int(w)
+        if w in NUMBER_WORDS:
+            return NUMBER_WORDS[w]
+    return None
+
+
+def yes_no(choice: str) -> str | None:
+    w = _words(choice)
+    return w[0] if w and w[0] in ("yes", "no") else None
+
+
+class OracleBackend(Backend):
+    """SIMULATED PERCEPTION MODEL standing in for a VLM (see the module docstring)."""
+
+    name = "oracle"
+    model_name = MODEL_LABEL
+
+    def __init__(self, params: OracleParams | None = None) -> None:
+        self.p = params or OracleParams()
+
+    @classmethod
+    def from_settings(cls, settings: Settings) -> OracleBackend:
+        return cls(OracleParams.from_settings(settings))
+
+    # ---- perception --------------------------------------------------------------------------------------
+    def _quality(self, req: ScoreRequest, lab: InstanceLabel) -> float:
+        h, w = req.rgb.shape[:2]
+        pixels = lab.pixels
+        dist = None
+        if req.instances is not None:
+            mask = req.instances == lab.id
+            pixels = int(mask.sum()) or pixels
+            if req.depth is not None and mask.any():
+                d = req.depth[mask]
+                d = d[np.isfinite(d) & (d > 0)]
+                dist = float(np.median(d)) if d.size else None
+        frac = pixels / float(h * w)
+        p = self.p
+        q = float(
+            np.clip((frac - p.min_pixels_frac) / max(p.full_pixels_frac - p.min_pixels_frac, 1e-9), 0, 1)
+        )
+        if dist is not None:
+            q *= float(np.clip((p.max_range_m - dist) / max(p.max_range_m - p.near_m, 1e-9), 0.0, 1.0))
+        return q
+
+    def _targets(self, req: ScoreRequest, t: Target) -> list[tuple[InstanceLabel, float]]:
+        if t.category is None:
+            return []
+        out = []
+        for lab in req.labels:
+            if cs.norm_category(lab.category) != t.category:
+                continue
+            same_room = cs.canonical_room(lab.room_kind) == cs.canonical_room(t.room_kind)
+            if t.room_kind and t.type != "location" and lab.room_kind and not same_room:
+                continue
+            q = self._quality(req, lab)
+            if q > 0:
+                out.append((lab, q))
+        return sorted(out, key=lambda x: -x[1])
+
+    def _read_answer(
+        self, t: Target, seen: list[tuple[InstanceLabel, float]], choices: list[str]
+    ) -> int | None:
+        """Index of the choice that what is seen supports (None: the view says nothing about the answer)."""
+        if not seen:
+            return None
+        low = [c.lower() for c in choices]
+        best = seen[0][0]
+        found: int | None = None
+        if t.type == "counting":
+            n = len(seen)
+            found = next((i for i, c in enumerate(choices) if choice_number(c) == n), None)
+        elif t.type == "existence":
+            found = next((i for i, c in enumerate(choices) if yes_no(c) == "yes"), None)
+        elif t.type == "state":
+            state = best.attributes.get(t.attribute or "state", best.attributes.get("state"))
+            if state is not None:
+                yn = [yes_no(c) for c in choices]
+                if any(yn) and t.value is not None:
+                    want = "yes" if state.lower() == t.value.lower() else "no"
+                    found = next((i for i, v in enumerate(yn) if v == want), None)
+                else:
+                    found = next((i for i, c in enumerate(low) if state.lower() in _words(c)), None)
+        elif t.type == "location":
+            if best.room_kind:
+                name = cs.room_display(best.room_kind)
+                found = next((i for i, c in enumerate(low) if name in c), None)
+        else:  # identification: colour (or another asked attribute)
+            value = best.attributes.get(t.attribute or "color", best.attributes.get("color"))
+            if value is not None:
+                found = next((i for i, c in enumerate(low) if value.lower() in c), None)
+        if found is None and NOT_LISTED_CHOICE in choices:
+            found = choices.index(NOT_LISTED_CHOICE)
+        return found
+
+    # ---- the four numbers --------------------------------------------------------------------------------
+    def _answer(
+        self,
+        rng: np.random.Generator,
+        req: ScoreRequest,
+        choices: list[str],
+        t: Target,
+        seen: list[tuple[InstanceLabel, float]],
+    ) -> tuple[list[float], float, bool]:
+        p = self.p
+        n = len(choices)
+        real = [i for i, c in enumerate(choices) if c.strip() != PADDING_CHOICE] or list(range(n))
+        read = self._read_answer(t, seen, choices)
+        quality = seen[0][1] if seen else 0.0
+        evidence = read is not None and rng.random() < quality
+        if evidence:
+            assert read is not None
+            u = np.random.default_rng([req.seed, _h(req.episode_id), _h(req.question.text), seen[0][0].id])
+            right = u.random() < p.accuracy
+            others = [i for i in real if i != read]
+            chosen = read if right or not others else others[int(u.integers(len(others)))]
+            top = float(np.clip(rng.normal(p.evidence_confidence, 0.1), 0.3, 0.995))
+        else:
+            qrng = np.random.default_rng([req.seed, _h(req.episode_id), _h(req.question.text)])
+            bias = real[int(qrng.integers(len(real)))]
+            chosen = bias if rng.random() < p.bias_stickiness else real[int(rng.integers(len(real)))]
+            top = float(np.clip(rng.normal(p.bias_confidence, 0.12), 0.3, 0.995))
+            right = False
+        probs = np.zeros(n)
+        rest = [i for i in real if i != chosen]
+        probs[chosen] = top
+        if rest:
+            probs[rest] = (1.0 - top) * rng.dirichlet(np.ones(len(rest)))
+        else:
+            probs[chosen] = 1.0
+        probs = np.power(np.maximum(probs, 1e-12), 1.0 / max(p.temperature, 1e-3))
+        pad = [i for i in range(n) if i not in real]
+        probs[pad] = 0.0
+        probs /= probs.sum()
+        if pad:
+            probs[pad] = p.padding_floor
+            probs[real] *= (1.0 - p.padding_floor * len(pad)) / probs[real].sum()
+        return probs.tolist(), quality if evidence else 0.0, right
+
+    def _relevance(self, rng: np.random.Generator, quality: float, right: bool) -> float:
+        p = self.p
+        noise = float(np.exp(rng.normal(0.0, p.relevance_noise)))
+        if quality > 0:
+            rel = p.relevance_scale * quality * (1.0 if right else 0.8) * noise
+        else:
+            rel = p.relevance_floor * noise
+        return float(np.clip(rel, 0.01, 0.99))
+
+    def _point_features(self, req: ScoreRequest, u: float, v: float) -> list[InstanceLabel]:
+        if req.instances is None:
+            return []
+        h, w = req.instances.shape
+        r = max(2, int(self.p.window_frac * min(h, w)))
+        ui, vi = int(np.clip(round(u), 0, w - 1)), int(np.clip(round(v), 0, h - 1))
+        patch = req.instances[max(0, vi - r) : vi + r + 1, max(0, ui - r) : ui + r + 1]
+        ids = set(np.unique(patch).tolist())
+        return [lab for lab in req.labels if lab.id in ids]
+
+    def _place_value(self, t: Target, labs: list[InstanceLabel]) -> float:
+        """Commonsense worth of a place showing ``labs`` for finding the target."""
+        if not labs:
+            return 0.2
+        rooms = {cs.canonical_room(lab.room_kind) for lab in labs if lab.room_kind}
+        wanted = cs.canonical_room(t.room_kind)
+        if wanted:
+            room_score = 1.0 if wanted in rooms else 0.1
+            if t.category and t.type != "location":
+                room_score *= 0.5 + 0.5 * max(
+                    (cs.prior(t.category, rk) for rk in rooms), default=cs.UNKNOWN_PRIOR
+                )
+        else:
+            room_score = max((cs.prior(t.category or "", rk) for rk in rooms), default=cs.UNKNOWN_PRIOR)
+        cats = {cs.norm_category(lab.category) for lab in labs}
+        target_bonus = 0.6 if t.category in cats else 0.0
+        wanted_here = wanted in rooms if wanted else room_score > 0.5
+        connector = 0.3 if (cats & cs.CONNECTORS) and not wanted_here else 0.0
+        return room_score + target_bonus + connector
+
+    def _lsv(self, rng: np.random.Generator, req: ScoreRequest, t: Target) -> list[float]:
+        pts = req.prompt_points
+        if not pts:
+            return []
+        if len(pts) == 1:
+            return [1.0]
+        s = np.array([self._place_value(t, self._point_features(req, pt.u, pt.v)) for pt in pts])
+        s += rng.normal(0.0, 0.05, size=s.shape)
+        if rng.random() > self.p.accuracy:
+            s = rng.permutation(s)
+        z = s / max(self.p.lsv_temperature, 1e-3)
+        e = np.exp(z - z.max())
+        return (e / e.sum()).tolist()
+
+    def _gsv(self, rng: np.random.Generator, req: ScoreRequest, t: Target, seen: bool) -> float:
+        visible = [lab for lab in req.labels if lab.pixels > 0 or req.instances is not None]
+        value = self._place_value(t, visible) if visible else 0.2
+        g = 0.1 + 0.45 * min(value, 1.6) / 1.6 + (0.15 if seen else 0.0) + rng.normal(0.0, 0.08)
+        return float(np.clip(g, 0.02, 0.98))
+
+    def propose_choices(self, question: Question, t: Target) -> list[str]:
+        """Section VI-A for the simulated model: candidates from the question alone (stable over steps)."""
+        if t.type == "counting":
+            base = ["One", "Two", "Three", "Four"]
+        elif t.type in ("existence", "state"):
+            base = ["Yes", "No"]
+        elif t.type == "location":
+            base = [cs.room_display(rk) for rk in cs.likely_rooms(t.category or "", 3)]
+        else:
+            base = ["White", "Black", "Brown", "Gray"]
+        return [*base, NOT_LISTED_CHOICE]
+
+    def score(self, req: ScoreRequest) -> Scores:
+        validate_request(req)
+        rng = np.random.default_rng([req.seed, _h(req.episode_id), req.step])
+        t = parse_target(req.question)
+        proposed: list[str] = []
+        choices = list(req.question.choices)
+        if not choices:
+            proposed = self.propose_choices(req.question, t)
+            choices = proposed
+        seen = self._targets(req, t)
+        probs, quality, right = self._answer(rng, req, choices, t, seen)
+        rel = self._relevance(rng, quality, right)
+        lsv = self._lsv(rng, req, t)
+        gsv = self._gsv(rng, req, t, bool(seen))
+        return Scores(probs, rel, lsv, gsv, proposed)
+
+
+def _h(text: str) -> int:
+    return zlib.crc32(text.encode("utf-8"))

@@ -1,0 +1,192 @@
+"""The scorer replica: a Zenoh queryable on ``eqa/v1/scorer/{replica}/score`` serving ScoreRequests.
+
+The replica id is ``EQA_SCORER_REPLICA`` (default: the instance id); the bus instance is set to it, so the
+liveliness token ``eqa/v1/alive/vlm_scorer/{replica}`` names the same replica as the queryable key, which is
+how :class:`eqa.scorer_client.ScorerClient` finds it.
+
+Concurrency: the Zenoh callback only queues the query; one worker thread decodes, scores and replies, so a
+replica serves one request at a time (a model is not safe to share between threads, and on CPU a second
+concurrent forward pass only competes for the same cores) and queues the rest. Scale with replicas.
+
+Errors are replies, never crashes: a malformed request, a bad image, an empty question, too many choices or
+a backend that could not load (missing model directory, not a vision-language model) give an
+:class:`eqa.messages.ErrorReply` with the reason, and the replica keeps serving.
+
+Monitoring: with recording on, the visually prompted image of each step is logged to the episode's Rerun
+recording (``EpisodeRecorder(settings, episode_id, "vlm_scorer")``, entity ``camera/annotated``).
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from collections import OrderedDict
+from typing import Any
+
+import zenoh
+
+from eqa import keys
+from eqa.bus import Bus
+from eqa.codec import CodecError
+from eqa.messages import ErrorReply, Message, ScoreRequest, ScoreResult, decode, encode
+from eqa.recording import EpisodeRecorder
+from eqa.service import Service
+from eqa.settings import Settings
+from eqa.store import Store
+from services.vlm_scorer.backends import Backend, make_backend
+from services.vlm_scorer.backends.base import Scores
+from services.vlm_scorer.visual_prompt import annotate
+
+log = logging.getLogger(__name__)
+
+ANNOTATED_ENTITY = "camera/annotated"
+MAX_OPEN_RECORDINGS = 4
+_STOP = object()
+
+
+class ScorerService(Service):
+    """VLM scorer replica (Explore-EQA Eq. 1, 2, 5 and the answer distribution) as a Zenoh queryable."""
+
+    name = "vlm_scorer"
+    description = "VLM scorer replica: answers ScoreRequests on eqa/v1/scorer/{replica}/score."
+
+    def __init__(
+        self,
+        settings: Settings,
+        bus: Bus | None = None,
+        store: Store | None = None,
+        backend: Backend | None = None,
+    ) -> None:
+        self.replica = keys.check_id(settings.scorer_replica or settings.instance, "replica")
+        super().__init__(settings, bus or Bus(settings, self.name, self.replica), store)
+        self.backend = backend
+        self.backend_error: str | None = None
+        self._jobs: queue.Queue[Any] = queue.Queue()
+        self._server: threading.Thread | None = None
+        self._recorders: OrderedDict[str, EpisodeRecorder] = OrderedDict()
+        self.served = 0
+
+    @property
+    def key(self) -> str:
+        return keys.scorer_replica(self.replica)
+
+    def setup(self) -> None:
+        if self.backend is None:
+            try:
+                self.backend = make_backend(self.settings)
+            except Exception as exc:
+                self.backend_error = f"scorer backend {self.settings.scorer_backend!r} is unavailable: {exc}"
+                log.error("%s; replying with this error to every request", self.backend_error)
+        self._server = threading.Thread(target=self._serve, name=f"scorer-{self.replica}", daemon=True)
+        self._server.start()
+        self.bus._keep(self.bus.session.declare_queryable(self.key, self._jobs.put))
+        log.info("scorer replica %s on %s (backend %s)", self.replica, self.key, self.settings.scorer_backend)
+
+    def teardown(self) -> None:
+        self._jobs.put(_STOP)
+        if self._server is not None:
+            self._server.join(timeout=30)
+        for rec in self._recorders.values():
+            rec.close()
+        self._recorders.clear()
+        if self.backend is not None:
+            self.backend.close()
+
+    # ---- serving --------------------------------------------------------------------------------------
+    def _serve(self) -> None:
+        while True:
+            item = self._jobs.get()
+            if item is _STOP:
+                return
+            try:
+                self._answer(item)
+            except Exception:
+                log.exception("scorer %s: could not answer a query; going on", self.replica)
+            finally:
+                # finalise now (sends the end-of-replies marker) rather than whenever the object is collected:
+                # a logged exception's traceback may keep it alive, and the client would wait for its timeout
+                item.drop()
+
+    def _answer(self, query: zenoh.Query) -> None:
+        payload = query.payload.to_bytes() if query.payload is not None else b""
+        try:
+            request = decode(payload, ScoreRequest)
+        except CodecError as exc:
+            log.warning("malformed score request: %s", exc)
+            reply: Message = ErrorReply(source=f"vlm_scorer/{self.replica}", reason=str(exc))
+        else:
+            reply = self.handle(request)
+        query.reply(self.key, encode(reply))
+
+    def handle(self, req: ScoreRequest) -> Message:
+        """Score one request (the in-process call; the queryable wraps it)."""
+
+        def error(reason: str) -> ErrorReply:
+            return ErrorReply(
+                source=f"vlm_scorer/{self.replica}",
+                reason=reason,
+                episode_id=req.episode_id,
+                step=req.step,
+                request_id=req.request_id,
+            )
+
+        if self.backend_error is not None or self.backend is None:
+            return error(self.backend_error or "scorer backend is not loaded")
+        t0 = time.perf_counter()
+        try:
+            scores = self.backend.score(req)
+        except (ValueError, RuntimeError) as exc:  # BadRequest, BackendUnavailable, RemoteError
+            log.warning(
+                "score request %s (episode %s step %d) refused: %s",
+                req.request_id,
+                req.episode_id,
+                req.step,
+                exc,
+            )
+            return error(str(exc))
+        except Exception as exc:
+            log.exception("scorer backend failed on %s", req.request_id)
+            return error(f"{type(exc).__name__}: {exc}")
+        latency = (time.perf_counter() - t0) * 1000.0
+        self.served += 1
+        self._record(req, scores)
+        return ScoreResult(
+            request_id=req.request_id,
+            episode_id=req.episode_id,
+            step=req.step,
+            answer_probs=scores.answer_probs,
+            relevance=scores.relevance,
+            lsv=scores.lsv,
+            gsv=scores.gsv,
+            backend=self.backend.name,
+            model=self.backend.model_name,
+            replica=self.replica,
+            latency_ms=latency,
+            proposed_choices=scores.proposed_choices,
+        )
+
+    # ---- monitoring -----------------------------------------------------------------------------------
+    def _recorder(self, episode_id: str) -> EpisodeRecorder:
+        rec = self._recorders.pop(episode_id, None)
+        if rec is None:
+            rec = EpisodeRecorder(self.settings, episode_id, self.name)
+            while len(self._recorders) >= MAX_OPEN_RECORDINGS:
+                _, old = self._recorders.popitem(last=False)
+                old.close()
+        self._recorders[episode_id] = rec
+        return rec
+
+    def _record(self, req: ScoreRequest, scores: Scores) -> None:
+        if not self.settings.record or len(req.prompt_points) < 2:
+            return
+        try:
+            import rerun as rr
+
+            image = scores.annotated if scores.annotated is not None else annotate(req.rgb, req.prompt_points)
+            rec = self._recorder(req.episode_id)
+            rec.set_step(req.step)
+            rec.log(ANNOTATED_ENTITY, rr.Image(image))
+        except Exception:
+            log.exception("recording the annotated image failed; going on")

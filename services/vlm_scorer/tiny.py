@@ -1,0 +1,110 @@
+"""Build a tiny, randomly initialised Qwen2-VL model directory, offline (tests and bench).
+
+The directory has what a real Qwen2-VL checkpoint has (``config.json``, weights, tokenizer files,
+``preprocessor_config.json``), so :class:`services.vlm_scorer.backends.hf.HFBackend` loads it through exactly
+the code path a user's downloaded model takes. The tokenizer is a byte-level BPE trained on a few strings of
+the scorer's prompts; nothing is downloaded. The weights are random: the probabilities it gives are
+meaningless, only their plumbing (candidate tokens, normalisation, batching) is real.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from services.vlm_scorer import prompts
+
+SPECIAL_TOKENS = [
+    "<|endoftext|>",
+    "<|im_start|>",
+    "<|im_end|>",
+    "<|vision_start|>",
+    "<|vision_end|>",
+    "<|image_pad|>",
+    "<|video_pad|>",
+]
+
+
+def _corpus() -> list[str]:
+    texts = [
+        prompts.SYSTEM,
+        prompts.RELEVANCE.format(question="Is the lamp on?"),
+        prompts.LSV.format(question="Where is the sofa?"),
+        prompts.GSV.format(question="Where is the sofa?"),
+        prompts.ANSWER_INSTRUCTION,
+        prompts.PROPOSE.format(question="What color is the rug?", n=4),
+        "Yes No Yes No user assistant system",
+    ]
+    return texts * 3
+
+
+def build_tiny_qwen2vl(path: str | Path, letters: str | None = None, seed: int = 0) -> Path:
+    """Write a tiny random Qwen2-VL (config + BPE tokenizer + image processor) to ``path`` and return it.
+
+    ``letters``: if given, the tokenizer knows only the characters of its training strings plus these
+    letters (no full byte alphabet), so other capital letters are *not* single tokens - used to test the
+    error for a choice letter the tokenizer cannot produce. By default every byte is a token.
+    """
+    import torch
+    from tokenizers import Tokenizer, decoders, models, pre_tokenizers, trainers
+    from transformers import PreTrainedTokenizerFast, Qwen2VLConfig, Qwen2VLForConditionalGeneration
+    from transformers.models.qwen2_vl.image_processing_pil_qwen2_vl import Qwen2VLImageProcessorPil
+
+    out = Path(path)
+    out.mkdir(parents=True, exist_ok=True)
+    tok = Tokenizer(models.BPE())
+    tok.pre_tokenizer = pre_tokenizers.ByteLevel(add_prefix_space=False)
+    tok.decoder = decoders.ByteLevel()
+    corpus = _corpus()
+    if letters is None:
+        alphabet = pre_tokenizers.ByteLevel.alphabet()
+    else:
+        corpus = [c.replace("A", "").replace("B", "").replace("C", "").replace("D", "") for c in corpus]
+        corpus.append(" ".join(letters))
+        alphabet = []
+    trainer = trainers.BpeTrainer(vocab_size=400, special_tokens=SPECIAL_TOKENS, initial_alphabet=alphabet)
+    tok.train_from_iterator(corpus, trainer)
+    tokenizer = PreTrainedTokenizerFast(
+        tokenizer_object=tok, eos_token="<|im_end|>", pad_token="<|endoftext|>", padding_side="left"
+    )
+    tokenizer.save_pretrained(out)
+    ids = {t: tokenizer.convert_tokens_to_ids(t) for t in SPECIAL_TOKENS}
+
+    image_processor = Qwen2VLImageProcessorPil(
+        min_pixels=28 * 28 * 4, max_pixels=28 * 28 * 16, patch_size=14, merge_size=2, temporal_patch_size=2
+    )
+    image_processor.save_pretrained(out)
+
+    config = Qwen2VLConfig(
+        text_config={
+            "vocab_size": len(tokenizer),
+            "hidden_size": 32,
+            "intermediate_size": 64,
+            "num_hidden_layers": 2,
+            "num_attention_heads": 2,
+            "num_key_value_heads": 1,
+            "max_position_embeddings": 4096,
+            "rope_parameters": {"rope_type": "default", "rope_theta": 10000.0, "mrope_section": [2, 3, 3]},
+            "bos_token_id": ids["<|endoftext|>"],
+            "eos_token_id": ids["<|im_end|>"],
+            "pad_token_id": ids["<|endoftext|>"],
+        },
+        vision_config={
+            "depth": 1,
+            "embed_dim": 32,
+            "hidden_size": 32,
+            "mlp_ratio": 2,
+            "num_heads": 2,
+            "in_chans": 3,
+            "patch_size": 14,
+            "spatial_merge_size": 2,
+            "temporal_patch_size": 2,
+        },
+        image_token_id=ids["<|image_pad|>"],
+        video_token_id=ids["<|video_pad|>"],
+        vision_start_token_id=ids["<|vision_start|>"],
+        vision_end_token_id=ids["<|vision_end|>"],
+    )
+    torch.manual_seed(seed)
+    model = Qwen2VLForConditionalGeneration(config).eval()
+    model.save_pretrained(out)
+    return out

@@ -1,0 +1,248 @@
+"""Mapper service over real Zenoh: map updates, scores, errors, and a restart from the store snapshot."""
+
+from __future__ import annotations
+
+import math
+import os
+import queue
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from eqa import keys
+from eqa.bus import Bus
+from eqa.messages import (
+    EpisodeStart,
+    ErrorReply,
+    Frame,
+    MapUpdate,
+    Pose2D,
+    Question,
+    ScoreRequest,
+    ScoreResult,
+    StepScores,
+)
+from eqa.settings import Settings
+from services.mapper.episode_map import EpisodeMap
+from services.mapper.service import MapperService
+from services.sim.camera import camera_pose, intrinsics
+from services.sim.render import Renderer
+from services.sim.scene import load_or_generate
+
+REPO = Path(__file__).resolve().parents[1]
+W, H = 160, 120
+ROBOT = "r0"
+
+
+@pytest.fixture(scope="module")
+def renderer(tmp_path_factory: pytest.TempPathFactory) -> Renderer:
+    return Renderer(load_or_generate("gen-00007", Path(tmp_path_factory.mktemp("scenes"))))
+
+
+def frame(renderer: Renderer, episode_id: str, step: int, x: float = 8.75, y: float = 4.35) -> Frame:
+    pose = Pose2D(x=x, y=y, yaw=step * math.pi / 4)
+    K = intrinsics(W, H)
+    T = camera_pose(pose)
+    r = renderer.render(T, K, W, H)
+    return Frame(
+        episode_id=episode_id,
+        step=step,
+        pose=pose,
+        camera_pose=T,
+        intrinsics=K,
+        rgb=r.rgb,
+        depth=r.depth,
+        instances=r.instances,
+    )
+
+
+def start_msg(episode_id: str) -> EpisodeStart:
+    q = Question(text="Is the TV on?", choices=["yes", "no"], scene="gen-00007")
+    return EpisodeStart(episode_id=episode_id, robot=ROBOT, question=q, max_steps=20, record=False)
+
+
+class Collector:
+    """Subscribes to the mapper's outputs of one robot."""
+
+    def __init__(self, bus: Bus) -> None:
+        self.maps: queue.Queue[MapUpdate] = queue.Queue()
+        self.scores: queue.Queue[StepScores] = queue.Queue()
+        self.errors: queue.Queue[ErrorReply] = queue.Queue()
+        bus.subscribe(keys.stream(ROBOT, keys.MAPPER_MAP), MapUpdate, lambda k, m: self.maps.put(m))
+        bus.subscribe(keys.stream(ROBOT, keys.MAPPER_SCORES), StepScores, lambda k, m: self.scores.put(m))
+        bus.subscribe(keys.stream(ROBOT, keys.MAPPER_ERROR), ErrorReply, lambda k, m: self.errors.put(m))
+
+
+def preferring_left_scorer(calls: list[ScoreRequest]):
+    """A deterministic scorer for the test: LSV favours the leftmost prompt point in the image."""
+
+    def score(req: ScoreRequest) -> ScoreResult:
+        calls.append(req)
+        n = len(req.prompt_points)
+        order = np.argsort([p.u for p in req.prompt_points])
+        lsv = [0.0] * n
+        if n:
+            lsv[int(order[0])] = 1.0
+        return ScoreResult(
+            request_id=req.request_id,
+            episode_id=req.episode_id,
+            step=req.step,
+            answer_probs=[0.7, 0.3],
+            relevance=0.4,
+            lsv=lsv,
+            gsv=0.9,
+            backend="test",
+        )
+
+    return score
+
+
+def test_service_publishes_maps_scores_and_rejects_bad_frames(
+    hub_settings: Settings, settings: Settings, renderer: Renderer
+) -> None:
+    calls: list[ScoreRequest] = []
+    with Bus(hub_settings, "gateway") as bus:
+        got = Collector(bus)
+        svc = MapperService(settings, scorer=preferring_left_scorer(calls))
+        svc.start()
+        try:
+            time.sleep(0.5)
+            bus.publish(keys.stream(ROBOT, keys.EPISODE_START), start_msg("ep-svc"))
+            bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), frame(renderer, "ep-svc", 0))
+            m0 = got.maps.get(timeout=15)
+            s0 = got.scores.get(timeout=5)
+            assert (
+                m0.step == 0
+                and s0.step == 0
+                and s0.answer_probs == [0.7, 0.3]
+                and s0.choices == ["yes", "no"]
+            )
+            assert m0.free.shape == (m0.grid.rows, m0.grid.cols) and m0.free.dtype == bool
+            assert m0.explored_area_m2 > 1.0 and m0.prompt_points and m0.frontiers
+            assert m0.values["question"].max() == pytest.approx(math.exp(1.0 + 0.9), rel=1e-5)
+            assert calls[0].prompt_points == m0.prompt_points and calls[0].instances is not None
+
+            # a non-rigid pose and a depth image of the wrong size: errors, map unchanged
+            bad = frame(renderer, "ep-svc", 1)
+            bad.camera_pose = bad.camera_pose * 2.0
+            bad.camera_pose[3, 3] = 1.0
+            bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), bad)
+            err = got.errors.get(timeout=10)
+            assert err.step == 1 and "not rigid" in err.reason and err.source == "mapper"
+            bad = frame(renderer, "ep-svc", 1)
+            bad.depth = np.ascontiguousarray(bad.depth[: H // 2])
+            bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), bad)
+            err = got.errors.get(timeout=10)
+            assert "depth image is" in err.reason
+            assert got.maps.empty()
+
+            # the good frame 1 then integrates on top of frame 0 only
+            bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), frame(renderer, "ep-svc", 1))
+            m1 = got.maps.get(timeout=15)
+            ref = EpisodeMap(start_msg("ep-svc"))
+            for k in (0, 1):
+                ref.integrate(frame(renderer, "ep-svc", k))
+            assert m1.step == 1 and m1.explored_area_m2 == pytest.approx(ref.explored_area_m2())
+
+            # unknown episode
+            bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), frame(renderer, "ep-nobody", 0))
+            err = got.errors.get(timeout=10)
+            assert err.episode_id == "ep-nobody" and "unknown episode" in err.reason
+        finally:
+            svc.stop()
+
+
+def test_scorer_failure_is_reported_and_map_still_published(
+    hub_settings: Settings, settings: Settings, renderer: Renderer
+) -> None:
+    def broken(req: ScoreRequest) -> ScoreResult:
+        raise TimeoutError("no scorer replica answered within 1.0 s")
+
+    with Bus(hub_settings, "gateway") as bus:
+        got = Collector(bus)
+        svc = MapperService(settings, scorer=broken)
+        svc.start()
+        try:
+            time.sleep(0.5)
+            bus.publish(keys.stream(ROBOT, keys.EPISODE_START), start_msg("ep-noscore"))
+            bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), frame(renderer, "ep-noscore", 0))
+            err = got.errors.get(timeout=15)
+            assert "scorer failed" in err.reason and "no scorer replica" in err.reason and err.step == 0
+            m = got.maps.get(timeout=10)
+            assert m.step == 0 and m.explored_area_m2 > 0
+            assert got.scores.empty()
+        finally:
+            svc.stop()
+
+
+def _spawn(settings: Settings, log: Path) -> subprocess.Popen:
+    env = {**os.environ, **settings.env(), "EQA_SCORER_TIMEOUT_S": "1", "EQA_RECORD": "false"}
+    env["PYTHONPATH"] = str(REPO)
+    return subprocess.Popen(
+        [sys.executable, "-m", "services.mapper"],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=log.open("ab"),
+    )
+
+
+def _wait_alive(bus: Bus, timeout: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if bus.alive(keys.alive_service("mapper"), timeout=0.5):
+            return
+        time.sleep(0.2)
+    raise TimeoutError("mapper did not come up")
+
+
+def test_killed_mapper_resumes_from_snapshot(
+    hub_settings: Settings, settings: Settings, renderer: Renderer, tmp_path: Path
+) -> None:
+    log = tmp_path / "mapper.log"
+    with Bus(hub_settings, "gateway") as bus:
+        got = Collector(bus)
+        proc = _spawn(settings, log)
+        try:
+            _wait_alive(bus)
+            time.sleep(0.3)
+            bus.publish(keys.stream(ROBOT, keys.EPISODE_START), start_msg("ep-crash"))
+            for k in range(3):
+                bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), frame(renderer, "ep-crash", k))
+                m = got.maps.get(timeout=30)
+                assert m.step == k
+            before = m
+            proc.send_signal(signal.SIGKILL)
+            proc.wait(timeout=10)
+            # wait until the dead process' liveliness token is gone, then start a fresh one
+            deadline = time.monotonic() + 15
+            while bus.alive(keys.alive_service("mapper"), timeout=0.5) and time.monotonic() < deadline:
+                time.sleep(0.2)
+            proc = _spawn(settings, log)
+            _wait_alive(bus)
+            time.sleep(0.3)
+            bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), frame(renderer, "ep-crash", 3))
+            after = got.maps.get(timeout=30)
+        finally:
+            proc.terminate()
+            try:
+                proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+    assert after.step == 3
+    ref = EpisodeMap(start_msg("ep-crash"))
+    for k in range(4):
+        ref.integrate(frame(renderer, "ep-crash", k))
+    assert after.explored_area_m2 == pytest.approx(ref.explored_area_m2()), log.read_text()[-2000:]
+    assert np.array_equal(after.explored, ref.maps.explored)
+    # everything explored before the crash is still explored
+    r0 = round((before.grid.origin_y - after.grid.origin_y) / after.grid.resolution)
+    c0 = round((before.grid.origin_x - after.grid.origin_x) / after.grid.resolution)
+    sub = after.explored[r0 : r0 + before.grid.rows, c0 : c0 + before.grid.cols]
+    assert not (before.explored & ~sub).any()
+    assert "restored from snapshot at step 2" in log.read_text()
