@@ -26,22 +26,40 @@ TIMELINE = "step"
 
 os.environ.setdefault("RERUN_TELEMETRY_ENABLED", "false")
 
-# Entity paths of one episode (world frame: x/y horizontal, z up; maps are images over the floor grid).
+# Entity paths of one episode, as the services log them (world frame: x/y horizontal, z up; 2D maps are
+# images over the floor grid, row 0 = largest y). A layer or series below a path is allowed
+# (``map/value/<layer>``, ``stopper/scores/<letter>``).
 ENTITIES: dict[str, str] = {
-    "rgb": "world/robot/camera/rgb",  # sim: rr.Image of the frame (camera pinhole at world/robot/camera)
-    "depth": "world/robot/camera/depth",  # sim: rr.DepthImage (metres)
-    "camera": "world/robot/camera",  # sim: rr.Transform3D (camera-to-world) + rr.Pinhole
-    "pose": "world/robot",  # sim: rr.Transform3D of the base / rr.Points3D of the position
+    "rgb": "camera/rgb",  # sim: rr.Image of the frame
+    "depth": "camera/depth",  # sim: rr.DepthImage (metres)
+    "camera": "world/camera",  # sim: rr.Transform3D (camera-to-world) + rr.Pinhole
+    "pose": "world/robot",  # sim: the base pose (rr.Arrows3D)
     "trajectory": "world/trajectory",  # sim: rr.LineStrips3D of the poses so far
-    "occupancy": "map/occupied",  # mapper: rr.Image / rr.SegmentationImage of the occupied cells
-    "explored": "map/explored",  # mapper
-    "value": "map/value",  # mapper: semantic value layer(s), map/value/<name> allowed
-    "frontiers": "map/frontiers",  # mapper/planner: rr.Points2D, radii or labels = Eq. A6 weights
-    "prompt_points": "world/robot/camera/rgb/prompt_points",  # mapper: rr.Points2D in pixels, with labels
-    "goal": "map/goal",  # planner: rr.Points2D of the chosen pose, path as map/path
+    "occupancy": "map/occupancy",  # mapper: rr.Image of the occupied cells
+    "explored": "map/explored",  # mapper: rr.Image of the explored cells
+    "value": "map/value",  # mapper: one rr.Image per semantic value layer, map/value/<layer>
+    "frontiers": "map/frontiers",  # mapper: rr.Points2D on the map, labels = Eq. A6 weights
+    "frontier_weights": "world/frontiers",  # planner: rr.Points3D, radii/colours = sampling probabilities
+    "prompt_points": "camera/prompt_points",  # mapper: rr.Points2D in pixels, labelled
+    "goal": "world/plan/goal",  # planner: next pose; path under world/plan/path
     "prediction_set": "stopper/prediction_set",  # stopper: rr.TextLog of the set per step
-    "scores": "stopper/scores",  # stopper: rr.Scalars per answer (stopper/scores/<letter>)
+    "scores": "stopper/scores",  # stopper: rr.Scalars per answer, stopper/scores/<letter>
 }
+
+# What the design asks a demo episode's merged recording to hold (checked by the full-fleet test).
+REQUIRED_ENTITIES = (
+    "rgb",
+    "depth",
+    "pose",
+    "trajectory",
+    "occupancy",
+    "explored",
+    "value",
+    "frontiers",
+    "prompt_points",
+    "prediction_set",
+    "scores",
+)
 
 
 def recording_dir(settings: Settings, episode_id: str) -> Path:

@@ -149,10 +149,19 @@ def test_service_publishes_maps_scores_and_rejects_bad_frames(
                 ref.integrate(frame(renderer, "ep-svc", k))
             assert m1.step == 1 and m1.explored_area_m2 == pytest.approx(ref.explored_area_m2())
 
-            # unknown episode
+            # unknown episode: the first frame is held (it may have overtaken its start), a second one is refused
+            bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), frame(renderer, "ep-nobody", 0))
             bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), frame(renderer, "ep-nobody", 0))
             err = got.errors.get(timeout=10)
             assert err.episode_id == "ep-nobody" and "unknown episode" in err.reason
+
+            # a frame that overtook its EpisodeStart is mapped once the start arrives
+            bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), frame(renderer, "ep-late", 0))
+            assert svc.drain()
+            assert got.maps.empty()
+            bus.publish(keys.stream(ROBOT, keys.EPISODE_START), start_msg("ep-late"))
+            late = got.maps.get(timeout=15)
+            assert late.episode_id == "ep-late" and late.step == 0
         finally:
             svc.stop()
 

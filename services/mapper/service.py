@@ -38,6 +38,8 @@ from services.mapper.tsdf import FrameError
 
 log = logging.getLogger(__name__)
 
+EARLY_FRAME_TTL_S = 30.0
+
 Scorer = Callable[[ScoreRequest], ScoreResult]
 
 
@@ -69,6 +71,9 @@ class MapperService(Service):
         )
         self.episodes: dict[str, EpisodeMap] = {}
         self.recorders: dict[str, EpisodeRecorder] = {}
+        # Frames that overtook their EpisodeStart (different publishers reach us on different Zenoh threads):
+        # held for EARLY_FRAME_TTL_S and handled when the start arrives.
+        self.early_frames: dict[str, tuple[float, str, Frame]] = {}
         self.last_timing_ms: dict[str, float] = {}
 
     def setup(self) -> None:
@@ -102,6 +107,10 @@ class MapperService(Service):
         )
         self._save(em)
         log.info("episode %s: mapping for robot %s (strategy %s)", msg.episode_id, robot, msg.strategy)
+        early = self.early_frames.pop(msg.episode_id, None)
+        if early is not None:
+            log.info("episode %s: handling frame %d that arrived before the start", msg.episode_id, early[2].step)
+            self.on_frame(early[1], early[2])
 
     def on_finish(self, robot: str, msg: EpisodeCancel | EpisodeEnd) -> None:
         em = self.episodes.pop(msg.episode_id, None)
@@ -141,10 +150,19 @@ class MapperService(Service):
 
     def on_frame(self, robot: str, frame: Frame) -> None:
         em = self._episode(frame.episode_id)
+        now = time.monotonic()
+        for eid, (t, r, f) in list(self.early_frames.items()):
+            if now - t > EARLY_FRAME_TTL_S:
+                del self.early_frames[eid]
+                self._error(r, eid, f.step, "unknown episode: no EpisodeStart seen and no snapshot")
         if em is None:
-            self._error(
-                robot, frame.episode_id, frame.step, "unknown episode: no EpisodeStart seen and no snapshot"
-            )
+            if frame.episode_id not in self.early_frames and len(self.early_frames) < 64:
+                log.info("episode %s: frame %d before its start; held", frame.episode_id, frame.step)
+                self.early_frames[frame.episode_id] = (now, robot, frame)
+            else:
+                self._error(
+                    robot, frame.episode_id, frame.step, "unknown episode: no EpisodeStart seen and no snapshot"
+                )
             return
         if frame.step <= em.step:
             log.info(

@@ -1,0 +1,296 @@
+"""Per-episode state of the stopper and the decision of one step (no I/O; the shell persists it).
+
+:class:`EpisodeRecord` is everything the stopper knows about one running episode: the question and stop
+configuration, the calibration threshold resolved when the episode started (so a new table does not change
+a running episode), the scores of every step seen, and the running intersection of the causal prediction
+sets. It is JSON (pydantic) so that it survives a restart of the stopper process.
+
+:func:`decide` applies one step's :class:`eqa.messages.StepScores` to a record and returns the
+:class:`eqa.messages.Decision`; :func:`end_message` builds the :class:`eqa.messages.EpisodeEnd`.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from eqa.messages import (
+    Decision,
+    EpisodeEnd,
+    EpisodeStart,
+    EpisodeState,
+    Question,
+    StepScores,
+    StopConfig,
+    Strategy,
+    letters,
+)
+from services.stopper import baselines
+from services.stopper.calibration import CalibrationTable, Trace, TraceStep
+from services.stopper.conformal import (
+    check_scores,
+    fallback_answer,
+    relevance_weighted_confidence,
+    step_set,
+)
+
+log = logging.getLogger(__name__)
+
+
+class CalibrationChoice(BaseModel):
+    """The q_hat an episode uses and why."""
+
+    model_config = ConfigDict(extra="forbid")
+    q_hat: float
+    eps: float  # the eps of the table entry used (at or below the asked one)
+    asked_eps: float
+    n: int
+    source: str
+    note: str = ""
+
+
+def resolve_calibration(
+    table: CalibrationTable | None, where: str, eps: float, name: str
+) -> tuple[CalibrationChoice | None, str]:
+    """Pick ``q_hat`` for an episode asking ``eps``: the exact entry, else the nearest stored eps at or
+    below it (said so in the note), else ``(None, reason telling the user to run eqa calibrate)``."""
+    if table is None:
+        return None, (
+            f"no conformal calibration table named {name!r} ({where}): run `eqa calibrate --name {name}` "
+            f"or choose another stop rule"
+        )
+    found = table.lookup(eps)
+    if found is None:
+        return None, (
+            f"calibration table {name!r} has no eps at or below {eps:g} (stored: "
+            f"{', '.join(f'{e:g}' for e in table.eps_grid)}): run `eqa calibrate --name {name} --eps {eps:g}`"
+        )
+    entry, exact = found
+    note = (
+        ""
+        if exact
+        else (
+            f"eps={eps:g} is not calibrated in table {name!r}; using the nearest stored eps={entry.eps:g} "
+            f"below it (more conservative)"
+        )
+    )
+    return CalibrationChoice(q_hat=entry.q_hat, eps=entry.eps, asked_eps=eps, n=table.n, source=where, note=note), ""
+
+
+class EpisodeRecord(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    episode_id: str
+    robot: str
+    question: Question
+    strategy: Strategy
+    stop: StopConfig
+    max_steps: int
+    record: bool = True
+    choices: list[str] = Field(default_factory=list)
+    calibration: CalibrationChoice | None = None
+    threshold: float | None = None  # baseline rules
+    steps: list[int] = Field(default_factory=list)
+    probs: list[list[float]] = Field(default_factory=list)
+    relevance: list[float] = Field(default_factory=list)
+    running: list[str] | None = None  # CP running intersection; None before the first step
+    restarts: int = 0
+
+    @classmethod
+    def from_start(cls, start: EpisodeStart, robot: str) -> EpisodeRecord:
+        return cls(
+            episode_id=start.episode_id,
+            robot=robot,
+            question=start.question,
+            strategy=start.strategy,
+            stop=start.stop,
+            max_steps=start.max_steps,
+            record=start.record,
+            choices=list(start.question.choices),
+        )
+
+    @property
+    def last_step(self) -> int:
+        return self.steps[-1] if self.steps else -1
+
+    @property
+    def labels(self) -> list[str]:
+        return letters(len(self.choices)) if self.choices else []
+
+    def trace(self, end_reason: str | None = None) -> Trace | None:
+        """The calibration trace of this episode so far (None while its choices are unknown)."""
+        if len(self.choices) < 2:
+            return None
+        q = self.question
+        return Trace(
+            question_id=q.id,
+            scene=q.scene,
+            category=q.category,
+            choices=self.choices,
+            answer=q.answer if q.answer in self.labels else None,
+            max_steps=self.max_steps,
+            strategy=self.strategy,
+            steps=[TraceStep(answer_probs=p, relevance=r) for p, r in zip(self.probs, self.relevance, strict=True)],
+            episode_id=self.episode_id,
+            end_reason=end_reason,
+        )
+
+    def fallback(self) -> str | None:
+        """``argmax f`` at the step of highest ``Rel`` (None before any step)."""
+        if not self.probs:
+            return None
+        return self.labels[fallback_answer(self.probs, self.relevance)]
+
+    def answer_text(self, answer: str | None) -> str | None:
+        if answer is None or answer not in self.labels:
+            return None
+        return self.choices[self.labels.index(answer)]
+
+
+def _fmt_set(labels: list[str]) -> str:
+    return "{" + ", ".join(labels) + "}"
+
+
+def decide(rec: EpisodeRecord, scores: StepScores) -> Decision | None:
+    """Apply the scores of step ``scores.step`` to ``rec`` and return the decision of that step.
+
+    Returns None (and leaves ``rec`` unchanged) for a step already seen (a duplicate). Raises
+    :class:`services.stopper.conformal.ScoreError` for invalid scores, leaving ``rec`` unchanged.
+    """
+    if scores.step <= rec.last_step:
+        return None
+    if not rec.choices:  # a question without choices: the scorer proposed them (Explore-EQA section VI-A)
+        n = len(scores.choices) or len(scores.answer_probs)
+        choices = list(scores.choices) or [f"option {c}" for c in letters(max(2, n))]
+    else:
+        choices = rec.choices
+    f = check_scores(scores.answer_probs, scores.relevance, len(choices))
+    rel = float(scores.relevance)
+    if scores.step != rec.last_step + 1:
+        log.warning("episode %s: step %d follows step %d (steps missing)", rec.episode_id, scores.step, rec.last_step)
+    rec.choices = choices
+    rec.steps.append(scores.step)
+    rec.probs.append([float(v) for v in f])
+    rec.relevance.append(rel)
+    labels = rec.labels
+    at_limit = scores.step >= rec.max_steps - 1
+    rule = rec.stop.rule
+    argmax_now = labels[int(np.argmax(f))]
+
+    if rule == "cp":
+        cal = rec.calibration
+        if cal is None:
+            raise RuntimeError("cp episode without calibration")  # guarded at EpisodeStart
+        rho = relevance_weighted_confidence(f, rel)
+        mask = step_set(rho, cal.q_hat)
+        cset = [y for y, keep in zip(labels, mask, strict=True) if keep]
+        prev = labels if rec.running is None else rec.running
+        running = [y for y in prev if y in cset]
+        rec.running = running
+        tag = f"eps={cal.eps:g}, q_hat={cal.q_hat:.4f}, N={cal.n}" + (f"; {cal.note}" if cal.note else "")
+        answer = None
+        if len(running) == 1:
+            stop, answer = True, running[0]
+            reason = f"one answer left in the prediction set: {answer} (CP {tag})"
+        elif not running:
+            stop, answer = True, rec.fallback()
+            reason = (
+                f"the prediction set is empty; answering {answer}, the most likely answer of the most "
+                f"relevant step (CP {tag})"
+            )
+        elif at_limit:
+            stop, answer = True, rec.fallback()
+            reason = (
+                f"step limit reached with {len(running)} answers left {_fmt_set(running)}; answering "
+                f"{answer}, the most likely answer of the most relevant step (CP {tag})"
+            )
+        else:
+            stop = False
+            reason = f"{len(running)} answers left {_fmt_set(running)} (CP {tag})"
+        return Decision(
+            episode_id=rec.episode_id,
+            step=scores.step,
+            rule=rule,
+            stop=stop,
+            reason=reason,
+            prediction_set=list(running),
+            step_set=cset,
+            scores={y: float(r) for y, r in zip(labels, rho, strict=True)},
+            answer=answer,
+            q_hat=cal.q_hat,
+        )
+
+    stat_scores: dict[str, float] = {}
+    stop = False
+    answer = None
+    if rule == "entropy":
+        thr = rec.threshold if rec.threshold is not None else baselines.threshold_for("entropy", None)
+        hit, h = baselines.entropy_stops(f, thr)
+        stat_scores = {"entropy": h, "relevance": rel}
+        if hit:
+            stop, answer = True, argmax_now
+            reason = f"answer entropy {h:.4f} nats < threshold {thr:g} (Eq. 4); answering {answer}"
+        else:
+            reason = f"answer entropy {h:.4f} nats >= threshold {thr:g}"
+    elif rule == "relevance":
+        thr = rec.threshold if rec.threshold is not None else baselines.threshold_for("relevance", None)
+        hit, r = baselines.relevance_stops(rel, thr)
+        stat_scores = {"relevance": r, "entropy": baselines.entropy(f)}
+        if hit:
+            stop, answer = True, argmax_now
+            reason = f"relevance {r:.4f} > threshold {thr:g} (Eq. 5); answering {answer}"
+        else:
+            reason = f"relevance {r:.4f} <= threshold {thr:g}"
+    else:  # max_steps
+        stat_scores = {"relevance": rel, "entropy": baselines.entropy(f)}
+        reason = f"running to the step limit ({scores.step + 1}/{rec.max_steps})"
+    if not stop and at_limit:
+        stop, answer = True, rec.fallback()
+        reason = (
+            f"step limit reached ({rec.max_steps} steps); answering {answer}, the most likely answer of "
+            f"the most relevant step"
+        )
+    return Decision(
+        episode_id=rec.episode_id,
+        step=scores.step,
+        rule=rule,
+        stop=stop,
+        reason=reason,
+        scores=stat_scores,
+        answer=answer,
+    )
+
+
+def end_message(
+    rec: EpisodeRecord, state: EpisodeState, reason: str, answer: str | None, recording: str | None = None
+) -> EpisodeEnd:
+    """The :class:`EpisodeEnd` of an episode. ``correct`` compares with the ground truth only now, after
+    the answer was decided, and only when the question carries one."""
+    truth = rec.question.answer
+    correct = None if (truth is None or answer is None or state != "stopped") else (answer == truth)
+    prediction = list(rec.running) if (rec.stop.rule == "cp" and rec.running is not None) else []
+    return EpisodeEnd(
+        episode_id=rec.episode_id,
+        robot=rec.robot,
+        state=state,
+        reason=reason,
+        answer=answer,
+        answer_text=rec.answer_text(answer),
+        prediction_set=prediction,
+        steps=rec.last_step + 1,
+        max_steps=rec.max_steps,
+        correct=correct,
+        recording=recording,
+    )
+
+
+def check_threshold(start: EpisodeStart) -> float | None:
+    """The baseline threshold of an episode (validated), None for cp / max_steps."""
+    if start.stop.rule in ("entropy", "relevance"):
+        value = baselines.threshold_for(start.stop.rule, start.stop.threshold)
+        if not math.isfinite(value):
+            raise ValueError("threshold must be finite")
+        return value
+    return None
