@@ -23,7 +23,13 @@ from eqa.settings import Settings
 log = logging.getLogger(__name__)
 
 # Modules that add sub-commands with ``register(subparsers)``.
-_SUBCOMMAND_MODULES = ("eqa.ask", "services.sim.cli", "services.stopper.cli", "gateway.cli")
+_SUBCOMMAND_MODULES = (
+    "eqa.ask",
+    "services.sim.cli",
+    "services.vlm_scorer.cli",
+    "services.stopper.cli",
+    "eqa.bench_cli",
+)
 
 
 class UsageError(Exception):

@@ -1,0 +1,17 @@
+"""The HTTP gateway (FastAPI): submit questions, follow episodes, fetch results and recordings.
+
+Routes (``/docs`` has the OpenAPI page with examples):
+
+* ``POST /v1/questions`` -> 202 ``{episode_id, robot, state, max_steps, queue_position}``
+* ``GET /v1/episodes`` (recent, ``?state=&limit=``), ``GET /v1/episodes/{id}`` (``EpisodeStatus``),
+  ``DELETE /v1/episodes/{id}`` (cancel: publishes ``EpisodeCancel``)
+* ``GET /v1/episodes/{id}/events``: Server-Sent Events, ids = Redis stream ids, resumable with
+  ``Last-Event-ID``; ``GET /v1/episodes/{id}/recording``: merged Rerun ``.rrd``
+* ``GET /v1/health`` (process up), ``GET /v1/ready`` (store, bus, services alive): open, no token
+
+Modules: :mod:`gateway.app` (app factory, lifespan, bus -> asyncio hand-off), :mod:`gateway.manager`
+(episode state machine, persistence, queueing, watchdog, restart reconciliation), :mod:`gateway.events`
+(compact JSON event summaries), :mod:`gateway.auth` (bearer tokens, rate limit), :mod:`gateway.recordings`
+(``rerun rrd merge``), :mod:`gateway.routers` (HTTP), :mod:`gateway.harness` and
+:mod:`gateway.scripted_fleet` (tests and bench).
+"""

@@ -1,0 +1,229 @@
+"""``eqa bench``: reproduce the paper's comparisons on the simulated benchmark, through the real services.
+
+    eqa bench explore [--limit N]   success vs normalised step budget for fbe / semantic / no_lsv / no_gsv
+                                    (Explore-EQA Fig. 7), per category (Fig. A6) and by house size (Fig. A7)
+    eqa bench stop [--limit N]      calibrate CP on the calibration split, then success vs mean normalised steps
+                                    for an eps sweep, an entropy sweep and a relevance sweep (Fig. 9), and
+                                    the empirical coverage of the CP sets against 1 - eps
+
+Each question is run once per strategy to its full step budget through a real fleet (several simulated robots
+at once), its per-step scores stored as a trace (resumable: stored traces are not run again); every budget
+and every stopping rule is then read from the same traces (eqa/evaluation.py). Results: JSON + PNG plots in
+``--out``. Every plot and table names the scorer that produced it; with the default ``oracle`` scorer the
+numbers come from a simulated perception model, not from a VLM.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+STRATEGIES = ("fbe", "semantic", "no_lsv", "no_gsv")
+ENTROPY_SWEEP = (0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 0.9, 1.1, 1.3)
+RELEVANCE_SWEEP = (0.9, 0.8, 0.7, 0.6, 0.5, 0.4, 0.3, 0.2, 0.1)
+EPS_SWEEP = (0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.5, 0.6, 0.7, 0.8)
+
+
+def scorer_label(settings: Any) -> str:
+    if settings.scorer_backend == "oracle":
+        return "scorer: oracle (simulated perception model, not a VLM)"
+    model = settings.hf_model_path if settings.scorer_backend == "hf" else settings.remote_model
+    return f"scorer: {settings.scorer_backend} ({model})"
+
+
+def set_name(strategy: str, settings: Any) -> str:
+    """One trace set per (strategy, scorer, image size), keyed by question id: the explore and the stop
+    benchmarks read the same full-length runs."""
+    return f"bench-{strategy}-{settings.scorer_backend}-{settings.sim_width}x{settings.sim_height}"
+
+
+def _questions(split: str, limit: int | None, settings: Any) -> list[Any]:
+    from services.sim.questions import benchmark
+
+    bench = benchmark(seed=0, scenes_dir=settings.scenes_path)
+    qs = {"calibration": bench.calibration, "test": bench.test, "all": bench.calibration + bench.test}[split]
+    if limit is not None:
+        # Keep the category mix of the split: take questions round-robin over categories.
+        by_cat: dict[str, list[Any]] = {}
+        for q in qs:
+            by_cat.setdefault(q.category or "", []).append(q)
+        mixed: list[Any] = []
+        while len(mixed) < min(limit, len(qs)):
+            for cat in sorted(by_cat):
+                if by_cat[cat] and len(mixed) < limit:
+                    mixed.append(by_cat[cat].pop(0))
+        qs = mixed
+    return qs
+
+
+def _collect(questions: list[Any], settings: Any, strategy: str, name: str, args: argparse.Namespace) -> list[Any]:
+    from tqdm import tqdm
+
+    from eqa.harness import collect_traces
+    from eqa.store import open_store
+    from services.stopper.calibration import TraceStore
+
+    with open_store(settings) as store:
+        done = sum(TraceStore(store).has(name, q.id) for q in questions)
+    t0 = time.monotonic()
+    steps = 0
+    with tqdm(total=len(questions), initial=done, desc=f"{strategy:>8}", unit="ep", file=sys.stderr,
+              disable=args.no_progress) as bar:
+        for trace in collect_traces(questions, settings, strategy=strategy, set_name=name, progress=bar,
+                                    robots=args.robots, scorers=args.scorers):
+            bar.update(1)
+            steps += len(trace.steps)
+    ran = len(questions) - done
+    if ran:
+        minutes = (time.monotonic() - t0) / 60
+        log.info("%s: %d episodes in %.1f min (%.1f episodes/min, %.1f steps/s)", strategy, ran, minutes,
+                 ran / max(minutes, 1e-9), steps / max(minutes * 60, 1e-9))
+    with open_store(settings) as store:
+        by_id = {t.question_id: t for t in TraceStore(store).load(name)}
+    return [by_id[q.id] for q in questions if q.id in by_id]
+
+
+def _settings(args: argparse.Namespace) -> Any:
+    from eqa.cli import UsageError, load_settings
+
+    settings = load_settings()
+    try:
+        w, h = (int(v) for v in args.size.lower().split("x"))
+    except ValueError:
+        raise UsageError(f"--size must look like 640x480, got {args.size!r}") from None
+    if not (16 <= w <= 4096 and 12 <= h <= 4096):
+        raise UsageError(f"--size {args.size} is out of range")
+    if args.limit is not None and args.limit < 1:
+        raise UsageError("--limit must be at least 1")
+    return settings.model_copy(update={"sim_width": w, "sim_height": h, "record": False})
+
+
+def cmd_explore(args: argparse.Namespace) -> int:
+    from eqa import evaluation as ev
+    from eqa.service import setup_logging
+
+    settings = _settings(args)
+    setup_logging(settings.log_level, "eqa-bench")
+    logging.getLogger("eqa.launcher").setLevel(logging.WARNING)
+    questions = _questions(args.split, args.limit, settings)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    results: dict[str, Any] = {"scorer": scorer_label(settings), "budgets": list(ev.BUDGETS),
+                               "size": f"{settings.sim_width}x{settings.sim_height}", "strategies": {}}
+    areas = _areas(questions, settings)
+    for strategy in args.strategies:
+        traces = _collect(questions, settings, strategy, set_name(strategy, settings), args)
+        results["strategies"][strategy] = {
+            "n": len(traces),
+            "success": ev.success_at_budgets(traces),
+            "by_category": {c: {"n": len(ts), "success": ev.success_at_budgets(ts)}
+                            for c, ts in ev.by_group(traces, "category").items()},
+            "by_area": {b: {"n": len(ts), "success_full_budget": ev.success_at_budgets(ts, (1.0,))[0]}
+                        for b, ts in ev.by_group(traces, groups={q: ev.area_bin(a) for q, a in areas.items()}).items()},
+        }
+    (out / "explore.json").write_text(json.dumps(results, indent=2))
+    from eqa.plots import plot_explore
+
+    paths = plot_explore(results, out)
+    _print_explore(results)
+    print(f"results: {out / 'explore.json'}; plots: {', '.join(str(p) for p in paths)}")
+    return 0
+
+
+def _areas(questions: list[Any], settings: Any) -> dict[str, float]:
+    from services.sim.scene import load_or_generate
+
+    cache: dict[str, float] = {}
+    for q in questions:
+        if q.scene not in cache:
+            cache[q.scene] = float(load_or_generate(q.scene, settings.scenes_path).floor_area_m2)
+    return {q.id: cache[q.scene] for q in questions}
+
+
+def _print_explore(results: dict[str, Any]) -> None:
+    budgets = results["budgets"]
+    print(f"success rate vs normalised step budget ({results['scorer']}, {results['size']})")
+    print("strategy  n    " + " ".join(f"{b:>5.1f}" for b in budgets))
+    for name, r in results["strategies"].items():
+        print(f"{name:<9} {r['n']:<4} " + " ".join(f"{v:5.2f}" for v in r["success"]))
+
+
+def cmd_stop(args: argparse.Namespace) -> int:
+    from eqa import evaluation as ev
+    from eqa.service import setup_logging
+
+    settings = _settings(args)
+    setup_logging(settings.log_level, "eqa-bench")
+    logging.getLogger("eqa.launcher").setLevel(logging.WARNING)
+    cal_q = _questions("calibration", args.limit, settings)
+    test_q = _questions("test", None if args.limit is None else max(1, args.limit * 2 // 3), settings)
+    cal = _collect(cal_q, settings, args.strategy, set_name(args.strategy, settings), args)
+    test = _collect(test_q, settings, args.strategy, set_name(args.strategy, settings), args)
+    usable = [e for e in EPS_SWEEP if _quantile_defined(len(cal), e)]
+    table = ev.calibrate_traces(cal, usable, name="bench")
+    results: dict[str, Any] = {
+        "scorer": scorer_label(settings), "strategy": args.strategy, "n_calibration": len(cal), "n_test": len(test),
+        "size": f"{settings.sim_width}x{settings.sim_height}",
+        "cp": [vars(p) for p in ev.cp_curve(table, test)],
+        "entropy": [vars(p) for p in ev.threshold_curve("entropy", ENTROPY_SWEEP, test)],
+        "relevance": [vars(p) for p in ev.threshold_curve("relevance", RELEVANCE_SWEEP, test)],
+        "full_budget_success": ev.success_at_budgets(test, (1.0,))[0],
+        "q_hat": {f"{e.eps:g}": e.q_hat for e in table.entries},
+    }
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "stop.json").write_text(json.dumps(results, indent=2))
+    from eqa.plots import plot_stop
+
+    path = plot_stop(results, out)
+    print(f"stopping rules on {len(test)} test episodes, calibrated on {len(cal)} ({results['scorer']})")
+    print(f"running to the step limit: success {results['full_budget_success']:.3f}")
+    print("rule       param  success  mean norm. steps  coverage (CP: >= 1-eps?)")
+    for rule in ("cp", "entropy", "relevance"):
+        for p in results[rule]:
+            cov = "" if p["coverage"] is None else f"{p['coverage']:.3f} vs {1 - p['parameter']:.2f}"
+            print(f"{rule:<10} {p['parameter']:<6.3g} {p['success']:<8.3f} {p['mean_normalized_steps']:<17.3f} {cov}")
+    print(f"results: {out / 'stop.json'}; plot: {path}")
+    return 0
+
+
+def _quantile_defined(n: int, eps: float) -> bool:
+    from services.stopper.conformal import CalibrationError, quantile_rank
+
+    try:
+        quantile_rank(n, eps)
+    except CalibrationError:
+        return False
+    return True
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--limit", type=int, default=None, help="use only N questions (quick mode, e.g. 20)")
+    p.add_argument("--robots", type=int, default=2, help="simulated robots run at once (default 2)")
+    p.add_argument("--scorers", type=int, default=1, help="scorer replicas (default 1)")
+    p.add_argument("--size", default="640x480", help="camera image size WxH (default 640x480, the reference)")
+    p.add_argument("--out", default="var/bench", help="directory for JSON results and PNG plots")
+    p.add_argument("--no-progress", action="store_true")
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("bench", help="reproduce the paper's comparisons (Fig. 7, 9, A6, A7)",
+                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="bench_command", metavar="WHAT", required=True)
+    e = sub.add_parser("explore", help="success vs normalised step budget per exploration strategy")
+    _common(e)
+    e.add_argument("--split", choices=("test", "all"), default="all",
+                   help="questions: the 200 test ones or all 500 (default all)")
+    e.add_argument("--strategies", nargs="+", choices=STRATEGIES, default=list(STRATEGIES))
+    e.set_defaults(func=cmd_explore)
+    s = sub.add_parser("stop", help="CP vs entropy vs relevance stopping (calibrate, then replay the test split)")
+    _common(s)
+    s.add_argument("--strategy", choices=STRATEGIES, default="semantic")
+    s.set_defaults(func=cmd_stop)

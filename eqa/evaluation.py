@@ -1,0 +1,138 @@
+"""Evaluate exploration strategies and stopping rules by replaying recorded full-length traces (pure).
+
+Until it stops, a robot's path does not depend on the stopping rule, so one full-length run per question
+serves every comparison (Explore-EQA section VII): the answer at a normalised budget ``b`` is ``argmax f`` at
+the step of highest ``Rel`` among the first ``max(1, floor(b*T))`` steps (Fig. 7), and each stopping rule is
+replayed step by step through the stopper's own decision function (:func:`services.stopper.state.decide`), so
+the benchmark measures exactly what the service does.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import defaultdict
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from eqa.messages import StepScores, StopConfig, letters
+from services.stopper.calibration import CalibrationTable, Trace, calibrate
+from services.stopper.conformal import fallback_answer
+from services.stopper.state import CalibrationChoice, EpisodeRecord, decide
+
+BUDGETS = tuple(round(0.1 * k, 1) for k in range(1, 11))
+
+
+def answer_within(trace: Trace, steps: int) -> str:
+    """``argmax f`` at the step of highest ``Rel`` among the first ``steps`` steps."""
+    n = max(1, min(steps, len(trace.steps)))
+    f, rel = trace.arrays()
+    return letters(len(trace.choices))[fallback_answer(f[:n], rel[:n])]
+
+
+def success_at_budgets(traces: Sequence[Trace], budgets: Sequence[float] = BUDGETS) -> list[float]:
+    """Success rate at each normalised step budget (Fig. 7)."""
+    if not traces:
+        return [math.nan] * len(budgets)
+    out = []
+    for b in budgets:
+        hits = [answer_within(t, math.floor(b * t.max_steps + 1e-9)) == t.answer for t in traces]
+        out.append(float(np.mean(hits)))
+    return out
+
+
+@dataclass(frozen=True)
+class Replay:
+    answer: str | None
+    steps: int  # steps used (the stop step + 1)
+    max_steps: int
+    correct: bool
+    prediction_set: tuple[str, ...] = ()
+
+    @property
+    def normalized_steps(self) -> float:
+        return self.steps / self.max_steps
+
+
+def replay(trace: Trace, stop: StopConfig, calibration: CalibrationChoice | None = None) -> Replay:
+    """Run the stopper's decision rule over a recorded trace, step by step, as the service would."""
+    rec = EpisodeRecord(
+        episode_id="replay",
+        robot="replay",
+        question={"text": "replay", "choices": trace.choices, "scene": trace.scene, "answer": trace.answer},
+        strategy="semantic",
+        stop=stop,
+        max_steps=trace.max_steps,
+        record=False,
+        choices=list(trace.choices),
+        calibration=calibration,
+        threshold=stop.threshold,
+    )
+    for t, s in enumerate(trace.steps):
+        d = decide(rec, StepScores(episode_id="replay", step=t, answer_probs=s.answer_probs, relevance=s.relevance))
+        if d is not None and d.stop:
+            return Replay(d.answer, t + 1, trace.max_steps, d.answer == trace.answer, tuple(d.prediction_set))
+    # The run ended before the stop rule fired (the planner found nothing left to explore): fallback answer.
+    answer = rec.fallback()
+    return Replay(answer, len(trace.steps), trace.max_steps, answer == trace.answer, tuple(rec.running or ()))
+
+
+@dataclass(frozen=True)
+class CurvePoint:
+    rule: str
+    parameter: float
+    success: float
+    mean_normalized_steps: float
+    coverage: float | None = None  # CP: share of episodes whose sequence-level set holds the truth
+
+
+def cp_curve(table: CalibrationTable, test: Sequence[Trace]) -> list[CurvePoint]:
+    """Success vs mean normalised steps over the table's eps grid, with empirical coverage (Fig. 9)."""
+    from services.stopper.conformal import relevance_weighted_confidence, sequence_set
+
+    out = []
+    for entry in table.entries:
+        cal = CalibrationChoice(q_hat=entry.q_hat, eps=entry.eps, asked_eps=entry.eps, n=table.n, source="bench")
+        runs = [replay(t, StopConfig(rule="cp", eps=entry.eps), cal) for t in test]
+        covered = []
+        for t in test:
+            f, rel = t.arrays()
+            rhos = np.stack([relevance_weighted_confidence(f[i], rel[i]) for i in range(len(rel))])
+            covered.append(bool(sequence_set(rhos, entry.q_hat)[letters(len(t.choices)).index(t.answer)]))
+        out.append(_point("cp", entry.eps, runs, float(np.mean(covered))))
+    return out
+
+
+def threshold_curve(rule: str, thresholds: Iterable[float], test: Sequence[Trace]) -> list[CurvePoint]:
+    """Success vs mean normalised steps of the entropy (Eq. 4) or relevance (Eq. 5) rule over thresholds."""
+    return [_point(rule, thr, [replay(t, StopConfig(rule=rule, threshold=thr)) for t in test]) for thr in thresholds]
+
+
+def _point(rule: str, parameter: float, runs: Sequence[Replay], coverage: float | None = None) -> CurvePoint:
+    return CurvePoint(
+        rule=rule,
+        parameter=float(parameter),
+        success=float(np.mean([r.correct for r in runs])) if runs else math.nan,
+        mean_normalized_steps=float(np.mean([r.normalized_steps for r in runs])) if runs else math.nan,
+        coverage=coverage,
+    )
+
+
+def calibrate_traces(traces: Sequence[Trace], eps_grid: Sequence[float], name: str) -> CalibrationTable:
+    return calibrate(list(traces), list(eps_grid), name=name)
+
+
+def by_group(traces: Sequence[Trace], key: str | None = None, groups: dict[str, str] | None = None
+             ) -> dict[str, list[Trace]]:
+    """Traces grouped by category (``key="category"``) or by a given question-id -> group map."""
+    out: dict[str, list[Trace]] = defaultdict(list)
+    for t in traces:
+        g = groups.get(t.question_id) if groups is not None else getattr(t, key or "category")
+        out[str(g)].append(t)
+    return dict(sorted(out.items()))
+
+
+def area_bin(area_m2: float, width: float = 100.0) -> str:
+    lo = int(area_m2 // width * width)
+    return f"{lo}-{lo + int(width)}"

@@ -1,0 +1,93 @@
+"""PNG plots of the benchmark results (matplotlib, Agg). Every figure names the scorer that made it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+
+COLORS = {"semantic": "tab:red", "fbe": "tab:blue", "no_lsv": "tab:orange", "no_gsv": "tab:green",
+          "cp": "tab:red", "entropy": "tab:blue", "relevance": "tab:green"}
+
+
+def plot_explore(results: dict[str, Any], out: Path) -> list[Path]:
+    """Fig. 7 (success vs normalised budget), Fig. A6 (per category) and Fig. A7 (by house size)."""
+    budgets = results["budgets"]
+    sub = f"{results['scorer']}, {results['size']}"
+    paths = []
+
+    fig, ax = plt.subplots(figsize=(6, 4.2))
+    for name, r in results["strategies"].items():
+        ax.plot(budgets, r["success"], marker="o", label=f"{name} (n={r['n']})", color=COLORS.get(name))
+    ax.set(xlabel="normalised step budget (fraction of T)", ylabel="success rate", ylim=(0, 1),
+           title=f"Exploration: success vs steps\n{sub}")
+    ax.title.set_fontsize(9)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    paths.append(out / "explore_success_vs_steps.png")
+    fig.savefig(paths[-1], dpi=120)
+    plt.close(fig)
+
+    categories = sorted({c for r in results["strategies"].values() for c in r["by_category"]})
+    if categories:
+        fig, axes = plt.subplots(1, len(categories), figsize=(3.2 * len(categories), 3.2), sharey=True, squeeze=False)
+        for ax, cat in zip(axes[0], categories, strict=True):
+            for name, r in results["strategies"].items():
+                c = r["by_category"].get(cat)
+                if c:
+                    ax.plot(budgets, c["success"], marker=".", label=name, color=COLORS.get(name))
+            n = max((r["by_category"].get(cat, {}).get("n", 0) for r in results["strategies"].values()), default=0)
+            ax.set(title=f"{cat} (n={n})", xlabel="normalised steps", ylim=(0, 1))
+            ax.grid(alpha=0.3)
+        axes[0][0].set_ylabel("success rate")
+        axes[0][-1].legend(fontsize=7)
+        fig.suptitle(f"Per question category ({sub})", fontsize=9)
+        fig.tight_layout()
+        paths.append(out / "explore_by_category.png")
+        fig.savefig(paths[-1], dpi=110)
+        plt.close(fig)
+
+    bins = sorted({b for r in results["strategies"].values() for b in r["by_area"]}, key=lambda b: int(b.split("-")[0]))
+    if bins:
+        fig, ax = plt.subplots(figsize=(6, 3.6))
+        width = 0.8 / max(len(results["strategies"]), 1)
+        for k, (name, r) in enumerate(results["strategies"].items()):
+            xs = [i + k * width for i in range(len(bins))]
+            ys = [r["by_area"].get(b, {}).get("success_full_budget", 0.0) for b in bins]
+            ax.bar(xs, ys, width=width, label=name, color=COLORS.get(name))
+        ax.set_xticks([i + 0.4 - width / 2 for i in range(len(bins))], [f"{b} m²" for b in bins], fontsize=7)
+        ax.set(ylabel="success at full budget", ylim=(0, 1), title=f"Success by house size\n{sub}")
+        ax.title.set_fontsize(9)
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        paths.append(out / "explore_by_house_size.png")
+        fig.savefig(paths[-1], dpi=110)
+        plt.close(fig)
+    return paths
+
+
+def plot_stop(results: dict[str, Any], out: Path) -> Path:
+    """Fig. 9: success vs mean normalised steps for the CP eps sweep and the two threshold sweeps."""
+    fig, ax = plt.subplots(figsize=(6, 4.2))
+    rules = (("cp", "CP (eps sweep)"), ("entropy", "entropy threshold"), ("relevance", "relevance threshold"))
+    for rule, label in rules:
+        pts = sorted(results[rule], key=lambda p: p["mean_normalized_steps"])
+        ax.plot([p["mean_normalized_steps"] for p in pts], [p["success"] for p in pts], marker="o", label=label,
+                color=COLORS.get(rule))
+    ax.axhline(results["full_budget_success"], color="gray", ls="--", lw=1, label="run to step limit")
+    ax.set(xlabel="mean normalised steps used", ylabel="success rate", xlim=(0, 1.05), ylim=(0, 1),
+           title=f"Stopping: success vs steps ({results['strategy']}, {results['n_test']} test episodes)\n"
+                 f"{results['scorer']}, {results['size']}")
+    ax.title.set_fontsize(9)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    path = out / "stop_success_vs_steps.png"
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path

@@ -1,0 +1,65 @@
+"""Command line of the gateway: ``python -m gateway`` / ``eqa gateway`` runs the server (``eqa ask --url``
+in :mod:`eqa.ask` is the client)."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+
+from eqa.settings import Settings
+
+log = logging.getLogger(__name__)
+
+
+def serve(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from eqa.service import setup_logging
+    from gateway.app import create_app
+
+    try:
+        settings = Settings()
+    except Exception as exc:
+        print(f"error: invalid EQA_* settings: {exc}", file=sys.stderr)
+        return 2
+    if args.host:
+        settings = settings.model_copy(update={"gateway_host": args.host})
+    if args.port is not None:
+        if not 0 <= args.port <= 65535:
+            print(f"error: port {args.port} out of range", file=sys.stderr)
+            return 2
+        settings = settings.model_copy(update={"gateway_port": args.port})
+    setup_logging(args.log_level or settings.log_level, "gateway")
+    uvicorn.run(
+        create_app(settings),
+        host=settings.gateway_host,
+        port=settings.gateway_port,
+        log_level=(args.log_level or settings.log_level).lower(),
+        access_log=False,
+    )
+    return 0
+
+
+def _add_serve_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--host", default=None, help="override EQA_GATEWAY_HOST")
+    p.add_argument("--port", type=int, default=None, help="override EQA_GATEWAY_PORT")
+    p.add_argument("--log-level", default=None, help="override EQA_LOG_LEVEL")
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("gateway", help="run the HTTP gateway (configured by EQA_* variables)")
+    _add_serve_args(p)
+    p.set_defaults(func=serve)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m gateway",
+        description=(
+            "Run the EQA HTTP gateway. Configured by EQA_* environment variables (see eqa/settings.py); "
+            "runs until SIGTERM/SIGINT."
+        ),
+    )
+    _add_serve_args(parser)
+    return serve(parser.parse_args(argv))

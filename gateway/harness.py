@@ -1,0 +1,140 @@
+"""Running the gateway on a free loopback port, in a thread or as a ``python -m gateway`` process, and a
+small SSE client. Used by the gateway tests and ``bench/bench_gateway.py``."""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import uvicorn
+
+from eqa.settings import Settings
+from gateway.app import create_app
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def wait_ready(url: str, timeout: float = 30.0, proc: subprocess.Popen[bytes] | None = None) -> None:
+    """Wait until ``GET /v1/health`` answers 200."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if proc is not None and proc.poll() is not None:
+            raise RuntimeError(f"gateway process exited with {proc.returncode}")
+        try:
+            if httpx.get(f"{url}/v1/health", timeout=1.0).status_code == 200:
+                return
+        except httpx.HTTPError:
+            pass
+        time.sleep(0.05)
+    raise TimeoutError(f"gateway at {url} not up after {timeout} s")
+
+
+class GatewayThread:
+    """uvicorn serving :func:`create_app` in a background thread (context manager)."""
+
+    def __init__(self, settings: Settings, port: int | None = None) -> None:
+        self.port = port or free_port()
+        self.settings = settings.model_copy(update={"gateway_host": "127.0.0.1", "gateway_port": self.port})
+        self.url = f"http://127.0.0.1:{self.port}"
+        config = uvicorn.Config(
+            create_app(self.settings),
+            host="127.0.0.1",
+            port=self.port,
+            log_level="warning",
+            access_log=False,
+            lifespan="on",
+        )
+        self.server = uvicorn.Server(config)
+        self._thread = threading.Thread(target=self.server.run, name="gateway-uvicorn", daemon=True)
+
+    def __enter__(self) -> GatewayThread:
+        self._thread.start()
+        wait_ready(self.url)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.server.should_exit = True
+        self._thread.join(timeout=15)
+
+
+class GatewayProcess:
+    """``python -m gateway`` as a child process with the settings as ``EQA_*`` variables."""
+
+    def __init__(self, settings: Settings, port: int | None = None, log_path: Path | None = None) -> None:
+        self.port = port or free_port()
+        self.settings = settings.model_copy(update={"gateway_host": "127.0.0.1", "gateway_port": self.port})
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.log_path = log_path
+        self.proc: subprocess.Popen[bytes] | None = None
+        self._n = 0
+
+    def start(self) -> GatewayProcess:
+        self._n += 1
+        env = {**os.environ, **self.settings.env(), "EQA_INSTANCE": f"gw-{os.getpid()}-{self._n}"}
+        out = open(self.log_path, "ab") if self.log_path else subprocess.DEVNULL  # noqa: SIM115
+        self.proc = subprocess.Popen([sys.executable, "-m", "gateway"], env=env, stdout=out, stderr=out)
+        wait_ready(self.url, proc=self.proc)
+        return self
+
+    def kill(self) -> None:
+        """SIGKILL: no graceful shutdown, as in a crash."""
+        if self.proc is not None:
+            self.proc.kill()
+            self.proc.wait(timeout=10)
+            self.proc = None
+
+    def stop(self) -> None:
+        if self.proc is not None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(timeout=10)
+            self.proc = None
+
+    def __enter__(self) -> GatewayProcess:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+def sse_events(
+    client: httpx.Client,
+    path: str,
+    last_event_id: str | None = None,
+    limit: int | None = None,
+    timeout: float = 30.0,
+) -> Iterator[tuple[str, dict[str, Any]]]:
+    """``(id, data)`` of each event of an SSE stream, until it closes or ``limit`` events were read."""
+    headers = {"Last-Event-ID": last_event_id} if last_event_id else {}
+    n = 0
+    with client.stream("GET", path, headers=headers, timeout=timeout) as r:
+        r.raise_for_status()
+        eid: str | None = None
+        data: list[str] = []
+        for line in r.iter_lines():
+            if line.startswith("id: "):
+                eid = line[4:]
+            elif line.startswith("data: "):
+                data.append(line[6:])
+            elif line == "" and data:
+                yield eid or "", json.loads("\n".join(data))
+                n += 1
+                eid, data = None, []
+                if limit is not None and n >= limit:
+                    return
