@@ -17,6 +17,7 @@ import logging
 import signal
 import sys
 import threading
+from typing import NoReturn
 
 from eqa.settings import Settings
 
@@ -29,6 +30,7 @@ _SUBCOMMAND_MODULES = (
     "services.vlm_scorer.cli",
     "services.stopper.cli",
     "eqa.bench_cli",
+    "gateway.cli",
 )
 
 
@@ -85,8 +87,15 @@ def cmd_health(args: argparse.Namespace) -> int:
     return 0
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """Bad arguments give one line on stderr (no usage dump) and exit code 2."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="eqa",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -124,7 +133,3 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -99,7 +99,11 @@ class Fleet:
 
     # ---- setup --------------------------------------------------------------------------------------------
     def _hub_settings(self) -> Settings:
-        listen = list(self.settings.zenoh_listen) or [f"tcp/127.0.0.1:{free_port()}"]
+        # The children connect to the router's first endpoint, so it needs a concrete port: ":0" (any port)
+        # is resolved to a free one here.
+        listen = [
+            f"{e.rsplit(':', 1)[0]}:{free_port()}" if e.endswith(":0") else e for e in self.settings.zenoh_listen
+        ] or [f"tcp/127.0.0.1:{free_port()}"]
         return self.settings.model_copy(
             update={"zenoh_mode": "router", "zenoh_listen": listen, "zenoh_connect": [], "instance": "launcher"}
         )

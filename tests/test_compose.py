@@ -67,6 +67,6 @@ def test_code_reads_eqa_variables_only_through_settings():
 
 
 def test_health_command_exists_for_the_checks():
-    out = subprocess.run([sys.executable, "-m", "eqa.cli", "health", "--help"], capture_output=True, text=True,
+    out = subprocess.run([sys.executable, "-m", "eqa", "health", "--help"], capture_output=True, text=True,
                          timeout=60, cwd=REPO)
     assert out.returncode == 0, out.stderr

@@ -85,7 +85,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--set-name",
         default=None,
-        help="trace set name (default: calibration-<strategy>-<scorer backend>, or the file's stem)",
+        help="trace set name (default: bench-<strategy>-<scorer backend>-<WxH>, as eqa bench; or the file's stem)",
     )
     p.add_argument(
         "--from-traces",
@@ -186,7 +186,10 @@ def run_calibrate(args: argparse.Namespace, settings: Settings, store: Store) ->
         ids = _import_traces(ts, set_name, path, args.limit, args.no_progress)
         provenance.update(source="traces file", file=str(path))
     else:
-        set_name = args.set_name or f"calibration-{args.strategy}-{settings.scorer_backend}"
+        from eqa.bench_cli import set_name as bench_set_name
+
+        # The same trace set as `eqa bench` (strategy, scorer, image size): calibration reuses benchmark runs.
+        set_name = args.set_name or bench_set_name(args.strategy, settings)
         import eqa.harness  # noqa: F401  fail fast (before generating the benchmark) when the harness is absent
 
         questions = _load_questions(args, settings)
