@@ -18,7 +18,8 @@ from typing import Any
 from fastapi import FastAPI, Request, status
 from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
-from fastapi.responses import JSONResponse
+from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
+from fastapi.responses import HTMLResponse, JSONResponse
 
 from eqa import keys
 from eqa.bus import Bus
@@ -26,6 +27,7 @@ from eqa.messages import MESSAGE_TYPES, Message
 from eqa.settings import Settings
 from eqa.store import open_store
 from gateway.auth import RateLimiter
+from gateway.deps import DocsCallerDep
 from gateway.manager import EpisodeManager
 from gateway.routers import episodes, health
 
@@ -131,11 +133,16 @@ def create_app(settings: Settings) -> FastAPI:
         version="1.0.0",
         description=(
             "Submit embodied questions, follow episodes live (Server-Sent Events), fetch results and Rerun "
-            "recordings. Routes under `/v1/episodes` and `/v1/questions` need "
-            "`Authorization: Bearer <token>` when `EQA_API_TOKENS` is set; "
-            "`/v1/health` and `/v1/ready` are open."
+            "recordings. When `EQA_API_TOKENS` is set, routes under `/v1/episodes` and `/v1/questions` need "
+            "`Authorization: Bearer <token>`, and this documentation (`/docs`, `/redoc`, `/openapi.json`) needs "
+            "the token too, as a bearer token or as the password of HTTP Basic authentication (what a browser "
+            "asks for); `/v1/health` and `/v1/ready` are open."
         ),
         lifespan=lifespan,
+        # Served below behind the token check instead of FastAPI's open defaults.
+        docs_url=None,
+        redoc_url=None,
+        openapi_url=None,
     )
     app.state.settings = settings
     app.state.limiter = RateLimiter(settings.rate_limit_per_s)
@@ -158,4 +165,38 @@ def create_app(settings: Settings) -> FastAPI:
         )
     app.include_router(health.router)
     app.include_router(episodes.router)
+    _add_docs(app)
     return app
+
+
+def _add_docs(app: FastAPI) -> None:
+    """``/openapi.json``, ``/docs`` (Swagger UI) and ``/redoc``, behind :func:`gateway.auth.authenticate_docs`
+    (open when no tokens are configured). With tokens the spec declares the bearer scheme on the API routes,
+    so Swagger UI's "Authorize" button sends the token with its "Try it out" requests."""
+    base_openapi = app.openapi
+
+    def openapi_with_security() -> dict[str, Any]:
+        first = app.openapi_schema is None
+        spec = base_openapi()  # cached by FastAPI in app.openapi_schema after the first call
+        if first and app.state.settings.api_tokens:
+            schemes = spec.setdefault("components", {}).setdefault("securitySchemes", {})
+            schemes["bearerAuth"] = {"type": "http", "scheme": "bearer", "description": "a token of EQA_API_TOKENS"}
+            for path, operations in spec.get("paths", {}).items():
+                if path.startswith(("/v1/episodes", "/v1/questions")):
+                    for op in operations.values():
+                        op["security"] = [{"bearerAuth": []}]
+        return spec
+
+    app.openapi = openapi_with_security  # type: ignore[method-assign]
+
+    @app.get("/openapi.json", include_in_schema=False)
+    async def openapi(_caller: DocsCallerDep) -> JSONResponse:
+        return JSONResponse(app.openapi())
+
+    @app.get("/docs", include_in_schema=False)
+    async def swagger(_caller: DocsCallerDep) -> HTMLResponse:
+        return get_swagger_ui_html(openapi_url="/openapi.json", title=f"{app.title} - Swagger UI")
+
+    @app.get("/redoc", include_in_schema=False)
+    async def redoc(_caller: DocsCallerDep) -> HTMLResponse:
+        return get_redoc_html(openapi_url="/openapi.json", title=f"{app.title} - ReDoc")

@@ -2,10 +2,18 @@
 
 With ``EQA_API_TOKENS`` empty authentication is off (local use); the rate limit then applies per client
 address. Tokens are compared in constant time.
+
+The API documentation (``/docs``, ``/redoc``, ``/openapi.json``) needs a token too when tokens are
+configured. A browser cannot send a bearer header when it opens a page, so those three routes also take the
+token as the password of HTTP Basic authentication (any user name): their 401 answer offers both schemes,
+the browser asks for the credentials once and sends them with the page and with its fetch of the spec.
+The API routes themselves take only ``Authorization: Bearer <token>``.
 """
 
 from __future__ import annotations
 
+import base64
+import binascii
 import hmac
 import threading
 import time
@@ -49,6 +57,20 @@ def bearer_token(request: Request) -> str | None:
     return token.strip()
 
 
+def basic_password(request: Request) -> str | None:
+    """The password of an ``Authorization: Basic`` header (the token, for the documentation routes)."""
+    header = request.headers.get("authorization", "")
+    scheme, _, blob = header.partition(" ")
+    if scheme.lower() != "basic" or not blob.strip():
+        return None
+    try:
+        decoded = base64.b64decode(blob.strip(), validate=True).decode("utf-8")
+    except (binascii.Error, UnicodeDecodeError):
+        return None
+    _user, sep, password = decoded.partition(":")
+    return password if sep and password else None
+
+
 def check_token(tokens: list[str], presented: str | None) -> bool:
     if presented is None:
         return False
@@ -58,19 +80,20 @@ def check_token(tokens: list[str], presented: str | None) -> bool:
     return hit
 
 
-async def authenticate(request: Request) -> str:
-    """FastAPI dependency: 401 without a valid bearer token (when tokens are configured), 429 over the
-    rate limit. Returns the caller's identity (the token, or the client address with auth off). Async: it
-    does no I/O, so it runs on the event loop instead of costing a worker-thread hop per request."""
+def _caller(request: Request, allow_basic: bool) -> str:
+    """Check the token (when tokens are configured) and the rate limit; return the caller's identity."""
     settings = request.app.state.settings
     limiter: RateLimiter = request.app.state.limiter
     if settings.api_tokens:
-        token = bearer_token(request)
+        token, via = bearer_token(request), "bearer token"
+        if token is None and allow_basic:
+            token, via = basic_password(request), "token (basic auth password)"
         if not check_token(settings.api_tokens, token):
+            challenge = 'Bearer, Basic realm="EQA gateway API docs", charset="UTF-8"' if allow_basic else "Bearer"
             raise HTTPException(
                 status.HTTP_401_UNAUTHORIZED,
-                detail="missing bearer token" if token is None else "invalid bearer token",
-                headers={"WWW-Authenticate": "Bearer"},
+                detail="missing bearer token" if token is None else f"invalid {via}",
+                headers={"WWW-Authenticate": challenge},
             )
         who = f"token:{token}"
     else:
@@ -83,3 +106,16 @@ async def authenticate(request: Request) -> str:
             headers={"Retry-After": str(max(1, round(wait + 0.5)))},
         )
     return who
+
+
+async def authenticate(request: Request) -> str:
+    """FastAPI dependency: 401 without a valid bearer token (when tokens are configured), 429 over the
+    rate limit. Returns the caller's identity (the token, or the client address with auth off). Async: it
+    does no I/O, so it runs on the event loop instead of costing a worker-thread hop per request."""
+    return _caller(request, allow_basic=False)
+
+
+async def authenticate_docs(request: Request) -> str:
+    """The same for ``/docs``, ``/redoc`` and ``/openapi.json``: the token as a bearer token or as the
+    password of HTTP Basic authentication (what a browser can send when it opens the page)."""
+    return _caller(request, allow_basic=True)

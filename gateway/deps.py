@@ -7,7 +7,7 @@ from typing import Annotated
 from fastapi import Depends, Request
 
 from eqa.settings import Settings
-from gateway.auth import authenticate
+from gateway.auth import authenticate, authenticate_docs
 from gateway.manager import EpisodeManager
 
 
@@ -25,3 +25,4 @@ def get_manager(request: Request) -> EpisodeManager:
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 ManagerDep = Annotated[EpisodeManager, Depends(get_manager)]
 CallerDep = Annotated[str, Depends(authenticate)]
+DocsCallerDep = Annotated[str, Depends(authenticate_docs)]

@@ -16,8 +16,8 @@ os.environ.setdefault("RERUN_TELEMETRY_ENABLED", "false")
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
 
-from eqa.settings import Settings  # noqa: E402
-from eqa.store import EmbeddedStore, RedisStore, Store  # noqa: E402
+from eqa.settings import Settings
+from eqa.store import EmbeddedStore, RedisStore, Store
 
 REPO = Path(__file__).resolve().parents[1]
 

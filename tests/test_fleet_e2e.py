@@ -107,7 +107,7 @@ def test_a_second_peer_joins_with_client_settings(fleet: Fleet):
     "args, message",
     [
         (["q?", "--choice", "a", "--scene", "gen-00001"], "between 2 and 26"),
-        (["q?", *sum([["--choice", f"c{i}"] for i in range(27)], []), "--scene", "gen-00001"], "between 2 and 26"),
+        (["q?", *[a for i in range(27) for a in ("--choice", f"c{i}")], "--scene", "gen-00001"], "between 2 and 26"),
         (["q?", "--choice", "a", "--choice", "b", "--scene", "no-such-scene"], "unknown scene"),
         (["q?", "--choice", "a", "--choice", "b", "--scene", "gen-00001", "--pose", "1,x"], "pose must be numbers"),
         (["q?", "--choice", "a", "--choice", "b", "--scene", "gen-00001", "--eps", "1.5"], "--eps"),

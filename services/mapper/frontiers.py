@@ -50,9 +50,14 @@ def _split(cells: np.ndarray, k: int, iters: int = 8) -> np.ndarray:
     labels = np.zeros(len(pts), dtype=np.int64)
     for _ in range(iters):
         labels = np.argmin(((pts[:, None, :] - C[None]) ** 2).sum(-1), axis=1)
-        for j in range(k):
-            if np.any(labels == j):
-                C[j] = pts[labels == j].mean(axis=0)
+        # Cluster means of integer cell coordinates: the sums are exact in float64 in any order, so the
+        # bincount sums equal the per-cluster ``mean`` of the straightforward loop bit for bit.
+        count = np.bincount(labels, minlength=k)
+        has = count > 0
+        sx = np.bincount(labels, weights=pts[:, 0], minlength=k)
+        sy = np.bincount(labels, weights=pts[:, 1], minlength=k)
+        C[has, 0] = sx[has] / count[has]
+        C[has, 1] = sy[has] / count[has]
     return labels
 
 

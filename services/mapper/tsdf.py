@@ -226,7 +226,7 @@ class TSDFVolume:
         usable = np.isfinite(depth) & (depth >= c.min_depth) & (depth <= c.max_depth)
         if not usable.any():
             return 0
-        dimg = np.where(usable, depth, 0.0).astype(np.float32)
+        dimg = np.where(usable, depth, np.float32(0.0))
         far = min(float(dimg.max()) + c.trunc, c.max_depth + c.trunc)
 
         fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
@@ -234,13 +234,13 @@ class TSDFVolume:
         # Every updated voxel lies on a ray segment from the camera to a hit point (+ mu behind it), so the
         # box of the camera and the hit points, grown by mu, bounds the update: the volume grows with what
         # is seen, not with the frustum.
-        dirs = self._pixel_dirs(K, R, w, h)  # (3, h, w) world direction of each pixel with z_c = 1
         valid_d = dimg > 0
         lo, hi = t[:2].copy(), t[:2].copy()
         for axis in range(2):
-            coord = dirs[axis][valid_d] * dimg[valid_d]
-            lo[axis] = min(lo[axis], float(coord.min()) + t[axis])
-            hi[axis] = max(hi[axis], float(coord.max()) + t[axis])
+            # world offset along ``axis`` of every pixel's hit (0 where there is none, masked out below)
+            coord = self._pixel_dirs_axis(K, R, w, h, axis) * dimg
+            lo[axis] = min(lo[axis], float(np.where(valid_d, coord, np.float32(np.inf)).min()) + t[axis])
+            hi[axis] = max(hi[axis], float(np.where(valid_d, coord, np.float32(-np.inf)).max()) + t[axis])
         margin = c.trunc + c.voxel_size
         self.ensure(lo[0] - margin, hi[0] + margin, lo[1] - margin, hi[1] + margin)
         # 2D shadow of the frustum (camera centre + the four far corners) culls columns inside that box.
@@ -269,24 +269,26 @@ class TSDFVolume:
         a = (np.stack([xs - t[0], ys - t[1], np.full_like(xs, -t[2])], axis=1) @ Rt.T).astype(np.float32)
         b = Rt[:, 2].astype(np.float32)
         zc = self.z_centers.astype(np.float32)
-        pc = a[:, None, :] + zc[None, :, None] * b[None, None, :]  # (ncols, nz, 3)
-        X, Y, Z = pc[..., 0], pc[..., 1], pc[..., 2]
+        # p_c = a + z * b per (column, layer), one contiguous (ncols, nz) array per axis
+        X = a[:, 0, None] + zc[None, :] * b[0]
+        Y = a[:, 1, None] + zc[None, :] * b[1]
+        Z = a[:, 2, None] + zc[None, :] * b[2]
         front = c.min_depth < Z
-        Zs = np.where(front, Z, 1.0)
+        Zs = np.where(front, Z, np.float32(1.0))
         uf = X / Zs * np.float32(fx) + np.float32(cx)
         vf = Y / Zs * np.float32(fy) + np.float32(cy)
         u = np.rint(uf).astype(np.int32)
         v = np.rint(vf).astype(np.int32)
         inview = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        u = np.where(inview, u, 0)
-        v = np.where(inview, v, 0)
-        d = dimg[v, u]
+        pix = np.where(inview, v * w + u, 0)  # flat pixel index (0 when out of view; masked below)
+        d = dimg.reshape(-1)[pix]
         sdf = d - Z
         upd = inview & (d > 0) & (sdf >= -c.trunc)
-        ci, ki = np.nonzero(upd)
-        if ci.size == 0:
+        sel = np.flatnonzero(upd)  # flat (column, layer) index, row-major like np.nonzero
+        if sel.size == 0:
             return 0
-        obs = np.minimum(np.float32(1.0), sdf[ci, ki] / np.float32(c.trunc))
+        ci, ki = np.divmod(sel, self.nz)
+        obs = np.minimum(np.float32(1.0), sdf.reshape(-1)[sel] / np.float32(c.trunc))
 
         flat = (rows[ci] * nx + cols[ci]) * self.nz + ki
         tsdf_f = self.tsdf.reshape(-1)
@@ -301,11 +303,18 @@ class TSDFVolume:
         vfov_lo = -math.atan((cy + 0.5) / fy)  # top edge (negative = up in OpenCV y-down)
         vfov_hi = math.atan((h - cy - 0.5) / fy)
         v_lim = vfov_hi - (vfov_hi - vfov_lo) * c.explored_vfov_frac
-        u_rel = (uf[ci, ki] - cx) / fx
-        v_rel = (vf[ci, ki] - cy) / fy
+        u_rel = (uf.reshape(-1)[sel] - cx) / fx
+        v_rel = (vf.reshape(-1)[sel] - cy) / fy
         narrow = (np.abs(u_rel) <= math.tan(half_h)) & (v_rel >= math.tan(v_lim))
         self.explored.reshape(-1)[flat[narrow]] = True
         return int(ci.size)
+
+    def _pixel_dirs_axis(self, K: np.ndarray, R: np.ndarray, w: int, h: int, axis: int) -> np.ndarray:
+        """Row ``axis`` of :meth:`_pixel_dirs` (the same float32 values), computed alone: ``(h, w)``."""
+        u = (np.arange(w, dtype=np.float32) - np.float32(K[0, 2])) / np.float32(K[0, 0])
+        v = (np.arange(h, dtype=np.float32) - np.float32(K[1, 2])) / np.float32(K[1, 1])
+        Rf = R.astype(np.float32)
+        return Rf[axis, 0] * u[None, :] + Rf[axis, 1] * v[:, None] + Rf[axis, 2]
 
     _dirs_cache: tuple[bytes, np.ndarray] | None = None
 
