@@ -111,8 +111,11 @@ def follow(url: str, body: dict[str, Any], token: str | None, timeout: float, qu
 def _print_event(event: dict[str, Any]) -> None:
     kind = event.get("kind")
     if kind == "decision":
-        pset = "{" + ",".join(event.get("prediction_set") or []) + "}"
-        print(f"  step {event.get('step'):>3}: set {pset:<11} {event.get('reason', '')}", flush=True)
+        if event.get("rule") == "cp":
+            pset = "{" + ",".join(event.get("prediction_set") or []) + "}"
+            print(f"  step {event.get('step'):>3}: set {pset:<11} {event.get('reason', '')}", flush=True)
+        else:
+            print(f"  step {event.get('step'):>3}: {event.get('reason', '')}", flush=True)
     elif kind == "error":
         print(f"  error from {event.get('source')}: {event.get('reason')}", flush=True)
 
@@ -184,6 +187,7 @@ def run(args: argparse.Namespace) -> int:
     settings = load_settings()
     setup_logging("WARNING" if args.json else settings.log_level, "eqa-ask")
     logging.getLogger("eqa.launcher").setLevel(logging.WARNING)
+    logging.getLogger("httpx").setLevel(logging.WARNING)
     try:
         body, demo = _body(args, settings.scenes_path)
         if args.url is None:
@@ -249,8 +253,13 @@ def _report(outcome: Outcome, settings: Any, demo: Question | None, as_json: boo
         print(f"ground truth: {demo.answer}) {truth} -> {verdict}")
     if settings.scorer_backend == "oracle":
         print(f"note: {ORACLE_LABEL}")
-    rec = s.get("recording")
-    print(f"recording: {rec if rec else 'off'}" + (f" (merged .rrd: GET /v1/episodes/{s['episode_id']}/recording)"
-                                                    if rec else ""))
+    if s.get("recording"):
+        from eqa.recording import recording_dir
+
+        where = recording_dir(settings, s["episode_id"]).resolve()
+        print(f"recording: {where}/ (one .rrd per service, one Rerun recording id; merged .rrd: "
+              f"GET {s['recording']})")
+    else:
+        print("recording: off")
     print(f"time: {outcome.seconds:.1f} s, {outcome.events} events")
     sys.stdout.flush()
