@@ -62,7 +62,7 @@ def frame(renderer: Renderer, episode_id: str, step: int, x: float = 8.75, y: fl
 
 
 def start_msg(episode_id: str) -> EpisodeStart:
-    q = Question(text="Is the TV on?", choices=["yes", "no"], scene="gen-00007")
+    q = Question(text="Is the TV on?", choices=["yes", "no"], scene="gen-00007", answer="A", evidence_ids=[3])
     return EpisodeStart(episode_id=episode_id, robot=ROBOT, question=q, max_steps=20, record=False)
 
 
@@ -126,6 +126,8 @@ def test_service_publishes_maps_scores_and_rejects_bad_frames(
             assert m0.explored_area_m2 > 1.0 and m0.prompt_points and m0.frontiers
             assert m0.values["question"].max() == pytest.approx(math.exp(1.0 + 0.9), rel=1e-5)
             assert calls[0].prompt_points == m0.prompt_points and calls[0].instances is not None
+            # the scorer is never sent the ground truth
+            assert calls[0].question.answer is None and calls[0].question.evidence_ids == []
 
             # a non-rigid pose and a depth image of the wrong size: errors, map unchanged
             bad = frame(renderer, "ep-svc", 1)

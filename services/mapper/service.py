@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -75,6 +76,8 @@ class MapperService(Service):
         # held for EARLY_FRAME_TTL_S and handled when the start arrives.
         self.early_frames: dict[str, tuple[float, str, Frame]] = {}
         self.last_timing_ms: dict[str, float] = {}
+        # runs the scorer round trip of a step while the handler thread does the score-independent work
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mapper-score")
 
     def setup(self) -> None:
         self.on(keys.EPISODE_START, self.on_start)
@@ -83,6 +86,7 @@ class MapperService(Service):
         self.on(keys.SIM_FRAME, self.on_frame)
 
     def teardown(self) -> None:
+        self._pool.shutdown(wait=True)
         for rec in self.recorders.values():
             rec.close()
         self.recorders.clear()
@@ -180,7 +184,19 @@ class MapperService(Service):
             self._error(robot, frame.episode_id, frame.step, f"frame rejected, map unchanged: {exc}")
             return
 
-        result = self._score(robot, em, frame)
+        # The scorer round trip is mostly waiting (another process, the bus): meanwhile this thread does the
+        # step's work that does not depend on the scores: the frontier candidates and the voxel part of the
+        # snapshot. Same results, same order of effects (snapshot saved before anything is published).
+        pending = self._pool.submit(self._timed_score, robot, em, frame)
+        t0 = time.perf_counter()
+        candidates = em.find_frontier_candidates()
+        t0 = timer.lap("frontiers", t0)
+        volume = em.snapshot_volume()
+        timer.lap("snapshot", t0)
+        t0 = time.perf_counter()
+        result, score_ms = pending.result()
+        timer.lap("score_wait", t0)
+        timer.ms["score"] = score_ms
         t0 = time.perf_counter()
         if result is not None:
             try:
@@ -188,10 +204,10 @@ class MapperService(Service):
             except ValueError as exc:
                 self._error(robot, em.episode_id, frame.step, f"semantic values not written: {exc}")
         t0 = timer.lap("semantic_values", t0)
-        em.compute_frontiers(timer=timer)
+        em.compute_frontiers(timer=timer, candidates=candidates)
         # Persist before publishing: whatever a consumer has seen survives a crash of this process.
         t0 = time.perf_counter()
-        self._save(em)
+        self._save(em, volume)
         timer.lap("snapshot", t0)
         timer.ms["step"] = (time.perf_counter() - t_start) * 1000.0
         self.publish(robot, keys.MAPPER_MAP, em.map_update(timer.ms))
@@ -215,11 +231,17 @@ class MapperService(Service):
         timer.lap("record", t0)
         self.last_timing_ms = timer.ms
 
+    def _timed_score(self, robot: str, em: EpisodeMap, frame: Frame) -> tuple[ScoreResult | None, float]:
+        t0 = time.perf_counter()
+        result = self._score(robot, em, frame)
+        return result, (time.perf_counter() - t0) * 1000.0
+
     def _score(self, robot: str, em: EpisodeMap, frame: Frame) -> ScoreResult | None:
         request = ScoreRequest(
             episode_id=em.episode_id,
             step=frame.step,
-            question=em.start.question,
+            # Ground truth never leaves for the scorer: it cannot read what it is not sent.
+            question=em.start.question.model_copy(update={"answer": None, "evidence_ids": []}),
             rgb=frame.rgb,
             prompt_points=em.prompts,
             instances=frame.instances,
@@ -237,9 +259,9 @@ class MapperService(Service):
             return None
         return result
 
-    def _save(self, em: EpisodeMap) -> None:
+    def _save(self, em: EpisodeMap, volume: dict[str, Any] | None = None) -> None:
         try:
-            self.store.set(snapshot_key(em.episode_id), em.snapshot(), ttl_s=SNAPSHOT_TTL_S)
+            self.store.set(snapshot_key(em.episode_id), em.snapshot(volume), ttl_s=SNAPSHOT_TTL_S)
         except Exception:
             log.exception("episode %s: snapshot not saved", em.episode_id)
 
