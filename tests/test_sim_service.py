@@ -95,3 +95,30 @@ def test_sim_service_serves_frames_and_refuses_bad_input(hub_settings, settings)
             assert len([1 for r, f in frames if r == "r0"]) == 2  # nothing rendered for the refused goals
         finally:
             svc.stop()
+
+
+def test_a_restarted_sim_continues_the_episode_at_the_next_goal(hub_settings, settings) -> None:
+    scene = generate_house(14)
+    frames: list[Frame] = []
+    with Bus(hub_settings, "gateway", "test") as bus:
+        bus.subscribe(keys.stream("r0", keys.SIM_FRAME), Frame, lambda k, m: frames.append(m))
+        first = SimService(settings)
+        first.start()
+        try:
+            time.sleep(0.5)
+            bus.publish(keys.stream("r0", keys.EPISODE_START), _start("ep-rs", "r0", SCENE))
+            assert _wait(lambda: len(frames) == 1)
+        finally:
+            first.stop()  # the process is gone: everything in memory is lost
+        second = SimService(settings)
+        second.start()
+        try:
+            time.sleep(0.5)
+            goal = sample_start_pose(scene, np.random.default_rng(11), 0.5)
+            bus.publish(keys.stream("r0", keys.PLANNER_GOAL), Goal(episode_id="ep-rs", step=0, pose=goal))
+            assert _wait(lambda: len(frames) == 2)
+            f1 = frames[1]
+            assert f1.episode_id == "ep-rs" and f1.step == 1
+            assert (f1.pose.x, f1.pose.y) == (goal.x, goal.y) and f1.scene == SCENE
+        finally:
+            second.stop()

@@ -5,6 +5,9 @@ start pose (or samples one with 0.5 m clearance, seeded by ``EpisodeStart.seed``
 on a ``Goal`` of that episode it moves the robot to the goal pose and publishes the next step. A bad scene,
 a pose in collision, off the floor or not finite, or a mesh that does not parse gets an ``ErrorReply`` on
 ``sim/error`` (with episode and step), and the service goes on serving every robot.
+
+After every frame the robot's state (episode start, pose, step, trajectory) is written to the store under
+``eqa:sim:robot:{robot}``, so a sim restarted between two steps continues the episode at the next goal.
 """
 
 from __future__ import annotations
@@ -29,6 +32,11 @@ from services.sim.scene import GEN_ID, Scene, SceneLoadError, SceneNotFound, loa
 
 log = logging.getLogger(__name__)
 MAX_CACHED_SCENES = 4
+STATE_TTL_S = 2 * 24 * 3600.0
+
+
+def state_key(robot: str) -> str:
+    return f"eqa:sim:robot:{robot}"
 
 
 @dataclass
@@ -38,6 +46,7 @@ class _Episode:
     renderer: Renderer
     pose: Pose2D
     max_steps: int
+    start: EpisodeStart
     step: int = 0
     trajectory: list[tuple[float, float]] = field(default_factory=list)
     recorder: EpisodeRecorder | None = None
@@ -104,6 +113,31 @@ class SimService(Service):
         ep = self._episodes.pop(robot, None)
         if ep is not None and ep.recorder is not None:
             ep.recorder.close()
+        self.store.delete(state_key(robot))
+
+    def _save(self, robot: str, ep: _Episode) -> None:
+        state = {"start": ep.start.model_dump(mode="json"), "pose": ep.pose.model_dump(), "step": ep.step,
+                 "trajectory": ep.trajectory}
+        self.store.set_json(state_key(robot), state, ttl_s=STATE_TTL_S)
+
+    def _restore(self, robot: str, episode_id: str) -> _Episode | None:
+        """The robot's episode from the store (a restarted sim), or None."""
+        state = self.store.get_json(state_key(robot))
+        if not state or state.get("start", {}).get("episode_id") != episode_id:
+            return None
+        try:
+            start = EpisodeStart.model_validate(state["start"])
+            renderer = self.renderer(start.question.scene, start.question.floor)
+        except Exception as exc:
+            log.error("robot %s: stored state of %s unusable: %s", robot, episode_id, exc)
+            return None
+        ep = _Episode(episode_id, renderer.scene, renderer, Pose2D.model_validate(state["pose"]), start.max_steps,
+                      start, step=int(state["step"]), trajectory=[tuple(p) for p in state["trajectory"]])
+        if start.record and self.settings.record:
+            ep.recorder = EpisodeRecorder(self.settings, episode_id, f"sim-resume{ep.step}", enabled=True)
+        self._episodes[robot] = ep
+        log.info("robot %s: episode %s restored at step %d", robot, episode_id, ep.step)
+        return ep
 
     # ---- handlers ----------------------------------------------------------------------------------------
     def on_start(self, robot: str, msg: EpisodeStart) -> None:
@@ -127,7 +161,7 @@ class SimService(Service):
             except ValueError as exc:
                 self._error(robot, msg.episode_id, 0, str(exc))
                 return
-        ep = _Episode(msg.episode_id, scene, renderer, pose, msg.max_steps)
+        ep = _Episode(msg.episode_id, scene, renderer, pose, msg.max_steps, msg)
         if msg.record and self.settings.record:
             ep.recorder = EpisodeRecorder(self.settings, msg.episode_id, "sim", enabled=True)
             self._log_static(ep)
@@ -137,6 +171,8 @@ class SimService(Service):
     def on_goal(self, robot: str, goal: Goal) -> None:
         ep = self._episodes.get(robot)
         if ep is None or ep.episode_id != goal.episode_id:
+            ep = self._restore(robot, goal.episode_id)
+        if ep is None:
             log.debug("goal for unknown episode %s of robot %s ignored", goal.episode_id, robot)
             return
         if goal.done:
@@ -163,11 +199,21 @@ class SimService(Service):
         if ep is not None and ep.episode_id == msg.episode_id:
             log.info("robot %s: episode %s cancelled (%s)", robot, msg.episode_id, msg.reason)
             self._close(robot)
+        else:
+            self._forget(robot, msg.episode_id)
 
     def on_end(self, robot: str, msg: EpisodeEnd) -> None:
         ep = self._episodes.get(robot)
         if ep is not None and ep.episode_id == msg.episode_id:
             self._close(robot)
+        else:
+            self._forget(robot, msg.episode_id)
+
+    def _forget(self, robot: str, episode_id: str) -> None:
+        """Drop the stored state of an episode this process does not hold (it ended while we were down)."""
+        state = self.store.get_json(state_key(robot))
+        if state and state.get("start", {}).get("episode_id") == episode_id:
+            self.store.delete(state_key(robot))
 
     # ---- rendering ---------------------------------------------------------------------------------------
     def render_frame(self, ep: _Episode) -> Frame:
@@ -183,6 +229,7 @@ class SimService(Service):
     def _emit(self, robot: str, ep: _Episode) -> None:
         frame = self.render_frame(ep)
         ep.trajectory.append((ep.pose.x, ep.pose.y))
+        self._save(robot, ep)
         self.publish(robot, keys.SIM_FRAME, frame)
         self._log_step(ep, frame)
 
