@@ -161,3 +161,39 @@ def test_nothing_to_explore_ends_with_a_reason_and_bad_robot_pose(rig) -> None:
     pub(keys.STOPPER_DECISION, _decision(0).model_copy(update={"episode_id": "ep-out"}))
     g = _get(goals)
     assert g.episode_id == "ep-out" and g.done and "outside the map" in g.reason
+
+
+def test_a_restarted_planner_plans_the_next_step_as_the_first_would_have(hub_settings, settings) -> None:
+    """Strategy, seed and the committed target survive a restart (store), so step 1's goal is identical."""
+    q = Question(text="Where is the sofa?", choices=["kitchen", "bedroom"], scene="synthetic")
+    start = EpisodeStart(episode_id=EP, robot=ROBOT, question=q, strategy="fbe", max_steps=20, seed=9, record=False)
+    # many far frontiers: re-sampling after a lost memory (other seed, no committed target) picks another one
+    frs = [Frontier(x=x, y=y, nx=1, ny=0, size=9) for x, y in
+           ((8.5, 6.5), (1.0, 6.5), (8.5, 1.0), (5.0, 7.0), (9.0, 4.0), (4.0, 6.8), (7.0, 7.0), (9.2, 2.5))]
+
+    def run(restart: bool) -> Goal:
+        store_dir = settings.data_dir / ("restart" if restart else "straight")
+        s = settings.model_copy(update={"data_dir": store_dir})
+        goals: queue.Queue[Goal] = queue.Queue()
+        with Bus(hub_settings, "gateway", "hub") as hub:
+            hub.subscribe(keys.stream(ROBOT, keys.PLANNER_GOAL), Goal, lambda _k, g: goals.put(g))
+            svc = PlannerService(s)
+            svc.start()
+            time.sleep(0.5)
+            hub.publish(keys.stream(ROBOT, keys.EPISODE_START), start)
+            hub.publish(keys.stream(ROBOT, keys.MAPPER_MAP), _map(0, Pose2D(x=1.5, y=1.5), frs))
+            hub.publish(keys.stream(ROBOT, keys.STOPPER_DECISION), _decision(0))
+            g0 = _get(goals)
+            if restart:
+                svc.stop()  # everything in memory is gone
+                svc = PlannerService(s)
+                svc.start()
+                time.sleep(0.5)
+            hub.publish(keys.stream(ROBOT, keys.MAPPER_MAP), _map(1, g0.pose, frs))
+            hub.publish(keys.stream(ROBOT, keys.STOPPER_DECISION), _decision(1))
+            g1 = _get(goals)
+            svc.stop()
+        return g1
+
+    straight, restarted = run(False), run(True)
+    assert restarted.step == 1 and restarted.pose == straight.pose and restarted.frontier == straight.frontier

@@ -29,6 +29,7 @@ from eqa.messages import (
     EpisodeEnd,
     EpisodeStart,
     ErrorReply,
+    Frontier,
     Goal,
     MapUpdate,
     Pose2D,
@@ -43,6 +44,11 @@ log = logging.getLogger(__name__)
 
 MAX_REFUSALS = 4
 _KEEP_STEPS = 3
+STATE_TTL_S = 2 * 24 * 3600.0
+
+
+def state_key(episode_id: str) -> str:
+    return f"eqa:planner:episode:{episode_id}"
 
 
 @dataclass
@@ -111,17 +117,53 @@ class PlannerService(Service):
                 self._close(old)
             ep = _Episode(msg.episode_id, robot, msg.strategy, msg.seed, rec, started=True)
             self.episodes[msg.episode_id] = ep
+        self._save(self.episodes[msg.episode_id], record=msg.record)
         log.info("episode %s on %s: strategy %s, seed %d", msg.episode_id, robot, msg.strategy, msg.seed)
 
     def on_cancel(self, robot: str, msg: EpisodeCancel) -> None:
         ep = self.episodes.pop(msg.episode_id, None)
         if ep is not None:
             self._close(ep)
+        self.store.delete(state_key(msg.episode_id))
 
     def on_end(self, robot: str, msg: EpisodeEnd) -> None:
         ep = self.episodes.pop(msg.episode_id, None)
         if ep is not None:
             self._close(ep)
+        self.store.delete(state_key(msg.episode_id))
+
+    def _save(self, ep: _Episode, record: bool | None = None) -> None:
+        """Strategy, seed and the between-step memory (committed target, visited, refused) of an episode, so a
+        restarted planner plans the next steps exactly as this one would have."""
+        m = ep.memory
+        state = {
+            "robot": ep.robot, "strategy": ep.strategy, "seed": ep.seed, "planned": ep.planned,
+            "record": bool(record if record is not None else ep.recorder is not None),
+            "memory": {"target": m.target.model_dump() if m.target else None, "committed_steps": m.committed_steps,
+                       "visited": m.visited, "refused": m.refused, "turns": m.turns},
+        }
+        self.store.set_json(state_key(ep.episode_id), state, ttl_s=STATE_TTL_S)
+
+    def _restore(self, episode_id: str) -> _Episode | None:
+        state = self.store.get_json(state_key(episode_id))
+        if not state:
+            return None
+        try:
+            mem = state["memory"]
+            memory = Memory(
+                target=Frontier.model_validate(mem["target"]) if mem["target"] else None,
+                committed_steps=int(mem["committed_steps"]), visited=[tuple(v) for v in mem["visited"]],
+                refused=[tuple(v) for v in mem["refused"]], turns=int(mem["turns"]),
+            )
+            rec = EpisodeRecorder(self.settings, episode_id, f"{self.name}-resume{state['planned'] + 1}",
+                                  enabled=bool(state["record"]))
+            ep = _Episode(episode_id, state["robot"], state["strategy"], int(state["seed"]), rec, started=True,
+                          memory=memory, planned=int(state["planned"]))
+        except (KeyError, TypeError, ValueError) as exc:
+            log.error("episode %s: stored planner state unusable: %s", episode_id, exc)
+            return None
+        log.info("episode %s: restored (strategy %s, last planned step %d)", episode_id, ep.strategy, ep.planned)
+        return ep
 
     def _close(self, ep: _Episode) -> None:
         if ep.recorder is not None:
@@ -129,11 +171,13 @@ class PlannerService(Service):
             ep.recorder = None
 
     def _episode(self, robot: str, episode_id: str) -> _Episode:
-        ep = self.episodes.get(episode_id)
-        if ep is None:
+        ep = self.episodes.get(episode_id) or self._restore(episode_id)
+        if ep is not None:
+            self.episodes[episode_id] = ep
+        else:
             log.warning(
-                "episode %s: no EpisodeStart seen yet; step 0 waits for it, later steps (planner restarted "
-                "mid-episode) are planned with strategy 'semantic', seed 0",
+                "episode %s: no EpisodeStart seen yet and no stored state; step 0 waits for the start, later "
+                "steps (state lost) are planned with strategy 'semantic', seed 0",
                 episode_id,
             )
             ep = _Episode(episode_id, robot, "semantic", 0, None)
@@ -220,6 +264,7 @@ class PlannerService(Service):
             plan.reason,
             plan.timing_ms.get("step", 0.0),
         )
+        self._save(ep)
         self.publish(ep.robot, keys.PLANNER_GOAL, goal)
         self._record(ep, pending.step, mu, plan)
 
