@@ -40,6 +40,14 @@ class MapperConfig:
     tau_sv_normal: float = 1.0
 
 
+def _arr(a: np.ndarray, compress: bool = True) -> dict[str, Any]:
+    """One array of a snapshot: dtype, shape and the (zlib-compressed) C-order bytes."""
+    a = np.ascontiguousarray(a)
+    raw = a.tobytes()
+    body = zlib.compress(raw, 1) if compress else raw
+    return {"dtype": a.dtype.str, "shape": list(a.shape), "z": body, "zlib": compress}
+
+
 class Timer:
     def __init__(self) -> None:
         self.ms: dict[str, float] = {}
@@ -146,12 +154,11 @@ class EpisodeMap:
         )
         return sv
 
-    def compute_frontiers(self, layer: str = QUESTION_LAYER, timer: Timer | None = None) -> list[Frontier]:
-        timer = timer or Timer()
-        t0 = time.perf_counter()
+    def find_frontier_candidates(self) -> list[Frontier]:
+        """Unweighted frontiers of the current maps (they do not depend on the semantic values)."""
         if self.maps is None or self.pose is None:
             return []
-        fr = find_frontiers(
+        return find_frontiers(
             self.maps.free,
             self.maps.explored,
             self.maps.occupied,
@@ -160,6 +167,17 @@ class EpisodeMap:
             (self.pose.x, self.pose.y),
             self.config.frontier,
         )
+
+    def compute_frontiers(
+        self, layer: str = QUESTION_LAYER, timer: Timer | None = None, candidates: list[Frontier] | None = None
+    ) -> list[Frontier]:
+        """Frontiers with their Eq. A6 weights from ``layer``. ``candidates``: :meth:`find_frontier_candidates`
+        taken since the last :meth:`integrate` (the service finds them while the scorer works)."""
+        timer = timer or Timer()
+        t0 = time.perf_counter()
+        if self.maps is None or self.pose is None:
+            return []
+        fr = self.find_frontier_candidates() if candidates is None else candidates
         semantic = temperatures(self.strategy, self.config.tau_lsv, self.config.tau_gsv) is not None
         self.frontiers = weigh_frontiers(
             fr,
@@ -208,21 +226,25 @@ class EpisodeMap:
         )
 
     # ---- snapshot --------------------------------------------------------------------------------------
-    def snapshot(self) -> bytes:
-        """The whole state as bytes (msgpack; arrays zlib-compressed)."""
+    def snapshot_volume(self) -> dict[str, Any]:
+        """The bulky part of :meth:`snapshot` (the voxel arrays), which only :meth:`integrate` changes: the
+        service computes it while the scorer works on the step and hands it to :meth:`snapshot`."""
         v = self.volume
-
-        def arr(a: np.ndarray, compress: bool = True) -> dict[str, Any]:
-            a = np.ascontiguousarray(a)
-            raw = a.tobytes()
-            return {
-                "dtype": a.dtype.str,
-                "shape": list(a.shape),
-                "z": zlib.compress(raw, 1) if compress else raw,
-                "zlib": compress,
-            }
-
         seen = v.weight > 0
+        return {
+            # only observed voxels carry data: a bit mask + their tsdf and (integer) weights
+            "shape": list(v.tsdf.shape),
+            "observed": _arr(np.packbits(seen, axis=None)),
+            "tsdf": _arr(v.tsdf[seen], compress=False),  # float noise: zlib costs more than it saves
+            "weight": _arr(v.weight[seen].astype(np.uint16)),
+            "explored": _arr(np.packbits(v.explored, axis=None)),
+        }
+
+    def snapshot(self, volume: dict[str, Any] | None = None) -> bytes:
+        """The whole state as bytes (msgpack; arrays zlib-compressed). ``volume``: :meth:`snapshot_volume`
+        taken since the last :meth:`integrate` (the same bytes result either way)."""
+        v = self.volume
+        vol = volume if volume is not None else self.snapshot_volume()
         body = {
             "version": SNAPSHOT_VERSION,
             "start": self.start.model_dump(mode="json"),
@@ -230,13 +252,12 @@ class EpisodeMap:
             "step": self.step,
             "pose": self.pose.model_dump() if self.pose else None,
             "origin": [v.origin_x, v.origin_y],
-            # only observed voxels carry data: a bit mask + their tsdf and (integer) weights
-            "shape": list(v.tsdf.shape),
-            "observed": arr(np.packbits(seen, axis=None)),
-            "tsdf": arr(v.tsdf[seen], compress=False),  # float noise: zlib costs more than it saves
-            "weight": arr(v.weight[seen].astype(np.uint16)),
-            "explored": arr(np.packbits(v.explored, axis=None)),
-            "planes": {k: arr(a) for k, a in v.planes.items()},
+            "shape": vol["shape"],
+            "observed": vol["observed"],
+            "tsdf": vol["tsdf"],
+            "weight": vol["weight"],
+            "explored": vol["explored"],
+            "planes": {k: _arr(a) for k, a in v.planes.items()},
             "frontiers": [f.model_dump() for f in self.frontiers],
             "prompts": [p.model_dump() for p in self.prompts],
         }

@@ -160,13 +160,23 @@ def weigh_frontiers(
 ) -> list[Frontier]:
     """Fill ``sv``, ``sv_normal`` and ``weight`` (Eq. A6) of each frontier from a semantic value layer.
     ``layer=None`` (strategies without semantic values: fbe, nearest) gives every frontier weight 1."""
+    if layer is None:
+        return [f.model_copy(update={"sv": 0.0, "sv_normal": 0.0, "weight": 1.0}) for f in frontiers]
+    if not frontiers:
+        return []
+    # All frontiers at once; the same element-wise arithmetic as :func:`value_at` / :func:`sv_normal` per
+    # frontier, and each SV_p,normal is the mean of its own row, so the values are identical.
+    fx = np.array([f.x for f in frontiers])
+    fy = np.array([f.y for f in frontiers])
+    fnx = np.array([f.nx for f in frontiers])
+    fny = np.array([f.ny for f in frontiers])
+    s = np.arange(1, round(d_sv / resolution) + 1) * resolution
+    sv_p = value_at(layer, origin, resolution, fx, fy)
+    along = value_at(layer, origin, resolution, fx[:, None] + s[None, :] * fnx[:, None],
+                     fy[:, None] + s[None, :] * fny[:, None])
     out = []
-    for f in frontiers:
-        if layer is None:
-            out.append(f.model_copy(update={"sv": 0.0, "sv_normal": 0.0, "weight": 1.0}))
-            continue
-        sv_p = float(value_at(layer, origin, resolution, np.array([f.x]), np.array([f.y]))[0])
-        sv_n = sv_normal(layer, origin, resolution, f, d_sv)
-        w = frontier_weight(sv_p, sv_n, tau_sv, tau_sv_normal)
-        out.append(f.model_copy(update={"sv": sv_p, "sv_normal": sv_n, "weight": w}))
+    for i, f in enumerate(frontiers):
+        sv_n = float(along[i].mean())
+        w = frontier_weight(float(sv_p[i]), sv_n, tau_sv, tau_sv_normal)
+        out.append(f.model_copy(update={"sv": float(sv_p[i]), "sv_normal": sv_n, "weight": w}))
     return out

@@ -239,8 +239,8 @@ class TSDFVolume:
         for axis in range(2):
             # world offset along ``axis`` of every pixel's hit (0 where there is none, masked out below)
             coord = self._pixel_dirs_axis(K, R, w, h, axis) * dimg
-            lo[axis] = min(lo[axis], float(np.where(valid_d, coord, np.float32(np.inf)).min()) + t[axis])
-            hi[axis] = max(hi[axis], float(np.where(valid_d, coord, np.float32(-np.inf)).max()) + t[axis])
+            lo[axis] = min(lo[axis], float(coord.min(where=valid_d, initial=np.float32(np.inf))) + t[axis])
+            hi[axis] = max(hi[axis], float(coord.max(where=valid_d, initial=np.float32(-np.inf))) + t[axis])
         margin = c.trunc + c.voxel_size
         self.ensure(lo[0] - margin, hi[0] + margin, lo[1] - margin, hi[1] + margin)
         # 2D shadow of the frustum (camera centre + the four far corners) culls columns inside that box.
