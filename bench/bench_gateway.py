@@ -1,10 +1,12 @@
 """Load test of the gateway: N status requests per second for D seconds during a running episode.
 
 Loopback only and bounded (rate x duration requests, at most --connections at once). Starts a private
-redis-server on a free port (or uses --redis-url / --embedded), a scripted fleet that keeps one episode
-running over real Zenoh (gateway.scripted_fleet: real messages, one step every --step-s seconds), and the
-gateway as a separate ``python -m gateway`` process; then sends open-loop GET /v1/episodes/{id} requests
-and prints latency percentiles and errors. Exit code 1 when any request failed.
+redis-server on a free port (or uses --redis-url / --embedded), the real services (sim, mapper, vlm_scorer,
+planner, stopper as processes, eqa.launcher.Fleet, 160x120 images) sharing that store, and the gateway as a
+separate ``python -m gateway`` process joined to them; submits one long episode (budget --max-steps, stop
+rule ``max_steps``) and, while it runs, sends open-loop GET /v1/episodes/{id} requests; prints latency
+percentiles, errors and how far the episode got meanwhile, then cancels it. Exit code 1 when any request
+failed.
 
     python bench/bench_gateway.py                  # 200 rps for 30 s
     python bench/bench_gateway.py --rate 50 --duration 5
@@ -20,7 +22,6 @@ import socket
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
@@ -29,9 +30,8 @@ import numpy as np
 
 os.environ.setdefault("RERUN_TELEMETRY_ENABLED", "false")
 
-from eqa.settings import Settings
-from gateway.harness import GatewayProcess, free_port
-from gateway.scripted_fleet import FleetScript, ScriptedFleet
+from eqa.launcher import Fleet, LaunchError
+from gateway.harness import GatewayProcess, fleet_settings, free_port, wait_for
 
 TOKEN = "bench-token"
 
@@ -122,63 +122,74 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rate", type=float, default=200.0, help="requests per second (default 200)")
     ap.add_argument("--duration", type=float, default=30.0, help="seconds of load (default 30)")
     ap.add_argument("--connections", type=int, default=16, help="keep-alive connections = max in flight (16)")
-    ap.add_argument("--step-s", type=float, default=0.5, help="seconds per scripted episode step (default 0.5)")
+    ap.add_argument("--scene", default="gen-00002", help="scene of the episode (default gen-00002: 300+ steps)")
+    ap.add_argument("--max-steps", type=int, default=10_000, help="step budget of the episode (default 10000)")
+    ap.add_argument("--scorers", type=int, default=1, help="scorer replicas of the fleet (default 1)")
     ap.add_argument("--redis-url", default=None, help="use this Redis instead of a private redis-server")
     ap.add_argument("--embedded", action="store_true", help="use the embedded SQLite store instead of Redis")
     args = ap.parse_args(argv)
     if not (0 < args.rate <= 5000 and 0 < args.duration <= 600 and 1 <= args.connections <= 256):
         print("error: need 0 < rate <= 5000, 0 < duration <= 600, 1 <= connections <= 256", file=sys.stderr)
         return 2
+    if not (1 <= args.max_steps <= 10_000 and 1 <= args.scorers <= 8):
+        print("error: need 1 <= max-steps <= 10000, 1 <= scorers <= 8", file=sys.stderr)
+        return 2
     tmp = Path(tempfile.mkdtemp(prefix="bench-gateway-"))
     redis_proc = None
     redis_url = args.redis_url
     if not args.embedded and redis_url is None:
         redis_proc, redis_url = start_redis(tmp)
-    hub_port = free_port()
-    base = Settings(
-        data_dir=tmp / "var",
-        zenoh_mode="peer",
-        zenoh_multicast=False,
-        record=False,
-        redis_url=None if args.embedded else redis_url,
-        api_tokens=[TOKEN],
-        rate_limit_per_s=max(1000.0, 4 * args.rate),
-        episode_timeout_s=max(60.0, 10 * args.step_s),
+    base = fleet_settings(
+        tmp / "var",
+        None if args.embedded else redis_url,
         log_level="WARNING",
+        episode_timeout_s=120.0,
     )
-    hub = base.model_copy(update={"zenoh_listen": [f"tcp/127.0.0.1:{hub_port}"], "zenoh_connect": []})
-    peer = base.model_copy(update={"zenoh_listen": ["tcp/127.0.0.1:0"], "zenoh_connect": [f"tcp/127.0.0.1:{hub_port}"]})
-    gate = threading.Event()
     try:
-        with (
-            ScriptedFleet(hub, FleetScript(step_delay_s=args.step_s, end_gate=gate, image_hw=(120, 160))),
-            GatewayProcess(peer, log_path=tmp / "gateway.log") as gw,
-            httpx.Client(base_url=gw.url, headers={"Authorization": f"Bearer {TOKEN}"}, timeout=10) as c,
-        ):
-            deadline = time.monotonic() + 30
-            while c.get("/v1/ready").status_code != 200:
-                if time.monotonic() > deadline:
+        with Fleet(base, scorers=args.scorers) as fleet:
+            gw_settings = fleet.client_settings().model_copy(
+                update={"api_tokens": [TOKEN], "rate_limit_per_s": max(1000.0, 4 * args.rate)}
+            )
+            with (
+                GatewayProcess(gw_settings, log_path=tmp / "gateway.log") as gw,
+                httpx.Client(base_url=gw.url, headers={"Authorization": f"Bearer {TOKEN}"}, timeout=30) as c,
+            ):
+                if not wait_for(lambda: c.get("/v1/ready").status_code == 200, 60):
                     print(f"error: gateway not ready: {c.get('/v1/ready').text}", file=sys.stderr)
                     return 1
-                time.sleep(0.1)
-            eid = c.post(
-                "/v1/questions",
-                json={
-                    "question": "Where is the black suitcase?",
-                    "choices": [f"room {i}" for i in range(26)],
-                    "scene": "bench",
-                    "max_steps": 10_000,
-                },
-            ).json()["episode_id"]
-            print(
-                f"episode {eid} running; {args.rate:g} req/s for {args.duration:g} s "
-                f"({'embedded store' if args.embedded else 'redis'})"
-            )
-            lat, errors, lag = asyncio.run(
-                load(gw.port, f"/v1/episodes/{eid}", args.rate, args.duration, args.connections)
-            )
-            st = c.get(f"/v1/episodes/{eid}").json()
-            gate.set()
+                r = c.post(
+                    "/v1/questions",
+                    json={
+                        "question": "Where is the black suitcase?",
+                        "choices": ["bedroom", "hallway", "storage room", "living room"],
+                        "scene": args.scene,
+                        "max_steps": args.max_steps,
+                        "stop_rule": "max_steps",
+                        "record": False,
+                    },
+                )
+                if r.status_code != 202:
+                    print(f"error: submit failed: {r.status_code} {r.text[:300]}", file=sys.stderr)
+                    return 1
+                eid = r.json()["episode_id"]
+                # the first step includes generating/loading the scene: start the load once the robot moves
+                if not wait_for(lambda: c.get(f"/v1/episodes/{eid}").json()["step"] >= 1, 300):
+                    print(f"error: episode did not get going: {c.get(f'/v1/episodes/{eid}').text}", file=sys.stderr)
+                    return 1
+                before = c.get(f"/v1/episodes/{eid}").json()
+                print(
+                    f"episode {eid} running on the real fleet ({args.scene}, step {before['step']}); "
+                    f"{args.rate:g} req/s for {args.duration:g} s ({'embedded store' if args.embedded else 'redis'})"
+                )
+                lat, errors, lag = asyncio.run(
+                    load(gw.port, f"/v1/episodes/{eid}", args.rate, args.duration, args.connections)
+                )
+                st = c.get(f"/v1/episodes/{eid}").json()
+                if st["state"] == "running":
+                    c.delete(f"/v1/episodes/{eid}")
+    except LaunchError as exc:
+        print(f"error: the fleet did not start: {exc}", file=sys.stderr)
+        return 1
     finally:
         if redis_proc is not None:
             redis_proc.terminate()
@@ -190,7 +201,11 @@ def main(argv: list[str] | None = None) -> int:
             f"p99 {np.percentile(ms, 99):.2f}  max {ms.max():.2f}  (n={len(ms)})"
         )
     print(f"worst lag of a request behind its schedule: {lag * 1000:.1f} ms")
-    print(f"episode state during the load: {st['state']}, step {st['step']}")
+    print(
+        f"episode during the load: steps {before['step']} -> {st['step']} "
+        f"({(st['step'] - before['step']) / args.duration:.2f} steps/s), state at the end: {st['state']}"
+        + ("" if st["state"] == "running" else f" ({st['stop_reason']}; the load ran partly after its end)")
+    )
     print(f"errors: {len(errors)}" + (f" (first: {errors[0]})" if errors else ""))
     return 1 if errors else 0
 

@@ -8,10 +8,12 @@ Routes (``/docs`` has the OpenAPI page with examples):
 * ``GET /v1/episodes/{id}/events``: Server-Sent Events, ids = Redis stream ids, resumable with
   ``Last-Event-ID``; ``GET /v1/episodes/{id}/recording``: merged Rerun ``.rrd``
 * ``GET /v1/health`` (process up), ``GET /v1/ready`` (store, bus, services alive): open, no token
+* ``/docs``, ``/redoc``, ``/openapi.json``: need the token when tokens are configured (bearer, or the
+  password of HTTP Basic authentication for a browser)
 
 Modules: :mod:`gateway.app` (app factory, lifespan, bus -> asyncio hand-off), :mod:`gateway.manager`
 (episode state machine, persistence, queueing, watchdog, restart reconciliation), :mod:`gateway.events`
 (compact JSON event summaries), :mod:`gateway.auth` (bearer tokens, rate limit), :mod:`gateway.recordings`
-(``rerun rrd merge``), :mod:`gateway.routers` (HTTP), :mod:`gateway.harness` and
-:mod:`gateway.scripted_fleet` (tests and bench).
+(``rerun rrd merge``), :mod:`gateway.routers` (HTTP), :mod:`gateway.harness` (the gateway in a thread or
+a process next to a real fleet, an SSE client: tests and bench).
 """

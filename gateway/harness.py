@@ -1,30 +1,99 @@
-"""Running the gateway on a free loopback port, in a thread or as a ``python -m gateway`` process, and a
-small SSE client. Used by the gateway tests and ``bench/bench_gateway.py``."""
+"""Running the gateway on a free loopback port, in a thread or as a ``python -m gateway`` process, next to a
+fleet of real services started by :class:`eqa.launcher.Fleet`; a small SSE client. Used by the gateway
+tests and ``bench/bench_gateway.py``."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import signal
 import socket
 import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import httpx
 import uvicorn
 
+from eqa.messages import EpisodeEnd
 from eqa.settings import Settings
+from eqa.store import open_store
 from gateway.app import create_app
+from gateway.manager import STOPPER_END_PREFIX
+
+if TYPE_CHECKING:
+    from eqa.launcher import Fleet
 
 
 def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+def fleet_settings(data_dir: Path, redis_url: str | None = None, **update: Any) -> Settings:
+    """Settings of a small pipeline fleet for tests and benches: 160x120 images, no recording, multicast
+    scouting off, the launcher's router on a free loopback port (``zenoh_listen`` empty). Services and
+    gateway share ``redis_url`` (the stopper's stored ``EpisodeEnd`` is read by a restarted gateway)."""
+    base: dict[str, Any] = {
+        "data_dir": Path(data_dir),
+        "redis_url": redis_url,
+        "zenoh_mode": "peer",
+        "zenoh_listen": [],
+        "zenoh_connect": [],
+        "zenoh_multicast": False,
+        "sim_width": 160,
+        "sim_height": 120,
+        "record": False,
+    }
+    return Settings(**{**base, **update})
+
+
+def clear_gateway_state(settings: Settings) -> int:
+    """Delete the gateway's records (``gw:*``: episodes, event streams, robot locks, queues) from the store of
+    ``settings``, leaving the services' keys alone; returns how many keys went."""
+    with open_store(settings) as store:
+        found = store.keys("gw:")
+        for key in found:
+            store.delete(key)
+    return len(found)
+
+
+def wait_for(pred: Callable[[], bool], timeout: float = 30.0, every: float = 0.05) -> bool:
+    """Poll ``pred`` until it is true (True) or ``timeout`` seconds passed (False)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if pred():
+            return True
+        time.sleep(every)
+    return bool(pred())
+
+
+def stored_end(settings: Settings, episode_id: str) -> EpisodeEnd | None:
+    """The ``EpisodeEnd`` the stopper stored for an episode (it stores it before it publishes it), if any."""
+    with open_store(settings) as store:
+        raw = store.get(STOPPER_END_PREFIX + episode_id)
+    return None if raw is None else EpisodeEnd.model_validate_json(raw)
+
+
+@contextlib.contextmanager
+def paused(fleet: Fleet, service: str, index: int = 0) -> Iterator[None]:
+    """SIGSTOP one service process of ``fleet`` (it holds its state and its connections but does nothing),
+    SIGCONT it on exit. Keep the pause well under Zenoh's 10 s lease, or the peers drop its session."""
+    child = fleet.child(service, index)
+    if child.proc is None or child.proc.poll() is not None:
+        raise RuntimeError(f"{service} is not running")
+    pgid = child.proc.pid  # the launcher starts each child in its own session: pid == process group
+    os.killpg(pgid, signal.SIGSTOP)
+    try:
+        yield
+    finally:
+        os.killpg(pgid, signal.SIGCONT)
 
 
 def wait_ready(url: str, timeout: float = 30.0, proc: subprocess.Popen[bytes] | None = None) -> None:

@@ -1,43 +1,65 @@
-"""Restarting the gateway process (SIGKILL) while an episode runs: no episode and no stored event is lost,
-a client resuming with Last-Event-ID gets every event exactly once, and an end missed while the gateway was
-down is turned into a stated failure by the watchdog. Real HTTP, real Redis, real Zenoh; the services'
-side is the scripted fleet (move to the real fleet once it runs end to end)."""
+"""Restarting the gateway process (SIGKILL) while an episode runs on the real services: no episode and no
+stored event is lost, a client resuming with Last-Event-ID gets every event exactly once, an end published
+while the gateway was down is recovered from the stopper's stored copy, and an episode that stalls while the
+gateway is down is failed by the restarted gateway's watchdog with a stated reason. Real HTTP, real Redis
+(shared by the gateway and the services), real Zenoh, one pipeline fleet for the module.
+
+To make "the episode is still running when the gateway comes back" certain on a slow machine, the sim is
+paused (SIGSTOP) while the gateway restarts: a few seconds, inside Zenoh's 10 s lease (a peer silent for
+longer is dropped, and what was sent to it is lost).
+"""
 
 from __future__ import annotations
 
-import threading
-import time
+import re
+from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
 import pytest
 
+from eqa.launcher import Fleet
 from eqa.settings import Settings
-from eqa.store import RedisStore
-from gateway.harness import GatewayProcess, sse_events
-from gateway.scripted_fleet import FleetScript, ScriptedFleet
+from gateway.harness import (
+    GatewayProcess,
+    clear_gateway_state,
+    fleet_settings,
+    paused,
+    sse_events,
+    stored_end,
+    wait_for,
+)
 
 TOKEN = "restart-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
-CHOICES = [f"room {i}" for i in range(8)]  # the scripted stopper needs 8 steps to get down to one letter
+SCENE = "gen-00001"
+BODY = {
+    "question": "Where is the cat?",
+    "choices": ["kitchen", "living room", "bedroom", "bath"],
+    "scene": SCENE,
+    "stop_rule": "max_steps",
+    "record": False,
+}
+EPISODE_S = 120.0
+
+
+@pytest.fixture(scope="module")
+def fleet(tmp_path_factory: pytest.TempPathFactory, redis_url: str) -> Iterator[Fleet]:
+    from services.sim.scene import load_or_generate
+
+    s = fleet_settings(tmp_path_factory.mktemp("restart-fleet"), redis_url)
+    load_or_generate(SCENE, s.scenes_path)
+    with Fleet(s, scorers=1, restart=False) as f:
+        yield f
 
 
 @pytest.fixture
-def gw_settings(settings: Settings, redis_url: str) -> Settings:
-    with RedisStore(redis_url) as s:
-        s._r.flushdb()  # type: ignore[attr-defined]
-    return settings.model_copy(
-        update={"redis_url": redis_url, "api_tokens": [TOKEN], "rate_limit_per_s": 1000.0, "episode_timeout_s": 30.0}
+def gw_settings(fleet: Fleet) -> Settings:
+    s = fleet.client_settings().model_copy(
+        update={"api_tokens": [TOKEN], "rate_limit_per_s": 1000.0, "episode_timeout_s": 60.0}
     )
-
-
-def _wait(pred, timeout: float = 20.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(0.05)
-    return False
+    clear_gateway_state(s)
+    return s
 
 
 def _key(i: str) -> tuple[int, int]:
@@ -45,73 +67,105 @@ def _key(i: str) -> tuple[int, int]:
     return int(a), int(b)
 
 
-def test_restart_mid_episode_and_resume_stream(gw_settings: Settings, hub_settings: Settings, tmp_path: Path) -> None:
-    gate = threading.Event()
-    with ScriptedFleet(hub_settings, FleetScript(step_delay_s=0.15, end_gate=gate)):
-        gw = GatewayProcess(gw_settings, log_path=tmp_path / "gateway.log").start()
-        try:
-            with httpx.Client(base_url=gw.url, headers=AUTH, timeout=30) as c:
-                assert _wait(lambda: c.get("/v1/ready").status_code == 200)
-                eid = c.post(
-                    "/v1/questions",
-                    json={"question": "Where is the cat?", "choices": CHOICES, "scene": "house-2", "max_steps": 20},
-                ).json()["episode_id"]
-                first = list(sse_events(c, f"/v1/episodes/{eid}/events", limit=6))
-                assert [e["kind"] for _, e in first][:2] == ["episode_start", "frame"]
+def _client(gw: GatewayProcess) -> httpx.Client:
+    return httpx.Client(base_url=gw.url, headers=AUTH, timeout=30)
+
+
+def test_restart_mid_episode_and_resume_stream(fleet: Fleet, gw_settings: Settings, tmp_path: Path) -> None:
+    gw = GatewayProcess(gw_settings, log_path=tmp_path / "gateway.log").start()
+    try:
+        with _client(gw) as c:
+            assert wait_for(lambda: c.get("/v1/ready").status_code == 200), c.get("/v1/ready").text
+            eid = c.post("/v1/questions", json={**BODY, "max_steps": 6}).json()["episode_id"]
+            first = list(sse_events(c, f"/v1/episodes/{eid}/events", limit=6, timeout=EPISODE_S))
+            assert [e["kind"] for _, e in first][:2] == ["episode_start", "frame"]
+        with paused(fleet, "sim"):
             gw.kill()  # crash while the episode runs
             gw.start()
-            with httpx.Client(base_url=gw.url, headers=AUTH, timeout=30) as c:
+            with _client(gw) as c:
                 st = c.get(f"/v1/episodes/{eid}").json()
-                assert st["state"] == "running"  # the episode survived the crash
-                gate.set()
-                rest = list(sse_events(c, f"/v1/episodes/{eid}/events", last_event_id=first[-1][0]))
-                full = list(sse_events(c, f"/v1/episodes/{eid}/events"))
-                st = c.get(f"/v1/episodes/{eid}").json()
-        finally:
-            gw.stop()
+        assert st["state"] == "running", st  # the episode survived the crash
+        with _client(gw) as c:
+            rest = list(sse_events(c, f"/v1/episodes/{eid}/events", last_event_id=first[-1][0], timeout=EPISODE_S))
+            full = list(sse_events(c, f"/v1/episodes/{eid}/events"))
+            st = c.get(f"/v1/episodes/{eid}").json()
+    finally:
+        gw.stop()
     got = [i for i, _ in first + rest]
     assert got == [i for i, _ in full]  # every stored event, once, in order
     assert len(set(got)) == len(got) and got == sorted(got, key=_key)
     kinds = [e["kind"] for _, e in rest]
-    assert "gateway_restart" in kinds and kinds[-1] == "episode_end"
-    assert st["state"] == "stopped" and st["answer"] == "A" and st["prediction_set"] == ["A"]
+    assert "gateway_restart" in kinds and kinds[-1] == "episode_end" and kinds.count("episode_end") == 1
+    after_restart = kinds[kinds.index("gateway_restart") :]
+    assert "frame" in after_restart  # the restarted gateway follows the running episode live
+    assert st["state"] == "stopped" and st["steps"] == 6 and st["stop_reason"].startswith("step limit reached")
+    end = stored_end(gw_settings, eid)
+    assert end is not None and end.answer == st["answer"] and st["answer"] in "ABCD"
 
 
-@pytest.mark.parametrize("stored_end", [True, False], ids=["end-stored-by-stopper", "no-stored-end"])
-def test_end_missed_while_down(gw_settings: Settings, hub_settings: Settings, tmp_path: Path, stored_end: bool) -> None:
-    """The EpisodeEnd goes out while no gateway listens. With the stopper's stored copy the restarted gateway
-    ends the episode with the stopper's answer; without it the watchdog fails it with a stated reason."""
-    gate = threading.Event()
-    s = gw_settings.model_copy(update={"episode_timeout_s": 1.0})
-    store = RedisStore(gw_settings.redis_url or "") if stored_end else None
-    with ScriptedFleet(hub_settings, FleetScript(step_delay_s=0.02, end_gate=gate), store=store):
-        gw = GatewayProcess(s, log_path=tmp_path / "gateway.log").start()
+def test_end_published_while_down_is_recovered(gw_settings: Settings, tmp_path: Path) -> None:
+    """The stopper's EpisodeEnd goes out while no gateway listens; the restarted gateway ends the episode with
+    the stopper's stored copy (answer and reason)."""
+    gw = GatewayProcess(gw_settings, log_path=tmp_path / "gateway.log").start()
+    try:
+        with _client(gw) as c:
+            assert wait_for(lambda: c.get("/v1/ready").status_code == 200), c.get("/v1/ready").text
+            eid = c.post("/v1/questions", json={**BODY, "max_steps": 5}).json()["episode_id"]
+            assert wait_for(lambda: c.get(f"/v1/episodes/{eid}").json()["step"] >= 1, EPISODE_S)
+        gw.kill()
+        assert wait_for(lambda: stored_end(gw_settings, eid) is not None, EPISODE_S)  # ended while down
+        end = stored_end(gw_settings, eid)
+        gw.start()
+        with _client(gw) as c:
+            st = c.get(f"/v1/episodes/{eid}").json()  # reconciled at start, before the first request
+            events = list(sse_events(c, f"/v1/episodes/{eid}/events"))
+    finally:
+        gw.stop()
+    assert end is not None and end.state == "stopped" and end.steps == 5
+    assert st["state"] == "stopped" and st["answer"] == end.answer and st["stop_reason"] == end.reason
+    assert st["steps"] == 5
+    kinds = [e["kind"] for _, e in events]
+    assert kinds.count("episode_end") == 1 and kinds[-1] == "episode_end" and "gateway_restart" in kinds
+    assert "recovered" in events[-1][1] and events[-1][1]["answer"] == end.answer
+
+
+def test_episode_stalled_while_down_fails_with_reason(fleet: Fleet, gw_settings: Settings, tmp_path: Path) -> None:
+    """Nothing arrives after the restart and no end is stored: the restarted gateway's watchdog fails the
+    episode, saying that the gateway restarted meanwhile."""
+    gw = GatewayProcess(gw_settings, log_path=tmp_path / "gateway.log").start()
+    try:
+        with _client(gw) as c:
+            assert wait_for(lambda: c.get("/v1/ready").status_code == 200), c.get("/v1/ready").text
+            eid = c.post("/v1/questions", json={**BODY, "max_steps": 400}).json()["episode_id"]
+            assert wait_for(lambda: c.get(f"/v1/episodes/{eid}").json()["step"] >= 1, EPISODE_S)
+        restarted = GatewayProcess(
+            gw_settings.model_copy(update={"episode_timeout_s": 0.5}), port=gw.port, log_path=gw.log_path
+        )
         try:
-            with httpx.Client(base_url=gw.url, headers=AUTH, timeout=30) as c:
-                assert _wait(lambda: c.get("/v1/ready").status_code == 200)
-                body = {"question": "Is the tv on?", "choices": ["yes", "no"], "scene": "house-3", "max_steps": 20}
-                eid = c.post("/v1/questions", json=body).json()["episode_id"]
-                assert _wait(lambda: c.get(f"/v1/episodes/{eid}").json()["step"] >= 1)
-            gw.kill()
-            gate.set()  # the stopper's EpisodeEnd goes out while no gateway listens
-            time.sleep(0.3)
-            gw.start()
-            with httpx.Client(base_url=gw.url, headers=AUTH, timeout=30) as c:
-                assert _wait(lambda: c.get(f"/v1/episodes/{eid}").json()["state"] in ("failed", "stopped"), 15)
+            with paused(fleet, "sim"):
+                gw.kill()  # (what the other services had in hand for the last frame is done while it restarts)
+                restarted.start()
+                with _client(restarted) as c:
+                    assert wait_for(lambda: c.get(f"/v1/episodes/{eid}").json()["state"] == "failed", 3)
+            # (stop the gateway only once the sim runs again: closing a Zenoh session waits for its peers)
+            with _client(restarted) as c:
                 st = c.get(f"/v1/episodes/{eid}").json()
                 events = list(sse_events(c, f"/v1/episodes/{eid}/events"))
         finally:
-            gw.stop()
-            if store is not None:
-                store.close()
+            restarted.stop()
+        assert wait_for(lambda: stored_end(gw_settings, eid) is not None, 30)  # the services dropped it
+    finally:
+        gw.stop()
+    assert stored_end(gw_settings, eid).state == "cancelled"  # type: ignore[union-attr]
     last = events[-1][1]
     assert last["kind"] == "episode_end" and [e["kind"] for _, e in events].count("episode_end") == 1
-    if stored_end:
-        assert st["state"] == "stopped" and st["answer"] == "A" and st["stop_reason"] == "one answer left"
-        assert "recovered" in last
-    else:
-        assert st["state"] == "failed" and last["state"] == "failed"
-        assert "no message for 1 s" in st["stop_reason"] and "gateway restarted" in st["stop_reason"]
+    assert st["state"] == "failed" and last["state"] == "failed"
+    reason = st["stop_reason"]
+    # A stopped process holds its liveliness token for the peers that knew it; a peer that joins meanwhile
+    # (the restarted gateway) may not see it, so either answer is right here.
+    pattern = r"no message for 0.5 s \(last step \d+\); services not alive: (none, all alive|sim); "
+    assert re.match(pattern, reason), reason
+    assert "gateway restarted" in reason
 
 
 def test_stopper_end_key_matches_the_stopper() -> None:

@@ -1,19 +1,17 @@
 """Per-episode Rerun recordings: each service writes its own .rrd with the shared recording id; the gateway
-merges them with the pinned rerun CLI, the merged file verifies, and it is served over HTTP."""
+merges them with the pinned rerun CLI and the merged file verifies. Serving it over HTTP after a real episode
+is in ``test_recording_fleet.py``."""
 
 from __future__ import annotations
 
 import time
 
-import httpx
 import numpy as np
 import rerun as rr
 
 from eqa.recording import ENTITIES, EpisodeRecorder, recording_dir
 from eqa.settings import Settings
 from gateway import recordings
-from gateway.harness import GatewayThread, sse_events
-from gateway.scripted_fleet import FleetScript, ScriptedFleet
 
 
 def test_recorders_merge_into_one_verified_recording(settings: Settings) -> None:
@@ -42,33 +40,6 @@ def test_recorders_merge_into_one_verified_recording(settings: Settings) -> None
     cat = merged.with_name("cat.rrd")
     cat.write_bytes((recording_dir(s, "ep-rec1") / "sim.rrd").read_bytes() * 2)
     assert not recordings.verify(cat)[0]
-
-
-def test_recording_served_over_http(settings: Settings, hub_settings: Settings) -> None:
-    s = settings.model_copy(update={"record": True})
-    with (
-        ScriptedFleet(hub_settings.model_copy(update={"record": True}), FleetScript(record=True)),
-        GatewayThread(s) as gw,
-        httpx.Client(base_url=gw.url, timeout=60) as c,
-    ):
-        deadline = time.monotonic() + 10
-        while c.get("/v1/ready").status_code != 200 and time.monotonic() < deadline:
-            time.sleep(0.05)
-        eid = c.post(
-            "/v1/questions",
-            json={"question": "Where is the sofa?", "choices": ["a", "b", "c"], "scene": "house-4", "max_steps": 5},
-        ).json()["episode_id"]
-        list(sse_events(c, f"/v1/episodes/{eid}/events"))
-        st = c.get(f"/v1/episodes/{eid}").json()
-        assert st["state"] == "stopped" and st["recording"] == f"/v1/episodes/{eid}/recording"
-        r = c.get(st["recording"])
-        assert r.status_code == 200 and r.headers["content-type"] == "application/octet-stream"
-        out = s.data_dir / "download.rrd"
-        out.write_bytes(r.content)
-        ok, msg = recordings.verify(out)
-        assert ok, msg
-        assert {"/" + ENTITIES["rgb"], "/" + ENTITIES["prediction_set"]} <= recordings.entity_paths(out)
-        assert c.get("/v1/episodes/ep-none/recording").status_code == 404
 
 
 def test_live_stream_to_a_viewer_and_file_at_once(settings: Settings, tmp_path) -> None:

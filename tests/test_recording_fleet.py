@@ -1,57 +1,56 @@
 """A demo episode on the real fleet (sim, mapper, vlm_scorer, planner, stopper as processes) through the
-gateway: the merged .rrd verifies with the rerun tool and holds every entity the design lists.
-
-Needs the full fleet; it takes longer than the unit tests, so it runs only with RUN_FLEET_TESTS=1.
+gateway: the merged .rrd is served over HTTP, verifies with the rerun tool and holds every entity the design
+lists. One fleet and one episode (160x120 images, 4 steps) for the module.
 """
 
 from __future__ import annotations
 
-import os
 import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
 import httpx
 import pytest
 
+from eqa.launcher import Fleet
 from eqa.recording import ENTITIES, REQUIRED_ENTITIES
-from eqa.settings import Settings
 from gateway import recordings
-from gateway.harness import GatewayThread, sse_events
+from gateway.harness import GatewayThread, fleet_settings, sse_events, wait_for
 
-pytestmark = [
-    pytest.mark.slow,
-    pytest.mark.skipif(os.environ.get("RUN_FLEET_TESTS") != "1", reason="full-fleet test: set RUN_FLEET_TESTS=1"),
-]
+SCENE = "gen-00001"
 
 
-def test_demo_episode_recording_has_every_entity(settings: Settings, redis_url: str) -> None:
-    from eqa.launcher import Fleet
+@dataclass
+class Episode:
+    episode_id: str
+    status: dict[str, Any]
+    events: list[tuple[str, dict[str, Any]]]
+    rrd: httpx.Response
+    missing: httpx.Response
+    out: Path
 
-    # zenoh_listen empty: the launcher's router picks a free port itself and hands it to the children.
-    s = settings.model_copy(
-        update={
-            "record": True,
-            "redis_url": redis_url,
-            "episode_timeout_s": 120.0,
-            "zenoh_listen": [],
-            "zenoh_connect": [],
-        }
-    )
+
+@pytest.fixture(scope="module")
+def episode(tmp_path_factory: pytest.TempPathFactory, redis_url: str) -> Iterator[Episode]:
+    from services.sim.scene import load_or_generate
+
+    s = fleet_settings(tmp_path_factory.mktemp("rec-fleet"), redis_url, record=True, episode_timeout_s=120.0)
+    load_or_generate(SCENE, s.scenes_path)
     with (
         Fleet(s, scorers=1) as fleet,
         GatewayThread(fleet.client_settings()) as gw,
         httpx.Client(base_url=gw.url, timeout=60) as c,
     ):
-        deadline = time.monotonic() + 60
-        while c.get("/v1/ready").status_code != 200:
-            assert time.monotonic() < deadline, c.get("/v1/ready").text
-            time.sleep(0.2)
+        assert wait_for(lambda: c.get("/v1/ready").status_code == 200, 60), c.get("/v1/ready").text
         r = c.post(
             "/v1/questions",
             json={
                 "question": "Which room is the sofa in?",
                 "choices": ["kitchen", "living room", "bedroom", "bath"],
-                "scene": "gen-00001",
-                "max_steps": 6,
+                "scene": SCENE,
+                "max_steps": 4,
                 "seed": 1,
                 "stop_rule": "max_steps",
             },
@@ -59,17 +58,28 @@ def test_demo_episode_recording_has_every_entity(settings: Settings, redis_url: 
         assert r.status_code == 202, r.text
         eid = r.json()["episode_id"]
         events = list(sse_events(c, f"/v1/episodes/{eid}/events", timeout=300))
-        assert events[-1][1]["kind"] == "episode_end"
         st = c.get(f"/v1/episodes/{eid}").json()
-        assert st["state"] == "stopped", st
-        time.sleep(1.0)  # the services close their recorders on EpisodeEnd
+        time.sleep(1.0)  # each service closes (flushes) its recorder when it sees the episode end
         rrd = c.get(f"/v1/episodes/{eid}/recording")
-        assert rrd.status_code == 200
+        missing = c.get("/v1/episodes/ep-none/recording")
     out = s.data_dir / f"{eid}.rrd"
     out.write_bytes(rrd.content)
-    ok, msg = recordings.verify(out)
+    yield Episode(eid, st, events, rrd, missing, out)
+
+
+def test_recording_served_over_http(episode: Episode) -> None:
+    st = episode.status
+    assert episode.events[-1][1]["kind"] == "episode_end"
+    assert st["state"] == "stopped" and st["steps"] == 4, st
+    assert st["recording"] == f"/v1/episodes/{episode.episode_id}/recording"
+    assert episode.rrd.status_code == 200 and episode.rrd.headers["content-type"] == "application/octet-stream"
+    ok, msg = recordings.verify(episode.out)
     assert ok, msg
-    paths = recordings.entity_paths(out)
+    assert episode.missing.status_code == 404
+
+
+def test_demo_episode_recording_has_every_entity(episode: Episode) -> None:
+    paths = recordings.entity_paths(episode.out)
     missing = [
         k
         for k in REQUIRED_ENTITIES
