@@ -63,13 +63,42 @@ def _questions(split: str, limit: int | None, settings: Any) -> list[Any]:
     return qs
 
 
+def _import(path: Path, name: str, settings: Any) -> int:
+    """Store the traces of ``path`` (a JSONL export of a set) that the store lacks; how many were added."""
+    from eqa.store import open_store
+    from services.stopper.calibration import TraceStore, read_jsonl
+
+    if not path.is_file():
+        return 0
+    added = 0
+    with open_store(settings) as store:
+        ts = TraceStore(store)
+        for _, trace in read_jsonl(path):
+            if not ts.has(name, trace.question_id):
+                ts.save(name, trace)
+                added += 1
+    return added
+
+
+def _export(path: Path, traces: list[Any]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text("".join(t.model_dump_json() + "\n" for t in sorted(traces, key=lambda t: t.question_id)))
+    tmp.replace(path)
+
+
 def _collect(questions: list[Any], settings: Any, strategy: str, name: str, args: argparse.Namespace) -> list[Any]:
+    """The full-length traces of ``questions``: imported from ``--out/traces/<set>.jsonl``, read from the store,
+    or run (resumable); the set is exported back to that file so a fresh checkout can reuse the runs."""
     from tqdm import tqdm
 
     from eqa.harness import collect_traces
     from eqa.store import open_store
     from services.stopper.calibration import TraceStore
 
+    export = Path(args.out) / "traces" / f"{name}.jsonl"
+    if (added := _import(export, name, settings)):
+        log.info("%s: %d traces imported from %s", name, added, export)
     with open_store(settings) as store:
         done = sum(TraceStore(store).has(name, q.id) for q in questions)
     t0 = time.monotonic()
@@ -86,7 +115,9 @@ def _collect(questions: list[Any], settings: Any, strategy: str, name: str, args
         log.info("%s: %d episodes in %.1f min (%.1f episodes/min, %.1f steps/s)", strategy, ran, minutes,
                  ran / max(minutes, 1e-9), steps / max(minutes * 60, 1e-9))
     with open_store(settings) as store:
-        by_id = {t.question_id: t for t in TraceStore(store).load(name)}
+        everything = TraceStore(store).load(name)
+    _export(export, everything)
+    by_id = {t.question_id: t for t in everything}
     return [by_id[q.id] for q in questions if q.id in by_id]
 
 

@@ -1,0 +1,71 @@
+"""Benchmark replay: budgets and stopping rules read from recorded traces, checked by hand."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from eqa.evaluation import answer_within, cp_curve, replay, success_at_budgets, threshold_curve
+from eqa.messages import StopConfig
+from services.stopper.calibration import Trace, TraceStep, calibrate
+from services.stopper.state import CalibrationChoice
+
+CHOICES = ["a", "b", "c", "d"]
+
+
+def _trace(steps: list[tuple[list[float], float]], answer: str = "B", qid: str = "q", max_steps: int | None = None):
+    return Trace(question_id=qid, scene="gen-00001", category="state", choices=CHOICES, answer=answer,
+                 max_steps=max_steps or len(steps), strategy="semantic",
+                 steps=[TraceStep(answer_probs=f, relevance=r) for f, r in steps])
+
+
+UNIFORM = [0.25, 0.25, 0.25, 0.25]
+SURE_B = [0.05, 0.85, 0.05, 0.05]
+SURE_D = [0.05, 0.05, 0.05, 0.85]
+
+
+def test_answer_at_a_budget_is_argmax_f_at_the_most_relevant_step_so_far():
+    t = _trace([(SURE_D, 0.1), (UNIFORM, 0.05), (SURE_D, 0.2), (UNIFORM, 0.1), (SURE_B, 0.9),
+                (UNIFORM, 0.1), (UNIFORM, 0.1), (UNIFORM, 0.1), (UNIFORM, 0.1), (UNIFORM, 0.1)])
+    assert answer_within(t, 1) == "D" and answer_within(t, 4) == "D" and answer_within(t, 5) == "B"
+    # budgets 0.1..1.0 of T=10 steps -> 1..10 steps: wrong (D) until step 5 is included
+    assert success_at_budgets([t]) == [0, 0, 0, 0, 1, 1, 1, 1, 1, 1]
+
+
+def test_cp_replay_stops_when_one_answer_is_left_and_matches_the_rule_by_hand():
+    q_hat = 1.3  # keep y at step t iff Rel * (f_y - 1) >= -0.3
+    cal = CalibrationChoice(q_hat=q_hat, eps=0.2, asked_eps=0.2, n=50, source="test")
+    t = _trace([(UNIFORM, 0.1), (SURE_B, 0.5), (SURE_B, 0.9), (UNIFORM, 0.1)])
+    r = replay(t, StopConfig(rule="cp", eps=0.2), cal)
+    # step 0: rho = -0.075 for all -> keep all; step 1: rho_B = -0.075, others -0.475 -> {B}: stop
+    assert (r.answer, r.steps, r.correct, r.prediction_set) == ("B", 2, True, ("B",))
+
+
+def test_threshold_rules_and_fallback_when_nothing_fires():
+    t = _trace([(UNIFORM, 0.1), (SURE_D, 0.2), (SURE_B, 0.7), (UNIFORM, 0.1)], max_steps=6)
+    rel = replay(t, StopConfig(rule="relevance", threshold=0.5))
+    assert (rel.answer, rel.steps) == ("B", 3)
+    ent = replay(t, StopConfig(rule="entropy", threshold=0.7))
+    assert ent.answer == "D" and ent.steps == 2 and not ent.correct
+    never = replay(t, StopConfig(rule="relevance", threshold=0.95))
+    # the run ended at 4 of 6 steps (nothing left to explore): answer of the most relevant step
+    assert (never.answer, never.steps, never.normalized_steps) == ("B", 4, pytest.approx(4 / 6))
+
+
+def test_curves_report_success_steps_and_cp_coverage():
+    rng = np.random.default_rng(0)
+    traces = []
+    for i in range(60):
+        steps = []
+        for _ in range(8):
+            f = rng.dirichlet(np.ones(4)).tolist()
+            steps.append((f, float(rng.uniform(0, 1))))
+        traces.append(_trace(steps, answer="ABCD"[i % 4], qid=f"q{i:03d}"))
+    table = calibrate(traces[:40], [0.2, 0.5], name="t")
+    points = cp_curve(table, traces[40:])
+    assert [p.parameter for p in points] == [0.2, 0.5]
+    for p in points:
+        assert 0 <= p.success <= 1 and 0 < p.mean_normalized_steps <= 1 and 0 <= p.coverage <= 1
+    assert points[0].coverage >= points[1].coverage  # smaller eps, larger sets
+    th = threshold_curve("relevance", [0.99, 0.1], traces[40:])
+    assert th[0].mean_normalized_steps > th[1].mean_normalized_steps
