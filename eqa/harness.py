@@ -84,6 +84,14 @@ class RunResult:
         )
 
 
+def _stopper_trace(settings: Settings, episode_id: str) -> Any:
+    """The trace the stopper stored for the episode (exactly the steps it decided on), or None."""
+    from services.stopper.calibration import TraceStore
+
+    with open_store(settings) as store:
+        return TraceStore(store).trace_for_episode(episode_id)
+
+
 class Runner:
     """Full-length episodes of many questions over ``robots`` simulated robots through a real fleet."""
 
@@ -201,6 +209,14 @@ class Runner:
         return None
 
     def _result(self, run: _Running, end: EpisodeEnd | None, reason: str) -> RunResult:
+        # The stopper's stored trace is authoritative: the last StepScores may reach us after the EpisodeEnd
+        # (two publishers, two Zenoh threads), and the stopper saw every step it decided on.
+        stored = _stopper_trace(self.settings, run.episode_id) if end is not None else None
+        if stored is not None:
+            for t, s in enumerate(stored.steps):
+                if t not in run.scores:
+                    run.scores[t] = StepScores(episode_id=run.episode_id, step=t, answer_probs=s.answer_probs,
+                                               relevance=s.relevance)
         steps = [run.scores[t] for t in sorted(run.scores)]
         # Keep the contiguous prefix: a trace is a causal sequence of steps 0..t.
         contiguous = [s for i, s in enumerate(steps) if s.step == i]
