@@ -9,6 +9,7 @@ import numpy as np
 from eqa import keys
 from eqa.bus import Bus
 from eqa.messages import ErrorReply, Frame, Pose2D, Question, ScoreRequest, ScoreResult, StepScores
+from gateway.harness import wait_for
 
 
 def _frame(step: int = 0) -> Frame:
@@ -18,13 +19,6 @@ def _frame(step: int = 0) -> Frame:
     )
 
 
-def _wait(pred, timeout=5.0):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(0.02)
-    return False
 
 
 def test_pubsub_between_two_peers_and_garbage_is_dropped(hub_settings, settings):
@@ -36,10 +30,10 @@ def test_pubsub_between_two_peers_and_garbage_is_dropped(hub_settings, settings)
         a.publish_raw(key, b"\x00garbage")
         a.publish(key, StepScores(episode_id="ep1", step=0, answer_probs=[1.0], relevance=0.5))  # wrong type
         a.publish(key, _frame(3))
-        assert _wait(lambda: len(got) == 1)
+        assert wait_for(lambda: len(got) == 1, timeout=5.0)
         assert got[0].step == 3 and got[0].depth.dtype == np.float32
         a.publish(key, _frame(4))  # the subscriber survived the garbage
-        assert _wait(lambda: len(got) == 2)
+        assert wait_for(lambda: len(got) == 2, timeout=5.0)
 
 
 def test_handler_exception_does_not_kill_subscriber(hub_settings, settings):
@@ -56,7 +50,7 @@ def test_handler_exception_does_not_kill_subscriber(hub_settings, settings):
         time.sleep(0.3)
         a.publish(key, _frame(0))
         a.publish(key, _frame(1))
-        assert _wait(lambda: calls == [0, 1])
+        assert wait_for(lambda: calls == [0, 1], timeout=5.0)
 
 
 def test_queryable_replies_and_reports_errors(hub_settings, settings):
@@ -89,7 +83,7 @@ def test_liveliness_tokens_appear_and_disappear(hub_settings, settings):
         watcher.watch_alive(keys.ALIVE_ANY, lambda s, i, up: seen.append((s, i, up)))
         b = Bus(settings, "mapper", "m1").open()
         b.declare_alive()
-        assert _wait(lambda: ("mapper", "m1", True) in seen)
+        assert wait_for(lambda: ("mapper", "m1", True) in seen, timeout=5.0)
         assert ("mapper", "m1") in watcher.alive()
         b.close()
-        assert _wait(lambda: ("mapper", "m1", False) in seen)
+        assert wait_for(lambda: ("mapper", "m1", False) in seen, timeout=5.0)

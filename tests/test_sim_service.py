@@ -12,6 +12,7 @@ from eqa import keys
 from eqa.bus import Bus
 from eqa.codec import packb
 from eqa.messages import EpisodeStart, ErrorReply, Frame, Goal, Pose2D, Question
+from gateway.harness import wait_for
 from services.sim.housegen import generate_house
 from services.sim.motion import sample_start_pose
 from services.sim.service import SimService
@@ -19,13 +20,6 @@ from services.sim.service import SimService
 SCENE = "gen-00014"
 
 
-def _wait(pred, timeout=15.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(0.02)
-    return False
 
 
 def _start(ep: str, robot: str, scene: str, pose: Pose2D | None = None) -> EpisodeStart:
@@ -55,7 +49,7 @@ def test_sim_service_serves_frames_and_refuses_bad_input(hub_settings, settings)
             # unknown scene and a mesh that does not parse: error replies naming the problem
             bus.publish(keys.stream("r1", keys.EPISODE_START), _start("ep-bad", "r1", "no-such-scene"))
             bus.publish(keys.stream("r2", keys.EPISODE_START), _start("ep-broken", "r2", "broken"))
-            assert _wait(lambda: len(errors) >= 2)
+            assert wait_for(lambda: len(errors) >= 2, timeout=15.0)
             by_robot = {r: e for r, e in errors}
             assert by_robot["r1"].source == "sim" and by_robot["r1"].episode_id == "ep-bad"
             assert "unknown scene" in by_robot["r1"].reason and by_robot["r1"].step == 0
@@ -63,7 +57,7 @@ def test_sim_service_serves_frames_and_refuses_bad_input(hub_settings, settings)
 
             # a good episode on r0: frame 0 at the sampled start pose
             bus.publish(keys.stream("r0", keys.EPISODE_START), _start("ep0", "r0", SCENE))
-            assert _wait(lambda: any(r == "r0" for r, _ in frames))
+            assert wait_for(lambda: any(r == "r0" for r, _ in frames), timeout=15.0)
             f0 = next(f for r, f in frames if r == "r0")
             h, w = settings.sim_height, settings.sim_width
             assert f0.step == 0 and f0.rgb.shape == (h, w, 3) and f0.depth.shape == (h, w)
@@ -76,7 +70,7 @@ def test_sim_service_serves_frames_and_refuses_bad_input(hub_settings, settings)
             room = scene.rooms[0]
             wall = Pose2D(x=room.rect[0] + 0.02, y=room.center[1], yaw=0.0)
             bus.publish(keys.stream("r0", keys.PLANNER_GOAL), Goal(episode_id="ep0", step=0, pose=wall))
-            assert _wait(lambda: any(e.episode_id == "ep0" for _, e in errors))
+            assert wait_for(lambda: any(e.episode_id == "ep0" for _, e in errors), timeout=15.0)
             err = next(e for _, e in errors if e.episode_id == "ep0")
             assert err.step == 0 and "collision" in err.reason
             nan_goal = {"kind": "goal", "schema_version": 1, "sent_at": time.time(), "episode_id": "ep0", "step": 0,
@@ -88,8 +82,8 @@ def test_sim_service_serves_frames_and_refuses_bad_input(hub_settings, settings)
             bus.publish(keys.stream("r3", keys.EPISODE_START), _start("ep3", "r3", SCENE))
             good = sample_start_pose(scene, np.random.default_rng(42), clearance=0.3)
             bus.publish(keys.stream("r0", keys.PLANNER_GOAL), Goal(episode_id="ep0", step=0, pose=good))
-            assert _wait(lambda: any(r == "r0" and f.step == 1 for r, f in frames))
-            assert _wait(lambda: any(r == "r3" for r, _ in frames))
+            assert wait_for(lambda: any(r == "r0" and f.step == 1 for r, f in frames), timeout=15.0)
+            assert wait_for(lambda: any(r == "r3" for r, _ in frames), timeout=15.0)
             f1 = next(f for r, f in frames if r == "r0" and f.step == 1)
             assert f1.pose == good
             assert len([1 for r, f in frames if r == "r0"]) == 2  # nothing rendered for the refused goals
@@ -107,7 +101,7 @@ def test_a_restarted_sim_continues_the_episode_at_the_next_goal(hub_settings, se
         try:
             time.sleep(0.5)
             bus.publish(keys.stream("r0", keys.EPISODE_START), _start("ep-rs", "r0", SCENE))
-            assert _wait(lambda: len(frames) == 1)
+            assert wait_for(lambda: len(frames) == 1, timeout=15.0)
         finally:
             first.stop()  # the process is gone: everything in memory is lost
         second = SimService(settings)
@@ -116,7 +110,7 @@ def test_a_restarted_sim_continues_the_episode_at_the_next_goal(hub_settings, se
             time.sleep(0.5)
             goal = sample_start_pose(scene, np.random.default_rng(11), 0.5)
             bus.publish(keys.stream("r0", keys.PLANNER_GOAL), Goal(episode_id="ep-rs", step=0, pose=goal))
-            assert _wait(lambda: len(frames) == 2)
+            assert wait_for(lambda: len(frames) == 2, timeout=15.0)
             f1 = frames[1]
             assert f1.episode_id == "ep-rs" and f1.step == 1
             assert (f1.pose.x, f1.pose.y) == (goal.x, goal.y) and f1.scene == SCENE

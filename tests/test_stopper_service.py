@@ -8,7 +8,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -28,6 +28,7 @@ from eqa.messages import (
 from eqa.recording import recording_dir
 from eqa.settings import Settings
 from eqa.store import EmbeddedStore
+from gateway.harness import wait_for
 from services.stopper import synthetic
 from services.stopper.calibration import CalibrationTable, TraceStore, calibrate, save_table
 from services.stopper.service import END_PREFIX, STATE_PREFIX, StopperService
@@ -37,13 +38,6 @@ ROBOT = "r0"
 LABELS = "ABCD"
 
 
-def _wait(pred: Callable[[], object], timeout: float = 10.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(0.02)
-    return False
 
 
 class Listener:
@@ -65,13 +59,13 @@ class Listener:
         self.bus.publish(keys.stream(ROBOT, pair), msg)  # type: ignore[arg-type]
 
     def decision(self, episode_id: str, step: int) -> Decision:
-        assert _wait(lambda: any(d.episode_id == episode_id and d.step == step for d in self.decisions)), (
-            f"no decision for {episode_id} step {step}"
-        )
+        seen = lambda: any(d.episode_id == episode_id and d.step == step for d in self.decisions)  # noqa: E731
+        assert wait_for(seen, timeout=10.0), f"no decision for {episode_id} step {step}"
         return next(d for d in self.decisions if d.episode_id == episode_id and d.step == step)
 
     def end(self, episode_id: str) -> EpisodeEnd:
-        assert _wait(lambda: any(e.episode_id == episode_id for e in self.ends)), f"no end for {episode_id}"
+        ended = lambda: any(e.episode_id == episode_id for e in self.ends)  # noqa: E731
+        assert wait_for(ended, timeout=10.0), f"no end for {episode_id}"
         return next(e for e in self.ends if e.episode_id == episode_id)
 
     def ready(self, timeout: float = 30.0) -> None:
@@ -84,7 +78,7 @@ class Listener:
             eid = f"probe-{n}-{time.monotonic_ns()}"
             self.send(keys.EPISODE_START, _start(eid, rule="max_steps", max_steps=1))
             self.send(keys.MAPPER_SCORES, _scores(eid, 0, [0.25] * 4, 0.5))
-            if _wait(lambda e=eid: any(x.episode_id == e for x in self.ends), timeout=1.0):
+            if wait_for(lambda e=eid: any(x.episode_id == e for x in self.ends), timeout=1.0):
                 return
         raise AssertionError("the stopper never answered a probe episode")
 
@@ -155,7 +149,7 @@ def running(hub_settings: Settings, settings: Settings) -> Iterator[tuple[Listen
         svc = StopperService(svc_settings)
         svc.start()
         try:
-            assert _wait(lambda: listener.alive_instances())
+            assert wait_for(lambda: listener.alive_instances(), timeout=10.0)
             listener.ready()
             yield listener, svc, svc_settings
         finally:
@@ -306,7 +300,7 @@ def test_restart_of_the_stopper_process_keeps_the_running_intersection(
         lis = Listener(bus)
         try:
             procs.append(spawn())
-            assert _wait(lis.alive_instances, timeout=30), "stopper process did not come up"
+            assert wait_for(lis.alive_instances, timeout=30), "stopper process did not come up"
             first = lis.alive_instances()
             lis.ready()
             lis.send(keys.EPISODE_START, _start("ep-restart"))
@@ -318,7 +312,7 @@ def test_restart_of_the_stopper_process_keeps_the_running_intersection(
             procs[0].send_signal(signal.SIGKILL)  # no clean shutdown: the state must already be stored
             procs[0].wait(timeout=10)
             procs.append(spawn())
-            assert _wait(lambda: lis.alive_instances() - first, timeout=30), "restarted stopper not up"
+            assert wait_for(lambda: lis.alive_instances() - first, timeout=30), "restarted stopper not up"
             lis.ready()
             # C^2 = {B, C}: with the restored running set {A, B} only B is left -> stop with B
             lis.send(keys.MAPPER_SCORES, _scores("ep-restart", 2, *keeping("BC", q_hat)))
