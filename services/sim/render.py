@@ -65,14 +65,14 @@ class Renderer:
         self._max_id = int(ids.max()) if ids.size else -1
 
     def _camera_rays(self, K: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
-        """Cached camera-frame directions and a reusable ``(H*W, 6)`` ray buffer for one image size."""
+        """Cached camera-frame directions ``(3, H*W)`` and a reusable ``(H*W, 6)`` ray buffer for one image size."""
         key = (np.asarray(K, np.float64).tobytes(), int(width), int(height))
         cached = self._rays.get(key)
         if cached is None:
             if len(self._rays) > 8:
                 self._rays.clear()
             dirs = camera_rays(K, width, height)
-            cached = self._rays[key] = (dirs, np.empty((dirs.shape[0], 6), np.float32))
+            cached = self._rays[key] = (np.ascontiguousarray(dirs.T), np.empty((dirs.shape[0], 6), np.float32))
         return cached
 
     def cast(self, camera_pose: np.ndarray, K: np.ndarray, width: int, height: int) -> dict[str, np.ndarray]:
@@ -80,9 +80,18 @@ class Renderer:
         T = np.asarray(camera_pose, np.float64)
         if T.shape != (4, 4) or not np.isfinite(T).all():
             raise ValueError("camera_pose must be a finite 4x4 matrix")
-        dirs, rays = self._camera_rays(K, width, height)
+        dirs_t, rays = self._camera_rays(K, width, height)
         rays[:, :3] = T[:3, 3]
-        np.matmul(dirs, T[:3, :3].T.astype(np.float32), out=rays[:, 3:])
+        # World directions R @ d, one output column at a time with element-wise products. Not a BLAS matmul: its
+        # threads keep spinning after the call and steal the cores from open3d's ray cast (measured: a 640x480
+        # cast went from 22 to 45 ms after a 2 ms matmul on 2 cores).
+        R = T[:3, :3].astype(np.float32)
+        col = np.empty(dirs_t.shape[1], np.float32)
+        for j in range(3):
+            np.multiply(dirs_t[0], R[j, 0], out=col)
+            col += dirs_t[1] * R[j, 1]
+            col += dirs_t[2] * R[j, 2]
+            rays[:, 3 + j] = col
         out = self._rc.cast_rays(o3d.core.Tensor.from_numpy(rays))
         return {k: out[k].numpy() for k in ("t_hit", "primitive_ids", "primitive_uvs")}
 
