@@ -62,6 +62,9 @@ class Settings(BaseSettings):
     oracle_bias_confidence: float = Field(default=0.7, gt=0.0, lt=1.0)
     oracle_temperature: float = Field(default=1.0, gt=0.0, description=">1 flatter, <1 over-confident")
     oracle_relevance_scale: float = Field(default=0.55, gt=0.0, le=1.0)
+    oracle_min_pixels_frac: float = Field(default=0.002, ge=0.0, lt=1.0, description="share of image: unseen below")
+    oracle_full_pixels_frac: float = Field(default=0.03, gt=0.0, le=1.0, description="share of image: fully seen")
+    oracle_max_range_m: float = Field(default=6.0, gt=0.0, description="distance past which a target is unseen")
 
     # --- planner ---
     tau_lsv: float = 1.0
