@@ -239,7 +239,8 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--limit", type=int, default=None, help="use only N questions (quick mode, e.g. 20)")
     p.add_argument("--robots", type=int, default=2, help="simulated robots run at once (default 2)")
     p.add_argument("--scorers", type=int, default=1, help="scorer replicas (default 1)")
-    p.add_argument("--size", default="640x480", help="camera image size WxH (default 640x480, the reference)")
+    p.add_argument("--size", default="320x240",
+                   help="camera image size WxH (default 320x240, as the README's figures; the reference is 640x480)")
     p.add_argument("--out", default="var/bench", help="directory for JSON results and PNG plots")
     p.add_argument("--no-progress", action="store_true")
 
