@@ -30,8 +30,8 @@ import numpy as np
 
 os.environ.setdefault("RERUN_TELEMETRY_ENABLED", "false")
 
-from eqa.launcher import Fleet, LaunchError
-from gateway.harness import GatewayProcess, fleet_settings, free_port, wait_for
+from eqa.launcher import Fleet, LaunchError, free_port
+from gateway.harness import GatewayProcess, fleet_settings, wait_for
 
 TOKEN = "bench-token"
 

@@ -31,7 +31,6 @@ import argparse
 import logging
 import math
 import os
-import socket
 import sys
 import tempfile
 import threading
@@ -45,6 +44,7 @@ os.environ.setdefault("RERUN_TELEMETRY_ENABLED", "false")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from eqa import keys
+from eqa.launcher import free_port
 from eqa.messages import (
     Decision,
     EpisodeStart,
@@ -197,17 +197,11 @@ def fleet_run(
 # ---- 3: in-process breakdown -------------------------------------------------------------------------------
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 def zenoh_transport_ms(payloads: list[bytes], base: Settings) -> list[float]:
     """put -> subscriber callback latency of each payload between two real Zenoh sessions on loopback."""
     from eqa.bus import Bus
 
-    port = _free_port()
+    port = free_port()
     hub = base.model_copy(update={"zenoh_listen": [f"tcp/127.0.0.1:{port}"], "zenoh_connect": []})
     peer = base.model_copy(update={"zenoh_listen": [], "zenoh_connect": [f"tcp/127.0.0.1:{port}"]})
     got = threading.Event()

@@ -12,7 +12,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import math
 import sys
 import time
 from dataclasses import dataclass
@@ -35,17 +34,11 @@ class AskError(Exception):
 
 
 def parse_pose(text: str) -> Pose2D:
-    """``x,y[,yaw]`` in metres/radians (argparse type)."""
-    parts = [p.strip() for p in text.split(",")]
-    if len(parts) not in (2, 3):
-        raise argparse.ArgumentTypeError(f"pose must be x,y or x,y,yaw (numbers), got {text!r}")
+    """``x,y[,yaw]`` in metres/radians (argparse type over :meth:`Pose2D.parse`)."""
     try:
-        values = [float(p) for p in parts]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"pose must be numbers like 1.5,-2,0.7, got {text!r}") from None
-    if not all(math.isfinite(v) for v in values):
-        raise argparse.ArgumentTypeError(f"pose values must be finite, got {text!r}")
-    return Pose2D(x=values[0], y=values[1], yaw=values[2] if len(values) == 3 else 0.0)
+        return Pose2D.parse(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def demo_question(scenes_dir: Path) -> Question:

@@ -75,6 +75,20 @@ class Pose2D(BaseModel):
     def xy(self) -> np.ndarray:
         return np.array([self.x, self.y], dtype=np.float64)
 
+    @classmethod
+    def parse(cls, text: str) -> Pose2D:
+        """``"x,y[,yaw]"`` (metres, radians; yaw 0 when left out). ``ValueError`` says what is wrong."""
+        parts = [p.strip() for p in text.split(",")]
+        if len(parts) not in (2, 3):
+            raise ValueError(f"pose must be x,y or x,y,yaw (numbers), got {text!r}")
+        try:
+            values = [float(p) for p in parts]
+        except ValueError:
+            raise ValueError(f"pose must be numbers like 1.5,-2,0.7, got {text!r}") from None
+        if not all(math.isfinite(v) for v in values):
+            raise ValueError(f"pose values must be finite, got {text!r}")
+        return cls(x=values[0], y=values[1], yaw=values[2] if len(values) == 3 else 0.0)
+
 
 class Question(BaseModel):
     """A question about one scene. ``answer`` and ``evidence_ids`` are ground truth, known for benchmark

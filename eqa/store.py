@@ -20,6 +20,9 @@ from typing import Any
 
 from eqa.settings import Settings
 
+EPISODE_STATE_TTL_S = 2 * 24 * 3600.0
+"""How long a service keeps the stored state of an episode nobody ends (services resume from it)."""
+
 
 class StoreError(RuntimeError):
     pass

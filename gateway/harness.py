@@ -8,7 +8,6 @@ import contextlib
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -20,6 +19,7 @@ from typing import TYPE_CHECKING, Any
 import httpx
 import uvicorn
 
+from eqa.launcher import free_port
 from eqa.messages import EpisodeEnd
 from eqa.settings import Settings
 from eqa.store import open_store
@@ -28,12 +28,6 @@ from gateway.manager import STOPPER_END_PREFIX
 
 if TYPE_CHECKING:
     from eqa.launcher import Fleet
-
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def fleet_settings(data_dir: Path, redis_url: str | None = None, **update: Any) -> Settings:

@@ -47,7 +47,7 @@ def test_live_stream_to_a_viewer_and_file_at_once(settings: Settings, tmp_path) 
     import os
     import subprocess
 
-    from gateway.harness import free_port
+    from eqa.launcher import free_port
 
     port = free_port()
     log_path = tmp_path / "viewer.log"

@@ -37,6 +37,7 @@ from eqa.messages import (
 )
 from eqa.recording import EpisodeRecorder
 from eqa.service import Service
+from eqa.store import EPISODE_STATE_TTL_S
 from services.planner.sampling import step_rng
 from services.planner.step import Memory, PlannerParams, StepPlan, plan_step
 
@@ -44,7 +45,6 @@ log = logging.getLogger(__name__)
 
 MAX_REFUSALS = 4
 _KEEP_STEPS = 3
-STATE_TTL_S = 2 * 24 * 3600.0
 
 
 def state_key(episode_id: str) -> str:
@@ -142,7 +142,7 @@ class PlannerService(Service):
             "memory": {"target": m.target.model_dump() if m.target else None, "committed_steps": m.committed_steps,
                        "visited": m.visited, "refused": m.refused, "turns": m.turns},
         }
-        self.store.set_json(state_key(ep.episode_id), state, ttl_s=STATE_TTL_S)
+        self.store.set_json(state_key(ep.episode_id), state, ttl_s=EPISODE_STATE_TTL_S)
 
     def _restore(self, episode_id: str) -> _Episode | None:
         state = self.store.get_json(state_key(episode_id))

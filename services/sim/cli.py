@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from pathlib import Path
 
@@ -19,19 +18,15 @@ def _scenes_dir(args: argparse.Namespace) -> Path:
     return Settings().scenes_path
 
 
+def _message(exc: Exception) -> str:
+    """The text of an exception; a KeyError subclass (SceneNotFound) quotes it, so drop those quotes only."""
+    msg = str(exc)
+    return msg[1:-1] if len(msg) > 1 and msg[0] == msg[-1] and msg[0] in "'\"" else msg
+
+
 def _fail(msg: str) -> int:
     print(f"error: {msg}", file=sys.stderr)
     return 2
-
-
-def _parse_pose(text: str) -> tuple[float, float, float]:
-    parts = [p for p in text.replace(" ", "").split(",") if p]
-    if len(parts) not in (2, 3):
-        raise ValueError(f"--pose {text!r}: expected x,y[,yaw] (metres, radians)")
-    vals = [float(p) for p in parts] + ([0.0] if len(parts) == 2 else [])
-    if not all(math.isfinite(v) for v in vals):
-        raise ValueError(f"--pose {text!r}: values must be finite")
-    return vals[0], vals[1], vals[2]
 
 
 def _load(args: argparse.Namespace):
@@ -54,13 +49,12 @@ def cmd_render(args: argparse.Namespace) -> int:
     from services.sim.scene import SceneLoadError, SceneNotFound
 
     try:
-        x, y, yaw = _parse_pose(args.pose)
+        pose = Pose2D.parse(args.pose)
         if args.width < 1 or args.height < 1:
             raise ValueError("--width and --height must be positive")
         scene = _load(args)
     except (ValueError, SceneNotFound, SceneLoadError) as exc:
-        return _fail(str(exc).strip("'\""))
-    pose = Pose2D(x=x, y=y, yaw=yaw)
+        return _fail(_message(exc))
     reason = pose_error(scene, pose)
     if reason is not None and not args.force:
         return _fail(f"{reason} (use --force to render anyway)")
@@ -86,7 +80,7 @@ def cmd_floorplan(args: argparse.Namespace) -> int:
         traj = read_trajectory(Path(args.trajectory)) if args.trajectory else None
         scene = _load(args)
     except (OSError, ValueError, KeyError, SceneNotFound, SceneLoadError) as exc:
-        return _fail(str(exc).strip("'\""))
+        return _fail(_message(exc))
     dest = draw_floorplan(scene, Path(args.out), traj)
     print(f"wrote {dest} (scene {scene.id}, {scene.floor_area_m2:.0f} m2, {len(scene.rooms)} rooms)")
     return 0

@@ -24,6 +24,7 @@ from eqa.messages import EpisodeCancel, EpisodeEnd, EpisodeStart, ErrorReply, Fr
 from eqa.recording import EpisodeRecorder
 from eqa.service import Service
 from eqa.settings import Settings
+from eqa.store import EPISODE_STATE_TTL_S
 from services.sim import hmeqa
 from services.sim.camera import camera_pose, intrinsics
 from services.sim.motion import START_CLEARANCE, pose_error, sample_start_pose
@@ -32,7 +33,6 @@ from services.sim.scene import GEN_ID, Scene, SceneLoadError, SceneNotFound, loa
 
 log = logging.getLogger(__name__)
 MAX_CACHED_SCENES = 4
-STATE_TTL_S = 2 * 24 * 3600.0
 
 
 def state_key(robot: str) -> str:
@@ -118,7 +118,7 @@ class SimService(Service):
     def _save(self, robot: str, ep: _Episode) -> None:
         state = {"start": ep.start.model_dump(mode="json"), "pose": ep.pose.model_dump(), "step": ep.step,
                  "trajectory": ep.trajectory}
-        self.store.set_json(state_key(robot), state, ttl_s=STATE_TTL_S)
+        self.store.set_json(state_key(robot), state, ttl_s=EPISODE_STATE_TTL_S)
 
     def _restore(self, robot: str, episode_id: str) -> _Episode | None:
         """The robot's episode from the store (a restarted sim), or None."""

@@ -38,6 +38,7 @@ from eqa.messages import (
 )
 from eqa.recording import EpisodeRecorder, recording_dir
 from eqa.service import Service
+from eqa.store import EPISODE_STATE_TTL_S
 from services.stopper.calibration import TraceStore, load_table
 from services.stopper.conformal import ScoreError
 from services.stopper.state import EpisodeRecord, check_threshold, decide, end_message, resolve_calibration
@@ -46,7 +47,6 @@ log = logging.getLogger(__name__)
 
 STATE_PREFIX = "eqa:stopper:episode:"
 END_PREFIX = "eqa:stopper:end:"
-STATE_TTL_S = 2 * 24 * 3600.0  # an episode nobody ends is forgotten after two days
 # Zenoh runs the callbacks of different subscriptions on different threads, so the scores of step 0 can
 # overtake their EpisodeStart; they wait here (per episode, bounded, for a while) until it arrives.
 _ENTITIES: dict[str, str] = getattr(recording, "ENTITIES", {})
@@ -103,7 +103,7 @@ class StopperService(Service):
 
     # ---- persistence --------------------------------------------------------------------------------------
     def _save(self, rec: EpisodeRecord) -> None:
-        self.store.set(STATE_PREFIX + rec.episode_id, rec.model_dump_json().encode(), ttl_s=STATE_TTL_S)
+        self.store.set(STATE_PREFIX + rec.episode_id, rec.model_dump_json().encode(), ttl_s=EPISODE_STATE_TTL_S)
 
     def _save_trace(self, rec: EpisodeRecord, end_reason: str | None = None) -> None:
         trace = rec.trace(end_reason)
@@ -260,7 +260,7 @@ class StopperService(Service):
         if answer is not None:
             self._recorder(rec).log("stopper/log", _text(f"final answer {answer}: {reason}"))
         end = end_message(rec, state, reason, answer, self._recording(rec))
-        self.store.set(END_PREFIX + rec.episode_id, end.model_dump_json().encode(), ttl_s=STATE_TTL_S)
+        self.store.set(END_PREFIX + rec.episode_id, end.model_dump_json().encode(), ttl_s=EPISODE_STATE_TTL_S)
         self._drop(rec, reason)
         if decision is not None:
             self.publish(rec.robot, keys.STOPPER_DECISION, decision)
