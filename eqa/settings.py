@@ -56,14 +56,14 @@ class Settings(BaseSettings):
     remote_api_key: str | None = None
     remote_timeout_s: float = Field(default=30.0, gt=0)
     remote_max_retries: int = Field(default=4, ge=0)
-    oracle_accuracy: float = Field(default=0.8, ge=0.0, le=1.0)
+    oracle_accuracy: float = Field(default=0.85, ge=0.0, le=1.0)
     # simulated perception model (services/vlm_scorer/backends/oracle.py documents each knob)
     oracle_evidence_confidence: float = Field(default=0.8, gt=0.0, lt=1.0)
     oracle_bias_confidence: float = Field(default=0.7, gt=0.0, lt=1.0)
     oracle_temperature: float = Field(default=1.0, gt=0.0, description=">1 flatter, <1 over-confident")
     oracle_relevance_scale: float = Field(default=0.55, gt=0.0, le=1.0)
-    oracle_min_pixels_frac: float = Field(default=0.002, ge=0.0, lt=1.0, description="share of image: unseen below")
-    oracle_full_pixels_frac: float = Field(default=0.03, gt=0.0, le=1.0, description="share of image: fully seen")
+    oracle_min_pixels_frac: float = Field(default=0.0005, ge=0.0, lt=1.0, description="share of image: unseen below")
+    oracle_full_pixels_frac: float = Field(default=0.005, gt=0.0, le=1.0, description="share of image: fully seen")
     oracle_max_range_m: float = Field(default=6.0, gt=0.0, description="distance past which a target is unseen")
 
     # --- planner ---

@@ -43,6 +43,7 @@ def frame_request(
     for lab in labels:
         lab.pixels = int((inst == lab.id).sum())
     q = question or Question(
+        id=f"q-{episode}",  # the oracle's draws are seeded per (seed, question id, step)
         text="What color is the sofa?",
         choices=["Blue", "Red", "Green", "White"],
         scene="s0",

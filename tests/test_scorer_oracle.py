@@ -10,7 +10,7 @@ from eqa.messages import NOT_LISTED_CHOICE, PADDING_CHOICE, Question
 from services.vlm_scorer.backends.oracle import OracleBackend, OracleParams, parse_target
 
 
-def test_deterministic_per_episode_and_step():
+def test_deterministic_per_question_and_step():
     b = OracleBackend()
     a1, a2 = b.score(frame_request(step=3)), b.score(frame_request(step=3))
     assert a1.answer_probs == a2.answer_probs and a1.lsv == a2.lsv and a1.relevance == a2.relevance
@@ -108,3 +108,30 @@ def test_free_text_fallback_and_proposals():
     s = OracleBackend().score(frame_request(question=Question(text="Where is the sofa?", scene="s")))
     assert s.proposed_choices[-1] == NOT_LISTED_CHOICE and "living room" in s.proposed_choices
     assert len(s.answer_probs) == len(s.proposed_choices)
+
+
+def test_location_question_ignores_objects_of_another_colour():
+    """"Where is the blue sofa?" with only a red sofa in view: no evidence, the answer is a guess."""
+    b = OracleBackend(OracleParams(accuracy=1.0))
+    q = Question(id="q-loc", text="Where is the blue sofa?", choices=["In the kitchen", "In the living room"],
+                 scene="s0", query={"type": "location", "category": "sofa", "color": "blue"})
+    req = frame_request(question=q)
+    assert b.target_views(req, parse_target(q)) == []
+    red = q.model_copy(update={"text": "Where is the red sofa?", "query": {**q.query, "color": "red"}})
+    views = b.target_views(frame_request(question=red), parse_target(red))
+    assert [lab.id for lab, _, _ in views] == [7]
+    s = b.score(frame_request(question=red))
+    assert int(np.argmax(s.answer_probs)) == 1  # the red sofa stands in the living room
+
+
+def test_location_guess_without_evidence_follows_the_commonsense_prior():
+    """Without evidence a VLM guesses from what it knows ("a towel: the bathroom"), not uniformly."""
+    b = OracleBackend(OracleParams(bias_stickiness=1.0))
+    hits = 0
+    for k in range(60):
+        q = Question(id=f"q-towel-{k}", text="Where is the pink towel?",
+                     choices=["In the garage", "In the bathroom", "In the office", "In the dining room"],
+                     scene="s0", query={"type": "location", "category": "towel", "color": "pink"})
+        s = b.score(frame_request(question=q, with_target=False))
+        hits += int(np.argmax(s.answer_probs)) == 1
+    assert hits >= 40  # uniform guessing would give about 15 of 60

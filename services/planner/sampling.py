@@ -6,6 +6,10 @@
 * ``fbe``: frontier-based exploration without semantic value: uniform over the reachable frontiers.
 * ``nearest``: deterministic, the reachable frontier with the shortest geodesic distance.
 
+The sampled strategies multiply the probabilities by a distance decay ``exp(-d / decay_m)`` of the geodesic
+distance (:func:`distance_decay`), the same for all of them, so with equal semantic values ``semantic``
+still samples like ``fbe``.
+
 Sampling is seeded per (episode seed, step, attempt), so a run is reproducible and a retry after a refused
 goal draws again.
 """
@@ -66,14 +70,29 @@ def probabilities(strategy: Strategy, weights: Sequence[float], candidates: Sequ
     return p, f"{strategy}: uniform over reachable frontiers"
 
 
+def distance_decay(probs: np.ndarray, geodesic_m: Sequence[float], decay_m: float | None) -> np.ndarray:
+    """Multiply sampling probabilities by ``exp(-d / decay_m)`` of each frontier's geodesic distance ``d`` and
+    renormalise (the reference implementation's distance factor of the frontier weight, its ``dist_T``):
+    without it, uniform sampling sends the robot back and forth across the house. ``None`` or 0: off."""
+    if not decay_m or not probs.any():
+        return probs
+    d = np.asarray(geodesic_m, dtype=np.float64)
+    d = np.where(np.isfinite(d), d, np.inf)
+    q = probs * np.exp(-(d - d[probs > 0].min()) / decay_m)
+    total = float(q.sum())
+    return q / total if total > 0 and math.isfinite(total) else probs
+
+
 def choose(
     strategy: Strategy,
     weights: Sequence[float],
     candidates: Sequence[bool],
     geodesic_m: Sequence[float],
     rng: np.random.Generator,
+    decay_m: float | None = None,
 ) -> tuple[int | None, np.ndarray, str]:
-    """Index of the chosen frontier (None when there is no candidate), the probabilities, and a note."""
+    """Index of the chosen frontier (None when there is no candidate), the probabilities, and a note.
+    ``decay_m``: :func:`distance_decay` for the sampled strategies."""
     cand = np.asarray(candidates, dtype=bool)
     if strategy == "nearest":
         p = np.zeros(cand.size)
@@ -86,5 +105,8 @@ def choose(
     p, note = probabilities(strategy, weights, cand)
     if not cand.any():
         return None, p, note
+    if decay_m:
+        p = distance_decay(p, geodesic_m, decay_m)
+        note += f", distance decay {decay_m:g} m"
     i = int(rng.choice(p.size, p=p / p.sum()))
     return i, p, note

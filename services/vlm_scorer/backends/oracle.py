@@ -10,17 +10,20 @@ part of the scene outside the frame.
 
 How it behaves (the knobs are :class:`OracleParams`, from settings ``EQA_ORACLE_*``):
 
-* Perception: a target (an instance of the asked category, in the asked room when one is asked) counts as
+* Perception: a target (an instance of the asked category, in the asked room when one is asked, of the
+  asked colour when the question names one: "where is the blue towel?") counts as
   seen with a quality ``E`` in [0, 1] from its pixel share (``min_pixels_frac`` .. ``full_pixels_frac``) and
   its distance (full up to ``near_m``, none past ``max_range_m``). On a view with evidence the model reads
   the answer from what it sees (colour, state, count, room), right with probability ``accuracy`` - the draw
-  is per (episode, target instance), so the model is consistently right or wrong about one object, as a
+  is per (question, target instance), so the model is consistently right or wrong about one object, as a
   real VLM is about one view of it.
 * Answer distribution f(x^t): with evidence, the read answer gets a top probability around
   ``evidence_confidence``; without evidence (or with probability 1 - E on weak views) the model answers
   anyway, confidently and biased (Explore-EQA VII-G): a per-question bias choice gets a top probability
-  around ``bias_confidence``. ``temperature`` (>1 flatter, <1 sharper) miscalibrates both. Padding choices
-  "(Do not choose this option)" never get more than ``padding_floor``.
+  around ``bias_confidence`` (for a location question the bias follows the commonsense prior of
+  :mod:`services.vlm_scorer.commonsense`: a VLM that has not seen the towel guesses "the bathroom").
+  ``temperature`` (>1 flatter, <1 sharper) miscalibrates both. Padding choices "(Do not choose this
+  option)" never get more than ``padding_floor``.
 * Relevance Rel(x^t) (Eq. 5): ``relevance_scale * E`` with log-normal noise, so it runs low even on good
   views (appendix C, Fig. A5); about ``relevance_floor`` on views without evidence.
 * LSV (Eq. 1): per prompt point, the rooms and objects whose instance ids lie within ``window_frac`` of the
@@ -30,7 +33,7 @@ How it behaves (the knobs are :class:`OracleParams`, from settings ``EQA_ORACLE_
   probability 1 - ``accuracy`` the scores are shuffled (a confused model).
 * GSV (Eq. 2): P(Yes) from the best prior among the rooms in view, connectors and seen targets, plus noise.
 
-Every draw comes from a generator seeded by (``ScoreRequest.seed``, episode id, step), so the same request
+Every draw comes from a generator seeded by (``ScoreRequest.seed``, question id, step), so the same request
 gives the same numbers. The defaults aim at the paper's 56-65 % success at the full step budget for open
 VLMs; the same defaults serve every exploration and stopping strategy.
 """
@@ -94,7 +97,7 @@ COLORS = (
 class OracleParams:
     """The knobs of the simulated perception model (documented in the module docstring)."""
 
-    accuracy: float = 0.8
+    accuracy: float = 0.85
     evidence_confidence: float = 0.8
     bias_confidence: float = 0.7
     bias_stickiness: float = 0.75  # P(the no-evidence answer is the question's bias choice)
@@ -102,8 +105,8 @@ class OracleParams:
     relevance_scale: float = 0.55
     relevance_floor: float = 0.06
     relevance_noise: float = 0.35  # sd of the log-normal noise on Rel
-    min_pixels_frac: float = 0.002
-    full_pixels_frac: float = 0.03
+    min_pixels_frac: float = 0.0005
+    full_pixels_frac: float = 0.005
     near_m: float = 2.0
     max_range_m: float = 6.0
     padding_floor: float = 1e-3
@@ -129,6 +132,7 @@ class Target:
     room_kind: str | None
     attribute: str | None
     value: str | None
+    color: str | None = None
 
 
 def parse_target(question: Question) -> Target:
@@ -153,8 +157,14 @@ def parse_target(question: Question) -> Target:
             qtype = "existence"
         else:
             qtype = "identification"
+    color = q.get("color")
     return Target(
-        qtype, cs.norm_category(category) if category else None, room_kind, q.get("attribute"), q.get("value")
+        qtype,
+        cs.norm_category(category) if category else None,
+        room_kind,
+        q.get("attribute"),
+        q.get("value"),
+        color.lower() if color else None,
     )
 
 
@@ -190,18 +200,8 @@ class OracleBackend(Backend):
         return cls(OracleParams.from_settings(settings))
 
     # ---- perception --------------------------------------------------------------------------------------
-    def _quality(self, req: ScoreRequest, lab: InstanceLabel) -> float:
-        h, w = req.rgb.shape[:2]
-        pixels = lab.pixels
-        dist = None
-        if req.instances is not None:
-            mask = req.instances == lab.id
-            pixels = int(mask.sum()) or pixels
-            if req.depth is not None and mask.any():
-                d = req.depth[mask]
-                d = d[np.isfinite(d) & (d > 0)]
-                dist = float(np.median(d)) if d.size else None
-        frac = pixels / float(h * w)
+    def view_quality(self, frac: float, dist: float | None) -> float:
+        """Evidence quality E in [0, 1] of a target covering ``frac`` of the image at ``dist`` metres."""
         p = self.p
         q = float(
             np.clip((frac - p.min_pixels_frac) / max(p.full_pixels_frac - p.min_pixels_frac, 1e-9), 0, 1)
@@ -210,9 +210,12 @@ class OracleBackend(Backend):
             q *= float(np.clip((p.max_range_m - dist) / max(p.max_range_m - p.near_m, 1e-9), 0.0, 1.0))
         return q
 
-    def _targets(self, req: ScoreRequest, t: Target) -> list[tuple[InstanceLabel, float]]:
+    @staticmethod
+    def target_views(req: ScoreRequest, t: Target) -> list[tuple[InstanceLabel, float, float | None]]:
+        """The visible instances that could answer the question: (label, image share, median distance)."""
         if t.category is None:
             return []
+        h, w = req.rgb.shape[:2]
         out = []
         for lab in req.labels:
             if cs.norm_category(lab.category) != t.category:
@@ -220,10 +223,25 @@ class OracleBackend(Backend):
             same_room = cs.canonical_room(lab.room_kind) == cs.canonical_room(t.room_kind)
             if t.room_kind and t.type != "location" and lab.room_kind and not same_room:
                 continue
-            q = self._quality(req, lab)
-            if q > 0:
-                out.append((lab, q))
-        return sorted(out, key=lambda x: -x[1])
+            if t.color and t.type != "identification" and lab.attributes.get("color", t.color) != t.color:
+                continue  # "the blue towel": a towel of another colour is not the one asked about
+            pixels, dist = lab.pixels, None
+            if req.instances is not None:
+                mask = req.instances == lab.id
+                pixels = int(mask.sum()) or pixels
+                if req.depth is not None and mask.any():
+                    d = req.depth[mask]
+                    d = d[np.isfinite(d) & (d > 0)]
+                    dist = float(np.median(d)) if d.size else None
+            out.append((lab, pixels / float(h * w), dist))
+        return out
+
+    def seen_targets(
+        self, views: list[tuple[InstanceLabel, float, float | None]]
+    ) -> list[tuple[InstanceLabel, float]]:
+        """The views with a non-zero quality, best first."""
+        seen = [(lab, self.view_quality(frac, dist)) for lab, frac, dist in views]
+        return sorted([(lab, q) for lab, q in seen if q > 0], key=lambda x: -x[1])
 
     def _read_answer(
         self, t: Target, seen: list[tuple[InstanceLabel, float]], choices: list[str]
@@ -261,6 +279,14 @@ class OracleBackend(Backend):
         return found
 
     # ---- the four numbers --------------------------------------------------------------------------------
+    def _bias_choice(self, qrng: np.random.Generator, t: Target, choices: list[str], real: list[int]) -> int:
+        """The answer the model gives without evidence: for a location question the room the commonsense
+        prior favours for the object (a VLM guesses "towel: bathroom"), otherwise a per-question bias."""
+        if t.type == "location" and t.category:
+            w = np.array([max(cs.prior(t.category, _choice_room(choices[i])), 1e-3) for i in real]) ** 2
+            return real[int(qrng.choice(len(real), p=w / w.sum()))]
+        return real[int(qrng.integers(len(real)))]
+
     def _answer(
         self,
         rng: np.random.Generator,
@@ -274,17 +300,18 @@ class OracleBackend(Backend):
         real = [i for i, c in enumerate(choices) if c.strip() != PADDING_CHOICE] or list(range(n))
         read = self._read_answer(t, seen, choices)
         quality = seen[0][1] if seen else 0.0
+        evidence_id = seen[0][0].id if seen else -1
         evidence = read is not None and rng.random() < quality
         if evidence:
             assert read is not None
-            u = np.random.default_rng([req.seed, _h(req.episode_id), _h(req.question.text), seen[0][0].id])
+            u = np.random.default_rng([req.seed, _h(req.question.id), _h(req.question.text), evidence_id + 1])
             right = u.random() < p.accuracy
             others = [i for i in real if i != read]
             chosen = read if right or not others else others[int(u.integers(len(others)))]
             top = float(np.clip(rng.normal(p.evidence_confidence, 0.1), 0.3, 0.995))
         else:
-            qrng = np.random.default_rng([req.seed, _h(req.episode_id), _h(req.question.text)])
-            bias = real[int(qrng.integers(len(real)))]
+            qrng = np.random.default_rng([req.seed, _h(req.question.id), _h(req.question.text)])
+            bias = self._bias_choice(qrng, t, choices, real)
             chosen = bias if rng.random() < p.bias_stickiness else real[int(rng.integers(len(real)))]
             top = float(np.clip(rng.normal(p.bias_confidence, 0.12), 0.3, 0.995))
             right = False
@@ -377,19 +404,27 @@ class OracleBackend(Backend):
 
     def score(self, req: ScoreRequest) -> Scores:
         validate_request(req)
-        rng = np.random.default_rng([req.seed, _h(req.episode_id), req.step])
+        rng = np.random.default_rng([req.seed, _h(req.question.id), req.step])
         t = parse_target(req.question)
         proposed: list[str] = []
         choices = list(req.question.choices)
         if not choices:
             proposed = self.propose_choices(req.question, t)
             choices = proposed
-        seen = self._targets(req, t)
+        seen = self.seen_targets(self.target_views(req, t))
         probs, quality, right = self._answer(rng, req, choices, t, seen)
         rel = self._relevance(rng, quality, right)
         lsv = self._lsv(rng, req, t)
         gsv = self._gsv(rng, req, t, bool(seen))
         return Scores(probs, rel, lsv, gsv, proposed)
+
+
+def _choice_room(choice: str) -> str:
+    """The room a location choice names: "In the living room" -> "living_room"."""
+    words = _words(choice)
+    if words[:2] == ["in", "the"]:
+        words = words[2:]
+    return "_".join(words)
 
 
 def _h(text: str) -> int:
