@@ -22,8 +22,8 @@ from eqa.messages import MAX_CHOICES, Pose2D, Question, letters
 
 log = logging.getLogger(__name__)
 
-DEMO_SCENE = "gen-00003"
-DEMO_SEED = 7
+DEMO_BENCHMARK_SEED, DEMO_HOUSE, DEMO_CATEGORY = 0, 151, "state"  # benchmark question gen-00151-sta0
+DEMO_SCENE = f"gen-{DEMO_HOUSE:05d}"
 ORACLE_LABEL = (
     "oracle scorer = a simulated perception model reading ground-truth labels of the visible pixels, not a VLM"
 )
@@ -42,16 +42,11 @@ def parse_pose(text: str) -> Pose2D:
 
 
 def demo_question(scenes_dir: Path) -> Question:
-    """A deterministic benchmark-style question about a generated house (ground truth known)."""
-    import numpy as np
+    """Benchmark question ``gen-00151-sta0`` ("Is the box in the kitchen closed?", a 100 m2 house, ground
+    truth known): with the packaged calibration the robot finds the box and stops, correct, at 12 of 30 steps."""
+    from services.sim.questions import benchmark_candidates
 
-    from services.sim.questions import generate_questions
-    from services.sim.scene import load_or_generate
-
-    scene = load_or_generate(DEMO_SCENE, scenes_dir)
-    questions = generate_questions(scene, np.random.default_rng(DEMO_SEED))
-    preferred = [q for q in questions if q.category in ("existence", "state")]
-    return (preferred or questions)[0]
+    return benchmark_candidates(DEMO_BENCHMARK_SEED, DEMO_HOUSE, scenes_dir)[DEMO_CATEGORY][0]
 
 
 def check_scene(scene: str, scenes_dir: Path) -> float:
@@ -147,6 +142,7 @@ def _body(args: argparse.Namespace, scenes_dir: Path) -> tuple[dict[str, Any], Q
         body: dict[str, Any] = {
             "question": q.text, "choices": q.choices, "scene": q.scene, "answer": q.answer,
             "start_pose": q.start_pose.model_dump() if q.start_pose else None, "max_steps": q.max_steps,
+            "question_id": q.id,
         }
         demo: Question | None = q
     else:

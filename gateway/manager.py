@@ -303,6 +303,7 @@ class EpisodeManager:
             start_pose=req.start_pose,
             max_steps=budget,
             answer=req.answer,
+            **({"id": req.question_id} if req.question_id else {}),
         )
         with self._lock:
             candidates = [req.robot] if req.robot else list(self.settings.robots)

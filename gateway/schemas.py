@@ -72,6 +72,11 @@ class QuestionRequest(BaseModel):
     seed: int = Field(default=0, ge=0, le=2**31 - 1, description="seed of the start pose sampling")
     record: bool = Field(default=True, description="write a Rerun recording of the episode")
     answer: str | None = Field(default=None, description="ground-truth letter (benchmarks only; scorers never read it)")
+    question_id: str | None = Field(
+        default=None,
+        description="your id for this question (e.g. a benchmark question id); default: a new one. The oracle "
+        "scorer seeds its draws with it, so the same id, scene and seed replay the same episode",
+    )
 
     @field_validator("question")
     @classmethod
@@ -91,6 +96,11 @@ class QuestionRequest(BaseModel):
     @classmethod
     def _robot_id(cls, v: str | None) -> str | None:
         return None if v is None else keys.check_id(v, "robot")
+
+    @field_validator("question_id")
+    @classmethod
+    def _question_id(cls, v: str | None) -> str | None:
+        return None if v is None else keys.check_id(v, "question_id")
 
     @model_validator(mode="after")
     def _scene_or_robot(self) -> QuestionRequest:

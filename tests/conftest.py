@@ -1,4 +1,5 @@
-"""Shared fixtures: free ports, a private redis-server, real Zenoh settings on loopback, both stores."""
+"""Shared fixtures: free ports, a private redis-server, real Zenoh settings on loopback, both stores, and the
+gateway tests' fleet."""
 
 from __future__ import annotations
 
@@ -16,9 +17,12 @@ os.environ.setdefault("RERUN_TELEMETRY_ENABLED", "false")
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
 
-from eqa.launcher import free_port
+from gateway_helpers import SCENE, TOKEN
+
+from eqa.launcher import Fleet, free_port
 from eqa.settings import Settings
 from eqa.store import EmbeddedStore, RedisStore, Store
+from gateway.harness import clear_gateway_state, fleet_settings
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -97,3 +101,25 @@ def store(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Store]:
         yield s
     finally:
         s.close()
+
+
+# ---- the gateway tests: one fleet per test module (real services over Zenoh, real Redis) ----------
+
+
+@pytest.fixture(scope="module")
+def fleet(tmp_path_factory: pytest.TempPathFactory, redis_url: str) -> Iterator[Fleet]:
+    from services.sim.scene import load_or_generate
+
+    s = fleet_settings(tmp_path_factory.mktemp("gw-fleet"), redis_url)
+    load_or_generate(SCENE, s.scenes_path)  # made once, before the sim and the gateway both want it
+    with Fleet(s, scorers=1, restart=False) as f:
+        yield f
+
+
+@pytest.fixture
+def gw_settings(fleet: Fleet) -> Settings:
+    s = fleet.client_settings().model_copy(
+        update={"api_tokens": [TOKEN], "rate_limit_per_s": 1000.0, "episode_timeout_s": 60.0}
+    )
+    clear_gateway_state(s)
+    return s

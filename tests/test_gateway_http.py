@@ -17,6 +17,7 @@ from pathlib import Path
 
 import httpx
 import pytest
+from gateway_helpers import AUTH, EPISODE_S, SCENE, TOKEN
 
 from eqa import keys
 from eqa.bus import Bus
@@ -25,16 +26,11 @@ from eqa.messages import Frame
 from eqa.settings import Settings
 from gateway.harness import (
     GatewayThread,
-    clear_gateway_state,
-    fleet_settings,
     sse_events,
     stored_end,
     wait_for,
 )
 
-TOKEN = "test-token-1"
-AUTH = {"Authorization": f"Bearer {TOKEN}"}
-SCENE = "gen-00001"
 CHOICES = ["bedroom", "hallway", "storage room", "living room"]
 # A short episode: runs to its step limit of 4 (no calibration table needed).
 Q = {
@@ -48,26 +44,6 @@ Q = {
 # An episode that keeps running until it is cancelled: in this house the planner runs out of frontiers only
 # after 100+ steps (tens of seconds).
 LONG = {**Q, "max_steps": 400}
-EPISODE_S = 120.0  # bound on the wall time of one short episode on a busy 2-core machine
-
-
-@pytest.fixture(scope="module")
-def fleet(tmp_path_factory: pytest.TempPathFactory, redis_url: str) -> Iterator[Fleet]:
-    from services.sim.scene import load_or_generate
-
-    s = fleet_settings(tmp_path_factory.mktemp("gw-fleet"), redis_url)
-    load_or_generate(SCENE, s.scenes_path)  # made once, before the sim and the gateway both want it
-    with Fleet(s, scorers=1, restart=False) as f:
-        yield f
-
-
-@pytest.fixture
-def gw_settings(fleet: Fleet) -> Settings:
-    s = fleet.client_settings().model_copy(
-        update={"api_tokens": [TOKEN], "rate_limit_per_s": 1000.0, "episode_timeout_s": 60.0}
-    )
-    clear_gateway_state(s)
-    return s
 
 
 def client_for(gw: GatewayThread, **kw: object) -> httpx.Client:
@@ -217,6 +193,7 @@ INVALID = [
     ({**Q, "start_pose": {"x": "nan", "y": 0}}, "start_pose"),
     ({**Q, "robot": "no/such robot"}, "robot"),
     ({**Q, "robot": "robot9"}, "robot"),
+    ({**Q, "question_id": "a/b"}, "question_id"),
 ]
 
 
@@ -250,13 +227,14 @@ def test_step_budget_from_scene_area(gateway) -> None:
     area = load_or_generate(SCENE, gw.settings.scenes_path).floor_area_m2
     # entropy with a threshold above log(4): the stopper stops after the first step
     body = {"question": "Is the oven on?", "choices": ["yes", "no"], "scene": SCENE, "stop_rule": "entropy",
-            "threshold": 5.0, "record": False}
+            "threshold": 5.0, "record": False, "question_id": "bench-q-1"}
     r = c.post("/v1/questions", json=body)
     assert r.status_code == 202 and r.json()["max_steps"] == int(3 * area**0.5)
     eid = r.json()["episode_id"]
     assert wait_for(lambda: state_of(c, eid) == "stopped", EPISODE_S)
     st = c.get(f"/v1/episodes/{eid}").json()
     assert st["steps"] == 1 and st["max_steps"] == int(3 * area**0.5) and "threshold 5" in st["stop_reason"]
+    assert st["question"]["id"] == "bench-q-1"  # the client's question id is kept
     r = c.post("/v1/questions", json={"question": "Is the oven on?", "scene": "no-such-scene"})
     assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", "scene"]
     assert "unknown scene" in r.json()["detail"][0]["msg"]

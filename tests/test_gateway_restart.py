@@ -12,27 +12,21 @@ longer is dropped, and what was sent to it is lost).
 from __future__ import annotations
 
 import re
-from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
-import pytest
+from gateway_helpers import AUTH, EPISODE_S, SCENE
 
 from eqa.launcher import Fleet
 from eqa.settings import Settings
 from gateway.harness import (
     GatewayProcess,
-    clear_gateway_state,
-    fleet_settings,
     paused,
     sse_events,
     stored_end,
     wait_for,
 )
 
-TOKEN = "restart-token"
-AUTH = {"Authorization": f"Bearer {TOKEN}"}
-SCENE = "gen-00001"
 BODY = {
     "question": "Where is the cat?",
     "choices": ["kitchen", "living room", "bedroom", "bath"],
@@ -40,26 +34,6 @@ BODY = {
     "stop_rule": "max_steps",
     "record": False,
 }
-EPISODE_S = 120.0
-
-
-@pytest.fixture(scope="module")
-def fleet(tmp_path_factory: pytest.TempPathFactory, redis_url: str) -> Iterator[Fleet]:
-    from services.sim.scene import load_or_generate
-
-    s = fleet_settings(tmp_path_factory.mktemp("restart-fleet"), redis_url)
-    load_or_generate(SCENE, s.scenes_path)
-    with Fleet(s, scorers=1, restart=False) as f:
-        yield f
-
-
-@pytest.fixture
-def gw_settings(fleet: Fleet) -> Settings:
-    s = fleet.client_settings().model_copy(
-        update={"api_tokens": [TOKEN], "rate_limit_per_s": 1000.0, "episode_timeout_s": 60.0}
-    )
-    clear_gateway_state(s)
-    return s
 
 
 def _key(i: str) -> tuple[int, int]:

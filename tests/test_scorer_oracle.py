@@ -105,6 +105,19 @@ def test_gsv_higher_when_the_wanted_room_is_in_view():
 def test_free_text_fallback_and_proposals():
     t = parse_target(Question(text="How many towels are there in the bathroom?", scene="s"))
     assert (t.type, t.category, t.room_kind) == ("counting", "towel", "bathroom")
+    yn = ["Yes", "No"]
+    t = parse_target(Question(text="Is the stove in the kitchen turned off?", choices=yn, scene="s"))
+    assert (t.type, t.category, t.room_kind, t.attribute, t.value) == ("state", "stove", "kitchen", "state", "off")
+    t = parse_target(Question(text="Is there a towel in the bathroom?", choices=yn, scene="s"))
+    assert (t.type, t.value) == ("existence", None)
+    t = parse_target(Question(text="Where is the red backpack?", choices=["kitchen", "garage"], scene="s"))
+    assert (t.type, t.category, t.color) == ("location", "backpack", "red")
+    q = Question(text="In which room did I leave the white mug?", choices=["kitchen", "garage"], scene="s")
+    t = parse_target(q)
+    assert (t.type, t.category, t.color) == ("location", "mug", "white")
+    # a structured parse wins over the text
+    t = parse_target(Question(text="Where is the red sofa?", scene="s", query={"type": "location", "category": "sofa"}))
+    assert t.color is None
     s = OracleBackend().score(frame_request(question=Question(text="Where is the sofa?", scene="s")))
     assert s.proposed_choices[-1] == NOT_LISTED_CHOICE and "living room" in s.proposed_choices
     assert len(s.answer_probs) == len(s.proposed_choices)

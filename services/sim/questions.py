@@ -308,12 +308,24 @@ def benchmark_scene_id(seed: int, index: int) -> str:
     return f"gen-{seed * 10000 + index:05d}"
 
 
+def benchmark_candidates(seed: int, index: int, scenes_dir: Path | None = None) -> dict[str, list[Question]]:
+    """The questions house ``index`` of benchmark ``seed`` offers, per category, in the benchmark's order: the
+    benchmark takes the first one of a category; ``eqa ask``'s demo reproduces one without the whole benchmark."""
+    from services.sim.housegen import generate_house
+
+    sid = benchmark_scene_id(seed, index)
+    scene = load_or_generate(sid, scenes_dir) if scenes_dir is not None else generate_house(seed * 10000 + index)
+    cands: dict[str, list[Question]] = defaultdict(list)
+    for q in generate_questions(scene, np.random.default_rng([seed, index, 11])):
+        cands[q.category or ""].append(q)
+    return cands
+
+
 def benchmark(seed: int = 0, scenes_dir: Path | None = None, size: int = BENCHMARK_SIZE,
               calibration: int = CALIBRATION_SIZE) -> Benchmark:
     """The fixed benchmark of ``seed``: ``size`` questions in the HM-EQA category proportions over
     ``size / 3`` generated houses (houses ``gen-{seed*10000 + i}``), split ``calibration`` / rest with the
     same proportions on both sides. Deterministic; houses are cached in ``scenes_dir`` when given."""
-    from services.sim.housegen import generate_house
 
     quota = {c: round(SHARES[c] * size) for c in CATEGORIES}
     quota[CATEGORIES[-1]] += size - sum(quota.values())
@@ -322,13 +334,8 @@ def benchmark(seed: int = 0, scenes_dir: Path | None = None, size: int = BENCHMA
     while sum(len(v) for v in picked.values()) < size:
         if index > size * 2:
             raise RuntimeError("benchmark: houses ran out of questions for the category quotas")
-        sid = benchmark_scene_id(seed, index)
-        scene = load_or_generate(sid, scenes_dir) if scenes_dir is not None else generate_house(seed * 10000 + index)
-        rng = np.random.default_rng([seed, index, 11])
+        cands = benchmark_candidates(seed, index, scenes_dir)
         index += 1
-        cands: dict[str, list[Question]] = defaultdict(list)
-        for q in generate_questions(scene, rng):
-            cands[q.category or ""].append(q)
         order = sorted(CATEGORIES, key=lambda c: -(quota[c] - len(picked[c])) / quota[c])
         taken = 0
         for cat in order:

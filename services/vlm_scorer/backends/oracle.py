@@ -92,6 +92,9 @@ COLORS = (
     "wooden",
 )
 
+# State words a yes/no question can end with ("Is the stove in the kitchen turned off?").
+STATE_WORDS = ("on", "off", "open", "closed", "folded", "unfolded")
+
 
 @dataclass(frozen=True)
 class OracleParams:
@@ -146,24 +149,33 @@ def parse_target(question: Question) -> Target:
         category = next((c for c in cs.known_categories() if re.search(rf"\b{re.escape(c)}s?\b", text)), None)
     if room_kind is None and not q:
         room_kind = next((rk for rk in cs.ROOM_KINDS if cs.room_display(rk) in text), None)
+    state = re.search(rf"\b({'|'.join(STATE_WORDS)})\W*$", text)
+    yes_no_choices = any(yes_no(c) for c in question.choices)
     if qtype is None:
         if "how many" in text:
             qtype = "counting"
         elif "color" in text or "colour" in text:
             qtype = "identification"
-        elif text.startswith("where"):
+        elif text.startswith("where") or "which room" in text:
             qtype = "location"
-        elif any(c.split(",")[0].strip().lower() in ("yes", "no") for c in question.choices):
+        elif yes_no_choices and state is not None:
+            qtype = "state"
+        elif yes_no_choices:
             qtype = "existence"
         else:
             qtype = "identification"
-    color = q.get("color")
+    attribute, value, color = q.get("attribute"), q.get("value"), q.get("color")
+    if not q:
+        if qtype == "state" and state is not None:
+            attribute, value = "state", state.group(1)
+        if qtype != "identification":
+            color = next((c for c in COLORS if re.search(rf"\b{c}\b", text)), None)
     return Target(
         qtype,
         cs.norm_category(category) if category else None,
         room_kind,
-        q.get("attribute"),
-        q.get("value"),
+        attribute,
+        value,
         color.lower() if color else None,
     )
 
