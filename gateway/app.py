@@ -20,6 +20,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
 from fastapi.responses import HTMLResponse, JSONResponse
+from fastapi.staticfiles import StaticFiles
 
 from eqa import keys
 from eqa.bus import Bus
@@ -34,6 +35,7 @@ from gateway.routers import episodes, health
 log = logging.getLogger(__name__)
 
 MAX_BODY_BYTES = 2 * 1024 * 1024
+SWAGGER_ASSETS = "/docs/assets"  # Swagger UI files from the swagger-ui-bundle package
 
 
 class Hub:
@@ -193,10 +195,23 @@ def _add_docs(app: FastAPI) -> None:
     async def openapi(_caller: DocsCallerDep) -> JSONResponse:
         return JSONResponse(app.openapi())
 
+    # Swagger UI's JS and CSS come with the swagger-ui-bundle package: /docs works without internet access
+    # (FastAPI's default loads them from a CDN). They are a public library, served without a token.
+    from swagger_ui_bundle import swagger_ui_path
+
+    app.mount(SWAGGER_ASSETS, StaticFiles(directory=str(swagger_ui_path)), name="swagger-ui")
+
     @app.get("/docs", include_in_schema=False)
     async def swagger(_caller: DocsCallerDep) -> HTMLResponse:
-        return get_swagger_ui_html(openapi_url="/openapi.json", title=f"{app.title} - Swagger UI")
+        return get_swagger_ui_html(
+            openapi_url="/openapi.json",
+            title=f"{app.title} - Swagger UI",
+            swagger_js_url=f"{SWAGGER_ASSETS}/swagger-ui-bundle.js",
+            swagger_css_url=f"{SWAGGER_ASSETS}/swagger-ui.css",
+            swagger_favicon_url=f"{SWAGGER_ASSETS}/favicon-32x32.png",
+        )
 
     @app.get("/redoc", include_in_schema=False)
     async def redoc(_caller: DocsCallerDep) -> HTMLResponse:
+        """ReDoc loads its script from a CDN (no Python package ships it): offline, use /docs."""
         return get_redoc_html(openapi_url="/openapi.json", title=f"{app.title} - ReDoc")

@@ -10,6 +10,7 @@ services: ``restart=False``).
 from __future__ import annotations
 
 import base64
+import re
 import threading
 import time
 from collections.abc import Iterator
@@ -152,7 +153,12 @@ def test_docs_need_the_token_when_tokens_are_configured(gw_settings: Settings) -
             for headers in (AUTH, _basic(TOKEN)):
                 r = c.get(path, headers=headers)
                 assert r.status_code == 200, (path, headers, r.text[:200])
-        assert "swagger-ui" in c.get("/docs", headers=AUTH).text.lower()
+        page = c.get("/docs", headers=AUTH).text
+        assert "swagger-ui" in page.lower() and "cdn." not in page  # Swagger UI works offline
+        for asset in re.findall(r'(?:src|href)="(/docs/assets/[^"]+)"', page):
+            r = c.get(asset)  # a public JS library: served without the token
+            assert r.status_code == 200 and len(r.content) > 100, asset
+        assert len(re.findall(r'"/docs/assets/', page)) >= 2
         assert "redoc" in c.get("/redoc", headers=AUTH).text.lower()
         spec = c.get("/openapi.json", headers=AUTH).json()
         assert spec["components"]["securitySchemes"]["bearerAuth"]["scheme"] == "bearer"

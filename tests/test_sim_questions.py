@@ -12,11 +12,18 @@ import pytest
 from eqa.messages import PADDING_CHOICE
 from eqa.settings import Settings
 from services.sim.camera import camera_pose, intrinsics
-from services.sim.catalog import COLORS, ROOM_KINDS, display_name
+from services.sim.catalog import COLORS, PLURAL_ONLY, ROOM_KINDS, display_name
 from services.sim.hmeqa import load_hmeqa, missing_scans, scan_path
 from services.sim.housegen import generate_house
 from services.sim.motion import pose_error, reachable_map
-from services.sim.questions import CATEGORIES, NUMBER_WORDS, benchmark, generate_questions, witness_poses
+from services.sim.questions import (
+    CATEGORIES,
+    NUMBER_WORDS,
+    benchmark,
+    benchmark_candidates,
+    generate_questions,
+    witness_poses,
+)
 from services.sim.render import Renderer
 from services.sim.service import load_scene
 
@@ -65,6 +72,20 @@ def test_question_form(qsets) -> None:
                               for o in sc.objects())
                 assert (answer == "Yes") == present
     assert set(seen) == set(CATEGORIES)
+
+
+def test_plural_only_categories_agree_in_number() -> None:
+    """Benchmark question gen-00148-loc0 asks about shoes: "Where are the white shoes?", never "is the shoes"."""
+    q = benchmark_candidates(0, 148)["location"][0]
+    assert q.id == "gen-00148-loc0" and q.query["category"] == "shoes"
+    assert q.text in ("Where are the white shoes?", "In which room did I leave the white shoes?"), q.text
+    checked = 0
+    for seed in range(40):
+        for q in generate_questions(generate_house(seed), np.random.default_rng(seed)):
+            if q.query.get("category") in PLURAL_ONLY:
+                assert "is the shoes" not in q.text.lower() and "a shoes" not in q.text, q.text
+                checked += 1
+    assert checked >= 3
 
 
 def test_every_evidence_object_is_visible_from_a_reachable_pose(qsets) -> None:

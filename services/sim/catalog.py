@@ -216,9 +216,15 @@ def display_name(name: str) -> str:
     return name.replace("_", " ")
 
 
+# Categories whose name is already plural ("the shoes are", not "the shoes is").
+PLURAL_ONLY: frozenset[str] = frozenset({"shoes"})
+
+
 def plural(name: str) -> str:
     """English plural of a category's display name (``"box"`` -> ``"boxes"``)."""
     word = display_name(name)
+    if name in PLURAL_ONLY:
+        return word
     if word.endswith(("s", "x", "sh", "ch")):
-        return word if word.endswith("shoes") else word + "es"
+        return word + "es"
     return word + "s"

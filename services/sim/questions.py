@@ -26,7 +26,7 @@ import numpy as np
 from eqa.messages import PADDING_CHOICE, Pose2D, Question
 from services.sim import catalog
 from services.sim.camera import CAMERA_HEIGHT, HFOV_DEG, TILT_DEG, vfov_deg
-from services.sim.catalog import OPPOSITE_STATE, display_name, plural
+from services.sim.catalog import OPPOSITE_STATE, PLURAL_ONLY, display_name, plural
 from services.sim.motion import START_CLEARANCE, reachable_map, sample_start_pose
 from services.sim.scene import Scene, load_or_generate
 
@@ -218,7 +218,10 @@ def generate_questions(scene: Scene, rng: np.random.Generator, per_category: int
             if not absent:
                 continue
             cat, ev, yes = str(_pick(rng, absent)), [], False
-        text = f"Is there {_article(display_name(cat))} in the {display_name(kind)}?"
+        if cat in PLURAL_ONLY:
+            text = f"Are there {display_name(cat)} in the {display_name(kind)}?"
+        else:
+            text = f"Is there {_article(display_name(cat))} in the {display_name(kind)}?"
         choices, answer = _yes_no(rng, yes)
         out["existence"].append((text, choices, answer, ev, {"type": "existence", "category": cat, "room_kind": kind}))
 
@@ -244,7 +247,8 @@ def generate_questions(scene: Scene, rng: np.random.Generator, per_category: int
         others = [r for r in dict.fromkeys(sorted(kinds_in_house)) if r != kind]
         others += [r for r in catalog.ROOM_KINDS if r != kind and r not in others]
         distract = [others[int(j)] for j in rng.permutation(min(len(others), 5))[:3]]
-        text = str(_pick(rng, [f"Where is the {color} {display_name(ob.category)}?",
+        verb = "are" if ob.category in PLURAL_ONLY else "is"
+        text = str(_pick(rng, [f"Where {verb} the {color} {display_name(ob.category)}?",
                                f"In which room did I leave the {color} {display_name(ob.category)}?"]))
         wrong = [f"In the {display_name(r)}" for r in distract]
         choices, answer = _shuffled(rng, f"In the {display_name(kind)}", wrong)
