@@ -80,6 +80,15 @@ class Service:
         """Run ``fn(*args)`` on the worker (after what is already queued)."""
         self._queue.put((fn, *args))
 
+    def every(self, period_s: float, fn: Callable[[], None]) -> None:
+        """Run ``fn()`` on the worker every ``period_s`` seconds until the service stops."""
+
+        def tick() -> None:
+            while not self._stopped.wait(period_s):
+                self.submit(fn)
+
+        threading.Thread(target=tick, name=f"{self.name}-every-{period_s:g}s", daemon=True).start()
+
     def publish(self, robot: str, pair: tuple[str, str], msg: Message) -> None:
         self.bus.publish(keys.stream(robot, pair), msg)
 

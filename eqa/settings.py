@@ -84,6 +84,12 @@ class Settings(BaseSettings):
     busy_policy: Literal["queue", "refuse"] = "queue"
     robots: CsvList = Field(default_factory=lambda: ["robot0"])
     episode_timeout_s: float = Field(default=120.0, gt=0, description="no-progress time before an episode fails")
+    step_resend_s: float = Field(
+        default=30.0, ge=0,
+        description="the sim sends a step's frame again when no goal came back after this long (a message lost "
+        "while a service restarted); the others answer a repeated step by re-publishing their output; 0 = never",
+    )
+    step_resends_max: int = Field(default=3, ge=0, description="resends of one step before the sim gives up")
 
     # --- monitoring ---
     rerun_url: str | None = Field(default=None, description="rerun+http://host:9876/proxy for live viewing")

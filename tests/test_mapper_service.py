@@ -150,6 +150,21 @@ def test_service_publishes_maps_scores_and_rejects_bad_frames(
             for k in (0, 1):
                 ref.integrate(frame(renderer, "ep-svc", k))
             assert m1.step == 1 and m1.explored_area_m2 == pytest.approx(ref.explored_area_m2())
+            s1 = got.scores.get(timeout=5)
+
+            # frame 1 sent again (the sim got no goal back): map update and scores published again, the frame is
+            # not integrated twice and the semantic values are not written twice; an older frame is ignored
+            bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), frame(renderer, "ep-svc", 1))
+            again = got.maps.get(timeout=15)
+            assert again.step == 1 and again.explored_area_m2 == m1.explored_area_m2
+            assert np.array_equal(again.free, m1.free) and np.array_equal(again.occupied, m1.occupied)
+            assert np.array_equal(again.values["question"], m1.values["question"])
+            assert again.frontiers == m1.frontiers
+            s1_again = got.scores.get(timeout=5)
+            assert s1_again.step == 1 and s1_again.answer_probs == s1.answer_probs
+            bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), frame(renderer, "ep-svc", 0))
+            assert svc.drain()
+            assert got.maps.empty() and got.scores.empty()
 
             # unknown episode: the first frame is held (it may have overtaken its start), a second one is refused
             bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), frame(renderer, "ep-nobody", 0))

@@ -115,6 +115,16 @@ def test_goal_after_map_and_decision_in_any_order_refusal_and_stop(rig) -> None:
     pub(keys.MAPPER_MAP, _map(1, pose1, frs))
     g1 = _get(goals)
     assert g1.step == 1 and not g1.done
+    # step 1 sent again (the goal was lost): the same goal is published again, not a new plan
+    pub(keys.MAPPER_MAP, _map(1, pose1, frs))
+    assert _get(goals) == g1
+    pub(keys.STOPPER_DECISION, _decision(1))
+    assert _get(goals) == g1
+    # an older step sent again is ignored
+    pub(keys.MAPPER_MAP, _map(0, pose, frs))
+    svc.drain()
+    time.sleep(0.2)
+    assert goals.empty()
     # the stopper stops at step 2: no goal
     pub(keys.MAPPER_MAP, _map(2, g1.pose, frs))
     pub(keys.STOPPER_DECISION, _decision(2, stop=True))

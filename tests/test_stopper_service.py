@@ -169,8 +169,9 @@ def test_cp_episode_stops_when_one_answer_is_left(running: tuple[Listener, Stopp
         assert d.step_set == list(keep) and d.prediction_set == list(expected_running[t])
         assert d.stop == (t == 3)
         assert set(d.scores) == set(LABELS)
-        if t == 1:  # a repeated step is ignored, not decided twice
+        if t == 1:  # a repeated step is not decided twice: its decision is published again, unchanged
             lis.send(keys.MAPPER_SCORES, _scores("ep-cp", 1, [0.01, 0.01, 0.01, 0.97], 1.0))
+            assert wait_for(lambda: sum(d.episode_id == "ep-cp" and d.step == 1 for d in lis.decisions) == 2)
     end = lis.end("ep-cp")
     assert (end.state, end.answer, end.answer_text, end.prediction_set) == ("stopped", "B", "blue", ["B"])
     assert end.steps == 4 and end.max_steps == 10 and end.correct is True
@@ -196,7 +197,8 @@ def test_cp_episode_stops_when_one_answer_is_left(running: tuple[Listener, Stopp
         "/stopper/log",
     ):
         assert f" - {entity} - " in printed, entity
-    assert len([d for d in lis.decisions if d.episode_id == "ep-cp"]) == 4
+    decisions = [d for d in lis.decisions if d.episode_id == "ep-cp"]
+    assert [d.step for d in decisions] == [0, 1, 1, 2, 3] and decisions[1] == decisions[2]
     svc.drain()
     trace = TraceStore(svc.store).trace_for_episode("ep-cp")
     assert trace is not None and len(trace.steps) == 4 and trace.answer == "B" and trace.question_id == "q-sofa"

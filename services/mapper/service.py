@@ -8,7 +8,9 @@ episode up from there when the next frame arrives.
 
 Errors go to ``MAPPER_ERROR`` as :class:`ErrorReply` with the reason: a bad frame (the map is unchanged), an
 unknown episode, a scorer failure (the map update is still published, the stopper gets no scores for that
-step). A frame whose step is not newer than the last integrated one is a re-delivery and is ignored.
+step). A frame of the last integrated step is the simulator sending that step again (``EQA_STEP_RESEND_S``:
+no goal came back): its map update and scores are published again without integrating it twice; an older
+frame is a stale re-delivery and is ignored.
 """
 
 from __future__ import annotations
@@ -168,7 +170,10 @@ class MapperService(Service):
                     robot, frame.episode_id, frame.step, "unknown episode: no EpisodeStart seen and no snapshot"
                 )
             return
-        if frame.step <= em.step:
+        if frame.step == em.step:
+            self._republish(robot, em, frame)
+            return
+        if frame.step < em.step:
             log.info(
                 "episode %s: frame %d already integrated (last %d); ignored",
                 em.episode_id,
@@ -212,24 +217,34 @@ class MapperService(Service):
         timer.ms["step"] = (time.perf_counter() - t_start) * 1000.0
         self.publish(robot, keys.MAPPER_MAP, em.map_update(timer.ms))
         if result is not None:
-            self.publish(
-                robot,
-                keys.MAPPER_SCORES,
-                StepScores(
-                    episode_id=em.episode_id,
-                    step=frame.step,
-                    answer_probs=result.answer_probs,
-                    relevance=result.relevance,
-                    lsv=result.lsv,
-                    gsv=result.gsv,
-                    backend=result.backend,
-                    choices=em.start.question.choices,
-                ),
-            )
+            self.publish(robot, keys.MAPPER_SCORES, self._step_scores(em, frame, result))
         t0 = time.perf_counter()
         self._record(em, frame)
         timer.lap("record", t0)
         self.last_timing_ms = timer.ms
+
+    def _republish(self, robot: str, em: EpisodeMap, frame: Frame) -> None:
+        """The frame of the last integrated step came again: the simulator got no goal back (a message after
+        it was lost while a service restarted). Publish the step's map update and scores again from the stored
+        map, without integrating the frame twice or writing its semantic values twice."""
+        log.info("episode %s: frame %d sent again; its map update and scores re-published", em.episode_id, frame.step)
+        self.publish(robot, keys.MAPPER_MAP, em.map_update({}))
+        result = self._score(robot, em, frame)
+        if result is not None:
+            self.publish(robot, keys.MAPPER_SCORES, self._step_scores(em, frame, result))
+
+    @staticmethod
+    def _step_scores(em: EpisodeMap, frame: Frame, result: ScoreResult) -> StepScores:
+        return StepScores(
+            episode_id=em.episode_id,
+            step=frame.step,
+            answer_probs=result.answer_probs,
+            relevance=result.relevance,
+            lsv=result.lsv,
+            gsv=result.gsv,
+            backend=result.backend,
+            choices=em.start.question.choices,
+        )
 
     def _timed_score(self, robot: str, em: EpisodeMap, frame: Frame) -> tuple[ScoreResult | None, float]:
         t0 = time.perf_counter()

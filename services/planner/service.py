@@ -78,6 +78,7 @@ class _Episode:
     planned: int = -1
     pending: _Pending | None = None
     done: bool = False
+    last_goal: Goal | None = None  # re-published when the planned step's map or decision comes again
 
 
 class PlannerService(Service):
@@ -138,6 +139,7 @@ class PlannerService(Service):
         m = ep.memory
         state = {
             "robot": ep.robot, "strategy": ep.strategy, "seed": ep.seed, "planned": ep.planned,
+            "last_goal": ep.last_goal.model_dump(mode="json") if ep.last_goal is not None else None,
             "record": bool(record if record is not None else ep.recorder is not None),
             "memory": {"target": m.target.model_dump() if m.target else None, "committed_steps": m.committed_steps,
                        "visited": m.visited, "refused": m.refused, "turns": m.turns},
@@ -159,6 +161,8 @@ class PlannerService(Service):
                                   enabled=bool(state["record"]))
             ep = _Episode(episode_id, state["robot"], state["strategy"], int(state["seed"]), rec, started=True,
                           memory=memory, planned=int(state["planned"]))
+            if state.get("last_goal"):
+                ep.last_goal = Goal.model_validate(state["last_goal"])
         except (KeyError, TypeError, ValueError) as exc:
             log.error("episode %s: stored planner state unusable: %s", episode_id, exc)
             return None
@@ -205,6 +209,13 @@ class PlannerService(Service):
 
     # ---- planning ------------------------------------------------------------------------------------------
     def _try_plan(self, ep: _Episode, step: int) -> None:
+        if step == ep.planned and ep.last_goal is not None and ep.last_goal.step == step:
+            # The step was sent again (the simulator got no goal: it was lost while a service restarted).
+            log.info("episode %s: step %d sent again; its goal re-published", ep.episode_id, step)
+            ep.maps.pop(step, None)
+            ep.decisions.pop(step, None)
+            self.publish(ep.robot, keys.PLANNER_GOAL, ep.last_goal)
+            return
         if ep.done or step <= ep.planned or step not in ep.maps or step not in ep.decisions:
             return
         if not ep.started and step == 0:
@@ -256,6 +267,7 @@ class PlannerService(Service):
         )
         if plan.done:
             ep.done = True
+        ep.last_goal = goal
         log.info(
             "episode %s step %d: %s (%s) in %.0f ms",
             ep.episode_id,

@@ -7,12 +7,19 @@ a pose in collision, off the floor or not finite, or a mesh that does not parse 
 ``sim/error`` (with episode and step), and the service goes on serving every robot.
 
 After every frame the robot's state (episode start, pose, step, trajectory) is written to the store under
-``eqa:sim:robot:{robot}``, so a sim restarted between two steps continues the episode at the next goal.
+``eqa:sim:robot:{robot}``, so a sim restarted between two steps continues the episode at the next goal; a
+restarted sim also takes up the recent states it finds there at start.
+
+A message lost while a service restarted would stall an episode: the sim sends the frame of a step again when
+no goal came back within ``EQA_STEP_RESEND_S`` (at most ``EQA_STEP_RESENDS_MAX`` times per step), and the
+mapper, stopper and planner answer a repeated step by publishing their output for it again, so the goal comes
+back and the episode goes on. After the last resend the gateway's watchdog ends the episode with a reason.
 """
 
 from __future__ import annotations
 
 import logging
+import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -50,6 +57,8 @@ class _Episode:
     step: int = 0
     trajectory: list[tuple[float, float]] = field(default_factory=list)
     recorder: EpisodeRecorder | None = None
+    emitted_at: float = field(default_factory=time.monotonic)  # when the current step's frame was sent
+    resends: int = 0  # of the current step
 
 
 def load_scene(settings: Settings, scene_id: str, floor: int = 0) -> Scene:
@@ -84,6 +93,9 @@ class SimService(Service):
         self.on(keys.PLANNER_GOAL, self.on_goal)
         self.on(keys.EPISODE_CANCEL, self.on_cancel)
         self.on(keys.EPISODE_END, self.on_end)
+        self.submit(self._resume_stored)
+        if self.settings.step_resend_s > 0:
+            self.every(min(1.0, self.settings.step_resend_s / 4), self._resend_stale)
 
     def teardown(self) -> None:
         for ep in self._episodes.values():
@@ -117,7 +129,7 @@ class SimService(Service):
 
     def _save(self, robot: str, ep: _Episode) -> None:
         state = {"start": ep.start.model_dump(mode="json"), "pose": ep.pose.model_dump(), "step": ep.step,
-                 "trajectory": ep.trajectory}
+                 "trajectory": ep.trajectory, "saved_at": time.time()}
         self.store.set_json(state_key(robot), state, ttl_s=EPISODE_STATE_TTL_S)
 
     def _restore(self, robot: str, episode_id: str) -> _Episode | None:
@@ -138,6 +150,39 @@ class SimService(Service):
         self._episodes[robot] = ep
         log.info("robot %s: episode %s restored at step %d", robot, episode_id, ep.step)
         return ep
+
+    def _resume_stored(self) -> None:
+        """At start: take up the robots' episodes stored by a previous process within the watchdog's time
+        (older ones the gateway has failed already); their frames are sent again if no goal comes."""
+        prefix = state_key("")
+        for key in self.store.keys(prefix):
+            robot = key[len(prefix):]
+            state = self.store.get_json(key)
+            if robot in self._episodes or not isinstance(state, dict):
+                continue
+            age = time.time() - float(state.get("saved_at", 0.0))
+            episode_id = state.get("start", {}).get("episode_id")
+            if age < self.settings.episode_timeout_s and episode_id:
+                self._restore(robot, episode_id)
+
+    def _resend_stale(self) -> None:
+        """Send the current frame again for every episode whose goal has not come back in time."""
+        now = time.monotonic()
+        for robot, ep in list(self._episodes.items()):
+            if now - ep.emitted_at < self.settings.step_resend_s:
+                continue
+            if ep.resends >= self.settings.step_resends_max:
+                if ep.resends == self.settings.step_resends_max:
+                    ep.resends += 1
+                    log.error("robot %s episode %s: no goal for step %d after %d resends; waiting for the "
+                              "gateway's watchdog", robot, ep.episode_id, ep.step, self.settings.step_resends_max)
+                continue
+            ep.resends += 1
+            ep.emitted_at = now
+            log.warning("robot %s episode %s: no goal for step %d within %g s; frame sent again (%d of %d)",
+                        robot, ep.episode_id, ep.step, self.settings.step_resend_s, ep.resends,
+                        self.settings.step_resends_max)
+            self.publish(robot, keys.SIM_FRAME, self.render_frame(ep))
 
     # ---- handlers ----------------------------------------------------------------------------------------
     def on_start(self, robot: str, msg: EpisodeStart) -> None:
@@ -228,6 +273,7 @@ class SimService(Service):
 
     def _emit(self, robot: str, ep: _Episode) -> None:
         frame = self.render_frame(ep)
+        ep.emitted_at, ep.resends = time.monotonic(), 0
         ep.trajectory.append((ep.pose.x, ep.pose.y))
         self._save(robot, ep)
         self.publish(robot, keys.SIM_FRAME, frame)

@@ -184,8 +184,15 @@ class StopperService(Service):
             self._finish(rec, "failed", reason, None)
             return
         if decision is None:
-            log.info("episode %s: step %d already decided; duplicate scores ignored", rec.episode_id, scores.step)
+            last = rec.last_decision
+            if last is not None and last.step == scores.step and not last.stop:
+                # The step was sent again (a message after it was lost): answer it again, nothing recomputed.
+                log.info("episode %s: step %d sent again; its decision re-published", rec.episode_id, scores.step)
+                self.publish(robot, keys.STOPPER_DECISION, last)
+            else:
+                log.info("episode %s: step %d already decided; duplicate scores ignored", rec.episode_id, scores.step)
             return
+        work.last_decision = decision
         self.episodes[rec.episode_id] = work
         self._save_trace(work)
         self._log_rerun(work, decision)

@@ -97,6 +97,7 @@ class EpisodeRecord(BaseModel):
     relevance: list[float] = Field(default_factory=list)
     running: list[str] | None = None  # CP running intersection; None before the first step
     restarts: int = 0
+    last_decision: Decision | None = None  # re-published when the step's scores come again
 
     @classmethod
     def from_start(cls, start: EpisodeStart, robot: str) -> EpisodeRecord:
