@@ -35,6 +35,7 @@ log = logging.getLogger(__name__)
 STRATEGIES = ("fbe", "semantic", "no_lsv", "no_gsv")
 ENTROPY_SWEEP = (0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 0.9, 1.1, 1.3)
 RELEVANCE_SWEEP = (0.9, 0.8, 0.7, 0.6, 0.5, 0.4, 0.3, 0.2, 0.175, 0.15, 0.125, 0.1)
+PAIRED_BUDGETS = (0.5, 0.7, 1.0)
 EPS_SWEEP = (0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.5, 0.6, 0.7, 0.8)
 
 
@@ -166,15 +167,23 @@ def cmd_explore(args: argparse.Namespace) -> int:
     results: dict[str, Any] = {"scorer": scorer_label(settings), "budgets": list(ev.BUDGETS),
                                "size": f"{settings.sim_width}x{settings.sim_height}", "strategies": {}}
     areas = _areas(questions, settings)
+    runs: dict[str, list[Any]] = {}
     for strategy in args.strategies:
-        traces = _collect(questions, settings, strategy, set_name(strategy, settings), args)
+        traces = runs[strategy] = _collect(questions, settings, strategy, set_name(strategy, settings), args)
         results["strategies"][strategy] = {
             "n": len(traces),
             "success": ev.success_at_budgets(traces),
+            "evidence_share": ev.evidence_share(traces),
+            "first_evidence_at": ev.first_evidence(traces),
             "by_category": {c: {"n": len(ts), "success": ev.success_at_budgets(ts)}
                             for c, ts in ev.by_group(traces, "category").items()},
             "by_area": {b: {"n": len(ts), "success_full_budget": ev.success_at_budgets(ts, (1.0,))[0]}
                         for b, ts in ev.by_group(traces, groups={q: ev.area_bin(a) for q, a in areas.items()}).items()},
+        }
+    if "semantic" in runs:
+        results["paired_vs_semantic"] = {
+            other: [vars(p) for p in ev.paired_comparison(runs["semantic"], traces, PAIRED_BUDGETS)]
+            for other, traces in runs.items() if other != "semantic"
         }
     (out / "explore.json").write_text(json.dumps(results, indent=2))
     from eqa.plots import plot_explore
@@ -198,9 +207,17 @@ def _areas(questions: list[Any], settings: Any) -> dict[str, float]:
 def _print_explore(results: dict[str, Any]) -> None:
     budgets = results["budgets"]
     print(f"success rate vs normalised step budget ({results['scorer']}, {results['size']})")
-    print("strategy  n    " + " ".join(f"{b:>5.1f}" for b in budgets))
+    print("strategy  n    " + " ".join(f"{b:>5.1f}" for b in budgets) + "  evidence seen (first at, x T)")
     for name, r in results["strategies"].items():
-        print(f"{name:<9} {r['n']:<4} " + " ".join(f"{v:5.2f}" for v in r["success"]))
+        print(f"{name:<9} {r['n']:<4} " + " ".join(f"{v:5.2f}" for v in r["success"])
+              + f"  {r['evidence_share']:.3f} ({r['first_evidence_at']:.2f})")
+    paired = results.get("paired_vs_semantic", {})
+    if paired:
+        print("semantic against each other strategy on the same questions (only semantic right / only the other "
+              "right, exact sign-test p):")
+        for other, rows in paired.items():
+            print(f"  {other:<8} " + "   ".join(
+                f"{p['budget']:.1f} T: {p['a_only']:>3} / {p['b_only']:<3} p {p['p_value']:.3g}" for p in rows))
 
 
 def cmd_stop(args: argparse.Namespace) -> int:

@@ -31,15 +31,67 @@ def answer_within(trace: Trace, steps: int) -> str:
     return letters(len(trace.choices))[fallback_answer(f[:n], rel[:n])]
 
 
+def correct_at_budget(trace: Trace, budget: float) -> bool:
+    """Whether the answer within ``floor(budget * T)`` steps is right (Fig. 7)."""
+    return answer_within(trace, math.floor(budget * trace.max_steps + 1e-9)) == trace.answer
+
+
 def success_at_budgets(traces: Sequence[Trace], budgets: Sequence[float] = BUDGETS) -> list[float]:
     """Success rate at each normalised step budget (Fig. 7)."""
     if not traces:
         return [math.nan] * len(budgets)
+    return [float(np.mean([correct_at_budget(t, b) for t in traces])) for b in budgets]
+
+
+@dataclass(frozen=True)
+class Paired:
+    """Two strategies on the same questions at one budget: the questions only ``a`` gets right, only ``b``
+    gets right, and the exact two-sided sign-test p-value over those discordant questions."""
+
+    budget: float
+    a_only: int
+    b_only: int
+    p_value: float
+
+
+def sign_test_p(a_only: int, b_only: int) -> float:
+    """Exact two-sided sign test: P(a split at least this uneven | each discordant question a fair coin)."""
+    n = a_only + b_only
+    if n == 0:
+        return 1.0
+    tail = sum(math.comb(n, k) for k in range(min(a_only, b_only) + 1)) / 2**n
+    return min(1.0, 2.0 * tail)
+
+
+def paired_comparison(a: Sequence[Trace], b: Sequence[Trace], budgets: Sequence[float]) -> list[Paired]:
+    """Paired comparison of two strategies' runs of the same questions (matched by question id). With the
+    oracle's draws seeded per (question, step), two runs of a question differ only where the robots went, so
+    the discordant questions carry the whole difference."""
+    b_by_id = {t.question_id: t for t in b}
+    pairs = [(t, b_by_id[t.question_id]) for t in a if t.question_id in b_by_id]
     out = []
-    for b in budgets:
-        hits = [answer_within(t, math.floor(b * t.max_steps + 1e-9)) == t.answer for t in traces]
-        out.append(float(np.mean(hits)))
+    for budget in budgets:
+        ra = [correct_at_budget(x, budget) for x, _ in pairs]
+        rb = [correct_at_budget(y, budget) for _, y in pairs]
+        a_only = sum(x and not y for x, y in zip(ra, rb, strict=True))
+        b_only = sum(y and not x for x, y in zip(ra, rb, strict=True))
+        out.append(Paired(budget, a_only, b_only, sign_test_p(a_only, b_only)))
     return out
+
+
+def first_evidence(traces: Sequence[Trace], threshold: float = 0.3) -> float:
+    """Mean normalised step (step / T) at which relevance first reaches ``threshold``, over the episodes where
+    it does: how early a strategy finds the evidence it finds."""
+    firsts = [next(k for k, s in enumerate(t.steps) if s.relevance >= threshold) / t.max_steps
+              for t in traces if any(s.relevance >= threshold for s in t.steps)]
+    return float(np.mean(firsts)) if firsts else math.nan
+
+
+def evidence_share(traces: Sequence[Trace], threshold: float = 0.3) -> float:
+    """Share of episodes whose best relevance reaches ``threshold`` (the scorer saw evidence of the answer)."""
+    if not traces:
+        return math.nan
+    return float(np.mean([max((s.relevance for s in t.steps), default=0.0) >= threshold for t in traces]))
 
 
 @dataclass(frozen=True)

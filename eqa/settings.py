@@ -87,7 +87,8 @@ class Settings(BaseSettings):
     step_resend_s: float = Field(
         default=30.0, ge=0,
         description="the sim sends a step's frame again when no goal came back after this long (a message lost "
-        "while a service restarted); the others answer a repeated step by re-publishing their output; 0 = never",
+        "while a service restarted); the others answer a repeated step by re-publishing their output; keep it "
+        "above the slowest step (a slow VLM), 0 = never",
     )
     step_resends_max: int = Field(default=3, ge=0, description="resends of one step before the sim gives up")
 

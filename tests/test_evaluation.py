@@ -69,3 +69,25 @@ def test_curves_report_success_steps_and_cp_coverage():
     assert points[0].coverage >= points[1].coverage  # smaller eps, larger sets
     th = threshold_curve("relevance", [0.99, 0.1], traces[40:])
     assert th[0].mean_normalized_steps > th[1].mean_normalized_steps
+
+
+def test_paired_comparison_counts_discordant_questions_and_exact_sign_test():
+    from math import comb
+
+    from eqa.evaluation import evidence_share, first_evidence, paired_comparison, sign_test_p
+
+    assert sign_test_p(0, 0) == 1.0 and sign_test_p(3, 3) == 1.0
+    assert sign_test_p(5, 0) == pytest.approx(2 / 32)  # 5 heads of 5 fair coins, both tails
+    assert sign_test_p(1, 9) == pytest.approx(2 * (comb(10, 0) + comb(10, 1)) / 1024)
+    right, wrong = [(SURE_B, 0.9)], [(SURE_D, 0.9)]
+    # q0: both right, q1: only a right, q2: only a right, q3: only b right, q4: only b right at the full budget
+    a = [_trace(right, qid="q0"), _trace(right, qid="q1"), _trace(right, qid="q2"), _trace(wrong, qid="q3"),
+         _trace([(SURE_D, 0.9), (UNIFORM, 0.1)], qid="q4"), _trace(right, qid="only-in-a")]
+    b = [_trace(right, qid="q0"), _trace(wrong, qid="q1"), _trace(wrong, qid="q2"), _trace(right, qid="q3"),
+         _trace([(SURE_D, 0.1), (SURE_B, 0.9)], qid="q4")]
+    half, full = paired_comparison(a, b, (0.5, 1.0))
+    assert (half.a_only, half.b_only) == (2, 1)  # q4 at 1 of 2 steps: both answer D
+    assert (full.a_only, full.b_only) == (2, 2) and full.p_value == 1.0
+    assert evidence_share(a, 0.3) == pytest.approx(1.0) and evidence_share([_trace([(UNIFORM, 0.1)])]) == 0.0
+    late = _trace([(UNIFORM, 0.1), (UNIFORM, 0.1), (SURE_B, 0.5), (UNIFORM, 0.1)])  # first at step 2 of T = 4
+    assert first_evidence([late, _trace([(UNIFORM, 0.1)])]) == pytest.approx(0.5)
