@@ -41,7 +41,14 @@ from eqa.service import Service
 from eqa.store import EPISODE_STATE_TTL_S
 from services.stopper.calibration import TraceStore, load_table
 from services.stopper.conformal import ScoreError
-from services.stopper.state import EpisodeRecord, check_threshold, decide, end_message, resolve_calibration
+from services.stopper.state import (
+    EpisodeRecord,
+    check_threshold,
+    decide,
+    end_message,
+    fallback_reason,
+    resolve_calibration,
+)
 
 log = logging.getLogger(__name__)
 
@@ -213,10 +220,7 @@ class StopperService(Service):
         if answer is None:
             self._finish(rec, "failed", f"the planner ended exploration before any step was scored: {why}", None)
             return
-        reason = (
-            f"planner ended exploration: {why}; answering {answer}, the most likely answer of the most relevant step"
-        )
-        self._finish(rec, "stopped", reason, answer)
+        self._finish(rec, "stopped", fallback_reason(f"planner ended exploration: {why}", answer), answer)
 
     def on_cancel(self, robot: str, cancel: EpisodeCancel) -> None:
         rec = self.episodes.get(cancel.episode_id)

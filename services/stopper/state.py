@@ -154,6 +154,11 @@ def _fmt_set(labels: list[str]) -> str:
     return "{" + ", ".join(labels) + "}"
 
 
+def fallback_reason(why: str, answer: str, tag: str = "") -> str:
+    """The reason of a stop that answers with :meth:`EpisodeRecord.fallback` (Explore-EQA's answer at a budget)."""
+    return f"{why}; answering {answer}, the most likely answer of the most relevant step" + (f" ({tag})" if tag else "")
+
+
 def decide(rec: EpisodeRecord, scores: StepScores) -> Decision | None:
     """Apply the scores of step ``scores.step`` to ``rec`` and return the decision of that step.
 
@@ -197,16 +202,11 @@ def decide(rec: EpisodeRecord, scores: StepScores) -> Decision | None:
             reason = f"one answer left in the prediction set: {answer} (CP {tag})"
         elif not running:
             stop, answer = True, rec.fallback()
-            reason = (
-                f"the prediction set is empty; answering {answer}, the most likely answer of the most "
-                f"relevant step (CP {tag})"
-            )
+            reason = fallback_reason("the prediction set is empty", answer, f"CP {tag}")
         elif at_limit:
             stop, answer = True, rec.fallback()
-            reason = (
-                f"step limit reached with {len(running)} answers left {_fmt_set(running)}; answering "
-                f"{answer}, the most likely answer of the most relevant step (CP {tag})"
-            )
+            why = f"step limit reached with {len(running)} answers left {_fmt_set(running)}"
+            reason = fallback_reason(why, answer, f"CP {tag}")
         else:
             stop = False
             reason = f"{len(running)} answers left {_fmt_set(running)} (CP {tag})"
@@ -249,10 +249,7 @@ def decide(rec: EpisodeRecord, scores: StepScores) -> Decision | None:
         reason = f"running to the step limit ({scores.step + 1}/{rec.max_steps})"
     if not stop and at_limit:
         stop, answer = True, rec.fallback()
-        reason = (
-            f"step limit reached ({rec.max_steps} steps); answering {answer}, the most likely answer of "
-            f"the most relevant step"
-        )
+        reason = fallback_reason(f"step limit reached ({rec.max_steps} steps)", answer)
     return Decision(
         episode_id=rec.episode_id,
         step=scores.step,
