@@ -52,6 +52,11 @@ def set_name(strategy: str, settings: Any) -> str:
     return f"bench-{strategy}-{settings.scorer_backend}-{settings.sim_width}x{settings.sim_height}"
 
 
+def tau_label(tau: float) -> str:
+    """Name of semantic exploration at temperature ``tau_LSV = tau_GSV = tau`` (Explore-EQA Fig. 7c)."""
+    return f"semantic_tau{tau:g}"
+
+
 def _questions(split: str, limit: int | None, settings: Any) -> list[Any]:
     from services.sim.questions import benchmark
 
@@ -168,9 +173,12 @@ def cmd_explore(args: argparse.Namespace) -> int:
                                "size": f"{settings.sim_width}x{settings.sim_height}", "strategies": {}}
     areas = _areas(questions, settings)
     runs: dict[str, list[Any]] = {}
-    for strategy in args.strategies:
-        traces = runs[strategy] = _collect(questions, settings, strategy, set_name(strategy, settings), args)
-        results["strategies"][strategy] = {
+    # (label, strategy, settings): the strategies, then semantic exploration at other temperatures (Fig. 7c)
+    plan = [(s, s, settings) for s in args.strategies]
+    plan += [(tau_label(t), "semantic", settings.model_copy(update={"tau_lsv": t, "tau_gsv": t})) for t in args.tau]
+    for label, strategy, run_settings in plan:
+        traces = runs[label] = _collect(questions, run_settings, strategy, set_name(label, run_settings), args)
+        results["strategies"][label] = {
             "n": len(traces),
             "success": ev.success_at_budgets(traces),
             "evidence_share": ev.evidence_share(traces),
@@ -294,6 +302,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     e.add_argument("--split", choices=("test", "all"), default="all",
                    help="questions: the 200 test ones or all 500 (default all)")
     e.add_argument("--strategies", nargs="+", choices=STRATEGIES, default=list(STRATEGIES))
+    e.add_argument("--tau", nargs="*", type=float, default=[], metavar="TAU",
+                   help="also run semantic exploration with tau_LSV = tau_GSV = TAU (Fig. 7c; the default "
+                        "temperatures are EQA_TAU_LSV / EQA_TAU_GSV = 1), e.g. --tau 3 5")
     e.set_defaults(func=cmd_explore)
     s = sub.add_parser("stop", help="CP vs entropy vs relevance stopping (calibrate, then replay the test split)",
                        description="Calibrate CP on the calibration split, then replay the test split with an eps "

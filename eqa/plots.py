@@ -19,6 +19,10 @@ def plot_explore(results: dict[str, Any], out: Path) -> list[Path]:
     budgets = results["budgets"]
     sub = f"{results['scorer']}, {results['size']}"
     paths = []
+    everything = results["strategies"]
+    tau_runs = {k: v for k, v in everything.items() if k.startswith("semantic_tau")}
+    # Fig. 7a/b, A6 and A7 compare the strategies; the temperature runs get their own figure (Fig. 7c).
+    results = {**results, "strategies": {k: v for k, v in everything.items() if k not in tau_runs}}
 
     fig, ax = plt.subplots(figsize=(6, 4.2))
     for name, r in results["strategies"].items():
@@ -67,6 +71,27 @@ def plot_explore(results: dict[str, Any], out: Path) -> list[Path]:
         fig.tight_layout()
         paths.append(out / "explore_by_house_size.png")
         fig.savefig(paths[-1], dpi=110)
+        plt.close(fig)
+
+    if tau_runs:
+        fig, ax = plt.subplots(figsize=(6, 4.2))
+        curves = {}
+        if "semantic" in everything:
+            curves["semantic, tau 1 (default)"] = everything["semantic"]
+        curves.update({f"semantic, tau {k.removeprefix('semantic_tau')}": v for k, v in tau_runs.items()})
+        if "fbe" in everything:
+            curves["fbe (no semantic value)"] = everything["fbe"]
+        for name, r in curves.items():
+            ax.plot(budgets, r["success"], marker="o", label=f"{name} (n={r['n']})",
+                    color=COLORS.get("fbe") if name.startswith("fbe") else None)
+        ax.set(xlabel="normalised step budget (fraction of T)", ylabel="success rate", ylim=(0, 1),
+               title=f"Semantic value temperature (tau_LSV = tau_GSV)\n{sub}")
+        ax.title.set_fontsize(9)
+        ax.grid(alpha=0.3)
+        ax.legend()
+        fig.tight_layout()
+        paths.append(out / "explore_temperature.png")
+        fig.savefig(paths[-1], dpi=120)
         plt.close(fig)
     return paths
 

@@ -174,6 +174,13 @@ def test_eq_a6_by_hand_on_small_grid() -> None:
     assert out[0].weight > out[1].weight
     # temperatures scale each term separately
     assert frontier_weight(2.0, 0.5, tau_sv=0.5, tau_sv_normal=3.0) == pytest.approx(math.exp(1.0 + 1.5))
+    # values past exp()'s range (the paper's tau = 5 gives SV up to e^10): weights divided by the largest,
+    # same proportions, nothing overflows
+    big = weigh_frontiers([facing, away, inside], layer * 500.0, (0.0, 0.0), 0.1, 1.0, 1.0)  # value 1000
+    # log weights: facing 0 + 20000/30, away 0, inside 1000 + 4000/30 (past 700: rescaled by the largest)
+    assert big[2].weight == 1.0
+    assert big[0].weight == pytest.approx(math.exp(20000 / 30 - (1000 + 4000 / 30)))
+    assert big[1].weight == 0.0 and all(math.isfinite(f.weight) for f in big)
     assert sv_normal(layer, (0.0, 0.0), 0.1, facing, 1.0) == pytest.approx(np.mean([0] * 4 + [2.0] * 6))
     # strategies without semantic values: every weight 1
     assert [f.weight for f in weigh_frontiers([facing, away], None, (0, 0), 0.1, 1.0, 1.0)] == [1.0, 1.0]

@@ -144,6 +144,9 @@ def sv_normal(
     return float(value_at(layer, origin, resolution, f.x + s * f.nx, f.y + s * f.ny).mean())
 
 
+MAX_LOG_WEIGHT = 700.0  # exp(709.8) overflows a float64
+
+
 def frontier_weight(sv_p: float, sv_p_normal: float, tau_sv: float, tau_sv_normal: float) -> float:
     """Eq. A6: ``w_p = exp(tau_SV * SV_p + tau_SV,Normal * SV_p,normal)``."""
     return float(math.exp(tau_sv * sv_p + tau_sv_normal * sv_p_normal))
@@ -174,9 +177,15 @@ def weigh_frontiers(
     sv_p = value_at(layer, origin, resolution, fx, fy)
     along = value_at(layer, origin, resolution, fx[:, None] + s[None, :] * fnx[:, None],
                      fy[:, None] + s[None, :] * fny[:, None])
+    sv_n = np.array([float(row.mean()) for row in along])  # row by row, as :func:`sv_normal`
+    log_w = tau_sv * sv_p + tau_sv_normal * sv_n
+    # Eq. A6 as is while exp() is finite; beyond (SV = exp(tau_LSV LSV + tau_GSV GSV) reaches e^10 at the
+    # paper's tau = 5, Fig. 7c) every weight is divided by the largest: sampling, proportional to the
+    # weights, is unchanged, and no weight overflows.
+    shift = float(log_w.max()) if float(log_w.max()) > MAX_LOG_WEIGHT else 0.0
     out = []
     for i, f in enumerate(frontiers):
-        sv_n = float(along[i].mean())
-        w = frontier_weight(float(sv_p[i]), sv_n, tau_sv, tau_sv_normal)
-        out.append(f.model_copy(update={"sv": float(sv_p[i]), "sv_normal": sv_n, "weight": w}))
+        w = frontier_weight(float(sv_p[i]), float(sv_n[i]), tau_sv, tau_sv_normal) if shift == 0.0 else float(
+            math.exp(log_w[i] - shift))
+        out.append(f.model_copy(update={"sv": float(sv_p[i]), "sv_normal": float(sv_n[i]), "weight": w}))
     return out
