@@ -188,11 +188,15 @@ def cmd_explore(args: argparse.Namespace) -> int:
             "by_area": {b: {"n": len(ts), "success_full_budget": ev.success_at_budgets(ts, (1.0,))[0]}
                         for b, ts in ev.by_group(traces, groups={q: ev.area_bin(a) for q, a in areas.items()}).items()},
         }
-    if "semantic" in runs:
-        results["paired_vs_semantic"] = {
-            other: [vars(p) for p in ev.paired_comparison(runs["semantic"], traces, PAIRED_BUDGETS)]
-            for other, traces in runs.items() if other != "semantic"
-        }
+    # Paired comparisons on the same questions: semantic against every other run, every run against fbe.
+    for base in ("semantic", "fbe"):
+        if base in runs:
+            results[f"paired_vs_{base}"] = {
+                other: [vars(p) for p in ev.paired_comparison(runs[base] if base == "semantic" else traces,
+                                                              traces if base == "semantic" else runs[base],
+                                                              PAIRED_BUDGETS)]
+                for other, traces in runs.items() if other != base
+            }
     (out / "explore.json").write_text(json.dumps(results, indent=2))
     from eqa.plots import plot_explore
 
@@ -215,17 +219,19 @@ def _areas(questions: list[Any], settings: Any) -> dict[str, float]:
 def _print_explore(results: dict[str, Any]) -> None:
     budgets = results["budgets"]
     print(f"success rate vs normalised step budget ({results['scorer']}, {results['size']})")
-    print("strategy  n    " + " ".join(f"{b:>5.1f}" for b in budgets) + "  evidence seen (first at, x T)")
+    width = max([9, *(len(k) for k in results["strategies"])])
+    print(f"{'strategy':<{width}} n    " + " ".join(f"{b:>5.1f}" for b in budgets) + "  evidence seen (first at, x T)")
     for name, r in results["strategies"].items():
-        print(f"{name:<9} {r['n']:<4} " + " ".join(f"{v:5.2f}" for v in r["success"])
+        print(f"{name:<{width}} {r['n']:<4} " + " ".join(f"{v:5.2f}" for v in r["success"])
               + f"  {r['evidence_share']:.3f} ({r['first_evidence_at']:.2f})")
-    paired = results.get("paired_vs_semantic", {})
-    if paired:
-        print("semantic against each other strategy on the same questions (only semantic right / only the other "
-              "right, exact sign-test p):")
+    for base, what in (("semantic", "semantic against each other run"), ("fbe", "each run against fbe")):
+        paired = results.get(f"paired_vs_{base}", {})
+        if not paired:
+            continue
+        print(f"{what}, same questions (right only in the first / only in the second, exact sign-test p):")
         for other, rows in paired.items():
-            print(f"  {other:<8} " + "   ".join(
-                f"{p['budget']:.1f} T: {p['a_only']:>3} / {p['b_only']:<3} p {p['p_value']:.3g}" for p in rows))
+            print(f"  {other:<{width}} " + "   ".join(
+                f"{p['budget']:.1f} T: {p['a_only']:>3} / {p['b_only']:<3} p {p['p_value']:<7.3g}" for p in rows))
 
 
 def cmd_stop(args: argparse.Namespace) -> int:

@@ -81,9 +81,11 @@ def plot_explore(results: dict[str, Any], out: Path) -> list[Path]:
         curves.update({f"semantic, tau {k.removeprefix('semantic_tau')}": v for k, v in tau_runs.items()})
         if "fbe" in everything:
             curves["fbe (no semantic value)"] = everything["fbe"]
+        extra = iter(["tab:orange", "tab:green", "tab:purple", "tab:brown", "tab:pink", "tab:olive"])
         for name, r in curves.items():
-            ax.plot(budgets, r["success"], marker="o", label=f"{name} (n={r['n']})",
-                    color=COLORS.get("fbe") if name.startswith("fbe") else None)
+            color = COLORS.get("fbe") if name.startswith("fbe") else (
+                COLORS.get("semantic") if "default" in name else next(extra, None))
+            ax.plot(budgets, r["success"], marker="o", label=f"{name} (n={r['n']})", color=color)
         ax.set(xlabel="normalised step budget (fraction of T)", ylabel="success rate", ylim=(0, 1),
                title=f"Semantic value temperature (tau_LSV = tau_GSV)\n{sub}")
         ax.title.set_fontsize(9)
