@@ -24,6 +24,12 @@ EPISODE_STATE_TTL_S = 2 * 24 * 3600.0
 """How long a service keeps the stored state of an episode nobody ends (services resume from it)."""
 
 
+def episode_end_key(episode_id: str) -> str:
+    """Where the stopper stores the ``EpisodeEnd`` of an episode before publishing it: the gateway reconciles
+    from it after a restart, a restarted sim does not take up an episode that has one."""
+    return f"eqa:stopper:end:{episode_id}"
+
+
 class StoreError(RuntimeError):
     pass
 

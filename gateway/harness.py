@@ -22,9 +22,8 @@ import uvicorn
 from eqa.launcher import free_port
 from eqa.messages import EpisodeEnd
 from eqa.settings import Settings
-from eqa.store import open_store
+from eqa.store import episode_end_key, open_store
 from gateway.app import create_app
-from gateway.manager import STOPPER_END_PREFIX
 
 if TYPE_CHECKING:
     from eqa.launcher import Fleet
@@ -71,7 +70,7 @@ def wait_for(pred: Callable[[], bool], timeout: float = 30.0, every: float = 0.0
 def stored_end(settings: Settings, episode_id: str) -> EpisodeEnd | None:
     """The ``EpisodeEnd`` the stopper stored for an episode (it stores it before it publishes it), if any."""
     with open_store(settings) as store:
-        raw = store.get(STOPPER_END_PREFIX + episode_id)
+        raw = store.get(episode_end_key(episode_id))
     return None if raw is None else EpisodeEnd.model_validate_json(raw)
 
 

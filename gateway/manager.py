@@ -53,7 +53,7 @@ from eqa.messages import (
 )
 from eqa.recording import recording_dir
 from eqa.settings import Settings
-from eqa.store import Store
+from eqa.store import Store, episode_end_key
 from gateway.events import gateway_event, summarize
 from gateway.schemas import QuestionRequest, Submitted
 
@@ -61,7 +61,6 @@ log = logging.getLogger(__name__)
 
 REQUIRED_SERVICES = ("sim", "mapper", "vlm_scorer", "planner", "stopper")
 TERMINAL = frozenset({"stopped", "failed", "cancelled"})
-STOPPER_END_PREFIX = "eqa:stopper:end:"  # services/stopper/service.py END_PREFIX: the stopper's stored ends
 DEFAULT_MAX_STEPS = 30  # 3*sqrt(100 m^2): a mid-sized home, when the floor area is unknown
 
 
@@ -509,7 +508,7 @@ class EpisodeManager:
 
     def _recover_end(self, rec: Record) -> bool:
         """End ``rec`` from the stopper's stored ``EpisodeEnd`` if there is one (an end not seen on the bus)."""
-        raw = self.store.get(STOPPER_END_PREFIX + rec.status.episode_id)
+        raw = self.store.get(episode_end_key(rec.status.episode_id))
         if raw is None:
             return False
         try:

@@ -140,10 +140,3 @@ def test_episode_stalled_while_down_fails_with_reason(fleet: Fleet, gw_settings:
     pattern = r"no message for 0.5 s \(last step \d+\); services not alive: (none, all alive|sim); "
     assert re.match(pattern, reason), reason
     assert "gateway restarted" in reason
-
-
-def test_stopper_end_key_matches_the_stopper() -> None:
-    from gateway.manager import STOPPER_END_PREFIX
-    from services.stopper.service import END_PREFIX
-
-    assert END_PREFIX == STOPPER_END_PREFIX

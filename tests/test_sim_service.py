@@ -116,3 +116,38 @@ def test_a_restarted_sim_continues_the_episode_at_the_next_goal(hub_settings, se
             assert (f1.pose.x, f1.pose.y) == (goal.x, goal.y) and f1.scene == SCENE
         finally:
             second.stop()
+
+
+def test_a_restarted_sim_sends_stored_steps_again_but_not_ended_episodes(hub_settings, settings) -> None:
+    """EQA_STEP_RESEND_S: a sim restarted while a goal was lost takes the stored episode up and sends its frame
+    again (at most EQA_STEP_RESENDS_MAX times); an episode the stopper ended meanwhile is dropped."""
+    from eqa.store import episode_end_key, open_store
+    from services.sim.service import state_key
+
+    fast = settings.model_copy(update={"step_resend_s": 0.4, "step_resends_max": 2})
+    frames: list[Frame] = []
+    with Bus(hub_settings, "gateway", "test") as bus:
+        for robot in ("r1", "r2"):
+            bus.subscribe(keys.stream(robot, keys.SIM_FRAME), Frame, lambda k, m: frames.append(m))
+        first = SimService(fast.model_copy(update={"step_resend_s": 0.0}))  # this one never re-sends
+        first.start()
+        try:
+            time.sleep(0.5)
+            bus.publish(keys.stream("r1", keys.EPISODE_START), _start("ep-up", "r1", SCENE))
+            bus.publish(keys.stream("r2", keys.EPISODE_START), _start("ep-ended", "r2", SCENE))
+            assert wait_for(lambda: len(frames) == 2, timeout=15.0)
+        finally:
+            first.stop()
+        with open_store(fast) as store:
+            store.set(episode_end_key("ep-ended"), b"{}")  # the stopper ended it while no sim ran
+        frames.clear()
+        second = SimService(fast)
+        second.start()
+        try:
+            assert wait_for(lambda: len(frames) == 2, timeout=15.0)
+            time.sleep(1.5)  # no third resend
+            assert [(f.episode_id, f.step) for f in frames] == [("ep-up", 0), ("ep-up", 0)]
+            assert second.store.get_json(state_key("r2")) is None
+            assert second.store.get_json(state_key("r1"))["step"] == 0
+        finally:
+            second.stop()

@@ -27,11 +27,11 @@ from eqa.messages import (
 )
 from eqa.recording import recording_dir
 from eqa.settings import Settings
-from eqa.store import EmbeddedStore
+from eqa.store import EmbeddedStore, episode_end_key
 from gateway.harness import wait_for
 from services.stopper import synthetic
 from services.stopper.calibration import CalibrationTable, TraceStore, calibrate, save_table
-from services.stopper.service import END_PREFIX, STATE_PREFIX, StopperService
+from services.stopper.service import STATE_PREFIX, StopperService
 
 REPO = Path(__file__).resolve().parents[1]
 ROBOT = "r0"
@@ -203,7 +203,7 @@ def test_cp_episode_stops_when_one_answer_is_left(running: tuple[Listener, Stopp
     trace = TraceStore(svc.store).trace_for_episode("ep-cp")
     assert trace is not None and len(trace.steps) == 4 and trace.answer == "B" and trace.question_id == "q-sofa"
     assert svc.store.get(STATE_PREFIX + "ep-cp") is None
-    assert EpisodeEnd.model_validate_json(svc.store.get(END_PREFIX + "ep-cp") or b"") == end
+    assert EpisodeEnd.model_validate_json(svc.store.get(episode_end_key("ep-cp")) or b"") == end
 
 
 def test_calibration_lookup_bad_scores_planner_done_cancel_and_baselines(

@@ -31,7 +31,7 @@ from eqa.messages import EpisodeCancel, EpisodeEnd, EpisodeStart, ErrorReply, Fr
 from eqa.recording import EpisodeRecorder
 from eqa.service import Service
 from eqa.settings import Settings
-from eqa.store import EPISODE_STATE_TTL_S
+from eqa.store import EPISODE_STATE_TTL_S, episode_end_key
 from services.sim import hmeqa
 from services.sim.camera import camera_pose, intrinsics
 from services.sim.motion import START_CLEARANCE, pose_error, sample_start_pose
@@ -162,8 +162,12 @@ class SimService(Service):
                 continue
             age = time.time() - float(state.get("saved_at", 0.0))
             episode_id = state.get("start", {}).get("episode_id")
-            if age < self.settings.episode_timeout_s and episode_id:
-                self._restore(robot, episode_id)
+            if not episode_id or age >= self.settings.episode_timeout_s:
+                continue
+            if self.store.get(episode_end_key(episode_id)) is not None:  # it ended while this sim was down
+                self.store.delete(key)
+                continue
+            self._restore(robot, episode_id)
 
     def _resend_stale(self) -> None:
         """Send the current frame again for every episode whose goal has not come back in time."""

@@ -38,7 +38,7 @@ from eqa.messages import (
 )
 from eqa.recording import EpisodeRecorder, recording_dir
 from eqa.service import Service
-from eqa.store import EPISODE_STATE_TTL_S
+from eqa.store import EPISODE_STATE_TTL_S, episode_end_key
 from services.stopper.calibration import TraceStore, load_table
 from services.stopper.conformal import ScoreError
 from services.stopper.state import (
@@ -53,7 +53,6 @@ from services.stopper.state import (
 log = logging.getLogger(__name__)
 
 STATE_PREFIX = "eqa:stopper:episode:"
-END_PREFIX = "eqa:stopper:end:"
 # Zenoh runs the callbacks of different subscriptions on different threads, so the scores of step 0 can
 # overtake their EpisodeStart; they wait here (per episode, bounded, for a while) until it arrives.
 _ENTITIES: dict[str, str] = getattr(recording, "ENTITIES", {})
@@ -242,7 +241,7 @@ class StopperService(Service):
         for eid in [e for e, items in self._pending.items() if now - items[0][0] > PENDING_TTL_S]:
             log.warning("scores for unknown episode %s dropped: no EpisodeStart within %.0f s", eid, PENDING_TTL_S)
             del self._pending[eid]
-        if self.store.get(END_PREFIX + scores.episode_id) is not None:
+        if self.store.get(episode_end_key(scores.episode_id)) is not None:
             log.info("scores for ended episode %s (step %d) ignored", scores.episode_id, scores.step)
             return
         items = self._pending.get(scores.episode_id)
@@ -271,7 +270,7 @@ class StopperService(Service):
         if answer is not None:
             self._recorder(rec).log("stopper/log", _text(f"final answer {answer}: {reason}"))
         end = end_message(rec, state, reason, answer, self._recording(rec))
-        self.store.set(END_PREFIX + rec.episode_id, end.model_dump_json().encode(), ttl_s=EPISODE_STATE_TTL_S)
+        self.store.set(episode_end_key(rec.episode_id), end.model_dump_json().encode(), ttl_s=EPISODE_STATE_TTL_S)
         self._drop(rec, reason)
         if decision is not None:
             self.publish(rec.robot, keys.STOPPER_DECISION, decision)
