@@ -180,7 +180,7 @@ def test_eq_a6_by_hand_on_small_grid() -> None:
     # log weights: facing 0 + 20000/30, away 0, inside 1000 + 4000/30 (past 700: rescaled by the largest)
     assert big[2].weight == 1.0
     assert big[0].weight == pytest.approx(math.exp(20000 / 30 - (1000 + 4000 / 30)))
-    assert big[1].weight == 0.0 and all(math.isfinite(f.weight) for f in big)
+    assert big[1].weight == pytest.approx(math.exp(-700.0)) and big[1].weight > 0.0  # clamped, not 0
     assert sv_normal(layer, (0.0, 0.0), 0.1, facing, 1.0) == pytest.approx(np.mean([0] * 4 + [2.0] * 6))
     # strategies without semantic values: every weight 1
     assert [f.weight for f in weigh_frontiers([facing, away], None, (0, 0), 0.1, 1.0, 1.0)] == [1.0, 1.0]

@@ -181,11 +181,12 @@ def weigh_frontiers(
     log_w = tau_sv * sv_p + tau_sv_normal * sv_n
     # Eq. A6 as is while exp() is finite; beyond (SV = exp(tau_LSV LSV + tau_GSV GSV) reaches e^10 at the
     # paper's tau = 5, Fig. 7c) every weight is divided by the largest: sampling, proportional to the
-    # weights, is unchanged, and no weight overflows.
+    # weights, is unchanged, and no weight overflows. Ratios below e^-700 are clamped there rather than
+    # underflowing to 0, so when the best frontier is unreachable the planner still samples among the rest.
     shift = float(log_w.max()) if float(log_w.max()) > MAX_LOG_WEIGHT else 0.0
     out = []
     for i, f in enumerate(frontiers):
         w = frontier_weight(float(sv_p[i]), float(sv_n[i]), tau_sv, tau_sv_normal) if shift == 0.0 else float(
-            math.exp(log_w[i] - shift))
+            math.exp(max(log_w[i] - shift, -MAX_LOG_WEIGHT)))
         out.append(f.model_copy(update={"sv": float(sv_p[i]), "sv_normal": float(sv_n[i]), "weight": w}))
     return out
