@@ -484,14 +484,17 @@ class EpisodeManager:
                     robot,
                 )
                 return
-            self._append(episode_id, summarize(msg))
             now = time.time()
             rec.last_activity = now
             st.updated_at = now
             if isinstance(msg, EpisodeEnd):
                 state = msg.state if msg.state in TERMINAL else "stopped"
+                # The final status is stored before the end event: a client that reads the event and then
+                # asks for the status gets the final one.
                 self._finish(rec, state, msg.reason, end=msg)
+                self._append(episode_id, summarize(msg))
                 return
+            self._append(episode_id, summarize(msg))
             if isinstance(msg, ErrorReply) and msg.source.startswith("sim") and st.steps == 0:
                 self._abort(rec, "failed", f"sim refused the episode: {msg.reason}")
                 return
@@ -518,8 +521,8 @@ class EpisodeManager:
             return False
         event = summarize(end)
         event["recovered"] = "from the stopper's stored end: not seen on the bus by this gateway"
-        self._append(rec.status.episode_id, event)
         self._finish(rec, end.state if end.state in TERMINAL else "stopped", end.reason, end=end)
+        self._append(rec.status.episode_id, event)  # after the final status, as in handle()
         return True
 
     # ---- watchdog ---------------------------------------------------------------------------------------

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import re
+import time
 from collections.abc import AsyncIterator
 from typing import Annotated
 
@@ -24,6 +26,8 @@ router = APIRouter(prefix="/v1", tags=["episodes"])
 
 _EVENT_ID = re.compile(r"^\d{1,20}-\d{1,20}$")
 KEEPALIVE_S = 15.0
+END_EVENT_PREFIX = b'{"kind":"episode_end"'  # how every stored episode_end event starts (compact JSON)
+END_EVENT_WAIT_S = 2.0  # after the final status, how long a stream waits for the episode_end event
 
 
 def _http(exc: GatewayError) -> HTTPException:
@@ -147,20 +151,27 @@ async def events(
 
     async def gen() -> AsyncIterator[bytes]:
         cursor = start
+        ended = False  # the episode_end event was sent
+        terminal_since: float | None = None
         yield b"retry: 1000\n\n"
         while True:
             changed = hub.waiter()
             rows = await run_in_threadpool(manager.events, eid, cursor, 500)
             for entry_id, data in rows:
                 cursor = entry_id
+                ended = ended or data.startswith(END_EVENT_PREFIX)
                 yield b"id: " + entry_id.encode() + b"\ndata: " + data + b"\n\n"
             if rows:
                 continue
             st = await run_in_threadpool(manager.get, eid)
             if st.state in TERMINAL:
-                rest = await run_in_threadpool(manager.events, eid, cursor, 500)
-                if not rest:
+                # The manager stores the final status just before the episode_end event: wait for the event
+                # (briefly: a stream resumed after its end, or an old episode, may have no more to come).
+                terminal_since = terminal_since or time.monotonic()
+                if ended or time.monotonic() - terminal_since > END_EVENT_WAIT_S:
                     return
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(changed.wait(), timeout=0.1)
                 continue
             if await request.is_disconnected():
                 return
