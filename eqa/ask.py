@@ -170,10 +170,12 @@ def _body(args: argparse.Namespace, scenes_dir: Path) -> tuple[dict[str, Any], Q
 
 
 def run(args: argparse.Namespace) -> int:
-    from eqa.cli import UsageError, load_settings
+    from eqa.cli import UsageError, check_scorer, load_settings
     from eqa.service import setup_logging
 
     settings = load_settings()
+    if args.url is None:
+        check_scorer(settings)  # the fleet this command starts must be able to score
     setup_logging("WARNING" if args.json else settings.log_level, "eqa-ask")
     logging.getLogger("eqa.launcher").setLevel(logging.WARNING)
     logging.getLogger("httpx").setLevel(logging.WARNING)

@@ -135,7 +135,7 @@ def _collect(questions: list[Any], settings: Any, strategy: str, name: str, args
 
 
 def _settings(args: argparse.Namespace) -> Any:
-    from eqa.cli import UsageError, load_settings
+    from eqa.cli import UsageError, check_scorer, load_settings
 
     settings = load_settings()
     try:
@@ -149,11 +149,7 @@ def _settings(args: argparse.Namespace) -> Any:
     update: dict[str, Any] = {"sim_width": w, "sim_height": h, "record": False}
     if args.scorer is not None:
         update["scorer_backend"] = args.scorer
-    backend = update.get("scorer_backend", settings.scorer_backend)
-    if backend == "hf" and settings.hf_model_path is None:
-        raise UsageError("the hf scorer needs a model directory: set EQA_HF_MODEL_PATH")
-    if backend == "remote" and not (settings.remote_base_url and settings.remote_model):
-        raise UsageError("the remote scorer needs an endpoint: set EQA_REMOTE_BASE_URL and EQA_REMOTE_MODEL")
+    check_scorer(settings.model_copy(update=update))
     if args.robots < 1 or args.scorers < 1:
         raise UsageError("--robots and --scorers must be at least 1")
     return settings.model_copy(update=update)

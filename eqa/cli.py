@@ -45,11 +45,23 @@ def load_settings() -> Settings:
         raise UsageError(f"invalid EQA_* settings: {exc}") from exc
 
 
+def check_scorer(settings: Settings) -> None:
+    """Refuse to start a fleet whose scorer replicas could only answer errors (a missing model directory, no
+    endpoint): :class:`UsageError` saying what to set."""
+    from services.vlm_scorer.backends import BackendUnavailable, check_settings
+
+    try:
+        check_settings(settings)
+    except BackendUnavailable as exc:
+        raise UsageError(str(exc)) from None
+
+
 def cmd_up(args: argparse.Namespace) -> int:
     from eqa.launcher import ALL_SERVICES, PIPELINE, Fleet, LaunchError
     from eqa.service import setup_logging
 
     settings = load_settings()
+    check_scorer(settings)
     setup_logging(settings.log_level, "eqa-up")
     services = list(PIPELINE if args.no_gateway else ALL_SERVICES)
     if args.port is not None:

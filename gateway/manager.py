@@ -112,6 +112,7 @@ class Record:
     status: EpisodeStatus
     start: EpisodeStart
     last_activity: float = field(default_factory=time.time)  # watchdog clock (not persisted)
+    last_error: str | None = None  # the last ErrorReply of the episode, for the watchdog's reason (not persisted)
 
     def dump(self) -> dict[str, Any]:
         return {"status": self.status.model_dump(mode="json"), "start": self.start.model_dump(mode="json")}
@@ -495,6 +496,8 @@ class EpisodeManager:
                 self._append(episode_id, summarize(msg))
                 return
             self._append(episode_id, summarize(msg))
+            if isinstance(msg, ErrorReply):
+                rec.last_error = f"{msg.source} at step {msg.step}: {msg.reason}"
             if isinstance(msg, ErrorReply) and msg.source.startswith("sim") and st.steps == 0:
                 self._abort(rec, "failed", f"sim refused the episode: {msg.reason}")
                 return
@@ -544,6 +547,8 @@ class EpisodeManager:
                     f"no message for {timeout:g} s (last step {st.step}); services not alive: "
                     f"{', '.join(missing) if missing else 'none, all alive'}"
                 )
+                if rec.last_error:
+                    reason += f"; last error: {rec.last_error}"
                 if restarted:
                     reason += "; the gateway restarted meanwhile, so the end may have been published while it was down"
                 self._abort(rec, "failed", reason)

@@ -111,10 +111,15 @@ def test_a_second_peer_joins_with_client_settings(fleet: Fleet):
         (["q?", "--choice", "a", "--choice", "b", "--scene", "no-such-scene"], "unknown scene"),
         (["q?", "--choice", "a", "--choice", "b", "--scene", "gen-00001", "--pose", "1,x"], "pose must be numbers"),
         (["q?", "--choice", "a", "--choice", "b", "--scene", "gen-00001", "--eps", "1.5"], "--eps"),
+        # a fleet whose scorer could only answer errors is refused before it starts
+        (["EQA_SCORER_BACKEND=hf", "EQA_HF_MODEL_PATH=/no/such/model"], "set EQA_HF_MODEL_PATH"),
+        (["EQA_SCORER_BACKEND=remote"], "EQA_REMOTE_BASE_URL"),
     ],
 )
 def test_eqa_ask_bad_input_is_one_line_and_exit_2(tmp_path: Path, args: list[str], message: str):
     env = {**os.environ, "EQA_DATA_DIR": str(tmp_path)}
+    env.update(a.split("=", 1) for a in args if a.startswith("EQA_"))
+    args = [a for a in args if not a.startswith("EQA_")]
     out = subprocess.run([sys.executable, "-m", "eqa", "ask", *args], capture_output=True, text=True,
                          timeout=120, env=env, cwd=REPO)
     assert out.returncode == 2

@@ -23,7 +23,7 @@ from services.stopper.calibration import (
     table_key,
 )
 from services.stopper.conformal import CalibrationError, conformal_quantile
-from services.stopper.state import resolve_calibration
+from services.stopper.state import backend_mismatch, resolve_calibration
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -109,6 +109,12 @@ def test_lookup_nearest_lower_eps_and_packaged_fallback(
     assert choice is not None and choice.eps == 0.1 and "nearest stored eps=0.1" in choice.note and not why
     choice, why = resolve_calibration(table, "x", 0.05, "pkg")
     assert choice is None and "eqa calibrate" in why
+    # scores of another backend than the table's: said in every reason (Claim 1 holds for the calibrated model)
+    oracle_table = table.model_copy(update={"provenance": {"scorer_backend": "oracle"}})
+    choice, _ = resolve_calibration(oracle_table, "x", 0.3, "pkg")
+    assert choice is not None and choice.backend == "oracle"
+    assert backend_mismatch(choice, "oracle") == "" and backend_mismatch(choice, None) == ""
+    assert "calibrated on the oracle scorer, these scores come from hf" in backend_mismatch(choice, "hf")
     choice, why = resolve_calibration(None, "nowhere", 0.2, "pkg")
     assert choice is None and "eqa calibrate --name pkg" in why
 

@@ -50,6 +50,7 @@ class CalibrationChoice(BaseModel):
     n: int
     source: str
     note: str = ""
+    backend: str | None = None  # the scorer backend whose scores the table was calibrated on
 
 
 def resolve_calibration(
@@ -77,7 +78,19 @@ def resolve_calibration(
             f"below it (more conservative)"
         )
     )
-    return CalibrationChoice(q_hat=entry.q_hat, eps=entry.eps, asked_eps=eps, n=table.n, source=where, note=note), ""
+    backend = table.provenance.get("scorer_backend")
+    choice = CalibrationChoice(q_hat=entry.q_hat, eps=entry.eps, asked_eps=eps, n=table.n, source=where, note=note,
+                               backend=str(backend) if backend else None)
+    return choice, ""
+
+
+def backend_mismatch(cal: CalibrationChoice, scores_backend: str | None) -> str:
+    """A warning when the scores come from another scorer backend than the calibration did: the coverage
+    guarantee (Claim 1) holds only for the model the table was calibrated on."""
+    if not cal.backend or not scores_backend or scores_backend == cal.backend:
+        return ""
+    return (f"table calibrated on the {cal.backend} scorer, these scores come from {scores_backend}: "
+            f"run `eqa calibrate` with this scorer for the guarantee")
 
 
 class EpisodeRecord(BaseModel):
@@ -195,7 +208,8 @@ def decide(rec: EpisodeRecord, scores: StepScores) -> Decision | None:
         prev = labels if rec.running is None else rec.running
         running = [y for y in prev if y in cset]
         rec.running = running
-        tag = f"eps={cal.eps:g}, q_hat={cal.q_hat:.4f}, N={cal.n}" + (f"; {cal.note}" if cal.note else "")
+        notes = [n for n in (cal.note, backend_mismatch(cal, scores.backend)) if n]
+        tag = f"eps={cal.eps:g}, q_hat={cal.q_hat:.4f}, N={cal.n}" + "".join(f"; {n}" for n in notes)
         answer = None
         if len(running) == 1:
             stop, answer = True, running[0]

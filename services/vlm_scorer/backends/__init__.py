@@ -6,6 +6,19 @@ from eqa.settings import Settings
 from services.vlm_scorer.backends.base import Backend, BackendUnavailable
 
 
+def check_settings(settings: Settings) -> None:
+    """Cheap checks of the chosen backend's settings (no model is loaded), for the command line to refuse a
+    fleet whose scorer could only answer errors. :class:`BackendUnavailable` says what to set."""
+    if settings.scorer_backend == "hf":
+        from services.vlm_scorer.backends.hf import check_model_dir
+
+        check_model_dir(settings.hf_model_path)
+    elif settings.scorer_backend == "remote":
+        from services.vlm_scorer.backends.remote import check_endpoint
+
+        check_endpoint(settings.remote_base_url, settings.remote_model)
+
+
 def make_backend(settings: Settings) -> Backend:
     """The backend chosen by ``settings.scorer_backend`` (``EQA_SCORER_BACKEND``)."""
     if settings.scorer_backend == "oracle":
@@ -13,11 +26,9 @@ def make_backend(settings: Settings) -> Backend:
 
         return OracleBackend.from_settings(settings)
     if settings.scorer_backend == "hf":
-        from services.vlm_scorer.backends.hf import HFBackend
+        from services.vlm_scorer.backends.hf import HFBackend, check_model_dir
 
-        if settings.hf_model_path is None:
-            raise BackendUnavailable("scorer_backend=hf needs a model directory: set EQA_HF_MODEL_PATH")
-        return HFBackend(settings.hf_model_path, device=settings.hf_device)
+        return HFBackend(check_model_dir(settings.hf_model_path), device=settings.hf_device)
     if settings.scorer_backend == "remote":
         from services.vlm_scorer.backends.remote import RemoteBackend
 
@@ -25,4 +36,4 @@ def make_backend(settings: Settings) -> Backend:
     raise BackendUnavailable(f"unknown scorer backend {settings.scorer_backend!r}")
 
 
-__all__ = ["Backend", "BackendUnavailable", "make_backend"]
+__all__ = ["Backend", "BackendUnavailable", "check_settings", "make_backend"]

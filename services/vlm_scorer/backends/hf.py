@@ -51,6 +51,21 @@ def single_token_id(tokenizer: object, text: str) -> int:
     return int(ids[0])
 
 
+def check_model_dir(path: str | Path | None) -> Path:
+    """``path`` if it looks like a saved transformers model (cheap: no torch), else :class:`BackendUnavailable`
+    saying what to set."""
+    if path is None:
+        raise BackendUnavailable("scorer_backend=hf needs a model directory: set EQA_HF_MODEL_PATH")
+    p = Path(path)
+    if not p.is_dir():
+        raise BackendUnavailable(
+            f"hf model directory {str(p)!r} does not exist (set EQA_HF_MODEL_PATH to a saved model)"
+        )
+    if not (p / "config.json").is_file():
+        raise BackendUnavailable(f"{str(p)!r} has no config.json: not a transformers model directory")
+    return p
+
+
 class HFBackend(ModelBackend):
     name = "hf"
 
@@ -58,16 +73,7 @@ class HFBackend(ModelBackend):
         import torch
         from transformers import AutoConfig, AutoImageProcessor, AutoModelForImageTextToText, AutoTokenizer
 
-        self.path = Path(path)
-        if not self.path.is_dir():
-            raise BackendUnavailable(
-                f"hf model directory {str(self.path)!r} does not exist "
-                "(set EQA_HF_MODEL_PATH to a saved model)"
-            )
-        if not (self.path / "config.json").is_file():
-            raise BackendUnavailable(
-                f"{str(self.path)!r} has no config.json: not a transformers model directory"
-            )
+        self.path = check_model_dir(path)
         try:
             config = AutoConfig.from_pretrained(self.path, local_files_only=True)
         except Exception as exc:

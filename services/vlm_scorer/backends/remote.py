@@ -83,6 +83,14 @@ def candidate_mass(top: list[tuple[str, float]], candidates: tuple[str, ...]) ->
     return {c: (m if m > 0 else floor) for c, m in mass.items()}
 
 
+def check_endpoint(base_url: str | None, model: str | None) -> None:
+    """:class:`BackendUnavailable` naming the setting to set when the endpoint or the model is missing."""
+    if not base_url:
+        raise BackendUnavailable("scorer_backend=remote needs EQA_REMOTE_BASE_URL (e.g. http://host:8000/v1)")
+    if not model:
+        raise BackendUnavailable("scorer_backend=remote needs EQA_REMOTE_MODEL (the served model name)")
+
+
 class RemoteBackend(ModelBackend):
     name = "remote"
 
@@ -94,12 +102,7 @@ class RemoteBackend(ModelBackend):
         timeout_s: float = 30.0,
         max_retries: int = 4,
     ) -> None:
-        if not base_url:
-            raise BackendUnavailable(
-                "scorer_backend=remote needs EQA_REMOTE_BASE_URL (e.g. http://host:8000/v1)"
-            )
-        if not model:
-            raise BackendUnavailable("scorer_backend=remote needs EQA_REMOTE_MODEL (the served model name)")
+        check_endpoint(base_url, model)
         self.url = base_url.rstrip("/") + "/chat/completions"
         self.model_name = model
         self.timeout_s = timeout_s
