@@ -73,6 +73,8 @@ def cmd_up(args: argparse.Namespace) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 1
     print(f"fleet up: {len(fleet.children)} processes, zenoh router at {fleet.endpoint}", flush=True)
+    print(f"join it from another shell (eqa health, more scorer replicas): EQA_ZENOH_CONNECT={fleet.endpoint}",
+          flush=True)
     if not args.no_gateway:
         print(f"gateway: http://{settings.gateway_host}:{settings.gateway_port}/docs", flush=True)
     print(f"logs: {settings.data_dir / 'logs'}; Ctrl-C stops", flush=True)
@@ -93,7 +95,9 @@ def cmd_health(args: argparse.Namespace) -> int:
     settings = load_settings()
     missing = check(settings, args.services, timeout=args.timeout)
     if missing:
-        print(f"not alive: {', '.join(missing)}", file=sys.stderr)
+        hint = (f" (looked via {', '.join(settings.zenoh_connect) or 'multicast scouting'}; for a fleet started "
+                "by `eqa up` set EQA_ZENOH_CONNECT to the endpoint it printed)")
+        print(f"not alive: {', '.join(missing)}{hint}", file=sys.stderr)
         return 1
     print("alive: " + ", ".join(args.services))
     return 0
@@ -123,7 +127,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     health = sub.add_parser("health", help="check that services hold a liveliness token (compose health checks)")
     health.add_argument("services", nargs="+", help="service names, e.g. sim mapper")
-    health.add_argument("--timeout", type=float, default=2.0)
+    health.add_argument("--timeout", type=float, default=5.0,
+                        help="seconds to wait for every named service (default 5)")
     health.set_defaults(func=cmd_health)
 
     for name in _SUBCOMMAND_MODULES:

@@ -2,21 +2,24 @@
 
 from __future__ import annotations
 
+import time
+
 from eqa import keys
 from eqa.bus import Bus
 from eqa.settings import Settings
 
+RETRY_S = 0.2
 
-def alive_services(settings: Settings, timeout: float = 2.0) -> dict[str, list[str]]:
-    """``service -> [instances]`` of every liveliness token reachable from these settings."""
-    out: dict[str, list[str]] = {}
+
+def check(settings: Settings, services: list[str], timeout: float = 5.0) -> list[str]:
+    """The services of ``services`` with no live instance (empty = healthy). A session just opened has not
+    heard of every peer yet, so the liveliness query is repeated until all are seen or ``timeout`` passes."""
+    deadline = time.monotonic() + timeout
     with Bus(settings.model_copy(update={"instance": "health-check"}), "health") as bus:
-        for service, instance in bus.alive(keys.ALIVE_ANY, timeout=timeout):
-            out.setdefault(service, []).append(instance)
-    return out
-
-
-def check(settings: Settings, services: list[str], timeout: float = 2.0) -> list[str]:
-    """The services of ``services`` with no live instance (empty = healthy)."""
-    alive = alive_services(settings, timeout)
-    return [s for s in services if not alive.get(s)]
+        while True:
+            remaining = deadline - time.monotonic()
+            alive = {service for service, _ in bus.alive(keys.ALIVE_ANY, timeout=max(0.1, min(1.0, remaining)))}
+            missing = [s for s in services if s not in alive]
+            if not missing or time.monotonic() >= deadline:
+                return missing
+            time.sleep(RETRY_S)

@@ -103,6 +103,18 @@ def test_a_second_peer_joins_with_client_settings(fleet: Fleet):
         assert {s for s, _ in bus.alive()} >= set(ALL_SERVICES)
 
 
+def test_eqa_health_from_another_process(fleet: Fleet):
+    """`eqa health` in a fresh process (as compose runs it) sees every service of the fleet at once: a session
+    just opened has not heard of every peer yet, so the check retries until its timeout."""
+    env = {**os.environ, "EQA_ZENOH_CONNECT": fleet.endpoint, "EQA_ZENOH_LISTEN": ""}
+    cmd = [sys.executable, "-m", "eqa", "health", *ALL_SERVICES]
+    out = subprocess.run(cmd, capture_output=True, text=True, timeout=60, env=env, cwd=REPO)
+    assert out.returncode == 0 and out.stdout.startswith("alive: "), out.stderr[-500:]
+    out = subprocess.run([*cmd, "nosuch", "--timeout", "1"], capture_output=True, text=True, timeout=60, env=env,
+                         cwd=REPO)
+    assert out.returncode == 1 and "not alive: nosuch" in out.stderr and "EQA_ZENOH_CONNECT" in out.stderr
+
+
 @pytest.mark.parametrize(
     "args, message",
     [
