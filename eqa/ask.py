@@ -187,8 +187,11 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(str(exc)) from None
     if not args.json:
         print(f"question: {body['question']}")
-        for label, choice in zip(letters(len(body.get("choices") or [])), body.get("choices") or [], strict=True):
+        choices = body.get("choices") or []
+        for label, choice in zip(letters(len(choices)) if choices else [], choices, strict=True):
             print(f"  {label}) {choice}")
+        if not choices:
+            print("  (no choices: the scorer proposes candidate answers, Explore-EQA section VI-A)")
         print(f"scene: {body['scene']}   strategy: {body['strategy']}   stop rule: {body['stop_rule']}"
               f" (eps {body['eps']})", flush=True)
     try:

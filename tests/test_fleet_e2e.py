@@ -6,6 +6,7 @@ restarted by the launcher and the fleet keeps answering.
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 import time
@@ -77,6 +78,22 @@ def test_eqa_ask_answers_through_the_gateway(fleet: Fleet):
     status = httpx.get(f"{_url(fleet)}/v1/episodes", timeout=10).json()
     latest = status["episodes"][0]
     assert latest["state"] == "stopped" and latest["answer"] in ("A", "B")
+
+
+def test_a_question_without_choices_is_answered_with_a_proposed_choice(fleet: Fleet):
+    """Explore-EQA section VI-A: the scorer proposes the candidate answers; the answer names one of them."""
+    env = {**os.environ, **{k: v for k, v in fleet.settings.env().items() if k in ("EQA_DATA_DIR",)}}
+    out = subprocess.run(
+        [sys.executable, "-m", "eqa", "ask", "Where is the bed?", "--scene", "gen-00001", "--url", _url(fleet),
+         "--stop-rule", "max_steps", "--max-steps", "3"],
+        capture_output=True, text=True, timeout=240, env=env, cwd=REPO,
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "no choices: the scorer proposes" in out.stdout
+    answer = next(line for line in out.stdout.splitlines() if line.startswith("answer: "))
+    proposed = ("bedroom", "kitchen", "living room", "bathroom", "hallway", "dining room", "office", "garage",
+                "laundry", "storage", "An option not listed here")
+    assert any(p in answer for p in proposed) and not re.search(r"\) option [A-Z]$", answer), answer
 
 
 def test_a_killed_service_is_restarted_and_the_fleet_goes_on(fleet: Fleet):

@@ -243,7 +243,8 @@ class MapperService(Service):
             lsv=result.lsv,
             gsv=result.gsv,
             backend=result.backend,
-            choices=em.start.question.choices,
+            # a question without choices: the ones the scorer proposed (Explore-EQA section VI-A)
+            choices=em.start.question.choices or result.proposed_choices,
         )
 
     def _timed_score(self, robot: str, em: EpisodeMap, frame: Frame) -> tuple[ScoreResult | None, float]:
