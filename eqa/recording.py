@@ -4,8 +4,11 @@ Each service opens an :class:`EpisodeRecorder` for an episode; all use ``recordi
 ``application_id = "eqa"``, so a viewer shows them as one recording. By default each service writes
 ``{data_dir}/recordings/{episode_id}/{service}.rrd`` (the gateway merges them with ``rerun rrd merge`` for
 download: plain concatenation is not a valid rerun 0.41 file); with ``EQA_RERUN_URL`` set the data also
-streams live to that viewer (``rerun+http://host:9876/proxy``). Library code passes the recorder's own
-``RecordingStream`` (never the global one). The time line is ``step`` (``rr.set_time("step", sequence=t)``).
+streams live to that viewer (``rerun+http://host:9876/proxy``) when the viewer accepts a connection at the
+start of the episode; otherwise the episode is recorded to file only, with a warning (a gRPC sink to a dead
+viewer holds every flush and disconnect for seconds: 17-22 s per episode were measured). Library code passes
+the recorder's own ``RecordingStream`` (never the global one). The time line is ``step``
+(``rr.set_time("step", sequence=t)``).
 
 :data:`ENTITIES` names the entity path of each thing the design asks to see; services log under these
 paths so that the merged recording of an episode is complete (the fleet test checks them).
@@ -15,8 +18,11 @@ from __future__ import annotations
 
 import logging
 import os
+import socket
+import time
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 from eqa.settings import Settings
 
@@ -62,8 +68,32 @@ REQUIRED_ENTITIES = (
 )
 
 
+FLUSH_TIMEOUT_S = 10.0  # never wait longer than this for a recording to flush
+VIEWER_CHECK_S = 0.3  # connect timeout of the viewer check
+_viewer_checked: dict[str, tuple[float, bool]] = {}  # url -> (when, reachable), re-checked every 10 s
+
+
 def recording_dir(settings: Settings, episode_id: str) -> Path:
     return settings.recordings_path / episode_id
+
+
+def viewer_reachable(url: str) -> bool:
+    """Whether a Rerun viewer accepts TCP connections at ``url`` (``rerun+http://host:port/proxy``); the
+    answer is cached for 10 s per process. A warning is logged when it turns unreachable."""
+    now = time.monotonic()
+    seen = _viewer_checked.get(url)
+    if seen is not None and now - seen[0] < 10.0:
+        return seen[1]
+    parts = urlsplit(url.removeprefix("rerun+"))
+    try:
+        with socket.create_connection((parts.hostname or "127.0.0.1", parts.port or 9876), timeout=VIEWER_CHECK_S):
+            ok = True
+    except OSError:
+        ok = False
+    if not ok and (seen is None or seen[1]):
+        log.warning("Rerun viewer at %s is not reachable: recording to files only (EQA_RERUN_URL)", url)
+    _viewer_checked[url] = (now, ok)
+    return ok
 
 
 class EpisodeRecorder:
@@ -76,6 +106,7 @@ class EpisodeRecorder:
         self.enabled = bool(enabled and settings.record)
         self.path: Path | None = None
         self.stream: Any = None
+        self.live = False  # also streaming to the viewer at EQA_RERUN_URL
         if not self.enabled:
             return
         import rerun as rr
@@ -85,7 +116,8 @@ class EpisodeRecorder:
         out.mkdir(parents=True, exist_ok=True)
         self.path = out / f"{service}.rrd"
         sinks: list[Any] = [rr.FileSink(str(self.path))]
-        if settings.rerun_url:
+        self.live = bool(settings.rerun_url) and viewer_reachable(str(settings.rerun_url))
+        if self.live:
             sinks.append(rr.GrpcSink(settings.rerun_url))
         self.stream.set_sinks(*sinks)
 
@@ -104,7 +136,7 @@ class EpisodeRecorder:
     def close(self) -> None:
         if self.stream is not None:
             try:
-                self.stream.flush()
+                self.stream.flush(timeout_sec=FLUSH_TIMEOUT_S)
                 self.stream.disconnect()
             except Exception:
                 log.debug("rerun close failed", exc_info=True)
