@@ -24,18 +24,9 @@ def plot_explore(results: dict[str, Any], out: Path) -> list[Path]:
     # Fig. 7a/b, A6 and A7 compare the strategies; the temperature runs get their own figure (Fig. 7c).
     results = {**results, "strategies": {k: v for k, v in everything.items() if k not in tau_runs}}
 
-    fig, ax = plt.subplots(figsize=(6, 4.2))
-    for name, r in results["strategies"].items():
-        ax.plot(budgets, r["success"], marker="o", label=f"{name} (n={r['n']})", color=COLORS.get(name))
-    ax.set(xlabel="normalised step budget (fraction of T)", ylabel="success rate", ylim=(0, 1),
-           title=f"Exploration: success vs steps\n{sub}")
-    ax.title.set_fontsize(9)
-    ax.grid(alpha=0.3)
-    ax.legend()
-    fig.tight_layout()
-    paths.append(out / "explore_success_vs_steps.png")
-    fig.savefig(paths[-1], dpi=120)
-    plt.close(fig)
+    curves = [(f"{name} (n={r['n']})", r["success"], COLORS.get(name)) for name, r in results["strategies"].items()]
+    paths.append(_success_plot(budgets, curves, f"Exploration: success vs steps\n{sub}",
+                               out / "explore_success_vs_steps.png"))
 
     categories = sorted({c for r in results["strategies"].values() for c in r["by_category"]})
     if categories:
@@ -74,28 +65,34 @@ def plot_explore(results: dict[str, Any], out: Path) -> list[Path]:
         plt.close(fig)
 
     if tau_runs:
-        fig, ax = plt.subplots(figsize=(6, 4.2))
-        curves = {}
+        by_label: dict[str, Any] = {}
         if "semantic" in everything:
-            curves["semantic, tau 1 (default)"] = everything["semantic"]
-        curves.update({f"semantic, tau {k.removeprefix('semantic_tau')}": v for k, v in tau_runs.items()})
+            by_label["semantic, tau 1 (default)"] = everything["semantic"]
+        by_label.update({f"semantic, tau {k.removeprefix('semantic_tau')}": v for k, v in tau_runs.items()})
         if "fbe" in everything:
-            curves["fbe (no semantic value)"] = everything["fbe"]
+            by_label["fbe (no semantic value)"] = everything["fbe"]
         extra = iter(["tab:orange", "tab:green", "tab:purple", "tab:brown", "tab:pink", "tab:olive"])
-        for name, r in curves.items():
-            color = COLORS.get("fbe") if name.startswith("fbe") else (
-                COLORS.get("semantic") if "default" in name else next(extra, None))
-            ax.plot(budgets, r["success"], marker="o", label=f"{name} (n={r['n']})", color=color)
-        ax.set(xlabel="normalised step budget (fraction of T)", ylabel="success rate", ylim=(0, 1),
-               title=f"Semantic value temperature (tau_LSV = tau_GSV)\n{sub}")
-        ax.title.set_fontsize(9)
-        ax.grid(alpha=0.3)
-        ax.legend()
-        fig.tight_layout()
-        paths.append(out / "explore_temperature.png")
-        fig.savefig(paths[-1], dpi=120)
-        plt.close(fig)
+        lines = [(f"{name} (n={r['n']})", r["success"], COLORS.get("fbe") if name.startswith("fbe") else (
+            COLORS.get("semantic") if "default" in name else next(extra, None))) for name, r in by_label.items()]
+        paths.append(_success_plot(budgets, lines, f"Semantic value temperature (tau_LSV = tau_GSV)\n{sub}",
+                                   out / "explore_temperature.png"))
     return paths
+
+
+def _success_plot(budgets: list[float], curves: list[tuple[str, list[float], str | None]], title: str,
+                  path: Path) -> Path:
+    """Success rate against the normalised step budget, one line per (label, values, colour)."""
+    fig, ax = plt.subplots(figsize=(6, 4.2))
+    for label, values, color in curves:
+        ax.plot(budgets, values, marker="o", label=label, color=color)
+    ax.set(xlabel="normalised step budget (fraction of T)", ylabel="success rate", ylim=(0, 1), title=title)
+    ax.title.set_fontsize(9)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
 
 
 def plot_stop(results: dict[str, Any], out: Path) -> Path:
