@@ -149,10 +149,11 @@ def _settings(args: argparse.Namespace) -> Any:
     update: dict[str, Any] = {"sim_width": w, "sim_height": h, "record": False}
     if args.scorer is not None:
         update["scorer_backend"] = args.scorer
-    check_scorer(settings.model_copy(update=update))
+    settings = settings.model_copy(update=update)
+    check_scorer(settings)
     if args.robots < 1 or args.scorers < 1:
         raise UsageError("--robots and --scorers must be at least 1")
-    return settings.model_copy(update=update)
+    return settings
 
 
 def cmd_explore(args: argparse.Namespace) -> int:
@@ -185,14 +186,13 @@ def cmd_explore(args: argparse.Namespace) -> int:
                         for b, ts in ev.by_group(traces, groups={q: ev.area_bin(a) for q, a in areas.items()}).items()},
         }
     # Paired comparisons on the same questions: semantic against every other run, every run against fbe.
-    for base in ("semantic", "fbe"):
-        if base in runs:
-            results[f"paired_vs_{base}"] = {
-                other: [vars(p) for p in ev.paired_comparison(runs[base] if base == "semantic" else traces,
-                                                              traces if base == "semantic" else runs[base],
-                                                              PAIRED_BUDGETS)]
-                for other, traces in runs.items() if other != base
-            }
+    def paired(a: list[Any], b: list[Any]) -> list[dict[str, Any]]:
+        return [vars(p) for p in ev.paired_comparison(a, b, PAIRED_BUDGETS)]
+
+    if "semantic" in runs:
+        results["paired_vs_semantic"] = {k: paired(runs["semantic"], t) for k, t in runs.items() if k != "semantic"}
+    if "fbe" in runs:
+        results["paired_vs_fbe"] = {k: paired(t, runs["fbe"]) for k, t in runs.items() if k != "fbe"}
     (out / "explore.json").write_text(json.dumps(results, indent=2))
     from eqa.plots import plot_explore
 

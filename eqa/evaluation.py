@@ -82,9 +82,10 @@ def paired_comparison(a: Sequence[Trace], b: Sequence[Trace], budgets: Sequence[
 def first_evidence(traces: Sequence[Trace], threshold: float = 0.3) -> float:
     """Mean normalised step (step / T) at which relevance first reaches ``threshold``, over the episodes where
     it does: how early a strategy finds the evidence it finds."""
-    firsts = [next(k for k, s in enumerate(t.steps) if s.relevance >= threshold) / t.max_steps
-              for t in traces if any(s.relevance >= threshold for s in t.steps)]
-    return float(np.mean(firsts)) if firsts else math.nan
+    first = [(next((k for k, s in enumerate(t.steps) if s.relevance >= threshold), None), t.max_steps)
+             for t in traces]
+    shares = [k / n for k, n in first if k is not None]
+    return float(np.mean(shares)) if shares else math.nan
 
 
 def evidence_share(traces: Sequence[Trace], threshold: float = 0.3) -> float:

@@ -498,9 +498,9 @@ class EpisodeManager:
             self._append(episode_id, summarize(msg))
             if isinstance(msg, ErrorReply):
                 rec.last_error = f"{msg.source} at step {msg.step}: {msg.reason}"
-            if isinstance(msg, ErrorReply) and msg.source.startswith("sim") and st.steps == 0:
-                self._abort(rec, "failed", f"sim refused the episode: {msg.reason}")
-                return
+                if msg.source.startswith("sim") and st.steps == 0:
+                    self._abort(rec, "failed", f"sim refused the episode: {msg.reason}")
+                    return
             step = getattr(msg, "step", None)
             if isinstance(step, int):
                 st.step = max(st.step, step)

@@ -9,7 +9,7 @@ from eqa.bus import Bus
 from eqa.messages import EpisodeEnd
 from eqa.settings import Settings
 from eqa.store import EmbeddedStore
-from gateway.manager import EpisodeManager
+from gateway.manager import EpisodeManager, ev_key
 from gateway.schemas import QuestionRequest
 
 
@@ -22,7 +22,7 @@ def test_the_final_status_is_stored_before_the_end_event(settings: Settings, hub
         manager = EpisodeManager(settings, store, bus)
 
         def notify() -> None:
-            events = store.read(f"gw:ev:{episode_id}", count=1000) if episode_id else []
+            events = store.read(ev_key(episode_id), count=1000) if episode_id else []
             if events:
                 kind = json.loads(events[-1][1])["kind"]
                 rec = manager.load(episode_id)

@@ -186,7 +186,9 @@ def weigh_frontiers(
     shift = float(log_w.max()) if float(log_w.max()) > MAX_LOG_WEIGHT else 0.0
     out = []
     for i, f in enumerate(frontiers):
-        w = frontier_weight(float(sv_p[i]), float(sv_n[i]), tau_sv, tau_sv_normal) if shift == 0.0 else float(
-            math.exp(max(log_w[i] - shift, -MAX_LOG_WEIGHT)))
+        if shift == 0.0:
+            w = frontier_weight(float(sv_p[i]), float(sv_n[i]), tau_sv, tau_sv_normal)
+        else:
+            w = math.exp(max(float(log_w[i]) - shift, -MAX_LOG_WEIGHT))
         out.append(f.model_copy(update={"sv": float(sv_p[i]), "sv_normal": float(sv_n[i]), "weight": w}))
     return out

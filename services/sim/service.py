@@ -23,6 +23,7 @@ import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -132,9 +133,9 @@ class SimService(Service):
                  "trajectory": ep.trajectory, "saved_at": time.time()}
         self.store.set_json(state_key(robot), state, ttl_s=EPISODE_STATE_TTL_S)
 
-    def _restore(self, robot: str, episode_id: str) -> _Episode | None:
-        """The robot's episode from the store (a restarted sim), or None."""
-        state = self.store.get_json(state_key(robot))
+    def _restore(self, robot: str, episode_id: str, state: dict[str, Any] | None = None) -> _Episode | None:
+        """The robot's episode from the store (a restarted sim; ``state``: already read), or None."""
+        state = state if state is not None else self.store.get_json(state_key(robot))
         if not state or state.get("start", {}).get("episode_id") != episode_id:
             return None
         try:
@@ -167,7 +168,7 @@ class SimService(Service):
             if self.store.get(episode_end_key(episode_id)) is not None:  # it ended while this sim was down
                 self.store.delete(key)
                 continue
-            self._restore(robot, episode_id)
+            self._restore(robot, episode_id, state)
 
     def _resend_stale(self) -> None:
         """Send the current frame again for every episode whose goal has not come back in time."""
