@@ -147,20 +147,31 @@ def conformal_quantile(kappas: Sequence[float] | np.ndarray, eps: float) -> floa
     return float(np.partition(scores, k - 1)[k - 1])
 
 
+def in_set(rho: np.ndarray | float, q_hat: float) -> np.ndarray:
+    """Whether ``rho >= 1 - q_hat``, tested in the non-conformity form ``1 - rho <= q_hat``.
+
+    ``q_hat`` is one of the calibration scores ``1 - rho_bar`` (computed by :func:`nonconformity` with the very
+    same floating-point operations), so a test score equal to it compares equal here. The paper's form
+    ``rho >= 1 - q_hat`` evaluates ``1 - (1 - rho)``, which is not ``rho`` in floating point: an exchangeable
+    tie (coarse probabilities, a re-run question) would drop the true answer and break Eq. 6. ``1 - x`` is
+    monotone under rounding, so ``max_t (1 - rho^t) = 1 - min_t rho^t`` exactly and Claim 1 still holds.
+    """
+    return 1.0 - np.asarray(rho, dtype=np.float64) <= float(q_hat)
+
+
 def step_set(rho: np.ndarray, q_hat: float) -> np.ndarray:
-    """Boolean mask of ``C^t = {y : rho_y^t >= 1 - q_hat}`` (Eq. 10)."""
-    return np.asarray(rho, dtype=np.float64) >= 1.0 - float(q_hat)
+    """Boolean mask of ``C^t = {y : rho_y^t >= 1 - q_hat}`` (Eq. 10; compared as in :func:`in_set`)."""
+    return in_set(rho, q_hat)
 
 
 def sequence_set(rhos: np.ndarray, q_hat: float) -> np.ndarray:
     """Boolean mask of the sequence-level set ``{y : min_t rho_y^t >= 1 - q_hat}`` (section V-B)."""
-    return episode_confidence(rhos) >= 1.0 - float(q_hat)
+    return in_set(episode_confidence(rhos), q_hat)
 
 
 def running_intersection(rhos: np.ndarray, q_hat: float) -> np.ndarray:
     """``(T, K)`` masks of ``C^0 ∩ ... ∩ C^t`` for every ``t`` (what the robot keeps; Claim 1, Prop. 1)."""
-    masks = np.asarray(rhos, dtype=np.float64) >= 1.0 - float(q_hat)
-    return np.logical_and.accumulate(masks, axis=0)
+    return np.logical_and.accumulate(in_set(rhos, q_hat), axis=0)
 
 
 def fallback_answer(answer_probs: Sequence[Sequence[float]], relevance: Sequence[float]) -> int:
