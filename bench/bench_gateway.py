@@ -30,8 +30,11 @@ import numpy as np
 
 os.environ.setdefault("RERUN_TELEMETRY_ENABLED", "false")
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # test support: tests/fleet_support.py
+
+from fleet_support import GatewayProcess, fleet_settings, wait_for
+
 from eqa.launcher import Fleet, LaunchError, free_port
-from gateway.harness import GatewayProcess, fleet_settings, wait_for
 
 TOKEN = "bench-token"
 

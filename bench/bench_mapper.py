@@ -29,8 +29,8 @@ from eqa.settings import Settings
 from eqa.store import EmbeddedStore
 from services.mapper.episode_map import EpisodeMap, Timer
 from services.sim.camera import camera_pose, intrinsics
+from services.sim.library import load_or_generate
 from services.sim.render import Renderer
-from services.sim.scene import load_or_generate
 
 
 def trajectory(scene, steps: int, seed: int = 0) -> list[Pose2D]:

@@ -3,7 +3,7 @@
 Three parts, all on this machine, in one command:
 
 1. **Fleet throughput.** The real services (sim, mapper, scorer replica with the oracle backend, stopper,
-   planner) as separate processes over Zenoh (:class:`eqa.harness.Runner`), ``--questions`` generated
+   planner) as separate processes over Zenoh (:class:`eqa.app.benchmark_runner.Runner`), ``--questions`` generated
    questions on one house, each capped at ``--steps`` steps, with 1 and 2 robots, at each ``--sizes``
    (default 640x480 and 320x240), Rerun recording off. Steps/s = StepScores received / wall time from the
    first EpisodeStart to the last EpisodeEnd.
@@ -77,8 +77,8 @@ def parse_size(text: str) -> tuple[int, int]:
 
 
 def questions(scene_id: str, n: int, steps: int, scenes_path: Path, seed: int = 7) -> list[Question]:
+    from services.sim.library import load_or_generate
     from services.sim.questions import generate_questions
-    from services.sim.scene import load_or_generate
 
     scene = load_or_generate(scene_id, scenes_path)
     qs = generate_questions(scene, np.random.default_rng(seed))[:n]
@@ -169,7 +169,7 @@ CPU: dict[str, dict[str, float]] = {}  # run label -> service -> CPU ms per step
 def fleet_run(
     base: Settings, size: tuple[int, int], robots: int, qs: list[Question], record: bool, tap: bool
 ) -> tuple[float, int, float, dict[str, list[float]] | None]:
-    from eqa.harness import Runner
+    from eqa.app.benchmark_runner import Runner
 
     settings = base.model_copy(update={"sim_width": size[0], "sim_height": size[1]})
     with Runner(settings, strategy="semantic", robots=robots, record=record) as runner:
@@ -234,9 +234,9 @@ def in_process(base: Settings, scene_id: str, size: tuple[int, int], steps: int,
     from services.planner.sampling import step_rng
     from services.planner.step import Memory, PlannerParams, plan_step
     from services.sim.camera import camera_pose, intrinsics
+    from services.sim.library import load_or_generate
     from services.sim.motion import START_CLEARANCE, sample_start_pose
     from services.sim.render import Renderer
-    from services.sim.scene import load_or_generate
     from services.stopper.state import EpisodeRecord, decide
     from services.vlm_scorer.backends import make_backend
 

@@ -52,7 +52,7 @@ class EpisodeRecord:
 
 def run_episode(args: tuple[Any, str, int, int]) -> EpisodeRecord:
     """One full-length episode with the pure cores in this process (the services' step functions)."""
-    from eqa.harness import question_seed
+    from eqa.app.benchmark_runner import question_seed
     from eqa.messages import EpisodeStart, Frame, ScoreRequest
     from eqa.settings import Settings
     from services.mapper.episode_map import EpisodeMap
@@ -182,7 +182,7 @@ def main(argv: list[str] | None = None) -> int:
     else:
         from tqdm import tqdm
 
-        from eqa.bench_cli import _questions
+        from eqa.app.bench_cli import _questions
         from eqa.settings import Settings
 
         w, h = (int(v) for v in args.size.split("x"))

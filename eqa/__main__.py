@@ -1,5 +1,5 @@
 """``python -m eqa`` = the ``eqa`` command."""
 
-from eqa.cli import main
+from eqa.app.cli import main
 
 raise SystemExit(main())

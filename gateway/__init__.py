@@ -14,6 +14,6 @@ Routes (``/docs`` has the OpenAPI page with examples):
 Modules: :mod:`gateway.app` (app factory, lifespan, bus -> asyncio hand-off), :mod:`gateway.manager`
 (episode state machine, persistence, queueing, watchdog, restart reconciliation), :mod:`gateway.events`
 (compact JSON event summaries), :mod:`gateway.auth` (bearer tokens, rate limit), :mod:`gateway.recordings`
-(``rerun rrd merge``), :mod:`gateway.routers` (HTTP), :mod:`gateway.harness` (the gateway in a thread or
-a process next to a real fleet, an SSE client: tests and bench).
+(``rerun rrd merge``) and :mod:`gateway.routers` (HTTP). Test support (the gateway in a thread or a
+process next to a real fleet, an SSE client) is ``tests/fleet_support.py``, outside the package.
 """

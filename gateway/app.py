@@ -29,7 +29,7 @@ from eqa.settings import Settings
 from eqa.store import open_store
 from gateway.auth import RateLimiter
 from gateway.deps import DocsCallerDep
-from gateway.manager import EpisodeManager
+from gateway.manager import EpisodeManager, SceneArea
 from gateway.routers import episodes, health
 
 log = logging.getLogger(__name__)
@@ -69,7 +69,7 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     def notify() -> None:
         loop.call_soon_threadsafe(hub.bump)
 
-    manager = EpisodeManager(settings, store, bus, notify=notify)
+    manager = EpisodeManager(settings, store, bus, notify=notify, scene_area=app.state.scene_area)
 
     def on_message(key: str, msg: Message) -> None:  # Zenoh thread
         loop.call_soon_threadsafe(inbox.put_nowait, (keys.robot_of(key), msg))
@@ -129,7 +129,9 @@ async def _validation_error(_request: Request, exc: Exception) -> JSONResponse:
     return JSONResponse(status_code=status.HTTP_422_UNPROCESSABLE_CONTENT, content={"detail": detail})
 
 
-def create_app(settings: Settings) -> FastAPI:
+def create_app(settings: Settings, scene_area: SceneArea | None = None) -> FastAPI:
+    """The gateway app. ``scene_area`` gives a scene's floor area for the default step budget and the check
+    that a requested scene exists (the process entry passes the simulator's scene library)."""
     app = FastAPI(
         title="EQA gateway",
         version="1.0.0",
@@ -147,6 +149,7 @@ def create_app(settings: Settings) -> FastAPI:
         openapi_url=None,
     )
     app.state.settings = settings
+    app.state.scene_area = scene_area
     app.state.limiter = RateLimiter(settings.rate_limit_per_s)
     app.state.manager = None
     app.add_exception_handler(RequestValidationError, _validation_error)

@@ -1,18 +1,20 @@
 """Command line of the gateway: ``python -m gateway`` / ``eqa gateway`` runs the server (``eqa ask --url``
-in :mod:`eqa.ask` is the client)."""
+in :mod:`eqa.app.ask` is the client)."""
 
 from __future__ import annotations
 
 import argparse
+import functools
 import logging
 import sys
 
 from eqa.settings import Settings
+from gateway.manager import SceneArea
 
 log = logging.getLogger(__name__)
 
 
-def serve(args: argparse.Namespace) -> int:
+def serve(args: argparse.Namespace, scene_area: SceneArea | None = None) -> int:
     import uvicorn
 
     from eqa.service import setup_logging
@@ -32,7 +34,7 @@ def serve(args: argparse.Namespace) -> int:
         settings = settings.model_copy(update={"gateway_port": args.port})
     setup_logging(args.log_level or settings.log_level, "gateway")
     uvicorn.run(
-        create_app(settings),
+        create_app(settings, scene_area),
         host=settings.gateway_host,
         port=settings.gateway_port,
         log_level=(args.log_level or settings.log_level).lower(),
@@ -47,13 +49,13 @@ def _add_serve_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--log-level", default=None, help="override EQA_LOG_LEVEL")
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction, scene_area: SceneArea | None = None) -> None:
     p = subparsers.add_parser("gateway", help="run the HTTP gateway (configured by EQA_* variables)")
     _add_serve_args(p)
-    p.set_defaults(func=serve)
+    p.set_defaults(func=functools.partial(serve, scene_area=scene_area))
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None, scene_area: SceneArea | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m gateway",
         description=(
@@ -62,4 +64,4 @@ def main(argv: list[str] | None = None) -> int:
         ),
     )
     _add_serve_args(parser)
-    return serve(parser.parse_args(argv))
+    return serve(parser.parse_args(argv), scene_area)

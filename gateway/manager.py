@@ -35,6 +35,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import lru_cache
+from pathlib import Path
 from typing import Any
 
 from eqa import keys
@@ -123,29 +124,26 @@ class Record:
         return cls(status=status, start=EpisodeStart.model_validate(raw["start"]), last_activity=status.updated_at)
 
 
+# Floor area (m2) of a scene: ``(scene id, scenes dir, hm3d dir or None)``; raises when the scene cannot be
+# loaded. The gateway imports no service: the process entry (``python -m gateway``, ``eqa gateway``) passes the
+# simulator's scene library (``services.sim.library.floor_area``); without one, budgets are the default.
+SceneArea = Callable[[str, Path, Path | None], float]
+
+
 @lru_cache(maxsize=256)
-def _scene_area(scene: str, scenes_path: str, hm3d_dir: str | None) -> float | None:
-    """Floor area of a scene from the simulator's loader, or None when the sim package is not installed."""
-    try:
-        from services.sim.scene import load_or_generate  # type: ignore[import-not-found]
-    except ImportError:
-        return None
-    from pathlib import Path
-
-    scn = load_or_generate(scene, Path(scenes_path), Path(hm3d_dir) if hm3d_dir else None)
-    area = getattr(scn, "floor_area_m2", None)
-    return float(area) if area is not None else None
+def _scene_area(scene_area: SceneArea, scene: str, scenes_path: Path, hm3d_dir: Path | None) -> float:
+    return float(scene_area(scene, scenes_path, hm3d_dir))
 
 
-def step_budget(settings: Settings, req: QuestionRequest) -> int:
+def step_budget(settings: Settings, req: QuestionRequest, scene_area: SceneArea | None = None) -> int:
     """``max_steps`` of an episode: the request's budget, else ``int(3*sqrt(floor area))`` (Explore-EQA
     section VI: T = 3 * sqrt(scene area)), else :data:`DEFAULT_MAX_STEPS`."""
     if req.max_steps is not None:
         return req.max_steps
-    if req.scene is None:
+    if req.scene is None or scene_area is None:
         return DEFAULT_MAX_STEPS
     try:
-        area = _scene_area(req.scene, str(settings.scenes_path), str(settings.hm3d_dir) if settings.hm3d_dir else None)
+        area = _scene_area(scene_area, req.scene, settings.scenes_path, settings.hm3d_dir)
     except Exception as exc:
         raise InvalidError(f"scene {req.scene!r} cannot be loaded: {exc}", field="scene") from exc
     if area is None or not math.isfinite(area) or area <= 0:
@@ -157,8 +155,10 @@ class EpisodeManager:
     """All episode state transitions. Thread-safe (one lock); store and bus calls are blocking, so async
     callers run these methods in a worker thread."""
 
-    def __init__(self, settings: Settings, store: Store, bus: Bus, notify: Callable[[], None] | None = None) -> None:
+    def __init__(self, settings: Settings, store: Store, bus: Bus, notify: Callable[[], None] | None = None,
+                 scene_area: SceneArea | None = None) -> None:
         self.settings = settings
+        self.scene_area = scene_area
         self.store = store
         self.bus = bus
         self.notify = notify or (lambda: None)
@@ -294,7 +294,7 @@ class EpisodeManager:
     def submit(self, req: QuestionRequest) -> Submitted:
         if req.robot is not None and req.robot not in self.settings.robots:
             raise InvalidError(f"unknown robot {req.robot!r}; known: {', '.join(self.settings.robots)}", field="robot")
-        budget = step_budget(self.settings, req)
+        budget = step_budget(self.settings, req, self.scene_area)
         episode_id = new_id("ep")
         question = Question(
             text=req.question,

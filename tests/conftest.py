@@ -17,12 +17,12 @@ os.environ.setdefault("RERUN_TELEMETRY_ENABLED", "false")
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
 
+from fleet_support import clear_gateway_state, fleet_settings
 from gateway_helpers import SCENE, TOKEN
 
 from eqa.launcher import Fleet, free_port
 from eqa.settings import Settings
 from eqa.store import EmbeddedStore, RedisStore, Store
-from gateway.harness import clear_gateway_state, fleet_settings
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -108,7 +108,7 @@ def store(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Store]:
 
 @pytest.fixture(scope="module")
 def fleet(tmp_path_factory: pytest.TempPathFactory, redis_url: str) -> Iterator[Fleet]:
-    from services.sim.scene import load_or_generate
+    from services.sim.library import load_or_generate
 
     s = fleet_settings(tmp_path_factory.mktemp("gw-fleet"), redis_url)
     load_or_generate(SCENE, s.scenes_path)  # made once, before the sim and the gateway both want it

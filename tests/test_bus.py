@@ -5,11 +5,11 @@ from __future__ import annotations
 import time
 
 import numpy as np
+from fleet_support import wait_for
 
 from eqa import keys
 from eqa.bus import Bus
 from eqa.messages import ErrorReply, Frame, Pose2D, Question, ScoreRequest, ScoreResult, StepScores
-from gateway.harness import wait_for
 
 
 def _frame(step: int = 0) -> Frame:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from eqa.evaluation import answer_within, cp_curve, replay, success_at_budgets, threshold_curve
+from eqa.app.evaluation import answer_within, cp_curve, replay, success_at_budgets, threshold_curve
 from eqa.messages import StopConfig
 from services.stopper.calibration import Trace, TraceStep, calibrate
 from services.stopper.state import CalibrationChoice
@@ -74,7 +74,7 @@ def test_curves_report_success_steps_and_cp_coverage():
 def test_paired_comparison_counts_discordant_questions_and_exact_sign_test():
     from math import comb
 
-    from eqa.evaluation import evidence_share, first_evidence, paired_comparison, sign_test_p
+    from eqa.app.evaluation import evidence_share, first_evidence, paired_comparison, sign_test_p
 
     assert sign_test_p(0, 0) == 1.0 and sign_test_p(3, 3) == 1.0
     assert sign_test_p(5, 0) == pytest.approx(2 / 32)  # 5 heads of 5 fair coins, both tails

@@ -18,6 +18,12 @@ from pathlib import Path
 
 import httpx
 import pytest
+from fleet_support import (
+    GatewayThread,
+    sse_events,
+    stored_end,
+    wait_for,
+)
 from gateway_helpers import AUTH, EPISODE_S, SCENE, TOKEN
 
 from eqa import keys
@@ -25,12 +31,6 @@ from eqa.bus import Bus
 from eqa.launcher import Fleet
 from eqa.messages import Frame
 from eqa.settings import Settings
-from gateway.harness import (
-    GatewayThread,
-    sse_events,
-    stored_end,
-    wait_for,
-)
 
 CHOICES = ["bedroom", "hallway", "storage room", "living room"]
 # A short episode: runs to its step limit of 4 (no calibration table needed).
@@ -227,7 +227,7 @@ def test_needs_scene_or_robot(gateway) -> None:
 
 
 def test_step_budget_from_scene_area(gateway) -> None:
-    from services.sim.scene import load_or_generate
+    from services.sim.library import load_or_generate
 
     gw, c = gateway
     area = load_or_generate(SCENE, gw.settings.scenes_path).floor_area_m2

@@ -15,17 +15,17 @@ import re
 from pathlib import Path
 
 import httpx
-from gateway_helpers import AUTH, EPISODE_S, SCENE
-
-from eqa.launcher import Fleet
-from eqa.settings import Settings
-from gateway.harness import (
+from fleet_support import (
     GatewayProcess,
     paused,
     sse_events,
     stored_end,
     wait_for,
 )
+from gateway_helpers import AUTH, EPISODE_S, SCENE
+
+from eqa.launcher import Fleet
+from eqa.settings import Settings
 
 BODY = {
     "question": "Where is the cat?",

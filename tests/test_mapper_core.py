@@ -14,8 +14,8 @@ from services.mapper.frontiers import frontier_weight, sv_normal, weigh_frontier
 from services.mapper.semantic_map import semantic_value, temperatures, write_values
 from services.mapper.tsdf import FrameError, TSDFVolume, check_frame
 from services.sim.camera import camera_pose, intrinsics
+from services.sim.library import load_or_generate
 from services.sim.render import Renderer
-from services.sim.scene import load_or_generate
 
 W, H = 160, 120
 

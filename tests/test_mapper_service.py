@@ -31,8 +31,8 @@ from eqa.settings import Settings
 from services.mapper.episode_map import EpisodeMap
 from services.mapper.service import MapperService
 from services.sim.camera import camera_pose, intrinsics
+from services.sim.library import load_or_generate
 from services.sim.render import Renderer
-from services.sim.scene import load_or_generate
 
 REPO = Path(__file__).resolve().parents[1]
 W, H = 160, 120

@@ -13,11 +13,11 @@ from typing import Any
 
 import httpx
 import pytest
+from fleet_support import GatewayThread, fleet_settings, sse_events, wait_for
 
 from eqa.launcher import Fleet
 from eqa.recording import ENTITIES, REQUIRED_ENTITIES
 from gateway import recordings
-from gateway.harness import GatewayThread, fleet_settings, sse_events, wait_for
 
 SCENE = "gen-00001"
 
@@ -34,7 +34,7 @@ class Episode:
 
 @pytest.fixture(scope="module")
 def episode(tmp_path_factory: pytest.TempPathFactory, redis_url: str) -> Iterator[Episode]:
-    from services.sim.scene import load_or_generate
+    from services.sim.library import load_or_generate
 
     s = fleet_settings(tmp_path_factory.mktemp("rec-fleet"), redis_url, record=True, episode_timeout_s=120.0)
     load_or_generate(SCENE, s.scenes_path)

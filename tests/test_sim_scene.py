@@ -12,9 +12,10 @@ from eqa.messages import Pose2D
 from services.sim.camera import camera_pose, intrinsics, vfov_deg
 from services.sim.catalog import ROOM_KINDS, display_name
 from services.sim.housegen import generate_house
+from services.sim.library import load_or_generate
 from services.sim.motion import pose_error, reachable_map, sample_start_pose
 from services.sim.render import Renderer
-from services.sim.scene import SceneLoadError, SceneNotFound, load_or_generate
+from services.sim.scene import SceneLoadError, SceneNotFound
 
 SEEDS = (3, 7, 12)
 

@@ -7,12 +7,12 @@ import threading
 import time
 
 import numpy as np
+from fleet_support import wait_for
 
 from eqa import keys
 from eqa.bus import Bus
 from eqa.codec import packb
 from eqa.messages import EpisodeStart, ErrorReply, Frame, Goal, Pose2D, Question
-from gateway.harness import wait_for
 from services.sim.housegen import generate_house
 from services.sim.motion import sample_start_pose
 from services.sim.service import SimService

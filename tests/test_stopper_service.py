@@ -12,6 +12,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from fleet_support import wait_for
 
 from eqa import keys
 from eqa.bus import Bus
@@ -28,7 +29,6 @@ from eqa.messages import (
 from eqa.recording import recording_dir
 from eqa.settings import Settings
 from eqa.store import EmbeddedStore, episode_end_key
-from gateway.harness import wait_for
 from services.stopper import synthetic
 from services.stopper.calibration import CalibrationTable, TraceStore, calibrate, save_table
 from services.stopper.service import STATE_PREFIX, StopperService

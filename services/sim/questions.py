@@ -27,8 +27,9 @@ from eqa.messages import PADDING_CHOICE, Pose2D, Question
 from services.sim import catalog
 from services.sim.camera import CAMERA_HEIGHT, HFOV_DEG, TILT_DEG, vfov_deg
 from services.sim.catalog import OPPOSITE_STATE, PLURAL_ONLY, display_name, plural
+from services.sim.library import load_or_generate
 from services.sim.motion import START_CLEARANCE, reachable_map, sample_start_pose
-from services.sim.scene import Scene, load_or_generate
+from services.sim.scene import Scene
 
 log = logging.getLogger(__name__)
 

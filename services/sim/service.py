@@ -35,9 +35,10 @@ from eqa.settings import Settings
 from eqa.store import EPISODE_STATE_TTL_S, episode_end_key
 from services.sim import hmeqa
 from services.sim.camera import camera_pose, intrinsics
+from services.sim.library import load_or_generate
 from services.sim.motion import START_CLEARANCE, pose_error, sample_start_pose
 from services.sim.render import Renderer
-from services.sim.scene import GEN_ID, Scene, SceneLoadError, SceneNotFound, load_mesh_scene, load_or_generate
+from services.sim.scene import GEN_ID, Scene, SceneLoadError, SceneNotFound, load_mesh_scene
 
 log = logging.getLogger(__name__)
 MAX_CACHED_SCENES = 4

@@ -51,7 +51,8 @@ def demo_question(scenes_dir: Path) -> Question:
 
 def check_scene(scene: str, scenes_dir: Path) -> float:
     """Floor area of a scene the simulator can load; :class:`AskError` naming what exists otherwise."""
-    from services.sim.scene import SceneNotFound, load_or_generate
+    from services.sim.library import load_or_generate
+    from services.sim.scene import SceneNotFound
 
     try:
         return float(load_or_generate(scene, scenes_dir).floor_area_m2)
@@ -170,7 +171,7 @@ def _body(args: argparse.Namespace, scenes_dir: Path) -> tuple[dict[str, Any], Q
 
 
 def run(args: argparse.Namespace) -> int:
-    from eqa.cli import UsageError, check_scorer, load_settings
+    from eqa.app.cli import UsageError, check_scorer, load_settings
     from eqa.service import setup_logging
 
     settings = load_settings()

@@ -17,6 +17,7 @@ import logging
 import signal
 import sys
 import threading
+from pathlib import Path
 from typing import NoReturn
 
 from eqa.settings import Settings
@@ -25,12 +26,11 @@ log = logging.getLogger(__name__)
 
 # Modules that add sub-commands with ``register(subparsers)``.
 _SUBCOMMAND_MODULES = (
-    "eqa.ask",
+    "eqa.app.ask",
     "services.sim.cli",
     "services.vlm_scorer.cli",
-    "services.stopper.cli",
-    "eqa.bench_cli",
-    "gateway.cli",
+    "eqa.app.calibrate",
+    "eqa.app.bench_cli",
 )
 
 
@@ -133,7 +133,16 @@ def build_parser() -> argparse.ArgumentParser:
 
     for name in _SUBCOMMAND_MODULES:
         importlib.import_module(name).register(sub)
+    from gateway import cli as gateway_cli
+
+    gateway_cli.register(sub, scene_area=_floor_area)  # the gateway gets the sim's scene library from here
     return parser
+
+
+def _floor_area(scene: str, scenes_dir: Path, hm3d_dir: Path | None) -> float:
+    from services.sim.library import floor_area  # imported on first use: `eqa --help` stays quick
+
+    return floor_area(scene, scenes_dir, hm3d_dir)
 
 
 def _terminate(signum: int, _frame: object) -> None:

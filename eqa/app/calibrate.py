@@ -3,7 +3,7 @@
 Two ways to get the calibration traces (per-step answer distributions and relevance of full-length
 episodes, rule ``max_steps``):
 
-* run the episodes of a benchmark split through the services (``eqa.harness.collect_traces``), or
+* run the episodes of a benchmark split through the services (``eqa.app.benchmark_runner.collect_traces``), or
 * ``--from-traces FILE.jsonl``: one :class:`services.stopper.calibration.Trace` JSON per line, nothing run.
 
 Either way each trace is stored in the trace set (``--set-name``) as soon as it exists, and questions whose
@@ -11,7 +11,7 @@ trace is already stored are skipped: an interrupted run, run again, resumes and 
 The table (kappas, ``q_hat`` per eps, N, provenance) goes to the store under ``eqa:calibration:<name>``
 and, with ``--out``, to a JSON file (``services/stopper/data/<name>.json`` is the packaged fallback).
 
-Standalone: ``python -m services.stopper.cli calibrate --help``.
+Standalone: ``python -m eqa.app.calibrate calibrate --help``.
 """
 
 from __future__ import annotations
@@ -139,7 +139,7 @@ def _load_questions(args: argparse.Namespace, settings: Settings) -> list[Questi
 def _run_missing(
     args: argparse.Namespace, settings: Settings, ts: TraceStore, set_name: str, questions: list[Question]
 ) -> None:
-    """Run the episodes of the questions without a stored trace (``eqa.harness.collect_traces``)."""
+    """Run the episodes of the questions without a stored trace (``eqa.app.benchmark_runner.collect_traces``)."""
     missing = [q for q in questions if not ts.has(set_name, q.id)]
     log.info(
         "%d of %d questions already have a trace in %s",
@@ -149,12 +149,12 @@ def _run_missing(
     )
     if not missing:
         return
-    from eqa.harness import collect_traces  # imported (and checked) before the questions, in run_calibrate
+    from eqa.app.benchmark_runner import collect_traces  # checked in run_calibrate
 
     with _bar(len(questions), f"calibration episodes ({set_name})", args.no_progress) as bar:
         bar.update(len(questions) - len(missing))
-        # The harness stores each trace through TraceStore as it finishes; the bar is advanced here, once per
-        # yielded trace; the harness may write status text to it (bar.set_postfix_str).
+        # The benchmark runner stores each trace through TraceStore as it finishes; the bar is advanced here,
+        # once per yielded trace; the runner may write status text to it (bar.set_postfix_str).
         for trace in collect_traces(missing, settings, strategy=args.strategy, set_name=set_name, progress=bar):
             if not ts.has(set_name, trace.question_id):
                 ts.save(set_name, trace)
@@ -186,12 +186,10 @@ def run_calibrate(args: argparse.Namespace, settings: Settings, store: Store) ->
         ids = _import_traces(ts, set_name, path, args.limit, args.no_progress)
         provenance.update(source="traces file", file=str(path))
     else:
-        from eqa.bench_cli import set_name as bench_set_name
+        from eqa.app.bench_cli import set_name as bench_set_name
 
         # The same trace set as `eqa bench` (strategy, scorer, image size): calibration reuses benchmark runs.
         set_name = args.set_name or bench_set_name(args.strategy, settings)
-        import eqa.harness  # noqa: F401  fail fast (before generating the benchmark) when the harness is absent
-
         questions = _load_questions(args, settings)
         _run_missing(args, settings, ts, set_name, questions)
         ids = [q.id for q in questions]
@@ -254,7 +252,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 def main(argv: list[str] | None = None) -> int:
     from eqa.service import setup_logging
 
-    parser = argparse.ArgumentParser(prog="python -m services.stopper.cli")
+    parser = argparse.ArgumentParser(prog="python -m eqa.app.calibrate")
     sub = parser.add_subparsers(dest="command", required=True)
     register(sub)
     args = parser.parse_args(argv)

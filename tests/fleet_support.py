@@ -24,6 +24,7 @@ from eqa.messages import EpisodeEnd
 from eqa.settings import Settings
 from eqa.store import episode_end_key, open_store
 from gateway.app import create_app
+from services.sim.library import floor_area
 
 if TYPE_CHECKING:
     from eqa.launcher import Fleet
@@ -112,7 +113,7 @@ class GatewayThread:
         self.settings = settings.model_copy(update={"gateway_host": "127.0.0.1", "gateway_port": self.port})
         self.url = f"http://127.0.0.1:{self.port}"
         config = uvicorn.Config(
-            create_app(self.settings),
+            create_app(self.settings, scene_area=floor_area),
             host="127.0.0.1",
             port=self.port,
             log_level="warning",

@@ -105,7 +105,7 @@ def _collect(questions: list[Any], settings: Any, strategy: str, name: str, args
     or run (resumable); the set is exported back to that file so a fresh checkout can reuse the runs."""
     from tqdm import tqdm
 
-    from eqa.harness import collect_traces
+    from eqa.app.benchmark_runner import collect_traces
     from eqa.store import open_store
     from services.stopper.calibration import TraceStore
 
@@ -135,7 +135,7 @@ def _collect(questions: list[Any], settings: Any, strategy: str, name: str, args
 
 
 def _settings(args: argparse.Namespace) -> Any:
-    from eqa.cli import UsageError, check_scorer, load_settings
+    from eqa.app.cli import UsageError, check_scorer, load_settings
 
     settings = load_settings()
     try:
@@ -157,7 +157,7 @@ def _settings(args: argparse.Namespace) -> Any:
 
 
 def cmd_explore(args: argparse.Namespace) -> int:
-    from eqa import evaluation as ev
+    from eqa.app import evaluation as ev
     from eqa.service import setup_logging
 
     settings = _settings(args)
@@ -194,7 +194,7 @@ def cmd_explore(args: argparse.Namespace) -> int:
     if "fbe" in runs:
         results["paired_vs_fbe"] = {k: paired(t, runs["fbe"]) for k, t in runs.items() if k != "fbe"}
     (out / "explore.json").write_text(json.dumps(results, indent=2))
-    from eqa.plots import plot_explore
+    from eqa.app.plots import plot_explore
 
     paths = plot_explore(results, out)
     _print_explore(results)
@@ -203,7 +203,7 @@ def cmd_explore(args: argparse.Namespace) -> int:
 
 
 def _areas(questions: list[Any], settings: Any) -> dict[str, float]:
-    from services.sim.scene import load_or_generate
+    from services.sim.library import load_or_generate
 
     cache: dict[str, float] = {}
     for q in questions:
@@ -231,7 +231,7 @@ def _print_explore(results: dict[str, Any]) -> None:
 
 
 def cmd_stop(args: argparse.Namespace) -> int:
-    from eqa import evaluation as ev
+    from eqa.app import evaluation as ev
     from eqa.service import setup_logging
 
     settings = _settings(args)
@@ -255,7 +255,7 @@ def cmd_stop(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "stop.json").write_text(json.dumps(results, indent=2))
-    from eqa.plots import plot_stop
+    from eqa.app.plots import plot_stop
 
     path = plot_stop(results, out)
     print(f"stopping rules on {len(test)} test episodes, calibrated on {len(cal)} ({results['scorer']})")
