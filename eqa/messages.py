@@ -193,6 +193,50 @@ class Frame(Message):
     step: int = Field(ge=0)
     pose: Pose2D
     camera_pose: NDArray  # 4x4 float64 camera-to-world
+TaskKind = Literal["pick_place", "find_object"]
+ClassName = Annotated[str, Field(min_length=1, max_length=80, pattern=r"^[a-z0-9][a-z0-9_ -]*$")]
+
+
+class Task(BaseModel):
+    """A HELIOS task (paper sections 4.1, 4.2): ``pick_place`` = "Move (object) from the (start_receptacle)
+    to the (goal_receptacle)"; ``find_object`` = "Find a (object)", ended by a stop call.
+
+    ``object``, ``start_receptacle`` and ``goal_receptacle`` are the open-vocabulary class names the planner
+    and the detector work with. The ``*_ids`` and ``shortest_path_m`` are simulator ground truth for scoring
+    (any listed object on a listed start receptacle counts), read by no planner or detector except the
+    ground-truth-semantics ablation (Table 4)."""
+
+    model_config = ConfigDict(extra="forbid")
+    id: str = Field(default_factory=lambda: new_id("task"))
+    kind: TaskKind
+    text: Annotated[str, Field(min_length=1, max_length=500)]
+    scene: str
+    floor: int = 0
+    object: ClassName
+    start_receptacle: ClassName | None = None
+    goal_receptacle: ClassName | None = None
+    object_ids: list[int] = Field(default_factory=list, max_length=256)
+    start_receptacle_ids: list[int] = Field(default_factory=list, max_length=256)
+    goal_receptacle_ids: list[int] = Field(default_factory=list, max_length=256)
+    start_pose: Pose2D | None = None
+    max_steps: int | None = Field(default=None, ge=1, le=10_000)
+    shortest_path_m: float | None = Field(default=None, ge=0.0)
+
+    @model_validator(mode="after")
+    def _receptacles_of_kind(self) -> Task:
+        if self.kind == "pick_place" and (self.start_receptacle is None or self.goal_receptacle is None):
+            raise ValueError("a pick_place task names a start_receptacle and a goal_receptacle")
+        if self.kind == "find_object" and (self.start_receptacle is not None or self.goal_receptacle is not None):
+            raise ValueError("a find_object task names only the object")
+        return self
+
+    @property
+    def classes(self) -> list[str]:
+        """The task's classes in the order object, start receptacle, goal receptacle (the detector's
+        vocabulary for this episode)."""
+        return [c for c in (self.object, self.start_receptacle, self.goal_receptacle) if c is not None]
+
+
     intrinsics: NDArray  # 3x3 float64
     rgb: NDArray  # HxWx3 uint8
     depth: NDArray  # HxW float32 metres along the optical axis, 0 or inf where nothing was hit

@@ -65,6 +65,11 @@ class Settings(BaseSettings):
     oracle_min_pixels_frac: float = Field(default=0.0005, ge=0.0, lt=1.0, description="share of image: unseen below")
     oracle_full_pixels_frac: float = Field(default=0.005, gt=0.0, le=1.0, description="share of image: fully seen")
     oracle_max_range_m: float = Field(default=6.0, gt=0.0, description="distance past which a target is unseen")
+    # miscalibration modes of the simulated perception model, 0 = off (issue 15; oracle.py documents each)
+    oracle_miscal_category: float = Field(default=0.0, ge=0.0, le=1.0, description="Rel varies by question category")
+    oracle_miscal_view: float = Field(default=0.0, ge=0.0, le=1.0, description="Rel varies by view clutter")
+    oracle_miscal_related: float = Field(default=0.0, ge=0.0, le=1.0, description="related-but-wrong object taken")
+    oracle_miscal_irrelevant: float = Field(default=0.0, ge=0.0, le=1.0, description="confident no-evidence answers")
 
     # --- planner ---
     tau_lsv: float = 1.0

@@ -1,0 +1,267 @@
+"""HELIOS tasks on generated houses (paper sections 4.1, 4.2) and their fixed benchmark.
+
+* ``pick_place``: "Move the (object) from the (start_receptacle) to the (goal_receptacle)" (OVMM form). The
+  object is a small, pickable object standing on a piece of furniture (the start receptacle); the goal
+  receptacle is a class of flat-topped furniture present elsewhere in the house (another class than the
+  start receptacle). As in OVMM, every object of the class standing on a start receptacle of the class counts
+  (``object_ids``), and every instance of the goal class (``goal_receptacle_ids``).
+* ``find_object``: "Find a (object)", ended by a stop call; success = stop within :data:`FIND_SUCCESS_M` of an
+  instance; ``shortest_path_m`` (geodesic, from the start to the nearest such pose) gives the SPL.
+
+Every task is feasible by construction: at least one object can be picked (in frame and within reach from a
+reachable pose, :func:`services.sim.skills.pick_poses`), a goal receptacle can be reached, and the robot's
+start pose is in the same connected free space. The houses are the generator's as they are (they already
+carry small objects on furniture): nothing here changes a house or the question benchmark.
+
+The benchmark follows the project's seed rules (:mod:`eqa.seeds`): the tasks of seed ``s`` use houses
+``gen-{s*10000 + 5000 + i}`` (a range the question benchmark, houses ``s*10000 + i`` with i < 1000, never
+uses); :data:`~eqa.seeds.TUNING_SEED` is the tuning split, :data:`~eqa.seeds.EVALUATION_SEEDS` the evaluation
+sets.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import dijkstra
+
+from eqa.messages import Pose2D, Task
+from eqa.seeds import seed_role
+from services.sim import catalog
+from services.sim.catalog import display_name
+from services.sim.library import load_or_generate
+from services.sim.motion import GRID_RES, START_CLEARANCE, reachable_map, sample_start_pose
+from services.sim.scene import Scene
+from services.sim.skills import REACH_M, pick_poses
+
+log = logging.getLogger(__name__)
+
+# Small objects a one-arm mobile manipulator picks (OVMM objects: household items under ~0.5 m).
+PICKABLE: frozenset[str] = frozenset({
+    "laptop", "towel", "box", "backpack", "vase", "book", "mug", "kettle", "fruit_bowl", "toolbox", "cushion",
+    "shoes", "lamp",
+})
+# Furniture with a flat top between 0.4 and 1.0 m: goal receptacles a dropped object can rest on.
+GOAL_RECEPTACLES: frozenset[str] = frozenset(
+    k.category for k in catalog.FURNITURE.values()
+    if k.surface and k.shape in ("box", "table") and 0.4 <= k.size[2] <= 1.0
+    and k.category not in ("stove", "washing_machine", "dryer", "bathroom_sink")
+)
+FIND_SUCCESS_M = 1.0  # find_object: stop within this of an instance's box (HM3D ObjectNav: 1 m)
+MIN_FIND_PATH_M = 1.0  # find_object: the start is farther than this (geodesic) from every success pose
+STEPS_PER_SQRT_M2 = 6.0  # step budget = STEPS_PER_SQRT_M2 * sqrt(floor area) (questions use 3; tasks do more)
+TASK_HOUSE_OFFSET = 5000
+PICK_PLACE_PER_HOUSE = 2
+FIND_PER_HOUSE = 1
+
+
+def task_steps_for(area_m2: float) -> int:
+    return max(1, int(STEPS_PER_SQRT_M2 * math.sqrt(max(area_m2, 0.0))))
+
+
+def instruction(obj: str, start: str | None = None, goal: str | None = None) -> str:
+    if start is None or goal is None:
+        return f"Find a {display_name(obj)}"
+    return f"Move the {display_name(obj)} from the {display_name(start)} to the {display_name(goal)}"
+
+
+def geodesic_from(reach: np.ndarray, origin: tuple[float, float], start: Pose2D) -> np.ndarray:
+    """Geodesic distance (m) from ``start`` to every cell of the boolean ``reach`` grid (8-connected, no corner
+    cutting); ``inf`` where it cannot be reached."""
+    ox, oy = origin
+    rows, cols = reach.shape
+    idx = np.full(reach.shape, -1, np.int64)
+    ii, jj = np.nonzero(reach)
+    idx[ii, jj] = np.arange(len(ii))
+    src, dst, w = [], [], []
+    for di, dj in ((0, 1), (1, 0), (1, 1), (1, -1)):
+        ni, nj = ii + di, jj + dj
+        ok = (ni < rows) & (nj >= 0) & (nj < cols)
+        ok[ok] = reach[ni[ok], nj[ok]]
+        if di and dj:  # diagonal: both side cells free (no corner cutting)
+            ok[ok] = reach[ni[ok], jj[ok]] & reach[ii[ok], nj[ok]]
+        src.append(idx[ii[ok], jj[ok]])
+        dst.append(idx[ni[ok], nj[ok]])
+        w.append(np.full(int(ok.sum()), GRID_RES * math.hypot(di, dj)))
+    s, d, ww = np.concatenate(src), np.concatenate(dst), np.concatenate(w)
+    graph = csr_matrix((np.concatenate([ww, ww]), (np.concatenate([s, d]), np.concatenate([d, s]))),
+                       shape=(len(ii), len(ii)))
+    i0, j0 = int((start.y - oy) // GRID_RES), int((start.x - ox) // GRID_RES)
+    out = np.full(reach.shape, np.inf)
+    if not (0 <= i0 < rows and 0 <= j0 < cols) or idx[i0, j0] < 0:
+        return out
+    dist = dijkstra(graph, indices=int(idx[i0, j0]))
+    out[reach] = dist
+    return out
+
+
+def _near_box_mask(shape: tuple[int, int], origin: tuple[float, float], centre: tuple[float, ...],
+                   size: tuple[float, ...], within: float) -> np.ndarray:
+    ox, oy = origin
+    xs = ox + (np.arange(shape[1]) + 0.5) * GRID_RES
+    ys = oy + (np.arange(shape[0]) + 0.5) * GRID_RES
+    dx = np.maximum(np.abs(xs - centre[0]) - size[0] / 2, 0.0)
+    dy = np.maximum(np.abs(ys - centre[1]) - size[1] / 2, 0.0)
+    return np.hypot(dy[:, None], dx[None, :]) <= within
+
+
+def generate_tasks(scene: Scene, rng: np.random.Generator, pick_place: int = PICK_PLACE_PER_HOUSE,
+                   find: int = FIND_PER_HOUSE) -> list[Task]:
+    """Up to ``pick_place`` OVMM-style and ``find`` object-search tasks in ``scene`` (module doc); fewer when
+    the house offers no feasible one. Deterministic for a given ``rng`` state."""
+    start = sample_start_pose(scene, rng, START_CLEARANCE)
+    reach, ox, oy = reachable_map(scene, start)
+    origin = (ox, oy)
+    objs = scene.objects()
+    max_steps = task_steps_for(scene.floor_area_m2)
+    by_cat: dict[str, list[int]] = {}
+    for o in objs:
+        by_cat.setdefault(o.category, []).append(o.id)
+    pickable_cache: dict[int, bool] = {}
+
+    def can_pick(oid: int) -> bool:
+        if oid not in pickable_cache:
+            pickable_cache[oid] = bool(pick_poses(scene, oid, reach, origin, max_candidates=12))
+        return pickable_cache[oid]
+
+    def reachable_near(oid: int, within: float) -> bool:
+        info = scene.instances[oid]
+        return bool((reach & _near_box_mask(reach.shape, origin, info.position, info.size, within)).any())
+
+    out: list[Task] = []
+    # pick and place: (object class, start receptacle class) pairs with a pickable instance
+    pairs: dict[tuple[str, str], list[int]] = {}
+    for o in objs:
+        if o.category in PICKABLE and o.support is not None and o.support in scene.instances:
+            pairs.setdefault((o.category, scene.instances[o.support].category), []).append(o.id)
+    order = sorted(pairs)
+    used_objects: set[str] = set()
+    for k in rng.permutation(len(order)):
+        if len(out) >= pick_place:
+            break
+        obj_cat, start_cat = order[int(k)]
+        if obj_cat in used_objects:
+            continue
+        ids = sorted(pairs[(obj_cat, start_cat)])
+        if not any(can_pick(i) for i in ids):
+            continue
+        goals = sorted(c for c in GOAL_RECEPTACLES if c != start_cat and c in by_cat
+                       and any(reachable_near(g, REACH_M - 0.1) for g in by_cat[c]))
+        if not goals:
+            continue
+        goal_cat = goals[int(rng.integers(0, len(goals)))]
+        supports = sorted({scene.instances[i].support for i in ids if scene.instances[i].support is not None})
+        used_objects.add(obj_cat)
+        out.append(Task(
+            id=f"{scene.id}-pp{len(out)}", kind="pick_place", text=instruction(obj_cat, start_cat, goal_cat),
+            scene=scene.id, object=obj_cat, start_receptacle=start_cat, goal_receptacle=goal_cat,
+            object_ids=ids, start_receptacle_ids=supports, goal_receptacle_ids=sorted(by_cat[goal_cat]),
+            start_pose=start, max_steps=max_steps,
+        ))
+    # find an object: a class of small objects, at least one instance pickable (in view and near)
+    cats = sorted(c for c in by_cat if c in catalog.SMALL_OBJECTS and c not in used_objects)
+    geo: np.ndarray | None = None
+    n_find = 0
+    for k in rng.permutation(len(cats)):
+        if n_find >= find:
+            break
+        cat = cats[int(k)]
+        ids = sorted(by_cat[cat])
+        if not any(can_pick(i) for i in ids):
+            continue
+        if geo is None:
+            geo = geodesic_from(reach, origin, start)
+        goal_mask = np.zeros(reach.shape, bool)
+        for i in ids:
+            info = scene.instances[i]
+            goal_mask |= _near_box_mask(reach.shape, origin, info.position, info.size, FIND_SUCCESS_M)
+        best = float(geo[goal_mask & reach].min()) if (goal_mask & reach).any() else math.inf
+        if not math.isfinite(best) or best < MIN_FIND_PATH_M:
+            continue
+        out.append(Task(
+            id=f"{scene.id}-find{n_find}", kind="find_object", text=instruction(cat), scene=scene.id, object=cat,
+            object_ids=ids, start_pose=start, max_steps=max_steps, shortest_path_m=round(best, 3),
+        ))
+        n_find += 1
+    return out
+
+
+# ---- the fixed benchmark -----------------------------------------------------------------------------------
+
+
+def task_scene_id(seed: int, index: int) -> str:
+    return f"gen-{seed * 10000 + TASK_HOUSE_OFFSET + index:05d}"
+
+
+@dataclass
+class TaskBenchmark:
+    """A fixed task set of one seed: ``pick_place`` and ``find_object`` tasks; ``role`` = how figures from it
+    must be labelled (:func:`eqa.seeds.seed_role`: ``tuning`` or ``evaluation``)."""
+
+    seed: int
+    tasks: list[Task] = field(default_factory=list)
+
+    @property
+    def role(self) -> str:
+        return seed_role(self.seed)
+
+    def of_kind(self, kind: str) -> list[Task]:
+        return [t for t in self.tasks if t.kind == kind]
+
+    def to_json(self) -> dict[str, object]:
+        return {"seed": self.seed, "role": self.role, "tasks": [t.model_dump(mode="json") for t in self.tasks]}
+
+    def save(self, path: Path) -> Path:
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(self.to_json(), indent=1, sort_keys=True) + "\n")
+        return path
+
+    @classmethod
+    def load(cls, path: Path) -> TaskBenchmark:
+        data = json.loads(Path(path).read_text())
+        return cls(seed=int(data["seed"]), tasks=[Task.model_validate(t) for t in data["tasks"]])
+
+
+def task_benchmark(seed: int, pick_place: int = 60, find: int = 30, scenes_dir: Path | None = None,
+                   progress: bool = False) -> TaskBenchmark:
+    """``pick_place`` + ``find`` tasks of benchmark ``seed`` over houses ``task_scene_id(seed, i)``, in order,
+    at most :data:`PICK_PLACE_PER_HOUSE` / :data:`FIND_PER_HOUSE` per house. Deterministic."""
+    from services.sim.housegen import generate_house
+
+    if pick_place < 0 or find < 0 or pick_place + find > 10_000:
+        raise ValueError("task counts must be >= 0 and at most 10000 in all")
+    pp: list[Task] = []
+    fo: list[Task] = []
+    index = 0
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=pick_place + find, desc=f"tasks seed {seed}", unit="task")
+    while len(pp) < pick_place or len(fo) < find:
+        if index >= 4 * (pick_place + find) + 20:
+            raise RuntimeError(f"task benchmark seed {seed}: houses ran out of feasible tasks")
+        sid = task_scene_id(seed, index)
+        scene = load_or_generate(sid, scenes_dir) if scenes_dir is not None else generate_house(
+            seed * 10000 + TASK_HOUSE_OFFSET + index)
+        want_pp = min(PICK_PLACE_PER_HOUSE, pick_place - len(pp))
+        want_fo = min(FIND_PER_HOUSE, find - len(fo))
+        got = generate_tasks(scene, np.random.default_rng([seed, index, 17]), want_pp, want_fo)
+        new_pp = [t for t in got if t.kind == "pick_place"]
+        new_fo = [t for t in got if t.kind == "find_object"]
+        pp += new_pp
+        fo += new_fo
+        if bar is not None:
+            bar.update(len(new_pp) + len(new_fo))
+        index += 1
+    if bar is not None:
+        bar.close()
+    return TaskBenchmark(seed=seed, tasks=pp + fo)
+
