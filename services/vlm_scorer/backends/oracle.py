@@ -33,6 +33,30 @@ How it behaves (the knobs are :class:`OracleParams`, from settings ``EQA_ORACLE_
   probability 1 - ``accuracy`` the scores are shuffled (a confused model).
 * GSV (Eq. 2): P(Yes) from the best prior among the rooms in view, connectors and seen targets, plus noise.
 
+Miscalibration modes (issue 15; each a level in [0, 1], 0 = the behaviour above, byte-identical). A real
+VLM's confidences are miscalibrated in ways a raw threshold cannot undo (Explore-EQA section V, "miscalibrated
+VLMs"; section VII-G; appendix C, Fig. A5). The modes imitate what the paper reports, and act on the answer
+distribution and the relevance only (the stopping signals): LSV, GSV and hence the robot's path are those of
+level 0, so one recorded run serves every level (``bench``'s sensitivity study re-scores it offline).
+
+* ``miscal_category`` - relevance that varies by question category: ``Rel *= exp(level * b_c)`` with a fixed
+  log-bias per category, :data:`CATEGORY_RELEVANCE_BIAS` (counting +1: a partial view of the objects to count
+  looks sufficient; state -1: small objects that need close views, appendix C's remark that state questions
+  stay hard; the others in between). Appendix C: the top relevance of correctly answered episodes spreads
+  over the whole range, most below 0.5 (Fig. A5).
+* ``miscal_view`` - relevance that varies by view type: ``Rel *= exp(level * (2 c - 1))`` where ``c`` in [0, 1]
+  is the view's clutter (the share of the image covered by furniture and objects, full at
+  :data:`CLUTTER_FULL`): a wall or an empty corridor ("facing an empty wall", VII-G) scores low, a busy view
+  high, whatever it shows of the question.
+* ``miscal_related`` - high relevance on a related-but-wrong object: an instance of the asked category that is
+  *not* the one asked about (another room, another colour; a VLM reading the question as a bag of words,
+  section VII-D and its ref. [55]) is taken for the target with probability ``level`` (a draw per question and
+  instance, so a level's confusions include the lower levels'): the model reads its answer from the wrong
+  object, with the relevance of real evidence.
+* ``miscal_irrelevant`` - confident answers from irrelevant views: on a view without evidence the top
+  probability of the (biased) answer moves towards 0.99, ``top += level * (0.99 - top)`` (VII-G: "the VLM still
+  outputs highly confident, biased answers" facing an empty wall; what makes the entropy rule stop early).
+
 Every draw comes from a generator seeded by (``ScoreRequest.seed``, question id, step), so the same request
 gives the same numbers. The defaults aim at the paper's 56-65 % success at the full step budget for open
 VLMs; the same defaults serve every exploration and stopping strategy.
@@ -96,6 +120,21 @@ COLORS = (
 STATE_WORDS = ("on", "off", "open", "closed", "folded", "unfolded")
 
 
+MISCALIBRATION_MODES: tuple[str, ...] = ("miscal_category", "miscal_view", "miscal_related", "miscal_irrelevant")
+# log-relevance bias per question category at miscal_category = 1 (module docstring)
+CATEGORY_RELEVANCE_BIAS: dict[str, float] = {
+    "counting": 1.0,
+    "identification": 0.5,
+    "location": 0.0,
+    "existence": -0.5,
+    "state": -1.0,
+}
+CLUTTER_FULL = 0.25  # share of the image covered by objects at which a view counts as fully cluttered
+IRRELEVANT_TOP = 0.99  # where miscal_irrelevant = 1 puts the top probability of an answer without evidence
+STRUCTURE_CATEGORIES = frozenset({"floor", "wall", "ceiling", "door_frame", "window"})
+View = tuple[InstanceLabel, float, float | None]  # (label, image share, median distance in metres or None)
+
+
 @dataclass(frozen=True)
 class OracleParams:
     """The knobs of the simulated perception model (documented in the module docstring)."""
@@ -115,6 +154,14 @@ class OracleParams:
     padding_floor: float = 1e-3
     window_frac: float = 0.12
     lsv_temperature: float = 0.35
+    miscal_category: float = 0.0  # miscalibration modes, 0 = off (module docstring)
+    miscal_view: float = 0.0
+    miscal_related: float = 0.0
+    miscal_irrelevant: float = 0.0
+
+    @property
+    def miscalibrated(self) -> bool:
+        return any(getattr(self, m) > 0 for m in MISCALIBRATION_MODES)
 
     @classmethod
     def from_settings(cls, settings: Settings) -> OracleParams:
@@ -223,34 +270,57 @@ class OracleBackend(Backend):
         return q
 
     @staticmethod
-    def target_views(req: ScoreRequest, t: Target) -> list[tuple[InstanceLabel, float, float | None]]:
+    def is_target(lab: InstanceLabel, t: Target) -> bool:
+        """Whether ``lab`` is what the question asks about (category, room, colour)."""
+        if t.category is None or cs.norm_category(lab.category) != t.category:
+            return False
+        same_room = cs.canonical_room(lab.room_kind) == cs.canonical_room(t.room_kind)
+        if t.room_kind and t.type != "location" and lab.room_kind and not same_room:
+            return False
+        # "the blue towel": a towel of another colour is not the one asked about
+        return not (t.color and t.type != "identification" and lab.attributes.get("color", t.color) != t.color)
+
+    @staticmethod
+    def is_related(lab: InstanceLabel, t: Target) -> bool:
+        """An instance of the asked category that is not the one asked about (another room or colour)."""
+        return (t.category is not None and cs.norm_category(lab.category) == t.category
+                and not OracleBackend.is_target(lab, t))
+
+    @staticmethod
+    def _view(req: ScoreRequest, lab: InstanceLabel) -> View:
+        h, w = req.rgb.shape[:2]
+        pixels, dist = lab.pixels, None
+        if req.instances is not None:
+            mask = req.instances == lab.id
+            pixels = int(mask.sum()) or pixels
+            if req.depth is not None and mask.any():
+                d = req.depth[mask]
+                d = d[np.isfinite(d) & (d > 0)]
+                dist = float(np.median(d)) if d.size else None
+        return lab, pixels / float(h * w), dist
+
+    @staticmethod
+    def target_views(req: ScoreRequest, t: Target) -> list[View]:
         """The visible instances that could answer the question: (label, image share, median distance)."""
         if t.category is None:
             return []
-        h, w = req.rgb.shape[:2]
-        out = []
-        for lab in req.labels:
-            if cs.norm_category(lab.category) != t.category:
-                continue
-            same_room = cs.canonical_room(lab.room_kind) == cs.canonical_room(t.room_kind)
-            if t.room_kind and t.type != "location" and lab.room_kind and not same_room:
-                continue
-            if t.color and t.type != "identification" and lab.attributes.get("color", t.color) != t.color:
-                continue  # "the blue towel": a towel of another colour is not the one asked about
-            pixels, dist = lab.pixels, None
-            if req.instances is not None:
-                mask = req.instances == lab.id
-                pixels = int(mask.sum()) or pixels
-                if req.depth is not None and mask.any():
-                    d = req.depth[mask]
-                    d = d[np.isfinite(d) & (d > 0)]
-                    dist = float(np.median(d)) if d.size else None
-            out.append((lab, pixels / float(h * w), dist))
-        return out
+        return [OracleBackend._view(req, lab) for lab in req.labels if OracleBackend.is_target(lab, t)]
 
-    def seen_targets(
-        self, views: list[tuple[InstanceLabel, float, float | None]]
-    ) -> list[tuple[InstanceLabel, float]]:
+    @staticmethod
+    def related_views(req: ScoreRequest, t: Target) -> list[View]:
+        """The visible instances of the asked category that are not the one asked about (``miscal_related``)."""
+        return [OracleBackend._view(req, lab) for lab in req.labels if OracleBackend.is_related(lab, t)]
+
+    @staticmethod
+    def clutter(req: ScoreRequest) -> float:
+        """Share of the image covered by furniture and objects (not floor, walls, ceiling, windows)."""
+        h, w = req.rgb.shape[:2]
+        ids = [lab.id for lab in req.labels if cs.norm_category(lab.category) not in STRUCTURE_CATEGORIES]
+        if req.instances is not None:
+            return float(np.isin(req.instances, ids).sum()) / float(h * w) if ids else 0.0
+        return sum(lab.pixels for lab in req.labels if lab.id in ids) / float(h * w)
+
+    def seen_targets(self, views: list[View]) -> list[tuple[InstanceLabel, float]]:
         """The views with a non-zero quality, best first."""
         seen = [(lab, self.view_quality(frac, dist)) for lab, frac, dist in views]
         return sorted([(lab, q) for lab, q in seen if q > 0], key=lambda x: -x[1])
@@ -423,12 +493,50 @@ class OracleBackend(Backend):
         if not choices:
             proposed = self.propose_choices(req.question, t)
             choices = proposed
-        seen = self.seen_targets(self.target_views(req, t))
+        targets = self.target_views(req, t)
+        seen = self.seen_targets(targets)
         probs, quality, right = self._answer(rng, req, choices, t, seen)
         rel = self._relevance(rng, quality, right)
         lsv = self._lsv(rng, req, t)
         gsv = self._gsv(rng, req, t, bool(seen))
+        if self.p.miscalibrated:  # the path (LSV, GSV) stays that of level 0; only f and Rel change
+            probs, rel = self.miscalibrated_scores(req, choices, t, targets, self.related_views(req, t),
+                                                   self.clutter(req))
         return Scores(probs, rel, lsv, gsv, proposed)
+
+    def miscalibrated_scores(self, req: ScoreRequest, choices: list[str], t: Target, targets: list[View],
+                             related: list[View], clutter: float) -> tuple[list[float], float]:
+        """``(f, Rel)`` of a step under the miscalibration modes (module docstring), drawn from the step's own
+        generator as at level 0; every mode's extra draw has a generator of its own. Pure in its arguments,
+        so a recorded step (its views and clutter) can be re-scored offline at any level."""
+        p = self.p
+        rng = np.random.default_rng([req.seed, _h(req.question.id), req.step])
+        views = list(targets)
+        if p.miscal_related > 0:
+            for view in related:  # the same instance is confused at every level above its draw (monotone)
+                u = np.random.default_rng([req.seed, _h(req.question.id), view[0].id + 1, 15]).random()
+                if u < p.miscal_related:
+                    views.append(view)
+        seen = self.seen_targets(views)
+        probs, quality, right = self._answer(rng, req, choices, t, seen)
+        rel = self._relevance(rng, quality, right)
+        if p.miscal_irrelevant > 0 and quality == 0:
+            f = np.asarray(probs)
+            top = int(np.argmax(f))
+            new_top = f[top] + p.miscal_irrelevant * max(IRRELEVANT_TOP - f[top], 0.0)
+            rest = f.sum() - f[top]
+            if rest > 0:
+                f = f * ((1.0 - new_top) / rest)
+            f[top] = new_top
+            probs = (f / f.sum()).tolist()
+        log_bias = 0.0
+        if p.miscal_category > 0:
+            log_bias += p.miscal_category * CATEGORY_RELEVANCE_BIAS.get(t.type, 0.0)
+        if p.miscal_view > 0:
+            log_bias += p.miscal_view * (2.0 * min(max(clutter / CLUTTER_FULL, 0.0), 1.0) - 1.0)
+        if log_bias:
+            rel = float(np.clip(rel * np.exp(log_bias), 0.01, 0.99))
+        return probs, rel
 
 
 def _choice_room(choice: str) -> str:
