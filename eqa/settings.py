@@ -97,6 +97,24 @@ class Settings(BaseSettings):
     )
     step_resends_max: int = Field(default=3, ge=0, description="resends of one step before the sim gives up")
 
+    # --- HELIOS (paper Table 3 defaults; object layer = issue 16, tasks/planning = issue 17) ---
+    helios_alpha_cs: float = Field(default=1.0, ge=0.0, description="alpha_cs: uncertainty weight, Eq. 7/11")
+    helios_alpha_d: float = Field(default=0.001, ge=0.0, description="alpha_d: distance weight, Eq. 8/10")
+    helios_tau_g: float = Field(default=0.5, description="tau_g: Psi_g threshold to pick the object")
+    helios_tau_b: float = Field(default=0.5, description="tau_b: Psi_b threshold to place on a goal receptacle")
+    helios_tau_inc: float = Field(default=0.05, ge=0.0, description="tau_inc: least gain in Psi to look again")
+    helios_od_a: float = Field(default=0.35, ge=0.0, le=1.0, description="detector threshold, start receptacle")
+    helios_od_g: float = Field(default=0.25, ge=0.0, le=1.0, description="detector threshold, object")
+    helios_od_b: float = Field(default=0.45, ge=0.0, le=1.0, description="detector threshold, goal receptacle")
+    helios_cs_a: float = Field(default=0.3, ge=0.0, le=1.0, description="cs_a: S to be a start receptacle candidate")
+    helios_cs_g: float = Field(default=0.3, ge=0.0, le=1.0, description="cs_g: S to be an object candidate")
+    helios_cs_b: float = Field(default=0.3, ge=0.0, le=1.0, description="cs_b: S to be a goal receptacle candidate")
+    helios_alpha_cpa: float = Field(default=3.0, gt=0.0, description="alpha_cpa: concentration update scaling")
+    helios_pick_attempts: int = Field(default=0, ge=0, description="pick attempts allowed (0 = unlimited)")
+    helios_gaze_radius_m: float = Field(default=0.9, gt=0.0, description="gaze points: contour distance")
+    helios_gaze_points: int = Field(default=12, ge=1, le=256, description="gaze points on the contour")
+    helios_gaze_obstacle_m: float = Field(default=0.6, ge=0.0, description="occluder height between gaze and object")
+
     # --- monitoring ---
     rerun_url: str | None = Field(default=None, description="rerun+http://host:9876/proxy for live viewing")
     record: bool = True
