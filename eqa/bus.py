@@ -21,7 +21,7 @@ from typing import Any
 
 import zenoh
 
-from eqa import keys
+from eqa import keys, security
 from eqa.codec import CodecError
 from eqa.messages import ErrorReply, M, Message, decode, encode
 from eqa.settings import Settings
@@ -32,7 +32,8 @@ Handler = Callable[[str, Any], None]
 
 
 def zenoh_config(settings: Settings) -> zenoh.Config:
-    """Zenoh configuration from settings: mode, listen/connect endpoints, multicast scouting."""
+    """Zenoh configuration from settings: mode, listen/connect endpoints, multicast scouting, and the bus
+    security of :mod:`eqa.security` when configured."""
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(settings.zenoh_mode))
     conf.insert_json5("scouting/multicast/enabled", json.dumps(bool(settings.zenoh_multicast)))
@@ -40,6 +41,7 @@ def zenoh_config(settings: Settings) -> zenoh.Config:
         conf.insert_json5("listen/endpoints", json.dumps(list(settings.zenoh_listen)))
     if settings.zenoh_connect:
         conf.insert_json5("connect/endpoints", json.dumps(list(settings.zenoh_connect)))
+    security.apply(conf, settings)  # TLS, user/password, ACL: nothing unless EQA_ZENOH_TLS_*/USER/ACL are set
     return conf
 
 

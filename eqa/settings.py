@@ -35,6 +35,16 @@ class Settings(BaseSettings):
     zenoh_listen: CsvList = Field(default_factory=list, description="endpoints to listen on, e.g. tcp/127.0.0.1:7447")
     zenoh_connect: CsvList = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
     zenoh_multicast: bool = False
+    # bus security (issue 21; eqa/security.py): mTLS, user/password, the stream-ownership ACL. All off by default.
+    zenoh_tls_ca: Path | None = Field(default=None, description="CA certificate (PEM); set = tls/ links only, mTLS")
+    zenoh_tls_cert: Path | None = Field(default=None, description="this node's certificate; its CN is its role")
+    zenoh_tls_key: Path | None = Field(default=None, description="this node's private key (PEM)")
+    zenoh_user: str | None = Field(default=None, description="user name (= role) this node authenticates with")
+    zenoh_password: str | None = Field(default=None, description="its password")
+    zenoh_users_file: Path | None = Field(default=None, description="user:password lines a router accepts")
+    zenoh_acl: bool = Field(default=False, description="enforce the stream-ownership ACL on this node (routers)")
+    # robot sharding among instances of a stateful service (issue 21; eqa/sharding.py)
+    shard: bool = Field(default=True, description="share robots among live instances of a service (rendezvous hash)")
 
     # --- store ---
     redis_url: str | None = Field(default=None, description="redis://host:port/db; unset = embedded SQLite store")
@@ -83,8 +93,24 @@ class Settings(BaseSettings):
     # --- gateway ---
     gateway_host: str = "127.0.0.1"
     gateway_port: int = Field(default=8080, ge=0, le=65535)
-    api_tokens: CsvList = Field(default_factory=list, description="bearer tokens; empty = auth off")
+    api_tokens: CsvList = Field(
+        default_factory=list,
+        description="bearer tokens, each 'token' or 'token:scope+scope' with scopes submit, read, admin (a bare "
+        "token has submit+read: it submits and sees its own episodes; admin sees and cancels all); empty = auth off",
+    )
     rate_limit_per_s: float = Field(default=50.0, gt=0)
+    auth_failures_per_min: float = Field(
+        default=20.0, gt=0, description="failed authentications one client address may make per minute (then 429)"
+    )
+    max_body_bytes: int = Field(default=2 * 1024 * 1024, ge=1024, le=64 * 1024 * 1024, description="HTTP body cap")
+    queue_max_per_robot: int = Field(default=50, ge=0, le=100_000, description="queued episodes per robot (429)")
+    queue_max_per_token: int = Field(
+        default=20, ge=1, le=100_000, description="queued + running episodes per token (429)"
+    )
+    episode_retention_count: int = Field(
+        default=50_000, ge=10, description="stored episode records kept (the oldest ended ones are deleted)"
+    )
+    episode_retention_days: float = Field(default=30.0, gt=0, description="ended episodes older than this go")
     cors_origins: CsvList = Field(default_factory=list)
     busy_policy: Literal["queue", "refuse"] = "queue"
     robots: CsvList = Field(default_factory=lambda: ["robot0"])

@@ -1,0 +1,176 @@
+"""Robots shared among the live instances of a stateful service (sim, mapper, planner, stopper).
+
+* :func:`owner` is rendezvous (highest-random-weight) hashing (Thaler & Ravishankar 1998): each
+  ``(instance, robot)`` pair gets a pseudo-random weight from a fixed hash (BLAKE2b, not Python's salted
+  ``hash``), and a robot belongs to the live instance of highest weight. Every instance computes the same
+  answer from the same set of live instances, with no coordination; when an instance appears or vanishes only
+  the robots it gains or held move (about ``1/n`` of them), the rest stay where they are.
+* :class:`Membership` keeps the set of live instances of one service from Zenoh liveliness tokens
+  (``eqa/v1/alive/{service}/{instance}``, which Zenoh withdraws when a process dies or its link is cut) and
+  answers ``owns(robot)``; a callback reports the robots that moved.
+* :class:`StepClaims` makes "exactly one instance computes each step" hold also while views of the live set
+  differ for a moment (an instance joined and not everybody has seen it yet): before computing step ``k`` of an
+  episode an instance claims it in the store (``set_if_absent``); a claim whose holder is no longer alive is
+  superseded by a next attempt, so a step whose owner died half-way is computed once more by the new owner and
+  never lost. :meth:`StepClaims.claim` also says whether the previous step was computed elsewhere: then the
+  in-memory state is stale and the service reloads it from the store (the restart path).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import threading
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+
+from eqa import keys
+from eqa.store import Store
+
+log = logging.getLogger(__name__)
+
+CLAIM_PREFIX = "eqa:claim:"
+CLAIM_TTL_S = 3600.0
+MAX_ATTEMPTS = 64
+
+
+def weight(instance: str, robot: str) -> int:
+    """The rendezvous weight of one (instance, robot) pair: 64 bits of BLAKE2b, the same in every process."""
+    digest = hashlib.blake2b(f"{instance}\x00{robot}".encode(), digest_size=8).digest()
+    return int.from_bytes(digest, "big")
+
+
+def owner(robot: str, instances: Iterable[str]) -> str | None:
+    """The instance that handles ``robot`` among ``instances`` (None when there is none). Pure."""
+    best: tuple[int, str] | None = None
+    for inst in instances:
+        cand = (weight(inst, robot), inst)
+        if best is None or cand > best:
+            best = cand
+    return None if best is None else best[1]
+
+
+def assignment(robots: Iterable[str], instances: Iterable[str]) -> dict[str, str | None]:
+    """``robot -> instance`` for every robot. Pure."""
+    live = sorted(set(instances))
+    return {r: owner(r, live) for r in robots}
+
+
+def moved(robots: Iterable[str], me: str, before: Iterable[str], after: Iterable[str]) -> tuple[set[str], set[str]]:
+    """``(gained, lost)``: robots ``me`` handles after but not before, and before but not after. Pure."""
+    b, a = sorted(set(before)), sorted(set(after))
+    gained, lost = set(), set()
+    for r in robots:
+        was, now = owner(r, b) == me, owner(r, a) == me
+        if now and not was:
+            gained.add(r)
+        elif was and not now:
+            lost.add(r)
+    return gained, lost
+
+
+class Membership:
+    """The live instances of one service, from liveliness, always including this one.
+
+    ``on_change(before, after)`` runs on a Zenoh thread after each change; services hand it to their worker.
+    """
+
+    def __init__(
+        self,
+        bus: object,
+        service: str,
+        instance: str,
+        on_change: Callable[[frozenset[str], frozenset[str]], None] | None = None,
+    ) -> None:
+        self.bus = bus
+        self.service = keys.check_id(service, "service")
+        self.me = keys.check_id(instance, "instance")
+        self._live: frozenset[str] = frozenset({self.me})
+        self._lock = threading.Lock()
+        self._on_change = on_change
+
+    def start(self) -> Membership:
+        self.bus.watch_alive(keys.alive_service(self.service), self._on_alive)  # type: ignore[attr-defined]
+        return self
+
+    def _on_alive(self, service: str, instance: str, up: bool) -> None:
+        if service != self.service or instance == self.me:
+            return
+        with self._lock:
+            before = self._live
+            after = before | {instance} if up else before - {instance}
+            if after == before:
+                return
+            self._live = after
+        log.info("%s instances: %s (%s %s)", self.service, ", ".join(sorted(after)), instance,
+                 "joined" if up else "left")
+        if self._on_change is not None:
+            self._on_change(before, after)
+
+    @property
+    def live(self) -> frozenset[str]:
+        with self._lock:
+            return self._live
+
+    def is_alive(self, instance: str) -> bool:
+        return instance in self.live
+
+    def owner(self, robot: str) -> str | None:
+        return owner(robot, self.live)
+
+    def owns(self, robot: str) -> bool:
+        return self.owner(robot) == self.me
+
+
+@dataclass(frozen=True)
+class Claim:
+    won: bool
+    holder: str | None  # who computes the step (this instance when won)
+    stale: bool  # the previous step was computed by another instance: reload the episode from the store
+
+
+class StepClaims:
+    """Exactly-once computation of each step of an episode among the instances of one service."""
+
+    def __init__(self, store: Store, service: str, me: str, is_alive: Callable[[str], bool],
+                 ttl_s: float = CLAIM_TTL_S) -> None:
+        self.store = store
+        self.service = keys.check_id(service, "service")
+        self.me = me
+        self.is_alive = is_alive
+        self.ttl_s = ttl_s
+
+    def _key(self, episode_id: str, step: int) -> str:
+        return f"{CLAIM_PREFIX}{self.service}:{episode_id}:{step}"
+
+    def holder(self, episode_id: str, step: int) -> str | None:
+        """The instance that last claimed ``step`` (None when nobody did, or the claim expired)."""
+        raw = self.store.get(self._key(episode_id, step) + ":holder")
+        return raw.decode() if raw is not None else None
+
+    def claim(self, episode_id: str, step: int) -> Claim:
+        base = self._key(episode_id, step)
+        for attempt in range(MAX_ATTEMPTS):
+            key = f"{base}:{attempt}"
+            if self.store.set_if_absent(key, self.me.encode(), ttl_s=self.ttl_s):
+                self.store.set(base + ":holder", self.me.encode(), ttl_s=self.ttl_s)
+                prev = self.holder(episode_id, step - 1) if step > 0 else None
+                return Claim(True, self.me, prev is not None and prev != self.me)
+            raw = self.store.get(key)
+            if raw is None:  # expired between the two calls: try the same attempt again
+                continue
+            holder = raw.decode()
+            if holder == self.me:  # the same step again (resent): the service answers it from its state
+                return Claim(True, self.me, False)
+            if self.is_alive(holder):
+                return Claim(False, holder, False)
+            log.info("step %d of %s: %s claimed it and is gone; claiming it again", step, episode_id, holder)
+        raise RuntimeError(f"step {step} of {episode_id}: {MAX_ATTEMPTS} claims by dead instances")
+
+    def forget(self, episode_id: str, upto_step: int) -> None:
+        """Delete the claims of an ended episode (they expire anyway)."""
+        names = []
+        for step in range(upto_step + 1):
+            base = self._key(episode_id, step)
+            names += [base + ":holder"] + [f"{base}:{a}" for a in range(2)]
+        self.store.delete_many(names)

@@ -1,0 +1,150 @@
+"""Robots shared among instances (eqa.sharding): the rendezvous rule, the liveliness-driven membership over real
+Zenoh sessions (one instance a separate process killed with SIGKILL), and exactly-once step claims on both
+stores."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections import Counter
+from pathlib import Path
+
+import pytest
+
+from eqa import sharding
+from eqa.bus import Bus
+from eqa.settings import Settings
+from eqa.sharding import Membership, StepClaims
+
+REPO = Path(__file__).resolve().parents[1]
+ROBOTS = [f"robot{i}" for i in range(600)]
+
+
+def test_rendezvous_owner_is_deterministic_and_balanced():
+    inst = ["mapper-a", "mapper-b", "mapper-c"]
+    a1 = sharding.assignment(ROBOTS, inst)
+    a2 = sharding.assignment(ROBOTS, list(reversed(inst)))
+    assert a1 == a2
+    counts = Counter(a1.values())
+    assert set(counts) == set(inst)
+    assert all(150 <= c <= 250 for c in counts.values()), counts  # 200 each on average
+    assert sharding.owner("robot0", []) is None
+    assert sharding.owner("robot0", ["only"]) == "only"
+
+
+def test_a_join_moves_robots_only_to_the_newcomer_and_a_leave_only_from_the_leaver():
+    before = ["p-a", "p-b", "p-c"]
+    after = [*before, "p-d"]
+    a, b = sharding.assignment(ROBOTS, before), sharding.assignment(ROBOTS, after)
+    changed = [r for r in ROBOTS if a[r] != b[r]]
+    assert all(b[r] == "p-d" for r in changed)
+    assert 90 <= len(changed) <= 210  # about a quarter of 600
+    gained, lost = sharding.moved(ROBOTS, "p-d", before, after)
+    assert gained == set(changed) and not lost
+    gained, lost = sharding.moved(ROBOTS, "p-a", before, after)
+    assert not gained and lost == {r for r in changed if a[r] == "p-a"}
+    c = sharding.assignment(ROBOTS, ["p-a", "p-c"])  # p-b vanished
+    assert all(c[r] == a[r] for r in ROBOTS if a[r] != "p-b")
+
+
+_HOLDER = """
+import sys, time
+from eqa.bus import Bus
+from eqa.settings import Settings
+s = Settings(zenoh_mode="peer", zenoh_listen=["tcp/127.0.0.1:0"], zenoh_connect=[sys.argv[1]], zenoh_multicast=False)
+with Bus(s, "mapper", "mapper-proc") as b:
+    b.declare_alive()
+    print("up", flush=True)
+    time.sleep(120)
+"""
+
+
+def test_membership_follows_liveliness_and_instances_agree(settings: Settings, hub_settings: Settings,
+                                                          zenoh_port: int):
+    changes: list[tuple[frozenset[str], frozenset[str]]] = []
+    with Bus(hub_settings, "mapper", "mapper-a") as a, Bus(settings, "mapper", "mapper-b") as b:
+        a.declare_alive()
+        b.declare_alive()
+        ma = Membership(a, "mapper", "mapper-a", on_change=lambda x, y: changes.append((x, y))).start()
+        mb = Membership(b, "mapper", "mapper-b").start()
+        other = Membership(b, "planner", "planner-x").start()  # another service's instances are not counted
+        proc = subprocess.Popen([sys.executable, "-c", _HOLDER, f"tcp/127.0.0.1:{zenoh_port}"], cwd=REPO,
+                                stdout=subprocess.PIPE, text=True, start_new_session=True)
+        try:
+            assert proc.stdout is not None and proc.stdout.readline().strip() == "up"
+            want = {"mapper-a", "mapper-b", "mapper-proc"}
+            deadline = time.monotonic() + 10
+            while (ma.live != want or mb.live != want) and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert ma.live == mb.live == want
+            assert other.live == {"planner-x"}
+            owners = {r: [m.me for m in (ma, mb) if m.owns(r)] for r in ROBOTS[:60]}
+            assert all(len(v) <= 1 for v in owners.values())
+            assert sum(1 for r in ROBOTS[:60] if sharding.owner(r, want) == "mapper-proc") == \
+                sum(1 for v in owners.values() if not v)
+            os.killpg(proc.pid, signal.SIGKILL)  # no goodbye: Zenoh withdraws the token when the link drops
+            proc.wait(timeout=10)
+            deadline = time.monotonic() + 15
+            while (ma.live != want - {"mapper-proc"} or mb.live != ma.live) and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert ma.live == mb.live == {"mapper-a", "mapper-b"}
+            assert all(ma.owns(r) != mb.owns(r) for r in ROBOTS[:60])  # every robot has exactly one owner again
+            assert changes[-1][1] == frozenset({"mapper-a", "mapper-b"})
+        finally:
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait(timeout=10)
+
+
+def test_each_step_is_claimed_once_and_a_dead_holders_claim_is_taken_over(store):
+    alive = {"st-a", "st-b"}
+    a = StepClaims(store, "stopper", "st-a", alive.__contains__)
+    b = StepClaims(store, "stopper", "st-b", alive.__contains__)
+    first = a.claim("ep-1", 0)
+    assert first.won and not first.stale
+    lost = b.claim("ep-1", 0)
+    assert not lost.won and lost.holder == "st-a"
+    assert a.claim("ep-1", 0).won  # the same step again at its holder (a resent frame): answered from state
+    # st-a computes step 1 too, then dies before step 2 is done
+    assert a.claim("ep-1", 1).won
+    assert a.claim("ep-1", 2).won
+    alive.discard("st-a")
+    took = b.claim("ep-1", 2)
+    assert took.won and took.holder == "st-b"
+    assert took.stale  # step 1 was computed by st-a: st-b reloads the episode from the store
+    assert b.holder("ep-1", 2) == "st-b"
+    assert not b.claim("ep-1", 3).stale
+    b.forget("ep-1", 3)
+    assert b.holder("ep-1", 2) is None
+
+
+def test_concurrent_claimants_get_exactly_one_winner(store):
+    alive = {f"i{k}" for k in range(4)}
+    winners: list[str] = []
+    lock = threading.Lock()
+
+    def run(me: str) -> None:
+        c = StepClaims(store, "planner", me, alive.__contains__)
+        for step in range(30):
+            if c.claim("ep-race", step).won:
+                with lock:
+                    winners.append(f"{step}")
+
+    threads = [threading.Thread(target=run, args=(m,)) for m in sorted(alive)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(30)
+    assert sorted(winners, key=int) == [str(s) for s in range(30)]  # each step once, none skipped
+
+
+@pytest.mark.parametrize("n", [1, 2, 3])
+def test_every_robot_has_one_owner_for_any_number_of_instances(n: int):
+    inst = [f"sim-{i}" for i in range(n)]
+    views = [sharding.assignment(ROBOTS[:100], inst) for _ in inst]
+    assert all(v == views[0] for v in views)
+    assert set(views[0].values()) <= set(inst)
