@@ -139,7 +139,7 @@ class Settings(BaseSettings):
     helios_pick_attempts: int = Field(default=0, ge=0, description="pick attempts allowed (0 = unlimited)")
     helios_gaze_radius_m: float = Field(default=0.9, gt=0.0, description="gaze points: contour distance")
     helios_gaze_points: int = Field(default=12, ge=1, le=256, description="gaze points on the contour")
-    helios_gaze_obstacle_m: float = Field(default=0.6, ge=0.0, description="occluder height between gaze and object")
+    helios_gaze_obstacle_m: float = Field(default=1.0, ge=0.0, description="gaze: taller obstacles on the way occlude")
 
     # --- monitoring ---
     rerun_url: str | None = Field(default=None, description="rerun+http://host:9876/proxy for live viewing")

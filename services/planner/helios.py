@@ -1,0 +1,174 @@
+"""HELIOS global search objective (paper section 3.2, Eq. 8-10): where to go next, a frontier or a candidate
+start receptacle.
+
+Notation (paper): ``A`` = detected objects of the start receptacle's class with class score ``S >= cs_a``
+(Table 3: 0.3) not yet locally searched; ``F`` = the current frontiers with their value-map score ``F(f)``;
+``F'`` = the frontiers chosen earlier, each stored with its value-map score when chosen, ``F_0(f')``; for each
+``a in A`` the first detection stores ``S_a0``, ``IG_a0`` and its centre then.
+
+* Eq. 8: ``V_0(f') = max_{a in A} (S_a0(a) IG_a0(a) - alpha_d dist(a, f'))``, ``dist`` from the stored centre
+  of ``a`` to ``f'``;
+* Eq. 9: ``F_0 = 1/|F'| sum_{f' in F'_p} V_0(f') / F_0(f')``: the average ratio of the candidate score a
+  previous frontier turned out to be associated with to its value-map score. ``F'_p`` is read as the previous
+  frontiers with a positive stored score (the ratio is undefined for the others, which still count in
+  ``|F'|``);
+* Eq. 10: ``V(r) = S_a(r) IG_a(r) - alpha_d dist(r)`` for ``r in A``, ``F(r) F_0 - alpha_d dist(r)`` for
+  ``r in F``, ``dist`` from the robot to ``r``'s centre; the robot goes to the ``r`` of highest ``V``.
+
+Where the paper leaves a case open: with no candidate (``A`` empty) Eq. 8 has nothing to maximise and the
+ranking is over frontiers alone by ``F(r) - alpha_d dist(r)`` (``F_0 = 1``, the order the value map gives);
+with candidates but no earlier frontier (``F'`` empty) ``F_0 = 1`` too. The ``no_global`` ablation (Table 1)
+always prefers a candidate over a frontier; ``trusting`` uses no candidates at all (frontiers by ``F``).
+Pure functions; the planner shell keeps the memory (:class:`SearchMemory`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import Literal
+
+Ablation = Literal["helios", "no_global", "trusting"]
+ABLATIONS: tuple[str, ...] = ("helios", "no_global", "trusting")
+
+
+@dataclass(frozen=True)
+class CandidateObservation:
+    """A candidate ``a`` now: id, class score ``S_a``, optimistic information gain ``IG_a`` (Eq. 12), centre."""
+
+    instance_id: int
+    S: float
+    IG: float
+    x: float
+    y: float
+
+
+@dataclass(frozen=True)
+class StoredCandidate:
+    """What was stored the first time ``a`` was detected: ``S_a0``, ``IG_a0`` and the centre then."""
+
+    instance_id: int
+    S0: float
+    IG0: float
+    x: float
+    y: float
+
+
+@dataclass(frozen=True)
+class ChosenFrontier:
+    """A previously chosen frontier ``f'``: its location and value-map score ``F_0(f')`` when chosen."""
+
+    x: float
+    y: float
+    F0: float
+
+
+@dataclass(frozen=True)
+class FrontierOption:
+    """A current frontier ``f``: index (into the planner's frontier list), location, value ``F(f)``."""
+
+    index: int
+    x: float
+    y: float
+    F: float
+
+
+@dataclass(frozen=True)
+class Choice:
+    kind: Literal["frontier", "candidate"]
+    ref: int  # frontier index or instance id
+    value: float  # V (Eq. 10)
+    x: float
+    y: float
+
+
+@dataclass
+class SearchMemory:
+    """The planner's memory for the objective: stored first detections and chosen frontiers, visited ones."""
+
+    stored: dict[int, StoredCandidate] = field(default_factory=dict)
+    chosen: list[ChosenFrontier] = field(default_factory=list)
+    visited: set[int] = field(default_factory=set)
+
+    def observe(self, candidates: Iterable[CandidateObservation]) -> None:
+        """Store ``S_a0``, ``IG_a0`` and the centre of every candidate seen for the first time."""
+        for c in candidates:
+            if c.instance_id not in self.stored:
+                self.stored[c.instance_id] = StoredCandidate(c.instance_id, c.S, c.IG, c.x, c.y)
+
+    def choose_frontier(self, f: FrontierOption) -> None:
+        self.chosen.append(ChosenFrontier(f.x, f.y, f.F))
+
+    def to_json(self) -> dict[str, object]:
+        return {"stored": [vars(s) for s in self.stored.values()], "chosen": [vars(c) for c in self.chosen],
+                "visited": sorted(self.visited)}
+
+    @classmethod
+    def from_json(cls, data: dict[str, object]) -> SearchMemory:
+        m = cls()
+        for s in data.get("stored", []):  # type: ignore[union-attr]
+            st = StoredCandidate(**s)  # type: ignore[arg-type]
+            m.stored[st.instance_id] = st
+        m.chosen = [ChosenFrontier(**c) for c in data.get("chosen", [])]  # type: ignore[arg-type, union-attr]
+        m.visited = {int(v) for v in data.get("visited", [])}  # type: ignore[union-attr]
+        return m
+
+
+def v0(fx: float, fy: float, stored: Sequence[StoredCandidate], alpha_d: float) -> float | None:
+    """Eq. 8 for the previous frontier at ``(fx, fy)``; None when there is no stored candidate."""
+    if not stored:
+        return None
+    return max(a.S0 * a.IG0 - alpha_d * math.hypot(a.x - fx, a.y - fy) for a in stored)
+
+
+def f0_association(chosen: Sequence[ChosenFrontier], stored: Sequence[StoredCandidate], alpha_d: float) -> float:
+    """Eq. 9 (module doc); 1 when there is no previous frontier or no stored candidate."""
+    if not chosen or not stored:
+        return 1.0
+    total = 0.0
+    for f in chosen:
+        if f.F0 > 0:
+            total += v0(f.x, f.y, stored, alpha_d) / f.F0  # type: ignore[operator]
+    return total / len(chosen)
+
+
+def candidates_of(observed: Iterable[CandidateObservation], cs_a: float,
+                  visited: set[int] | frozenset[int] = frozenset()) -> list[CandidateObservation]:
+    """``A``: candidates with ``S >= cs_a`` not yet locally searched."""
+    return [c for c in observed if cs_a <= c.S and c.instance_id not in visited and math.isfinite(c.S * c.IG)]
+
+
+def values(robot_xy: tuple[float, float], frontiers: Sequence[FrontierOption],
+           candidates: Sequence[CandidateObservation], memory: SearchMemory, alpha_d: float) -> list[Choice]:
+    """Eq. 10 for every frontier and candidate, highest first (ties: candidates first, then lower index)."""
+    rx, ry = robot_xy
+    F0 = f0_association(memory.chosen, list(memory.stored.values()), alpha_d)
+    out = [Choice("candidate", c.instance_id, c.S * c.IG - alpha_d * math.hypot(c.x - rx, c.y - ry), c.x, c.y)
+           for c in candidates]
+    out += [Choice("frontier", f.index, f.F * F0 - alpha_d * math.hypot(f.x - rx, f.y - ry), f.x, f.y)
+            for f in frontiers if math.isfinite(f.F)]
+    out.sort(key=lambda ch: (-ch.value, ch.kind != "candidate", ch.ref))
+    return out
+
+
+def choose(robot_xy: tuple[float, float], frontiers: Sequence[FrontierOption],
+           observed: Sequence[CandidateObservation], memory: SearchMemory, alpha_d: float, cs_a: float,
+           ablation: Ablation = "helios") -> Choice | None:
+    """The next global-search target under ``ablation`` (module doc); None when there is nothing to go to.
+    Stores first detections in ``memory`` (and the chosen frontier, when one is chosen)."""
+    if ablation not in ABLATIONS:
+        raise ValueError(f"ablation must be one of {ABLATIONS}, got {ablation!r}")
+    cands = [] if ablation == "trusting" else candidates_of(observed, cs_a, memory.visited)
+    if ablation != "trusting":
+        memory.observe(candidates_of(observed, cs_a))
+    ranked = values(robot_xy, frontiers, cands, memory, alpha_d)
+    if not ranked:
+        return None
+    best = ranked[0]
+    if ablation == "no_global":
+        best = next((c for c in ranked if c.kind == "candidate"), best)
+    if best.kind == "frontier":
+        f = next(f for f in frontiers if f.index == best.ref)
+        memory.choose_frontier(f)
+    return best
