@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from eqa import grid
 from eqa.messages import Frontier
 
 _EIGHT = np.ones((3, 3), dtype=bool)
@@ -106,8 +107,7 @@ def find_frontiers(
             cr, cc_ = pr.mean(), pc.mean()
             best = int(np.argmin((pr - cr) ** 2 + (pc - cc_) ** 2))
             r, c = int(pr[best]), int(pc[best])
-            x = origin[0] + (c + 0.5) * resolution
-            y = origin[1] + (r + 0.5) * resolution
+            x, y = grid.cell_center(r, c, origin, resolution)
             n_vec = normal[pr, pc].sum(axis=0)
             norm = float(np.hypot(*n_vec))
             if norm < 1e-9:  # symmetric boundary: face away from the robot
@@ -126,10 +126,8 @@ def value_at(
     layer: np.ndarray, origin: tuple[float, float], resolution: float, x: np.ndarray, y: np.ndarray
 ) -> np.ndarray:
     """Nearest-cell lookup of a value layer; 0 outside the grid (never scored)."""
-    col = np.floor((np.asarray(x) - origin[0]) / resolution).astype(np.int64)
-    row = np.floor((np.asarray(y) - origin[1]) / resolution).astype(np.int64)
-    ny, nx = layer.shape
-    inside = (row >= 0) & (row < ny) & (col >= 0) & (col < nx)
+    row, col = grid.cell_of(x, y, origin, resolution)
+    inside = grid.inside(row, col, layer.shape)
     out = np.zeros(np.shape(col), dtype=np.float64)
     out[inside] = layer[row[inside], col[inside]]
     return out

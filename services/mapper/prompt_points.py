@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from eqa import grid
 from eqa.messages import LETTERS, PromptPoint
 
 
@@ -42,8 +43,7 @@ def visible_free_points(
     config = config or PromptConfig()
     h, w = depth.shape
     rr, cc = np.nonzero(free)
-    xs = origin[0] + (cc + 0.5) * resolution
-    ys = origin[1] + (rr + 0.5) * resolution
+    xs, ys = grid.cell_center(rr, cc, origin, resolution)
     t = cam_pose[:3, 3]
     dist = np.hypot(xs - t[0], ys - t[1])
     near = (dist >= config.min_dist) & (dist <= config.max_dist)

@@ -20,6 +20,8 @@ import math
 
 import numpy as np
 
+from eqa import grid
+
 SEMANTIC_STRATEGIES = ("semantic", "no_lsv", "no_gsv")
 QUESTION_LAYER = "question"
 
@@ -53,14 +55,12 @@ def write_values(
     ny, nx = layer.shape
     radius = math.ceil(3 * sigma / resolution)
     for (x, y), value in zip(points, values, strict=True):
-        c = math.floor((x - origin[0]) / resolution)
-        r = math.floor((y - origin[1]) / resolution)
+        r, c = grid.cell_of_point(x, y, origin, resolution)
         r0, r1 = max(r - radius, 0), min(r + radius + 1, ny)
         c0, c1 = max(c - radius, 0), min(c + radius + 1, nx)
         if r0 >= r1 or c0 >= c1:
             continue
-        ys = origin[1] + (np.arange(r0, r1) + 0.5) * resolution
-        xs = origin[0] + (np.arange(c0, c1) + 0.5) * resolution
+        xs, ys = grid.cell_center(np.arange(r0, r1), np.arange(c0, c1), origin, resolution)
         d2 = (ys[:, None] - y) ** 2 + (xs[None, :] - x) ** 2
         g = (value * np.exp(-d2 / (2 * sigma * sigma))).astype(layer.dtype)
         g[d2 > (3 * sigma) ** 2] = 0

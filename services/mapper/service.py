@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from eqa import keys
+from eqa import grid, keys
 from eqa.messages import (
     EpisodeCancel,
     EpisodeEnd,
@@ -300,7 +300,8 @@ class MapperService(Service):
         ny = m.free.shape[0]
         res = em.resolution
         if em.frontiers:
-            pos = [((f.x - em.origin[0]) / res, ny - (f.y - em.origin[1]) / res) for f in em.frontiers]
+            cells = [grid.fractional_cell(f.x, f.y, em.origin, res) for f in em.frontiers]
+            pos = [(c, ny - r) for r, c in cells]
             w = np.array([f.weight for f in em.frontiers])
             rec.log(
                 "map/frontiers",

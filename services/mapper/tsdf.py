@@ -28,6 +28,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from eqa import grid
+
 MAX_WEIGHT = np.float32(65535.0)  # observation count cap (snapshots store weights as uint16)
 
 
@@ -164,14 +166,11 @@ class TSDFVolume:
 
     def cell_of(self, x: np.ndarray | float, y: np.ndarray | float) -> tuple[np.ndarray, np.ndarray]:
         """(row, col) of world points (floor division; may be outside the grid)."""
-        res = self.config.voxel_size
-        col = np.floor((np.asarray(x) - self.origin_x) / res).astype(np.int64)
-        row = np.floor((np.asarray(y) - self.origin_y) / res).astype(np.int64)
-        return row, col
+        return grid.cell_of(x, y, (self.origin_x, self.origin_y), self.config.voxel_size)
 
     def cell_center(self, row: np.ndarray | int, col: np.ndarray | int) -> tuple[np.ndarray, np.ndarray]:
-        res = self.config.voxel_size
-        return (self.origin_x + (np.asarray(col) + 0.5) * res, self.origin_y + (np.asarray(row) + 0.5) * res)
+        return grid.cell_center(np.asarray(row), np.asarray(col), (self.origin_x, self.origin_y),
+                                self.config.voxel_size)
 
     def add_plane(self, name: str, fill: float | bool = 0.0, dtype: type = np.float32) -> np.ndarray:
         if name not in self.planes:

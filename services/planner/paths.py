@@ -34,6 +34,7 @@ from scipy import ndimage
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
+from eqa import grid as gridm
 from eqa.messages import GridSpec
 
 log = logging.getLogger(__name__)
@@ -85,16 +86,12 @@ class PlanningGrid:
     # ---- coordinates ---------------------------------------------------------------------------------------
     def block_of(self, x: float, y: float) -> tuple[int, int]:
         """Block (row, column) containing world point ``(x, y)`` (may be outside the block grid)."""
-        g = self.grid
-        bi = math.floor(((y - g.origin_y) / g.resolution - self.i0) / self.k)
-        bj = math.floor(((x - g.origin_x) / g.resolution - self.j0) / self.k)
-        return bi, bj
+        r, c = gridm.fractional_cell(x, y, gridm.origin_of(self.grid), self.grid.resolution)
+        return math.floor((r - self.i0) / self.k), math.floor((c - self.j0) / self.k)
 
     def block_centre(self, bi: np.ndarray | int, bj: np.ndarray | int) -> tuple[np.ndarray, np.ndarray]:
-        g = self.grid
-        x = g.origin_x + (self.j0 + (np.asarray(bj) + 0.5) * self.k) * g.resolution
-        y = g.origin_y + (self.i0 + (np.asarray(bi) + 0.5) * self.k) * g.resolution
-        return x, y
+        return gridm.world_of(self.i0 + (np.asarray(bi) + 0.5) * self.k, self.j0 + (np.asarray(bj) + 0.5) * self.k,
+                              gridm.origin_of(self.grid), self.grid.resolution)
 
     def is_traversable(self, x: float, y: float) -> bool:
         bi, bj = self.block_of(x, y)
@@ -108,11 +105,10 @@ class PlanningGrid:
         Samples every 0.2 block and tests, for each sample, every block within 0.11 block of it, which is
         conservative: a segment that clips a corner of a blocked block between two samples passes within
         half a sample step of that block."""
-        g = self.grid
-        u0 = ((a[0] - g.origin_x) / g.resolution - self.j0) / self.k
-        v0 = ((a[1] - g.origin_y) / g.resolution - self.i0) / self.k
-        u1 = ((b[0] - g.origin_x) / g.resolution - self.j0) / self.k
-        v1 = ((b[1] - g.origin_y) / g.resolution - self.i0) / self.k
+        origin, res = gridm.origin_of(self.grid), self.grid.resolution
+        (ra, ca), (rb, cb) = gridm.fractional_cell(*a, origin, res), gridm.fractional_cell(*b, origin, res)
+        u0, v0 = (ca - self.j0) / self.k, (ra - self.i0) / self.k
+        u1, v1 = (cb - self.j0) / self.k, (rb - self.i0) / self.k
         n = max(2, math.ceil(math.hypot(u1 - u0, v1 - v0) / 0.2) + 1)
         t = np.linspace(0.0, 1.0, n)
         u = u0 + (u1 - u0) * t
@@ -123,8 +119,7 @@ class PlanningGrid:
             for dv in (-e, e):
                 bj = np.floor(u + du).astype(np.int64)
                 bi = np.floor(v + dv).astype(np.int64)
-                inside = (bi >= 0) & (bi < R) & (bj >= 0) & (bj < C)
-                if not inside.all():
+                if not gridm.inside(bi, bj, (R, C)).all():
                     return False
                 if not self.traversable[bi, bj].all():
                     return False
@@ -137,9 +132,8 @@ class PlanningGrid:
         t = np.linspace(0.0, 1.0, n)
         x = a[0] + (b[0] - a[0]) * t
         y = a[1] + (b[1] - a[1]) * t
-        j = np.floor((x - g.origin_x) / g.resolution).astype(np.int64)
-        i = np.floor((y - g.origin_y) / g.resolution).astype(np.int64)
-        inside = (i >= 0) & (i < g.rows) & (j >= 0) & (j < g.cols)
+        i, j = gridm.cell_of(x, y, gridm.origin_of(g), g.resolution)
+        inside = gridm.inside(i, j, (g.rows, g.cols))
         return bool(self.occupied[i[inside], j[inside]].any())
 
     # ---- search --------------------------------------------------------------------------------------------

@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from eqa import grid as gridm
 from eqa.messages import Frontier, GridSpec, Pose2D, Strategy
 from services.planner import sampling
 from services.planner.paths import MapError, PlanningGrid, check_map, path_length, planning_grid, truncate
@@ -99,9 +100,7 @@ def wrap(a: float) -> float:
 def _valid_frontier(f: Frontier, grid: GridSpec) -> str | None:
     if not all(math.isfinite(v) for v in (f.x, f.y, f.nx, f.ny)):
         return "non-finite position or normal"
-    x1 = grid.origin_x + grid.cols * grid.resolution
-    y1 = grid.origin_y + grid.rows * grid.resolution
-    if not (grid.origin_x <= f.x < x1 and grid.origin_y <= f.y < y1):
+    if not gridm.contains(grid, f.x, f.y):
         return "outside the map"
     return None
 
@@ -116,15 +115,13 @@ def _disk_mask(grid: GridSpec, points: list[tuple[float, float]], r: float) -> n
     mask = np.zeros((grid.rows, grid.cols), dtype=bool)
     rc = math.ceil(r / grid.resolution)
     for x, y in points:
-        ci = math.floor((y - grid.origin_y) / grid.resolution)
-        cj = math.floor((x - grid.origin_x) / grid.resolution)
+        ci, cj = gridm.cell_of_point(x, y, gridm.origin_of(grid), grid.resolution)
         i0, i1 = max(0, ci - rc), min(grid.rows, ci + rc + 1)
         j0, j1 = max(0, cj - rc), min(grid.cols, cj + rc + 1)
         if i0 >= i1 or j0 >= j1:
             continue
         ii, jj = np.mgrid[i0:i1, j0:j1]
-        cx = grid.origin_x + (jj + 0.5) * grid.resolution
-        cy = grid.origin_y + (ii + 0.5) * grid.resolution
+        cx, cy = gridm.cell_center(ii, jj, gridm.origin_of(grid), grid.resolution)
         mask[i0:i1, j0:j1] |= np.hypot(cx - x, cy - y) <= r
     return mask
 
@@ -196,9 +193,8 @@ def plan_step(
         check_map(grid, free, occupied)
     except MapError as exc:
         return finish(StepPlan("done", f"malformed map: {exc}", memory=mem))
-    x1 = grid.origin_x + grid.cols * grid.resolution
-    y1 = grid.origin_y + grid.rows * grid.resolution
-    if not (grid.origin_x <= pose.x < x1 and grid.origin_y <= pose.y < y1):
+    _, _, x1, y1 = gridm.bounds(grid)
+    if not gridm.contains(grid, pose.x, pose.y):
         return finish(
             StepPlan(
                 "done",

@@ -13,6 +13,7 @@ import math
 import numpy as np
 from scipy import ndimage
 
+from eqa.grid import cell_of_point
 from eqa.messages import Pose2D
 from services.sim.scene import Scene
 
@@ -54,7 +55,7 @@ def pose_error(scene: Scene, pose: Pose2D | tuple[float, float, float], clearanc
     if not all(math.isfinite(v) for v in (x, y, yaw)):
         return f"pose ({x}, {y}, {yaw}) has a non-finite value"
     floor, ox, oy = scene.navigable_grid(GRID_RES, obstacles=False)
-    i, j = math.floor((y - oy) / GRID_RES), math.floor((x - ox) / GRID_RES)
+    i, j = cell_of_point(x, y, (ox, oy), GRID_RES)
     if not (0 <= i < floor.shape[0] and 0 <= j < floor.shape[1]) or not floor[i, j]:
         return f"pose ({x:.2f}, {y:.2f}) is off the floor of scene {scene.id}"
     free, _, _ = scene.navigable_grid(GRID_RES)
