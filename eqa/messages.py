@@ -293,6 +293,7 @@ class MapUpdate(Message):
     pose: Pose2D
     explored_area_m2: float = 0.0
     timing_ms: dict[str, float] = Field(default_factory=dict)
+    objects: list[ObjectInstance] = Field(default_factory=list)  # HELIOS object layer (task episodes only)
 
 
 class ScoreRequest(Message):
@@ -422,6 +423,138 @@ class EpisodeStatus(BaseModel):
     recording: str | None = None
 
 
+# ---- HELIOS object layer (issue 16; contract: briefs/helios-interface.md) ----------------------------------
+MAX_DETECT_CLASSES = 32
+MAX_DETECTIONS = 256
+MAX_VALUE_TARGETS = 8
+DetectClass = Annotated[str, Field(min_length=1, max_length=80)]
+
+
+class Detection(BaseModel):
+    """One detection of an open-vocabulary detector: class, confidence, box ``(x0, y0, x1, y1)`` (pixels,
+    exclusive end) and the instance mask cropped to the box (``mask.shape == (y1 - y0, x1 - x0)``, bool)."""
+
+    model_config = ConfigDict(arbitrary_types_allowed=True, extra="forbid")
+    cls: str
+    score: float = Field(ge=0.0, le=1.0)
+    box: tuple[int, int, int, int]
+    mask: NDArray
+
+    @model_validator(mode="after")
+    def _mask_fits_box(self) -> Detection:
+        x0, y0, x1, y1 = self.box
+        if not (0 <= x0 < x1 and 0 <= y0 < y1):
+            raise ValueError(f"detection box {self.box} is empty or negative")
+        if self.mask.shape != (y1 - y0, x1 - x0):
+            raise ValueError(f"detection mask {self.mask.shape} does not match its box {self.box}")
+        return self
+
+    def full_mask(self, height: int, width: int) -> np.ndarray:
+        """The mask pasted into a ``height x width`` image (clipped to it)."""
+        out = np.zeros((height, width), dtype=bool)
+        x0, y0, x1, y1 = self.box
+        xa, ya, xb, yb = min(x0, width), min(y0, height), min(x1, width), min(y1, height)
+        out[ya:yb, xa:xb] = np.asarray(self.mask, dtype=bool)[: yb - ya, : xb - xa]
+        return out
+
+
+class DetectRequest(Message):
+    """Open-vocabulary detection of ``classes`` in one frame (HELIOS: DETIC with per-class thresholds
+    od_a / od_g / od_b; ``thresholds`` parallel to ``classes``). Served by the scorer pool."""
+
+    kind: ClassVar[str] = "detect_request"
+    request_id: str = Field(default_factory=lambda: new_id("det"))
+    episode_id: str
+    step: int = Field(ge=0)
+    rgb: NDArray
+    classes: list[DetectClass] = Field(min_length=1, max_length=MAX_DETECT_CLASSES)
+    thresholds: list[float] = Field(default_factory=list)
+    # Simulator ground truth of the frame, read only by the oracle detector.
+    instances: NDArray | None = None
+    labels: list[InstanceLabel] = Field(default_factory=list)
+    depth: NDArray | None = None
+    seed: int = 0
+
+    @model_validator(mode="after")
+    def _thresholds(self) -> DetectRequest:
+        if self.thresholds and len(self.thresholds) != len(self.classes):
+            raise ValueError(f"{len(self.thresholds)} thresholds for {len(self.classes)} classes: one per class")
+        if any(not (0.0 <= t <= 1.0) for t in self.thresholds):
+            raise ValueError("detection thresholds must be in [0, 1]")
+        return self
+
+
+class DetectResult(Message):
+    kind: ClassVar[str] = "detect_result"
+    request_id: str
+    episode_id: str
+    step: int
+    detections: list[Detection] = Field(default_factory=list, max_length=MAX_DETECTIONS)
+    backend: str
+    model: str = ""
+    replica: str = ""
+    latency_ms: float = 0.0
+
+
+class ValueRequest(Message):
+    """The per-target value-layer prompt of HELIOS 3.1.2, "Seems like there is a (object) ahead", for each of
+    ``targets`` on one image. Served by the scorer pool."""
+
+    kind: ClassVar[str] = "value_request"
+    request_id: str = Field(default_factory=lambda: new_id("val"))
+    episode_id: str
+    step: int = Field(ge=0)
+    rgb: NDArray
+    targets: list[DetectClass] = Field(min_length=1, max_length=MAX_VALUE_TARGETS)
+    instances: NDArray | None = None
+    labels: list[InstanceLabel] = Field(default_factory=list)
+    depth: NDArray | None = None
+    seed: int = 0
+
+
+class ValueResult(Message):
+    kind: ClassVar[str] = "value_result"
+    request_id: str
+    episode_id: str
+    step: int
+    values: list[float]  # one per target, in [0, 1]
+    backend: str
+    model: str = ""
+    replica: str = ""
+    latency_ms: float = 0.0
+
+
+class GazePoint(BaseModel):
+    """A pose to look at an instance from, scored with Psi' (Eq. 11) and the optimistic IG (Eq. 12)."""
+
+    model_config = ConfigDict(extra="forbid")
+    x: float
+    y: float
+    yaw: float
+    pitch: float
+    psi_prime: float
+    ig: float
+
+
+class ObjectInstance(BaseModel):
+    """One instance of the object layer (HELIOS 3.1.3): class = mode of argmax over its Gaussians; S, U, psi
+    = S_c, U_c, Psi_c (Eq. 7) of that class; ``scores`` the same per task class; ``ig`` the best optimistic IG
+    (Eq. 12) over ``gaze`` for the instance's believed task class."""
+
+    model_config = ConfigDict(extra="forbid")
+    instance_id: int
+    cls: str
+    S: float
+    U: float
+    psi: float
+    scores: dict[str, tuple[float, float, float]] = Field(default_factory=dict)
+    centre: tuple[float, float, float]
+    extent: tuple[float, float, float]
+    n_gaussians: int
+    ig: float = 0.0
+    gaze: list[GazePoint] = Field(default_factory=list)
+
+
 MESSAGE_TYPES: dict[str, type[Message]] = {
     cls.kind: cls
     for cls in (
@@ -436,6 +569,10 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
         Decision,
         Goal,
         EpisodeEnd,
+        DetectRequest,
+        DetectResult,
+        ValueRequest,
+        ValueResult,
     )
 }
 

@@ -141,6 +141,24 @@ class Settings(BaseSettings):
     helios_gaze_points: int = Field(default=12, ge=1, le=256, description="gaze points on the contour")
     helios_gaze_obstacle_m: float = Field(default=1.0, ge=0.0, description="gaze: taller obstacles on the way occlude")
 
+    # --- HELIOS object layer and detector (issue 16; services/mapper/objects, services/vlm_scorer/detector) ---
+    detector_backend: Literal["oracle", "hf", "remote"] = Field(
+        default="oracle", description="open-vocabulary detector of the scorer pool (remote: no standard protocol)"
+    )
+    detector_model_path: Path | None = Field(default=None, description="hf detector: OWL-ViT / OWLv2 directory")
+    helios_device: str = Field(default="cpu", description="torch device of the object layer (cpu, cuda)")
+    helios_render_scale: float = Field(default=0.5, ge=0.05, le=1.0, description="object layer works at this scale")
+    helios_max_gaussians: int = Field(default=60_000, ge=1, le=5_000_000, description="Gaussians kept per episode")
+    helios_max_new_per_frame: int = Field(default=6_000, ge=0, le=1_000_000, description="Gaussians made per frame")
+    helios_max_instances: int = Field(default=64, ge=0, le=4096, description="instances published per map update")
+    helios_gaze_width: int = Field(default=96, ge=16, le=1024, description="optimistic-view render width (Eq. 11/12)")
+    # simulated detector (services/vlm_scorer/detector/oracle.py documents each knob)
+    detector_oracle_recall: float = Field(default=0.9, ge=0.0, le=1.0)
+    detector_oracle_confusion: float = Field(default=0.12, ge=0.0, le=1.0)
+    detector_oracle_similar_fp: float = Field(default=0.15, ge=0.0, le=1.0)
+    detector_oracle_background_fp: float = Field(default=0.08, ge=0.0, le=1.0)
+    detector_oracle_bleed_frac: float = Field(default=0.015, ge=0.0, le=0.2)
+
     # --- monitoring ---
     rerun_url: str | None = Field(default=None, description="rerun+http://host:9876/proxy for live viewing")
     record: bool = True
