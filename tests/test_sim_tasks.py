@@ -4,6 +4,7 @@ collisions (issue 17)."""
 from __future__ import annotations
 
 import hashlib
+import json
 import math
 
 import numpy as np
@@ -203,3 +204,60 @@ def test_instruction_parser() -> None:
     for bad in ("", "dance", "Move the mug", "x" * 600, "find a <script>"):
         with pytest.raises(InstructionError):
             parse_instruction(bad)
+
+
+# ---- one task episode's metrics -----------------------------------------------------------------------------
+
+
+def _mug_task(**kw: object) -> Task:
+    return Task(id="t", kind="pick_place", text="Move the mug from the dining table to the dining table",
+                scene="room", object="mug", start_receptacle="dining_table", goal_receptacle="dining_table",
+                object_ids=[4], start_receptacle_ids=[2], goal_receptacle_ids=[2], **kw)  # type: ignore[arg-type]
+
+
+def _run_episode(room: Scene, pick_limit: int | None, through_table: bool = False):
+    from services.sim.task_episode import TaskEpisode
+
+    ep = TaskEpisode(_mug_task(), pick_limit=pick_limit)
+    far = Pose2D(x=0.8, y=2.5, yaw=0.0)
+    ep.observe(room, far, _frame_ids(room, far))
+    assert not ep.find_obj
+    assert not ep.pick(room, far, _frame_ids(room, far)).success  # a failed attempt (too far)
+    near = Pose2D(x=1.7, y=2.5, yaw=0.0)
+    ep.move(room, [(0.8, 2.5), (1.7, 2.5)])
+    assert ep.pick(room, near, _frame_ids(room, near)).success and ep.find_obj
+    ep.observe(room, near, _frame_ids(room, near))
+    assert ep.find_rec
+    if through_table:
+        ep.move(room, [(1.7, 2.5), (3.3, 2.5)])
+    back = Pose2D(x=1.4, y=2.3, yaw=0.0)
+    assert ep.place(room, back).success
+    return ep
+
+
+def test_task_episode_metrics_pick_limits_and_collisions(room) -> None:
+    from services.sim.task_episode import TaskEpisode
+
+    ep = _run_episode(room, None)
+    assert ep.metrics() == {"FindObj": 1.0, "Pick": 1.0, "FindRec": 1.0, "Place": 1.0, "SR": 1.0,
+                            "collisions": 0.0, "pick_attempts": 2.0}
+    assert _run_episode(room, 5).metrics()["SR"] == 1.0
+    over = _run_episode(room, 1).metrics()  # 2 attempts with a limit of 1: everything 0
+    assert over["FindObj"] == over["Pick"] == over["Place"] == over["SR"] == 0.0
+    hit = _run_episode(room, None, through_table=True).metrics()
+    assert hit["collisions"] == 1.0 and hit["Place"] == 1.0 and hit["SR"] == 0.0
+    again = TaskEpisode.from_json(json.loads(json.dumps(ep.to_json())))
+    assert again.metrics() == ep.metrics() and again.task == ep.task
+
+
+def test_find_object_success_and_spl(room) -> None:
+    from services.sim.task_episode import TaskEpisode
+
+    task = Task(id="f", kind="find_object", text="Find a mug", scene="room", object="mug", object_ids=[4],
+                shortest_path_m=2.0)
+    ep = TaskEpisode(task)
+    ep.move(room, [(1.0, 1.0), (1.0, 2.5), (1.7, 2.5)])  # 1.5 + 0.7 = 2.2 m
+    assert ep.stop(room, Pose2D(x=1.7, y=2.5))
+    assert ep.metrics()["SR"] == 1.0 and ep.metrics()["SPL"] == pytest.approx(2.0 / 2.2)
+    miss = TaskEpisode(task)
+    assert not miss.stop(room, Pose2D(x=0.5, y=0.5)) and miss.metrics()["SPL"] == 0.0

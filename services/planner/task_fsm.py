@@ -1,0 +1,329 @@
+"""The HELIOS task state machine (paper Fig. 3, sections 3.2, 4.1, 4.2; appendix 6.1): what the robot does next
+in a ``pick_place`` or ``find_object`` task, from the object layer's instances and the map's frontiers.
+
+One call of :meth:`TaskMachine.step` per planner step returns one :class:`Action`:
+
+* ``frontier`` -- go to frontier ``ref`` (the shell plans the path) -- phase ``searching``;
+* ``move`` -- go to a gaze pose -- phase ``local_search`` (the gaze points of a start-receptacle candidate, all of
+  them, nearest first) or ``looking`` (the single best gaze point of a target / goal candidate);
+* ``pick`` / ``place`` -- go to the pose and call the skill on instance ``ref`` -- phases ``picking`` /
+  ``placing``; the simulator answers with a :class:`SkillOutcome` passed to the next step;
+* ``stop`` -- ``find_object`` only: the stop call near the found object;
+* ``done`` -- the episode ends (``success`` says whether the task was achieved, as far as the planner knows).
+
+The order of decisions each step (the flow chart): holding the object -> the goal-receptacle decision (Eq. 11
+with ``tau_b``; with no candidate or none worth a look: the frontier of highest value); not holding -> the
+target decision (Eq. 11 with ``tau_g``), then the local search in progress, then the global search objective
+(Eq. 10, :mod:`services.planner.helios`). A pick that fails (the oracle pick: target not in frame or not within
+reach) counts against the pick limit (:class:`~services.planner.decisions.PickBudget`); the instance is ruled out
+after :data:`MAX_FAILS_PER_INSTANCE` failures. Ablations: ``trusting`` acts on the first detection (no gaze
+choice, no objective), ``no_global`` always prefers a candidate over a frontier.
+
+The state is plain data (:meth:`TaskMachine.to_json` / :meth:`TaskMachine.from_json`) so a restarted planner
+continues the task where it was.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+from services.planner import helios
+from services.planner.decisions import PickBudget, Scored, decide
+from services.planner.helios import Ablation, CandidateObservation, FrontierOption, SearchMemory
+
+ActionKind = Literal["frontier", "move", "pick", "place", "stop", "done"]
+Phase = Literal["searching", "local_search", "looking", "picking", "placing", "finished"]
+MAX_FAILS_PER_INSTANCE = 2
+ARRIVED_M = 0.3  # a gaze pose counts as reached within this distance
+
+
+@dataclass(frozen=True)
+class Gaze:
+    x: float
+    y: float
+    yaw: float
+    pitch: float = 0.0
+    psi_prime: float = -math.inf
+    ig: float = 0.0
+
+
+@dataclass(frozen=True)
+class SeenObject:
+    """One object-layer instance as the machine reads it: per task class ``(S, U, Psi)``, the optimistic IG of
+    its believed class, its centre and gaze points (from ``MapUpdate.objects``, see :func:`from_instance`)."""
+
+    instance_id: int
+    cls: str
+    scores: dict[str, tuple[float, float, float]]
+    x: float
+    y: float
+    ig: float = 0.0
+    gaze: tuple[Gaze, ...] = ()
+
+    def of(self, c: str) -> tuple[float, float, float] | None:
+        return self.scores.get(c)
+
+    def best_gaze(self) -> Gaze | None:
+        return max(self.gaze, key=lambda g: (g.psi_prime, g.ig), default=None)
+
+
+def from_instance(inst: Any) -> SeenObject:
+    """A :class:`SeenObject` from an ``eqa.messages.ObjectInstance`` (issue 16's message; read by field name)."""
+    scores = {str(k): (float(v[0]), float(v[1]), float(v[2])) for k, v in dict(inst.scores).items()}
+    scores.setdefault(inst.cls, (float(inst.S), float(inst.U), float(inst.psi)))
+    gaze = tuple(Gaze(g.x, g.y, g.yaw, g.pitch, g.psi_prime, g.ig) for g in inst.gaze)
+    return SeenObject(int(inst.instance_id), str(inst.cls), scores, float(inst.centre[0]), float(inst.centre[1]),
+                      float(inst.ig), gaze)
+
+
+@dataclass(frozen=True)
+class SkillOutcome:
+    """The simulator's answer to a ``pick`` / ``place`` / ``stop`` action."""
+
+    skill: Literal["pick", "place", "stop"]
+    success: bool
+    ref: int | None = None
+    reason: str = ""
+
+
+@dataclass(frozen=True)
+class Action:
+    kind: ActionKind
+    phase: Phase
+    ref: int | None = None  # frontier index or instance id
+    pose: tuple[float, float, float] | None = None  # x, y, yaw (move / pick / place / stop)
+    pitch: float = 0.0
+    reason: str = ""
+    success: bool | None = None  # done only
+
+
+@dataclass(frozen=True)
+class Thresholds:
+    """Table 3 values (``eqa.settings.Settings.helios_*``)."""
+
+    alpha_d: float = 0.001
+    tau_g: float = 0.5
+    tau_b: float = 0.5
+    tau_inc: float = 0.05
+    cs_a: float = 0.3
+    cs_g: float = 0.3
+    cs_b: float = 0.3
+
+    @classmethod
+    def from_settings(cls, s: Any) -> Thresholds:
+        return cls(s.helios_alpha_d, s.helios_tau_g, s.helios_tau_b, s.helios_tau_inc, s.helios_cs_a, s.helios_cs_g,
+                   s.helios_cs_b)
+
+
+@dataclass
+class TaskMachine:
+    kind: Literal["pick_place", "find_object"]
+    object: str
+    start_receptacle: str | None = None
+    goal_receptacle: str | None = None
+    ablation: Ablation = "helios"
+    pick_limit: int | None = None
+    th: Thresholds = field(default_factory=Thresholds)
+    holding: bool = False
+    phase: Phase = "searching"
+    budget: PickBudget = field(default_factory=PickBudget)
+    memory: SearchMemory = field(default_factory=SearchMemory)
+    queue: list[Gaze] = field(default_factory=list)  # local search: gaze points still to visit
+    queue_owner: int | None = None
+    fails: dict[int, int] = field(default_factory=dict)  # failed picks per instance
+    bad_goals: set[int] = field(default_factory=set)  # goal instances a place failed on
+    pending: Action | None = None  # the pick / place / stop action waiting for its outcome
+    finished: Action | None = None
+
+    def __post_init__(self) -> None:
+        if self.kind == "pick_place" and (not self.start_receptacle or not self.goal_receptacle):
+            raise ValueError("a pick_place task needs a start and a goal receptacle")
+        if self.budget.limit != self.pick_limit:
+            self.budget = PickBudget(self.pick_limit, self.budget.attempts, self.budget.successes)
+
+    # ---- the step ---------------------------------------------------------------------------------------
+    def step(self, robot: tuple[float, float, float], frontiers: Sequence[FrontierOption],
+             objects: Sequence[SeenObject], outcome: SkillOutcome | None = None) -> Action:
+        if self.finished is not None:
+            return self.finished
+        if outcome is not None:
+            done = self._take(outcome)
+            if done is not None:
+                return done
+        if self.kind == "find_object":
+            return self._find(robot, frontiers, objects)
+        if self.holding:
+            return self._goal(robot, frontiers, objects)
+        return self._search(robot, frontiers, objects)
+
+    def _finish(self, success: bool, reason: str) -> Action:
+        self.phase = "finished"
+        self.finished = Action("done", "finished", reason=reason, success=success)
+        return self.finished
+
+    def _take(self, out: SkillOutcome) -> Action | None:
+        self.pending = None
+        if out.skill == "pick":
+            self.budget.attempt(out.success)
+            if out.success:
+                self.holding = True
+                self.queue, self.queue_owner = [], None
+                return None
+            if out.ref is not None:
+                self.fails[out.ref] = self.fails.get(out.ref, 0) + 1
+            if self.budget.exhausted:
+                return self._finish(False, f"pick failed ({out.reason}); pick limit {self.budget.limit} used up")
+            return None
+        if out.skill == "place":
+            if out.success:
+                return self._finish(True, f"placed ({out.reason})")
+            return self._finish(False, f"place failed: {out.reason}")  # the object is no longer held
+        return self._finish(out.success, f"stopped ({out.reason})")
+
+    # ---- candidates -------------------------------------------------------------------------------------
+    def _scored(self, objects: Sequence[SeenObject], c: str, exclude: set[int]) -> list[Scored]:
+        out = []
+        for o in objects:
+            s = o.of(c)
+            if s is None or o.instance_id in exclude:
+                continue
+            g = o.best_gaze() if o.cls == c else None
+            out.append(Scored(o.instance_id, s[0], s[2], g.psi_prime if g is not None else None))
+        return out
+
+    def _approach(self, o: SeenObject, robot: tuple[float, float, float], best: bool) -> Gaze | None:
+        """The gaze point to go to: the one of highest Psi' (``best``) or the nearest (trusting, picking)."""
+        if not o.gaze:
+            return None
+        if best and self.ablation != "trusting":
+            return o.best_gaze()
+        return min(o.gaze, key=lambda g: math.hypot(g.x - robot[0], g.y - robot[1]))
+
+    def _act_on(self, kind: Literal["pick", "place", "stop"], o: SeenObject, robot: tuple[float, float, float],
+                reason: str) -> Action:
+        g = self._approach(o, robot, best=False)
+        pose = (g.x, g.y, g.yaw) if g is not None else robot
+        phase: Phase = {"pick": "picking", "place": "placing", "stop": "looking"}[kind]  # type: ignore[assignment]
+        self.phase = phase
+        self.pending = Action(kind, phase, o.instance_id, pose, g.pitch if g is not None else 0.0, reason)
+        return self.pending
+
+    def _look(self, o: SeenObject, robot: tuple[float, float, float], reason: str) -> Action | None:
+        g = self._approach(o, robot, best=True)
+        if g is None:
+            return None
+        self.phase = "looking"
+        return Action("move", "looking", o.instance_id, (g.x, g.y, g.yaw), g.pitch, reason)
+
+    def _best_frontier(self, robot: tuple[float, float, float], frontiers: Sequence[FrontierOption],
+                       reason: str) -> Action:
+        ranked = helios.values(robot[:2], frontiers, [], SearchMemory(), self.th.alpha_d)
+        if not ranked:
+            return self._finish(False, f"{reason}; no frontier left to explore")
+        self.phase = "searching"
+        return Action("frontier", "searching", ranked[0].ref, reason=reason)
+
+    # ---- pick and place ---------------------------------------------------------------------------------
+    def _search(self, robot: tuple[float, float, float], frontiers: Sequence[FrontierOption],
+                objects: Sequence[SeenObject]) -> Action:
+        by_id = {o.instance_id: o for o in objects}
+        ruled_out = {i for i, n in self.fails.items() if n >= MAX_FAILS_PER_INSTANCE}
+        d = decide(self._scored(objects, self.object, ruled_out), self.th.tau_g, self.th.tau_inc, self.th.cs_g,
+                   trusting=self.ablation == "trusting")
+        if d.action == "act" and d.instance_id is not None:
+            return self._act_on("pick", by_id[d.instance_id], robot, d.reason)
+        if d.action == "look" and d.instance_id is not None:
+            a = self._look(by_id[d.instance_id], robot, d.reason)
+            if a is not None:
+                return a
+        # local search in progress: the next gaze point of the start receptacle, nearest first
+        while self.queue:
+            g = min(self.queue, key=lambda q: math.hypot(q.x - robot[0], q.y - robot[1]))
+            self.queue.remove(g)
+            if math.hypot(g.x - robot[0], g.y - robot[1]) <= ARRIVED_M:
+                continue
+            self.phase = "local_search"
+            return Action("move", "local_search", self.queue_owner, (g.x, g.y, g.yaw), g.pitch,
+                          "local search of a start receptacle candidate")
+        if self.ablation == "trusting":
+            return self._best_frontier(robot, frontiers, "trusting: frontier of highest value")
+        start = self.start_receptacle or ""
+        observed = []
+        for o in objects:
+            s = o.of(start)
+            if s is not None and o.cls == start:
+                observed.append(CandidateObservation(o.instance_id, s[0], o.ig, o.x, o.y))
+        choice = helios.choose(robot[:2], frontiers, observed, self.memory, self.th.alpha_d, self.th.cs_a,
+                               self.ablation)
+        if choice is None:
+            return self._finish(False, "nothing left to search: no frontier and no candidate start receptacle")
+        if choice.kind == "frontier":
+            self.phase = "searching"
+            return Action("frontier", "searching", choice.ref, reason=f"global search: frontier V {choice.value:.4g}")
+        self.memory.visited.add(choice.ref)
+        o = by_id[choice.ref]
+        self.queue, self.queue_owner = list(o.gaze), o.instance_id
+        return self._search(robot, frontiers, objects)  # the first gaze point (or, with none, the next choice)
+
+    def _goal(self, robot: tuple[float, float, float], frontiers: Sequence[FrontierOption],
+              objects: Sequence[SeenObject]) -> Action:
+        goal = self.goal_receptacle or ""
+        by_id = {o.instance_id: o for o in objects}
+        d = decide(self._scored(objects, goal, self.bad_goals), self.th.tau_b, self.th.tau_inc, self.th.cs_b,
+                   trusting=self.ablation == "trusting")
+        if d.action == "act" and d.instance_id is not None:
+            return self._act_on("place", by_id[d.instance_id], robot, d.reason)
+        if d.action == "look" and d.instance_id is not None:
+            a = self._look(by_id[d.instance_id], robot, d.reason)
+            if a is not None:
+                return a
+        return self._best_frontier(robot, frontiers, "goal receptacle search: frontier of highest value")
+
+    # ---- find an object (section 4.2) --------------------------------------------------------------------
+    def _find(self, robot: tuple[float, float, float], frontiers: Sequence[FrontierOption],
+              objects: Sequence[SeenObject]) -> Action:
+        by_id = {o.instance_id: o for o in objects}
+        d = decide(self._scored(objects, self.object, set()), self.th.tau_g, self.th.tau_inc, self.th.cs_g,
+                   trusting=self.ablation == "trusting")
+        if d.action == "act" and d.instance_id is not None:
+            return self._act_on("stop", by_id[d.instance_id], robot, d.reason)
+        if d.action == "look" and d.instance_id is not None:
+            a = self._look(by_id[d.instance_id], robot, d.reason)
+            if a is not None:
+                return a
+        return self._best_frontier(robot, frontiers, "object search: frontier of highest value")
+
+    # ---- persistence ------------------------------------------------------------------------------------
+    def to_json(self) -> dict[str, Any]:
+        def act(a: Action | None) -> dict[str, Any] | None:
+            return None if a is None else {**vars(a), "pose": list(a.pose) if a.pose else None}
+
+        return {
+            "kind": self.kind, "object": self.object, "start_receptacle": self.start_receptacle,
+            "goal_receptacle": self.goal_receptacle, "ablation": self.ablation, "pick_limit": self.pick_limit,
+            "th": vars(self.th), "holding": self.holding, "phase": self.phase,
+            "budget": {"attempts": self.budget.attempts, "successes": self.budget.successes},
+            "memory": self.memory.to_json(), "queue": [vars(g) for g in self.queue], "queue_owner": self.queue_owner,
+            "fails": {str(k): v for k, v in self.fails.items()}, "bad_goals": sorted(self.bad_goals),
+            "pending": act(self.pending), "finished": act(self.finished),
+        }
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> TaskMachine:
+        def act(a: dict[str, Any] | None) -> Action | None:
+            return None if a is None else Action(**{**a, "pose": tuple(a["pose"]) if a["pose"] else None})
+
+        m = cls(d["kind"], d["object"], d["start_receptacle"], d["goal_receptacle"], d["ablation"], d["pick_limit"],
+                Thresholds(**d["th"]))
+        m.holding, m.phase = bool(d["holding"]), d["phase"]
+        m.budget = PickBudget(m.pick_limit, int(d["budget"]["attempts"]), int(d["budget"]["successes"]))
+        m.memory = SearchMemory.from_json(d["memory"])
+        m.queue = [Gaze(**g) for g in d["queue"]]
+        m.queue_owner = d["queue_owner"]
+        m.fails = {int(k): int(v) for k, v in d["fails"].items()}
+        m.bad_goals = {int(v) for v in d["bad_goals"]}
+        m.pending, m.finished = act(d["pending"]), act(d["finished"])
+        return m
