@@ -13,8 +13,10 @@ import asyncio
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from pathlib import Path
 from typing import Any
 
+import fastapi_offline
 from fastapi import FastAPI, Request, status
 from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
@@ -35,7 +37,12 @@ from gateway.routers import episodes, health
 log = logging.getLogger(__name__)
 
 MAX_BODY_BYTES = 2 * 1024 * 1024
-SWAGGER_ASSETS = "/docs/assets"  # Swagger UI files from the swagger-ui-bundle package
+SWAGGER_ASSETS = "/docs/assets"  # Swagger UI and ReDoc files from the fastapi-offline package
+DOCS_ASSETS_DIR = Path(fastapi_offline.__file__).parent / "static"
+DOCS_CSP = (  # the docs pages load nothing from other hosts (their inline set-up scripts and styles stay allowed)
+    "default-src 'self'; script-src 'self' 'unsafe-inline'; style-src 'self' 'unsafe-inline'; "
+    "img-src 'self' data:; font-src 'self' data:; worker-src 'self' blob:; connect-src 'self'"
+)
 
 
 class Hub:
@@ -198,23 +205,33 @@ def _add_docs(app: FastAPI) -> None:
     async def openapi(_caller: DocsCallerDep) -> JSONResponse:
         return JSONResponse(app.openapi())
 
-    # Swagger UI's JS and CSS come with the swagger-ui-bundle package: /docs works without internet access
-    # (FastAPI's default loads them from a CDN). They are a public library, served without a token.
-    from swagger_ui_bundle import swagger_ui_path
-
-    app.mount(SWAGGER_ASSETS, StaticFiles(directory=str(swagger_ui_path)), name="swagger-ui")
+    # Swagger UI (5.x, reads OpenAPI 3.1) and ReDoc come with the fastapi-offline package: /docs and /redoc work
+    # without internet access (FastAPI's defaults load them, and Google fonts, from CDNs). They are a public
+    # library, served without a token.
+    app.mount(SWAGGER_ASSETS, StaticFiles(directory=str(DOCS_ASSETS_DIR)), name="docs-assets")
 
     @app.get("/docs", include_in_schema=False)
     async def swagger(_caller: DocsCallerDep) -> HTMLResponse:
-        return get_swagger_ui_html(
+        page = get_swagger_ui_html(
             openapi_url="/openapi.json",
             title=f"{app.title} - Swagger UI",
             swagger_js_url=f"{SWAGGER_ASSETS}/swagger-ui-bundle.js",
             swagger_css_url=f"{SWAGGER_ASSETS}/swagger-ui.css",
-            swagger_favicon_url=f"{SWAGGER_ASSETS}/favicon-32x32.png",
+            swagger_favicon_url=f"{SWAGGER_ASSETS}/favicon.png",
         )
+        page.headers["Content-Security-Policy"] = DOCS_CSP
+        return page
 
     @app.get("/redoc", include_in_schema=False)
     async def redoc(_caller: DocsCallerDep) -> HTMLResponse:
-        """ReDoc loads its script from a CDN (no Python package ships it): offline, use /docs."""
-        return get_redoc_html(openapi_url="/openapi.json", title=f"{app.title} - ReDoc")
+        page = get_redoc_html(
+            openapi_url="/openapi.json",
+            title=f"{app.title} - ReDoc",
+            redoc_js_url=f"{SWAGGER_ASSETS}/redoc.standalone.js",
+            redoc_favicon_url=f"{SWAGGER_ASSETS}/favicon.png",
+            with_google_fonts=False,
+        )
+        # ReDoc's sidebar shows a logo from cdn.redoc.ly (and hides it when that fails): the page's policy
+        # keeps the browser from asking any host but the gateway.
+        page.headers["Content-Security-Policy"] = DOCS_CSP
+        return page

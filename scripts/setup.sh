@@ -8,6 +8,8 @@ VENV=${VENV:-.venv}
 need_apt=()
 ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0' || need_apt+=(libusb-1.0-0)   # open3d imports it
 command -v redis-server >/dev/null 2>&1 || need_apt+=(redis-server)                 # tests run a private one
+command -v chromium >/dev/null 2>&1 || need_apt+=(chromium)                         # browser tests (docs, console)
+command -v chromedriver >/dev/null 2>&1 || need_apt+=(chromium-driver)              # ... driven by selenium
 if [ ${#need_apt[@]} -gt 0 ]; then
   echo "setup: installing Debian packages: ${need_apt[*]}"
   SUDO=""

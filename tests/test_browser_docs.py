@@ -1,0 +1,121 @@
+"""The API documentation pages render in a real browser with no internet access (issue 26).
+
+Headless Chromium (``browser_helpers``) resolves no host but 127.0.0.1, so a page whose script or style
+comes from a CDN stays blank. A check for "200 OK" cannot see that; these tests wait for the page's
+scripts and read what a person would see: the operations of the API (the POST of questions) and no
+"Unable to render this definition" (what Swagger UI 3.x/4.x says about FastAPI's OpenAPI 3.1 document).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from browser_helpers import body_text, chromium, send_header, wait_until
+from fleet_support import GatewayThread
+from gateway_helpers import TOKEN
+
+from eqa.settings import Settings
+
+SHOTS = os.environ.get("EQA_SCREENSHOTS")  # a directory: save what the browser showed (README's pictures)
+
+
+@pytest.fixture(scope="module")
+def docs_gateway(tmp_path_factory: pytest.TempPathFactory) -> Iterator[GatewayThread]:
+    """A gateway with a token and no fleet (the docs need none), on its own Zenoh port and store."""
+    from eqa.launcher import free_port
+
+    d = tmp_path_factory.mktemp("docs-gw")
+    s = Settings(
+        data_dir=d / "var",
+        zenoh_mode="peer",
+        zenoh_listen=[f"tcp/127.0.0.1:{free_port()}"],
+        zenoh_connect=[],
+        zenoh_multicast=False,
+        record=False,
+        api_tokens=[TOKEN],
+        rate_limit_per_s=1000.0,
+    )
+    with GatewayThread(s) as gw:
+        yield gw
+
+
+def _failed_loads(driver: object) -> list[str]:
+    """Requests the browser could not complete (a CDN it cannot reach shows up here)."""
+    return [e["message"] for e in driver.get_log("browser") if e.get("source") == "network"]  # type: ignore[attr-defined]
+
+
+def _shot(driver: object, name: str) -> None:
+    if SHOTS:
+        Path(SHOTS).mkdir(parents=True, exist_ok=True)
+        driver.save_screenshot(str(Path(SHOTS) / name))  # type: ignore[attr-defined]
+
+
+def test_swagger_ui_lists_the_operations_offline(docs_gateway: GatewayThread, tmp_path: Path) -> None:
+    with chromium(tmp_path / "profile") as b:
+        send_header(b, "Authorization", f"Bearer {TOKEN}")
+        b.get(f"{docs_gateway.url}/docs")
+        wait_until(
+            lambda: (
+                b.find_elements("css selector", ".opblock-post .opblock-summary-path")
+                or "Unable to render" in body_text(b)
+            ),
+            timeout=30,
+            what="Swagger UI to render the spec",
+        )
+        text = body_text(b)
+        assert "Unable to render" not in text, text[:500]
+        paths = {
+            e.text.replace("\u200b", "") for e in b.find_elements("css selector", ".opblock-post .opblock-summary-path")
+        }
+        assert "/v1/questions" in paths, paths
+        assert "/v1/episodes/{episode_id}/events" in text.replace("\u200b", "")
+        assert "GET" in text and "DELETE" in text
+        assert _failed_loads(b) == []
+        _shot(b, "docs.png")
+
+
+def test_redoc_lists_the_operations_offline(docs_gateway: GatewayThread, tmp_path: Path) -> None:
+    with chromium(tmp_path / "profile") as b:
+        send_header(b, "Authorization", f"Bearer {TOKEN}")
+        b.get(f"{docs_gateway.url}/redoc")
+        wait_until(lambda: "Submit a question" in body_text(b), timeout=30, what="ReDoc to list the operations")
+        text = body_text(b)
+        assert "Unable to render" not in text and "Something went wrong" not in text, text[:500]
+        # The operation's method and path as ReDoc shows them in its right-hand panel.
+        ops = b.execute_script(
+            "return Array.from(document.querySelectorAll('button span')).map(e => e.textContent.trim())"
+        )
+        assert "post" in [o.lower() for o in ops] and "/v1/questions" in text, ops[:20]
+        assert _failed_loads(b) == []
+        b.execute_script(
+            "const h = Array.from(document.querySelectorAll('h2')).find(e => e.textContent.startsWith('Submit'));"
+            "h.scrollIntoView();"
+        )
+        _shot(b, "redoc.png")
+
+
+def test_docs_pages_still_need_the_token(docs_gateway: GatewayThread, tmp_path: Path) -> None:
+    with chromium(tmp_path / "profile") as b:
+        send_header(b, "Authorization", "Bearer wrong")
+        for page in ("/docs", "/redoc"):
+            b.get(f"{docs_gateway.url}{page}")
+            text = wait_until(lambda: body_text(b), what="the 401 page")
+            assert "invalid bearer token" in text and "/v1/questions" not in text
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="gateway/auth.py offers both schemes in one WWW-Authenticate line ('Bearer, Basic realm=...'); "
+    "Chromium reads no Basic challenge from it, so it never sends the password a person typed",
+)
+def test_browser_sends_the_password_the_docs_page_asks_for(docs_gateway: GatewayThread, tmp_path: Path) -> None:
+    with chromium(tmp_path / "profile") as b:
+        b.get(f"http://anyone:{TOKEN}@127.0.0.1:{docs_gateway.port}/docs")  # as if typed into the prompt
+        wait_until(
+            lambda: b.find_elements("css selector", ".opblock-post .opblock-summary-path"),
+            timeout=15,
+            what="Swagger UI after basic authentication",
+        )
