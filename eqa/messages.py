@@ -159,6 +159,10 @@ class EpisodeStart(Message):
     max_steps: int = Field(ge=1, le=10_000)
     seed: int = 0
     record: bool = True
+    # A HELIOS task episode (issue 17) when set; ``question`` is then its stand-in (text = the instruction).
+    task: Task | None = None
+    ablation: Ablation = "helios"
+    pick_limit: int | None = Field(default=None, ge=1, le=1000)  # None = unlimited (Table 1: 1, 5, unlimited)
 
     @field_validator("episode_id", "robot")
     @classmethod
@@ -237,6 +241,23 @@ class Task(BaseModel):
         return [c for c in (self.object, self.start_receptacle, self.goal_receptacle) if c is not None]
 
 
+TaskPhase = Literal["searching", "local_search", "looking", "picking", "placing", "finished"]
+Ablation = Literal["helios", "no_global", "trusting"]
+Skill = Literal["move", "pick", "place", "stop"]
+
+
+class SkillReport(BaseModel):
+    """What a task skill did (the sim runs it after moving to the goal's pose; issue 17): the oracle pick, the
+    heuristic place, or the stop call of a find-object task. Carried by the next ``Frame`` and passed on by the
+    mapper in ``MapUpdate.skill`` so the planner's state machine learns the outcome."""
+
+    model_config = ConfigDict(extra="forbid")
+    skill: Literal["pick", "place", "stop"]
+    success: bool
+    target: int | None = None
+    reason: Annotated[str, Field(max_length=300)] = ""
+
+
     intrinsics: NDArray  # 3x3 float64
     rgb: NDArray  # HxWx3 uint8
     depth: NDArray  # HxW float32 metres along the optical axis, 0 or inf where nothing was hit
@@ -244,6 +265,7 @@ class Task(BaseModel):
     labels: list[InstanceLabel] = Field(default_factory=list)
     scene: str = ""
     floor_area_m2: float | None = None
+    skill: SkillReport | None = None  # the task skill run before this frame (task episodes)
 
 
 class Frontier(BaseModel):
@@ -293,6 +315,7 @@ class MapUpdate(Message):
     pose: Pose2D
     explored_area_m2: float = 0.0
     timing_ms: dict[str, float] = Field(default_factory=dict)
+    skill: SkillReport | None = None  # Frame.skill passed on (task episodes)
     objects: list[ObjectInstance] = Field(default_factory=list)  # HELIOS object layer (task episodes only)
 
 
@@ -378,6 +401,10 @@ class Goal(Message):
     weights: list[float] = Field(default_factory=list)
     done: bool = False
     reason: str = ""
+    # task episodes (issue 17): after moving to ``pose`` the sim runs ``skill`` on the planner's ``target``
+    skill: Skill = "move"
+    target: int | None = None  # object-layer instance id the skill aims at (the oracle pick uses ground truth)
+    phase: TaskPhase | None = None
 
 
 class EpisodeEnd(Message):
@@ -393,6 +420,7 @@ class EpisodeEnd(Message):
     max_steps: int = 1
     correct: bool | None = None
     recording: str | None = None
+    metrics: dict[str, float] = Field(default_factory=dict, max_length=32)  # task episodes: FindObj ... SR
 
     @property
     def normalized_steps(self) -> float:
