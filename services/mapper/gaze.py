@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from eqa import grid as gridm
 from eqa.messages import GridSpec
 
 MAX_GAZE_POINTS = 256
@@ -81,11 +82,8 @@ def _piece_point(p: int, u: float, cx: float, cy: float, hx: float, hy: float, r
 
 
 def _cell(grid: GridSpec, x: float, y: float) -> tuple[int, int] | None:
-    j = math.floor((x - grid.origin_x) / grid.resolution)
-    i = math.floor((y - grid.origin_y) / grid.resolution)
-    if 0 <= i < grid.rows and 0 <= j < grid.cols:
-        return i, j
-    return None
+    i, j = gridm.cell_of_point(x, y, gridm.origin_of(grid), grid.resolution)
+    return (i, j) if gridm.inside(i, j, (grid.rows, grid.cols)) else None
 
 
 def _entry_t(p: np.ndarray, c: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> float:

@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from eqa import grid as gridm
 from eqa.messages import Pose2D
 from services.sim.camera import camera_pose, intrinsics
 from services.sim.motion import GRID_RES, clearance_map
@@ -132,8 +133,7 @@ def pick_poses(scene: Scene, target_id: int, reach: np.ndarray, origin: tuple[fl
     ii, jj = np.nonzero(reach)
     if ii.size == 0:
         return []
-    xs = ox + (jj + 0.5) * GRID_RES
-    ys = oy + (ii + 0.5) * GRID_RES
+    xs, ys = gridm.cell_center(ii, jj, (ox, oy), GRID_RES)
     dx = np.maximum(np.abs(xs - info.position[0]) - info.size[0] / 2, 0.0)
     dy = np.maximum(np.abs(ys - info.position[1]) - info.size[1] / 2, 0.0)
     near = np.flatnonzero(np.hypot(dx, dy) <= REACH_M - 0.05)
@@ -252,9 +252,8 @@ def path_collides(scene: Scene, points: list[tuple[float, float]], radius: float
         n = max(2, math.ceil(float(np.linalg.norm(b - a)) / (GRID_RES / 2)) + 1)
         t = np.linspace(0.0, 1.0, n)[:, None]
         s = a + t * (b - a)
-        j = np.floor((s[:, 0] - ox) / GRID_RES).astype(int)
-        i = np.floor((s[:, 1] - oy) / GRID_RES).astype(int)
-        inside = (i >= 0) & (i < ok.shape[0]) & (j >= 0) & (j < ok.shape[1])
+        i, j = gridm.cell_of(s[:, 0], s[:, 1], (ox, oy), GRID_RES)
+        inside = gridm.inside(i, j, ok.shape)
         if not inside.all() or not ok[i, j].all():
             return True
     return False

@@ -31,6 +31,7 @@ import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
+from eqa import grid as gridm
 from eqa.messages import Pose2D, Task
 from eqa.seeds import seed_role
 from services.sim import catalog
@@ -74,7 +75,6 @@ def instruction(obj: str, start: str | None = None, goal: str | None = None) -> 
 def geodesic_from(reach: np.ndarray, origin: tuple[float, float], start: Pose2D) -> np.ndarray:
     """Geodesic distance (m) from ``start`` to every cell of the boolean ``reach`` grid (8-connected, no corner
     cutting); ``inf`` where it cannot be reached."""
-    ox, oy = origin
     rows, cols = reach.shape
     idx = np.full(reach.shape, -1, np.int64)
     ii, jj = np.nonzero(reach)
@@ -92,9 +92,9 @@ def geodesic_from(reach: np.ndarray, origin: tuple[float, float], start: Pose2D)
     s, d, ww = np.concatenate(src), np.concatenate(dst), np.concatenate(w)
     graph = csr_matrix((np.concatenate([ww, ww]), (np.concatenate([s, d]), np.concatenate([d, s]))),
                        shape=(len(ii), len(ii)))
-    i0, j0 = int((start.y - oy) // GRID_RES), int((start.x - ox) // GRID_RES)
+    i0, j0 = gridm.cell_of_point(start.x, start.y, origin, GRID_RES)
     out = np.full(reach.shape, np.inf)
-    if not (0 <= i0 < rows and 0 <= j0 < cols) or idx[i0, j0] < 0:
+    if not gridm.inside(i0, j0, reach.shape) or idx[i0, j0] < 0:
         return out
     dist = dijkstra(graph, indices=int(idx[i0, j0]))
     out[reach] = dist
@@ -103,9 +103,8 @@ def geodesic_from(reach: np.ndarray, origin: tuple[float, float], start: Pose2D)
 
 def _near_box_mask(shape: tuple[int, int], origin: tuple[float, float], centre: tuple[float, ...],
                    size: tuple[float, ...], within: float) -> np.ndarray:
-    ox, oy = origin
-    xs = ox + (np.arange(shape[1]) + 0.5) * GRID_RES
-    ys = oy + (np.arange(shape[0]) + 0.5) * GRID_RES
+    xs, _ = gridm.cell_center(0, np.arange(shape[1]), origin, GRID_RES)
+    _, ys = gridm.cell_center(np.arange(shape[0]), 0, origin, GRID_RES)
     dx = np.maximum(np.abs(xs - centre[0]) - size[0] / 2, 0.0)
     dy = np.maximum(np.abs(ys - centre[1]) - size[1] / 2, 0.0)
     return np.hypot(dy[:, None], dx[None, :]) <= within
