@@ -68,6 +68,24 @@ def downsample(a: torch.Tensor, h: int, w: int) -> torch.Tensor:
     return a[rows][:, cols]
 
 
+def pixel_classes(
+    detections: list[tuple[str, float, np.ndarray]], classes: list[str], shape: tuple[int, int]
+) -> np.ndarray:
+    """The class index y_i of each pixel (Eq. 3's one-hot y) from detections ``(class, score, full mask)``:
+    the highest-scoring detection covering a pixel names it; ``other`` (the last class) where none does.
+    Detections of classes not in ``classes`` are ignored."""
+    other = len(classes) - 1
+    out = np.full(shape, other, dtype=np.int64)
+    best = np.zeros(shape, dtype=np.float64)
+    for name, score, mask in detections:
+        if name not in classes[:-1]:
+            continue
+        sel = np.asarray(mask, dtype=bool) & (score > best)
+        out[sel] = classes.index(name)
+        best[sel] = score
+    return out
+
+
 def camera_from_gaze(x: float, y: float, yaw: float, pitch: float, height: float) -> torch.Tensor:
     """4x4 camera-to-world pose (OpenCV) of a camera at (x, y, height) looking along ``yaw`` pitched by
     ``pitch`` (radians, negative = down), as the simulator's head camera."""
