@@ -159,6 +159,14 @@ class TaskMachine:
             return self._goal(robot, frontiers, objects)
         return self._search(robot, frontiers, objects)
 
+    def unreachable(self, instance_id: int) -> None:
+        """The planner found no path to this instance's gaze pose: rule it out as a target / goal."""
+        self.pending = None
+        if self.holding:
+            self.bad_goals.add(instance_id)
+        else:
+            self.fails[instance_id] = max(self.fails.get(instance_id, 0), MAX_FAILS_PER_INSTANCE)
+
     def _finish(self, success: bool, reason: str) -> Action:
         self.phase = "finished"
         self.finished = Action("done", "finished", reason=reason, success=success)
@@ -286,7 +294,8 @@ class TaskMachine:
     def _find(self, robot: tuple[float, float, float], frontiers: Sequence[FrontierOption],
               objects: Sequence[SeenObject]) -> Action:
         by_id = {o.instance_id: o for o in objects}
-        d = decide(self._scored(objects, self.object, set()), self.th.tau_g, self.th.tau_inc, self.th.cs_g,
+        ruled_out = {i for i, n in self.fails.items() if n >= MAX_FAILS_PER_INSTANCE}
+        d = decide(self._scored(objects, self.object, ruled_out), self.th.tau_g, self.th.tau_inc, self.th.cs_g,
                    trusting=self.ablation == "trusting")
         if d.action == "act" and d.instance_id is not None:
             return self._act_on("stop", by_id[d.instance_id], robot, d.reason)

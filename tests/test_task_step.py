@@ -1,0 +1,64 @@
+"""A task step on the 2D map (services/planner/task_step.py): paths to gaze poses, skills only on arrival."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from eqa.messages import Frontier, GridSpec, Pose2D
+from services.planner.step import Memory, PlannerParams
+from services.planner.task_fsm import Gaze, SeenObject, TaskMachine
+from services.planner.task_step import plan_to_pose, task_step
+
+GRID = GridSpec(origin_x=0.0, origin_y=0.0, resolution=0.1, rows=100, cols=100)
+
+
+def _room() -> tuple[np.ndarray, np.ndarray]:
+    """A 10 x 10 m free room with a wall at x = 5 m (y < 8 m): the way round is through the gap at the top."""
+    occ = np.zeros((100, 100), bool)
+    occ[0, :] = occ[-1, :] = occ[:, 0] = occ[:, -1] = True
+    occ[:80, 50] = True
+    return ~occ, occ
+
+
+def test_plan_to_pose_goes_round_the_wall_in_steps_and_arrives() -> None:
+    free, occ = _room()
+    robot = Pose2D(x=2.0, y=2.0, yaw=0.0)
+    target = (8.0, 2.0, math.pi)
+    arrived, steps = False, 0
+    while not arrived and steps < 20:
+        ps = plan_to_pose(GRID, free, occ, robot, target)
+        assert ps.plan is not None and ps.plan.pose is not None
+        for x, y in ps.plan.path:  # never through the wall
+            assert not (4.9 <= x <= 5.2 and y < 8.0)
+        robot, arrived, steps = ps.plan.pose, ps.arrived, steps + 1
+    assert arrived and steps >= 5  # > 3 m per step: the detour is ~ 16 m
+    assert (robot.x, robot.y) == (8.0, 2.0) and abs(robot.yaw) == math.pi
+    blocked = occ.copy()
+    blocked[:, 50] = True  # no way round
+    assert plan_to_pose(GRID, ~blocked, blocked, Pose2D(x=2.0, y=2.0), target).plan is None
+
+
+def test_task_step_asks_for_the_skill_only_on_arrival() -> None:
+    free, occ = _room()
+    mug = SeenObject(20, "mug", {"mug": (0.7, 0.1, 0.6)}, 3.0, 5.0, 1.0, (Gaze(3.0, 4.2, math.pi / 2),))
+    m = TaskMachine("pick_place", "mug", "table", "counter")
+    far = task_step(m, GRID, free, occ, Pose2D(x=1.0, y=0.8), [], [mug], None, Memory(), np.random.default_rng(0))
+    assert (far.skill, far.phase, far.target) == ("move", "picking", 20)  # 3.9 m away: a move first
+    pose = far.plan.pose
+    near = task_step(m, GRID, free, occ, pose, [], [mug], None, Memory(), np.random.default_rng(0))
+    assert (near.skill, near.target) == ("pick", 20)
+    assert (near.plan.pose.x, near.plan.pose.y) == (3.0, 4.2)
+
+
+def test_unreachable_gaze_rules_the_instance_out_and_falls_back_to_a_frontier() -> None:
+    _, occ = _room()
+    behind = occ.copy()
+    behind[:, 50] = True
+    mug = SeenObject(20, "mug", {"mug": (0.7, 0.1, 0.6)}, 8.0, 5.0, 1.0, (Gaze(8.0, 4.2, 0.0),))
+    frontier = Frontier(x=2.0, y=7.0, nx=0.0, ny=1.0, size=5, sv=0.5)
+    m = TaskMachine("pick_place", "mug", "table", "counter")
+    st = task_step(m, GRID, ~behind, behind, Pose2D(x=1.0, y=1.0), [frontier], [mug], None, Memory(),
+                   np.random.default_rng(0), PlannerParams())
+    assert st.phase == "searching" and st.plan.kind == "move" and m.fails[20] >= 2
