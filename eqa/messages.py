@@ -655,3 +655,16 @@ def decode(payload: bytes, expected: type[M] | tuple[type[M], ...] | None = None
 def model_json(model: BaseModel) -> dict[str, Any]:
     """JSON-safe dict of a model (arrays as dtype/shape/base64)."""
     return model.model_dump(mode="json")
+
+class EpisodeLabel(BaseModel):
+    """Ground truth given for a finished episode (``POST /v1/episodes/{id}/label``), stored under
+    :func:`eqa.store.episode_label_key`; labelled full-length episodes are new calibration data (issue 15)."""
+
+    model_config = ConfigDict(extra="forbid")
+    schema_version: int = SCHEMA_VERSION
+    episode_id: str = Field(min_length=1, max_length=64)
+    answer: str = Field(min_length=1, max_length=1)  # the choice letter
+    answer_text: str | None = Field(default=None, max_length=500)
+    question_id: str | None = Field(default=None, max_length=200)
+    tenant: str = Field(min_length=1, max_length=128)
+    labelled_at: float = Field(default_factory=time.time)

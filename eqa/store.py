@@ -30,6 +30,20 @@ def episode_end_key(episode_id: str) -> str:
     return f"eqa:stopper:end:{episode_id}"
 
 
+def episode_trace_key(episode_id: str) -> str:
+    """Where the stopper keeps the per-step scores (trace) of an episode, rewritten after each step."""
+    return f"eqa:trace:episode:{episode_id}"
+
+
+LABEL_PREFIX = "eqa:label:"
+
+
+def episode_label_key(episode_id: str) -> str:
+    """Where the gateway stores the ground truth a user gave for a finished episode (``EpisodeLabel``):
+    ``eqa calibrate --from-store`` / ``--check --from-store`` read them with the episode's trace."""
+    return f"{LABEL_PREFIX}{episode_id}"
+
+
 class StoreError(RuntimeError):
     pass
 

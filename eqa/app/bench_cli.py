@@ -234,6 +234,12 @@ def cmd_stop(args: argparse.Namespace) -> int:
     from eqa.app import evaluation as ev
     from eqa.service import setup_logging
 
+    if args.miscalibration:  # issue 15: the sensitivity study, from perceptions recorded in-process
+        from eqa.app import stop_sensitivity as sens
+
+        return sens.run(args.miscalibration, args.levels, args.limit, Path(args.out), Path(args.recordings),
+                        args.strategy, args.size, args.record_workers, not args.no_progress)
+
     settings = _settings(args)
     setup_logging(settings.log_level, "eqa-bench")
     logging.getLogger("eqa.launcher").setLevel(logging.WARNING)
@@ -314,4 +320,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                        "coverage of the CP sets against 1 - eps.")
     _common(s)
     s.add_argument("--strategy", choices=STRATEGIES, default="semantic")
+    s.add_argument("--miscalibration", nargs="+", metavar="MODE",
+                   choices=("category", "view", "related", "irrelevant", "all"),
+                   help="sensitivity study instead (simulated perception model, not a VLM): sweep these oracle "
+                        "miscalibration modes (EQA_ORACLE_MISCAL_*; 'all' = every mode at once) over --levels; "
+                        "operating points chosen on the tuning seed, evaluated on the evaluation seeds (eqa.seeds); "
+                        "perceptions recorded once in-process (--recordings), re-scored per level. --limit = "
+                        "calibration questions per seed (the test split gets 2/3 of it)")
+    s.add_argument("--levels", nargs="+", type=float, default=[0.0, 0.25, 0.5, 0.75, 1.0],
+                   help="miscalibration levels in [0, 1] (0 = the default model), with --miscalibration")
+    s.add_argument("--recordings", default="var/sensitivity", help="where --miscalibration keeps its recordings")
+    s.add_argument("--record-workers", type=int, default=1, help="recording processes for --miscalibration")
     s.set_defaults(func=cmd_stop)

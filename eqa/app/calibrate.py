@@ -11,6 +11,16 @@ trace is already stored are skipped: an interrupted run, run again, resumes and 
 The table (kappas, ``q_hat`` per eps, N, provenance) goes to the store under ``eqa:calibration:<name>``
 and, with ``--out``, to a JSON file (``services/stopper/data/<name>.json`` is the packaged fallback).
 
+Beyond the paper (issue 15):
+
+* ``--by-category``: Mondrian calibration, a ``q_hat`` per question category besides the marginal one (the
+  stopper uses the question's category's own threshold), so coverage holds within each category;
+* ``--from-store``: calibrate from real episodes that users labelled (``POST /v1/episodes/{id}/label``) and
+  that ran full length (stop rule ``max_steps``), with the per-step scores the stopper kept for them;
+* ``--check``: do new labelled episodes (``--from-store`` or ``--from-traces``) still look exchangeable with
+  the table? (:mod:`services.stopper.exchangeability`: rank test and coverage test.) Prints ``STALE`` and exits
+  with status 3 when they do not - the case of a scorer pointed at another model.
+
 Standalone: ``python -m eqa.app.calibrate calibrate --help``.
 """
 
@@ -94,6 +104,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         metavar="FILE.jsonl",
         help="calibrate from recorded traces (one Trace JSON per line) without running episodes",
     )
+    p.add_argument("--from-store", action="store_true",
+                   help="use labelled real episodes from the store (POST /v1/episodes/{id}/label; full-length "
+                        "runs only, stop rule max_steps) instead of running the benchmark")
+    p.add_argument("--tenant", default=None, help="with --from-store: only this tenant's labelled episodes")
+    p.add_argument("--by-category", action="store_true",
+                   help="also calibrate per question category (Mondrian CP: coverage within each category)")
+    p.add_argument("--check", action="store_true",
+                   help="do not calibrate: test whether the labelled episodes of --from-store / --from-traces are "
+                        "still exchangeable with table --name (rank and coverage tests); exit status 3 if STALE")
+    p.add_argument("--alpha", type=float, default=0.05, help="significance level of --check (default 0.05)")
     p.add_argument("--out", type=Path, default=None, metavar="FILE.json", help="also write the table here")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_calibrate)
@@ -174,6 +194,14 @@ def run_calibrate(args: argparse.Namespace, settings: Settings, store: Store) ->
         raise UsageError(str(exc)) from exc
     ts = TraceStore(store)
     provenance: dict[str, Any] = {"created_by": "eqa calibrate", "eps_grid": grid}
+    if args.from_store:
+        traces = _labelled(ts, args)
+        if args.limit is not None:
+            traces = traces[: args.limit]
+        provenance.update(source="labelled episodes", tenant=args.tenant, set_name="labelled episodes",
+                          scorer_backend=settings.scorer_backend)
+        table = calibrate(traces, grid, name=name, provenance=provenance, by_category=args.by_category)
+        return _save(store, table, args)
     if args.from_traces is not None:
         path: Path = args.from_traces
         if not path.exists():
@@ -209,12 +237,60 @@ def run_calibrate(args: argparse.Namespace, settings: Settings, store: Store) ->
             f"{len(absent)} questions have no stored trace in {set_name}: "
             f"{sorted(absent)[:5]}; run the command again to resume"
         )
-    table = calibrate(traces, grid, name=name, provenance=provenance)
+    table = calibrate(traces, grid, name=name, provenance=provenance, by_category=args.by_category)
+    return _save(store, table, args)
+
+
+def _save(store: Store, table: CalibrationTable, args: argparse.Namespace) -> CalibrationTable:
     save_table(store, table)
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(table.model_dump_json(indent=1) + "\n", encoding="utf-8")
     return table
+
+
+def _labelled(ts: TraceStore, args: argparse.Namespace) -> list[Any]:
+    traces, skipped = ts.labelled(args.tenant)
+    if skipped["not_full_length"] or skipped["no_trace"] or skipped["invalid"]:
+        log.warning("labelled episodes skipped: %d cut short by their stop rule (calibration data must run to the "
+                    "step limit: ask with stop_rule max_steps), %d without stored scores, %d invalid",
+                    skipped["not_full_length"], skipped["no_trace"], skipped["invalid"])
+    if not traces:
+        raise CalibrationError(
+            "no labelled full-length episodes in the store: run questions with stop_rule max_steps, then post "
+            "their true answers to POST /v1/episodes/{id}/label" + (f" (tenant {args.tenant})" if args.tenant else ""))
+    return traces
+
+
+def run_check(args: argparse.Namespace, settings: Settings, store: Store) -> Any:
+    """``--check``: the staleness report of table ``--name`` against new labelled episodes."""
+    from services.stopper.calibration import load_table
+    from services.stopper.exchangeability import check_exchangeable
+
+    name = args.name or settings.calibration_name
+    try:
+        check_name(name, "--name")
+    except ValueError as exc:
+        raise UsageError(str(exc)) from exc
+    table, where = load_table(store, name)
+    if table is None:
+        raise UsageError(f"--check: {where}: calibrate first")
+    ts = TraceStore(store)
+    if args.from_store:
+        traces = _labelled(ts, args)
+    elif args.from_traces is not None:
+        if not args.from_traces.exists():
+            raise UsageError(f"--from-traces: {args.from_traces} does not exist")
+        traces = [t for _, t in read_jsonl(args.from_traces) if t.answer is not None and t.steps and t.full_length]
+    else:
+        raise UsageError("--check needs the new labelled episodes: --from-store or --from-traces FILE.jsonl")
+    if args.limit is not None:
+        traces = traces[: args.limit]
+    try:
+        report = check_exchangeable(table, [t.kappa() for t in traces], alpha=args.alpha)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from exc
+    return table, where, report
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
@@ -230,6 +306,12 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 1
     try:
+        if args.check:
+            table, where, report = run_check(args, settings, store)
+            print(f"calibration table {table.name!r} ({where}, N={table.n}) against {report.n_new} new labelled "
+                  f"episodes:")
+            print(report.message)
+            return 3 if report.stale else 0
         table = run_calibrate(args, settings, store)
     except (UsageError, CalibrationError) as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -246,6 +328,12 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     print("   eps  success>=  q_hat   threshold 1-q_hat")
     for e in table.entries:
         print(f"  {e.eps:4.2f}  {1 - e.eps:8.2f}  {e.q_hat:.4f}  {1 - e.q_hat:+.4f}")
+    if table.groups:
+        print("per category (Mondrian): N and q_hat per eps ('-': too few episodes for that eps: keeps every answer)")
+        for cat, g in table.groups.items():
+            got = {e.eps: e.q_hat for e in g.entries}
+            print(f"  {cat:<15} N={g.n:<4} " + " ".join(
+                f"{e.eps:g}:{got[e.eps]:.3f}" if e.eps in got else f"{e.eps:g}:-" for e in table.entries))
     return 0
 
 

@@ -13,7 +13,14 @@ step, never LSV / GSV, so the robot's path is the same at every level. This tool
    :class:`services.stopper.calibration.Trace` objects that the benchmark's evaluation replays through the
    stopper's own decision function.
 
-    python bench/stop_sensitivity.py record --seeds 1 2 3 --limit 60      # once (minutes)
+3. **sweeps** each mode's level, calibrates CP per benchmark seed on its calibration split, and compares CP
+   (marginal and per-category), the relevance threshold and the entropy threshold on the test splits
+   (:func:`sweep`; ``eqa bench stop --miscalibration ...`` prints, stores and plots it).
+
+Operating points are chosen on the tuning seed (:data:`eqa.seeds.TUNING_SEED`) and evaluated on the evaluation
+seeds (:data:`eqa.seeds.EVALUATION_SEEDS`), pooled and per seed, with paired comparisons on the same episodes.
+
+    python -m eqa.app.stop_sensitivity record --seeds 11 1 2 3 --limit 90   # once (minutes)
 """
 
 from __future__ import annotations
@@ -21,6 +28,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
+import math
 import pickle
 import sys
 import time
@@ -144,7 +152,7 @@ def record(questions: list[Any], strategy: str, w: int, h: int, workers: int, pa
     """Record ``questions`` (resumable: a partial file is extended, never recomputed)."""
     from tqdm import tqdm
 
-    done: list[PerceptionEpisode] = pickle.loads(path.read_bytes()) if path.is_file() else []
+    done: list[PerceptionEpisode] = load_recording(path) if path.is_file() else []
     have = {e.question.id for e in done}
     todo = [q for q in questions if q.id not in have]
     if todo:
@@ -162,6 +170,21 @@ def record(questions: list[Any], strategy: str, w: int, h: int, workers: int, pa
         log.info("%s: %d episodes in %.1f min", path.name, len(todo), (time.monotonic() - t0) / 60)
     by_id = {e.question.id: e for e in done}
     return [by_id[q.id] for q in questions if q.id in by_id]
+
+
+class _Unpickler(pickle.Unpickler):
+    """Recordings made by running this file as a script name its classes ``__main__``."""
+
+    def find_class(self, module: str, name: str) -> Any:
+        if module in ("__main__", "stop_sensitivity") and name in ("PerceptionEpisode", "PerceptionStep"):
+            return globals()[name]
+        return super().find_class(module, name)
+
+
+def load_recording(path: Path) -> list[PerceptionEpisode]:
+    """A recording written by :func:`record` (a pickle of our own making: never load one from elsewhere)."""
+    with open(path, "rb") as fh:
+        return _Unpickler(fh).load()
 
 
 def _write(path: Path, episodes: list[PerceptionEpisode]) -> None:
@@ -196,11 +219,410 @@ def rescore(ep: PerceptionEpisode, params: Any, check_level0: bool = False) -> A
                  max_steps=q.max_steps, strategy=ep.strategy, steps=steps)
 
 
+# ---- fast replay of the stopping rules (the stopper's decide(), vectorised; tests check they agree) -------
+
+
+@dataclasses.dataclass(frozen=True)
+class Outcome:
+    """One episode under one rule and parameter."""
+
+    correct: bool
+    norm_steps: float
+    covered: bool | None = None  # CP: the sequence-level set holds the truth
+
+
+@dataclasses.dataclass
+class Episode:
+    """A re-scored trace as arrays."""
+
+    qid: str
+    category: str
+    f: Any  # (T, K)
+    rel: Any  # (T,)
+    truth: int
+    max_steps: int
+
+    @classmethod
+    def of(cls, trace: Any) -> Episode:
+        from eqa.messages import letters
+
+        f, rel = trace.arrays()
+        return cls(trace.question_id, trace.category or "", f, rel, letters(len(trace.choices)).index(trace.answer),
+                   trace.max_steps)
+
+
+def _fallback(ep: Episode, t: int) -> int:
+    import numpy as np
+
+    return int(np.argmax(ep.f[int(np.argmax(ep.rel[: t + 1]))]))
+
+
+def _entropy(f: Any) -> Any:
+    import numpy as np
+
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return -np.where(f > 0, f * np.log(np.where(f > 0, f, 1.0)), 0.0).sum(axis=1)
+
+
+def replay_fast(ep: Episode, rule: str, parameter: float) -> Outcome:
+    """What :func:`services.stopper.state.decide` does step by step, on arrays: ``rule`` is ``cp`` (parameter
+    = q_hat), ``relevance``, ``entropy`` (parameter = threshold) or ``max_steps``."""
+    import numpy as np
+
+    from services.stopper.conformal import in_set, relevance_weighted_confidence
+
+    n = len(ep.rel)
+    last = n - 1
+    limit = [t for t in range(n) if t >= ep.max_steps - 1]
+    t_limit = limit[0] if limit else None
+    covered = None
+    if rule == "cp":
+        masks = in_set(relevance_weighted_confidence(ep.f, ep.rel), parameter)
+        running = np.logical_and.accumulate(masks, axis=0)
+        covered = bool(running[-1, ep.truth])  # Claim 1: the intersection over all steps = the sequence set
+        sizes = running.sum(axis=1)
+        hit = np.flatnonzero(sizes <= 1)
+        t = int(hit[0]) if hit.size else None
+        if t is not None and (t_limit is None or t <= t_limit):
+            answer = int(np.flatnonzero(running[t])[0]) if sizes[t] == 1 else _fallback(ep, t)
+            return Outcome(answer == ep.truth, (t + 1) / ep.max_steps, covered)
+    elif rule in ("relevance", "entropy"):
+        stat = ep.rel > parameter if rule == "relevance" else _entropy(ep.f) < parameter
+        hit = np.flatnonzero(stat)
+        t = int(hit[0]) if hit.size else None
+        if t is not None and (t_limit is None or t <= t_limit):
+            return Outcome(int(np.argmax(ep.f[t])) == ep.truth, (t + 1) / ep.max_steps)
+    t = t_limit if t_limit is not None else last
+    return Outcome(_fallback(ep, t) == ep.truth, (t + 1) / ep.max_steps, covered)
+
+
+# ---- the sweep ---------------------------------------------------------------------------------------------
+
+MODES = ("category", "view", "related", "irrelevant", "all")
+DEFAULT_LEVELS = (0.0, 0.25, 0.5, 0.75, 1.0)
+EPS_SWEEP = (0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.45, 0.5, 0.6, 0.7, 0.8)
+RELEVANCE_SWEEP = (0.9, 0.8, 0.7, 0.6, 0.5, 0.45, 0.4, 0.35, 0.3, 0.25, 0.2, 0.175, 0.15, 0.125, 0.1, 0.075, 0.05)
+ENTROPY_SWEEP = (0.01, 0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 0.9, 1.1, 1.3)
+SUCCESS_TOL = 0.02  # an operating point must reach the run-to-limit success minus this on the tuning seed
+COVERAGE_EPS = 0.2  # the eps whose per-category coverage is reported
+
+
+def params_at(mode: str, level: float) -> Any:
+    from services.vlm_scorer.backends.oracle import MISCALIBRATION_MODES, OracleParams
+
+    names = MISCALIBRATION_MODES if mode == "all" else (f"miscal_{mode}",)
+    if not all(n in MISCALIBRATION_MODES for n in names):
+        raise ValueError(f"unknown miscalibration mode {mode!r}; choose from {', '.join(MODES)}")
+    return dataclasses.replace(OracleParams(), **{n: level for n in names})
+
+
+@dataclasses.dataclass
+class SeedData:
+    seed: int
+    calibration: list[PerceptionEpisode]
+    test: list[PerceptionEpisode]
+
+
+def _rules(table: Any) -> dict[str, list[tuple[float, Any]]]:
+    """(parameter, how to get the per-episode CP threshold) for each rule; CP parameters are eps."""
+    from services.stopper.state import resolve_calibration
+
+    def cp(eps: float, mondrian: bool) -> Any:
+        def q(ep: Episode) -> float:
+            choice, _ = resolve_calibration(table if mondrian else table.model_copy(update={"groups": {}}),
+                                            "sweep", eps, "sweep", ep.category)
+            assert choice is not None
+            return choice.q_hat
+        return q
+
+    out: dict[str, list[tuple[float, Any]]] = {
+        "cp": [(e, cp(e, False)) for e in table.eps_grid],
+        "cp_mondrian": [(e, cp(e, True)) for e in table.eps_grid],
+        "relevance": [(r, r) for r in RELEVANCE_SWEEP],
+        "entropy": [(h, h) for h in ENTROPY_SWEEP],
+    }
+    return out
+
+
+def evaluate_seed(data: SeedData, params: Any) -> dict[str, Any]:
+    """Calibrate on the seed's calibration split (marginal and per category), replay every rule and parameter
+    on its test split; per-episode outcomes keyed by rule -> parameter."""
+    from services.stopper.calibration import calibrate
+
+    cal = [rescore(e, params) for e in data.calibration]
+    test = [Episode.of(rescore(e, params)) for e in data.test]
+    grid = [e for e in EPS_SWEEP if _defined(len(cal), e)]
+    table = calibrate(cal, grid, name="sweep", by_category=True)
+    runs: dict[str, dict[float, list[Outcome]]] = {}
+    for rule, plist in _rules(table).items():
+        base = "cp" if rule.startswith("cp") else rule
+        runs[rule] = {p: [replay_fast(ep, base, how(ep) if callable(how) else how) for ep in test]
+                      for p, how in plist}
+    runs["max_steps"] = {1.0: [replay_fast(ep, "max_steps", 0.0) for ep in test]}
+    return {"runs": runs, "categories": [ep.category for ep in test], "n_cal": len(cal), "n_test": len(test),
+            "q_hat": {f"{e.eps:g}": e.q_hat for e in table.entries}}
+
+
+def _defined(n: int, eps: float) -> bool:
+    from services.stopper.conformal import CalibrationError, quantile_rank
+
+    try:
+        quantile_rank(n, eps)
+    except CalibrationError:
+        return False
+    return True
+
+
+def _mean(xs: Any) -> float:
+    import numpy as np
+
+    return float(np.mean(xs)) if len(xs) else math.nan
+
+
+def choose_operating_point(runs: dict[float, list[Outcome]], target: float) -> float:
+    """The parameter with the fewest mean steps among those reaching ``target`` success (else the most
+    successful one) - applied on the tuning seed only."""
+    ok = [(p, _mean([o.norm_steps for o in r])) for p, r in runs.items() if _mean([o.correct for o in r]) >= target]
+    if ok:
+        return min(ok, key=lambda x: (x[1], x[0]))[0]
+    return max(runs, key=lambda p: (_mean([o.correct for o in runs[p]]), -_mean([o.norm_steps for o in runs[p]])))
+
+
+def paired_steps(a: list[Outcome], b: list[Outcome], seed: int = 0, n_boot: int = 2000) -> dict[str, float]:
+    """Mean per-episode difference of normalised steps (a - b) with a paired bootstrap 95 % CI, and the exact
+    sign test of the success discordance (only a right / only b right)."""
+    import numpy as np
+
+    from eqa.app.evaluation import sign_test_p
+
+    d = np.array([x.norm_steps - y.norm_steps for x, y in zip(a, b, strict=True)])
+    rng = np.random.default_rng(seed)
+    boots = d[rng.integers(0, d.size, size=(n_boot, d.size))].mean(axis=1) if d.size else np.array([math.nan])
+    a_only = sum(x.correct and not y.correct for x, y in zip(a, b, strict=True))
+    b_only = sum(y.correct and not x.correct for x, y in zip(a, b, strict=True))
+    nz = d[d != 0]
+    pos = int((nz > 0).sum())
+    return {"mean_diff": float(d.mean()) if d.size else math.nan, "ci_low": float(np.quantile(boots, 0.025)),
+            "ci_high": float(np.quantile(boots, 0.975)), "steps_sign_p": sign_test_p(pos, int(nz.size) - pos),
+            "a_only_right": a_only, "b_only_right": b_only, "success_sign_p": sign_test_p(a_only, b_only)}
+
+
+def _wilson(k: int, n: int) -> tuple[float, float]:
+    if n == 0:
+        return math.nan, math.nan
+    z = 1.959964
+    p = k / n
+    c = (p + z * z / (2 * n)) / (1 + z * z / n)
+    h = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return c - h, c + h
+
+
+def sweep(seeds: dict[int, SeedData], tuning_seed: int, eval_seeds: list[int], modes: list[str],
+          levels: list[float], progress: bool = True) -> dict[str, Any]:
+    """The sensitivity study (module docstring): per mode and level, operating points chosen on
+    ``tuning_seed``, evaluated on ``eval_seeds`` pooled and per seed."""
+    from tqdm import tqdm
+
+    from eqa.seeds import EVALUATION_SEEDS, check_tuning_seed
+
+    check_tuning_seed(tuning_seed)
+    results: dict[str, Any] = {"tuning_seed": tuning_seed, "evaluation_seeds": eval_seeds,
+                               "evaluation_seeds_declared": list(EVALUATION_SEEDS), "levels": levels, "modes": {},
+                               "success_tol": SUCCESS_TOL, "coverage_eps": COVERAGE_EPS,
+                               "n": {str(s): {"calibration": len(d.calibration), "test": len(d.test)}
+                                     for s, d in seeds.items()}}
+    cache: dict[float, dict[int, Any]] = {}
+    jobs = [(m, lv) for m in modes for lv in levels]
+    for mode, level in tqdm(jobs, desc="miscalibration sweep", unit="level", file=sys.stderr, disable=not progress):
+        key = 0.0 if level == 0 else None
+        if key is not None and key in cache:
+            per_seed = cache[key]
+        else:
+            params = params_at(mode, level)
+            per_seed = {s: evaluate_seed(d, params) for s, d in seeds.items()}
+            if key is not None:
+                cache[key] = per_seed
+        results["modes"].setdefault(mode, []).append(_summarise(per_seed, tuning_seed, eval_seeds, level))
+    return results
+
+
+RULES = ("cp", "cp_mondrian", "relevance", "entropy")
+
+
+def _summarise(per_seed: dict[int, Any], tuning_seed: int, eval_seeds: list[int], level: float) -> dict[str, Any]:
+    tune = per_seed[tuning_seed]["runs"]
+    target = _mean([o.correct for o in tune["max_steps"][1.0]]) - SUCCESS_TOL
+    chosen = {rule: choose_operating_point(tune[rule], target) for rule in RULES}
+    row: dict[str, Any] = {"level": level, "tuning_target_success": target, "chosen": chosen, "pooled": {},
+                           "per_seed": {}, "paired": {}, "coverage": {}}
+
+    def pooled(rule: str, p: float) -> list[Outcome]:
+        return [o for s in eval_seeds for o in per_seed[s]["runs"][rule][p]]
+
+    outcomes = {rule: pooled(rule, chosen[rule]) for rule in RULES}
+    outcomes["max_steps"] = pooled("max_steps", 1.0)
+    for rule, outs in outcomes.items():
+        k = sum(o.correct for o in outs)
+        row["pooled"][rule] = {"n": len(outs), "success": k / max(len(outs), 1), "success_ci": _wilson(k, len(outs)),
+                               "mean_norm_steps": _mean([o.norm_steps for o in outs]),
+                               "steps_saved": 1.0 - _mean([o.norm_steps for o in outs])}
+    for s in eval_seeds:
+        row["per_seed"][str(s)] = {
+            rule: {"success": _mean([o.correct for o in per_seed[s]["runs"][rule][p]]),
+                   "mean_norm_steps": _mean([o.norm_steps for o in per_seed[s]["runs"][rule][p]])}
+            for rule, p in [*chosen.items(), ("max_steps", 1.0)]}
+    for other in ("relevance", "entropy", "cp"):
+        for mine in ("cp", "cp_mondrian"):
+            if mine != other:
+                row["paired"][f"{mine}_vs_{other}"] = paired_steps(outcomes[mine], outcomes[other])
+    # coverage of the sequence-level set at COVERAGE_EPS and at the chosen eps: marginal, Mondrian, per category
+    for rule in ("cp", "cp_mondrian"):
+        for name, eps in (("at_eps", COVERAGE_EPS), ("at_chosen", chosen[rule])):
+            cov: dict[str, Any] = {"eps": eps}
+            outs = pooled(rule, eps) if eps in per_seed[eval_seeds[0]]["runs"][rule] else []
+            cats = [c for s in eval_seeds for c in per_seed[s]["categories"]]
+            cov["marginal"] = _mean([o.covered for o in outs])
+            cov["n"] = len(outs)
+            by: dict[str, list[bool]] = {}
+            for o, c in zip(outs, cats, strict=False):
+                by.setdefault(c, []).append(bool(o.covered))
+            cov["by_category"] = {c: {"n": len(v), "coverage": _mean(v)} for c, v in sorted(by.items())}
+            row["coverage"][f"{rule}_{name}"] = cov
+    # curve reading (no tuning): the pooled evaluation curves' fewest steps at the run-to-limit success
+    full = row["pooled"]["max_steps"]["success"]
+    row["curve_steps_at_full_success"] = {}
+    for rule in RULES:
+        pts = [(_mean([o.norm_steps for o in pooled(rule, p)]), _mean([o.correct for o in pooled(rule, p)]))
+               for p in per_seed[eval_seeds[0]]["runs"][rule]]
+        ok = [st for st, su in pts if su >= full - SUCCESS_TOL]
+        row["curve_steps_at_full_success"][rule] = min(ok) if ok else None
+    return row
+
+
+# ---- output --------------------------------------------------------------------------------------------------
+
+LABEL = "simulated perception model, not a VLM"
+
+
+def print_results(results: dict[str, Any]) -> None:
+    ns = results["n"]
+    print(f"Stopping under miscalibration ({LABEL}); operating points chosen on tuning seed {results['tuning_seed']}"
+          f" (success >= run-to-limit - {results['success_tol']}), evaluated on seeds "
+          f"{', '.join(map(str, results['evaluation_seeds']))} pooled "
+          f"(test n = {sum(ns[str(s)]['test'] for s in results['evaluation_seeds'])}; calibration n per seed "
+          f"{', '.join(str(ns[str(s)]['calibration']) for s in results['evaluation_seeds'])})")
+    for mode, rows in results["modes"].items():
+        print(f"\nmode {mode}:  level | success / steps saved: limit | CP | CP-Mondrian | relevance | entropy |"
+              f" CP - relevance steps (95% CI) | coverage marginal / Mondrian at eps {results['coverage_eps']}")
+        for r in rows:
+            p = r["pooled"]
+            pr = r["paired"]["cp_vs_relevance"]
+            cells = " | ".join(f"{p[k]['success']:.3f}/{p[k]['steps_saved']:+.3f}"
+                               for k in ("max_steps", "cp", "cp_mondrian", "relevance", "entropy"))
+            cm, cmo = r["coverage"]["cp_at_eps"]["marginal"], r["coverage"]["cp_mondrian_at_eps"]["marginal"]
+            ci = f"{pr['mean_diff']:+.3f} [{pr['ci_low']:+.3f}, {pr['ci_high']:+.3f}]"
+            print(f"  {r['level']:4.2f} | {cells} | {ci} succ {pr['a_only_right']}/{pr['b_only_right']} "
+                  f"p {pr['success_sign_p']:.2g} | {cm:.3f} / {cmo:.3f}")
+
+
+def plot_results(results: dict[str, Any], out: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    modes = list(results["modes"])
+    fig, axes = plt.subplots(len(modes), 3, figsize=(13, 2.6 * len(modes) + 0.8), squeeze=False)
+    colors = {"cp": "tab:blue", "cp_mondrian": "tab:cyan", "relevance": "tab:orange", "entropy": "tab:green",
+              "max_steps": "gray"}
+    names = {"cp": "CP", "cp_mondrian": "CP per category", "relevance": "relevance thr.", "entropy": "entropy thr.",
+             "max_steps": "run to limit"}
+    for i, mode in enumerate(modes):
+        rows = results["modes"][mode]
+        lv = [r["level"] for r in rows]
+        ax0, ax1, ax2 = axes[i]
+        for rule in RULES:
+            ax0.plot(lv, [r["pooled"][rule]["steps_saved"] for r in rows], marker="o", color=colors[rule],
+                     label=names[rule])
+            ax1.plot(lv, [r["pooled"][rule]["success"] for r in rows], marker="o", color=colors[rule])
+        ax1.plot(lv, [r["pooled"]["max_steps"]["success"] for r in rows], ls="--", color="gray", label="run to limit")
+        for rule, ls in (("cp", "-"), ("cp_mondrian", ":")):
+            ax2.plot(lv, [r["coverage"][f"{rule}_at_eps"]["marginal"] for r in rows], marker="o", ls=ls,
+                     color=colors[rule], label=f"{names[rule]} (marginal)")
+            worst = [min((c["coverage"] for c in r["coverage"][f"{rule}_at_eps"]["by_category"].values()),
+                         default=math.nan) for r in rows]
+            ax2.plot(lv, worst, marker="x", ls=ls, color=colors[rule], alpha=0.5,
+                     label=f"{names[rule]} (worst category)")
+        ax2.axhline(1 - results["coverage_eps"], color="k", lw=0.8, ls="--", label="1 - eps")
+        ax0.set(ylabel=f"{mode}\nsteps saved (1 - norm. steps)", ylim=(-0.05, 1))
+        ax1.set(ylabel="success", ylim=(0, 1))
+        ax2.set(ylabel=f"CP coverage, eps {results['coverage_eps']}", ylim=(0, 1.02))
+        for ax in (ax0, ax1, ax2):
+            ax.grid(alpha=0.3)
+            ax.set_xlabel("miscalibration level")
+        if i == 0:
+            ax0.legend(fontsize=7)
+            ax1.legend(fontsize=7)
+            ax2.legend(fontsize=6)
+    ns = results["n"]
+    n_test = sum(ns[str(s)]["test"] for s in results["evaluation_seeds"])
+    fig.suptitle(f"Stopping under miscalibration ({LABEL}): operating points at equal success chosen on tuning seed "
+                 f"{results['tuning_seed']}, evaluated on seeds {', '.join(map(str, results['evaluation_seeds']))} "
+                 f"(n = {n_test} test episodes)", fontsize=9)
+    fig.tight_layout()
+    path = out / "stop_miscalibration.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def load_seeds(out: Path, seeds: list[int], limit: int | None, strategy: str, size: str, workers: int,
+               scenes_dir: Any, progress: bool = True) -> dict[int, SeedData]:
+    """Each seed's recorded calibration and test splits (recorded now when missing)."""
+    w, h = (int(v) for v in size.split("x"))
+    data = {}
+    for seed in seeds:
+        parts = []
+        for split in ("calibration", "test"):
+            lim = limit if split == "calibration" or limit is None else max(1, limit * 2 // 3)
+            qs = benchmark_questions(seed, split, lim, scenes_dir)
+            parts.append(record(qs, strategy, w, h, workers, recording_path(out, seed, split, lim, strategy, size),
+                                progress))
+        data[seed] = SeedData(seed, *parts)
+    return data
+
+
+def run(modes: list[str], levels: list[float], limit: int | None, out: Path, recordings: Path, strategy: str,
+        size: str, workers: int, progress: bool = True) -> int:
+    """``eqa bench stop --miscalibration``: record what is missing, sweep, print, store JSON and the plot."""
+    import json
+
+    from eqa.seeds import EVALUATION_SEEDS, TUNING_SEED
+    from eqa.settings import Settings
+
+    for m in modes:
+        params_at(m, 0.0)  # validates the mode name
+    if any(not 0.0 <= lv <= 1.0 for lv in levels):
+        raise ValueError("miscalibration levels must lie in [0, 1]")
+    levels = sorted(set(levels) | {0.0})
+    settings = Settings()
+    seeds = [TUNING_SEED, *EVALUATION_SEEDS]
+    data = load_seeds(recordings, seeds, limit, strategy, size, workers, settings.scenes_path, progress)
+    results = sweep(data, TUNING_SEED, list(EVALUATION_SEEDS), modes, levels, progress)
+    results.update({"scorer": f"oracle ({LABEL})", "strategy": strategy, "size": size, "limit_per_seed": limit})
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "stop_miscalibration.json").write_text(json.dumps(results, indent=1))
+    path = plot_results(results, out)
+    print_results(results)
+    print(f"results: {out / 'stop_miscalibration.json'}; plot: {path}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("record", help="record perceptions of the calibration and test splits")
-    r.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
+    r.add_argument("--seeds", type=int, nargs="+", default=[11, 1, 2, 3])
     r.add_argument("--limit", type=int, default=None, help="questions per split and seed (category mix kept); "
                    "the test split gets 2/3 of it, as eqa bench stop")
     r.add_argument("--strategy", default="semantic")
@@ -211,14 +633,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     from eqa.settings import Settings
 
-    settings = Settings()
-    w, h = (int(v) for v in args.size.split("x"))
-    for seed in args.seeds:
-        for split in ("calibration", "test"):
-            lim = args.limit if split == "calibration" or args.limit is None else max(1, args.limit * 2 // 3)
-            qs = benchmark_questions(seed, split, lim, settings.scenes_path)
-            record(qs, args.strategy, w, h, args.workers,
-                   recording_path(args.out, seed, split, lim, args.strategy, args.size))
+    load_seeds(args.out, args.seeds, args.limit, args.strategy, args.size, args.workers, Settings().scenes_path)
     return 0
 
 

@@ -14,7 +14,11 @@
 
 Store keys (all JSON):
 
-* ``eqa:trace:episode:<episode_id>`` — the trace of one episode, rewritten after each step.
+* ``eqa:trace:episode:<episode_id>`` — the trace of one episode, rewritten after each step
+  (:func:`eqa.store.episode_trace_key`).
+* ``eqa:label:<episode_id>`` — the ground truth a user posted for a finished episode (the gateway's
+  ``POST /v1/episodes/{id}/label``, :func:`eqa.store.episode_label_key`); :meth:`TraceStore.labelled` joins
+  them with the traces.
 * ``eqa:traces:<set_name>:<quoted question id>`` — one trace of a named set.
 * ``eqa:calibration:<name>`` — a calibration table.
 """
@@ -34,8 +38,8 @@ from urllib.parse import quote
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from eqa.messages import letters
-from eqa.store import Store
+from eqa.messages import EpisodeLabel, letters
+from eqa.store import LABEL_PREFIX, Store, episode_trace_key
 from services.stopper.conformal import (
     CalibrationError,
     ScoreError,
@@ -73,7 +77,6 @@ DEFAULT_EPS_GRID: tuple[float, ...] = (
 EPS_MATCH_TOL = 1e-9
 _NAME = re.compile(r"^[A-Za-z0-9_.-]{1,128}$")
 
-EPISODE_TRACE_PREFIX = "eqa:trace:episode:"
 SET_PREFIX = "eqa:traces:"
 TABLE_PREFIX = "eqa:calibration:"
 
@@ -105,6 +108,14 @@ class Trace(BaseModel):
     steps: list[TraceStep] = Field(default_factory=list)
     episode_id: str | None = None
     end_reason: str | None = None
+    stop_rule: str | None = None  # the episode's stop rule (calibration needs max_steps: full-length runs)
+
+    @property
+    def full_length(self) -> bool:
+        """Whether the trace holds a whole run: its stop rule was ``max_steps`` (it ended at the step limit or
+        with nothing left to explore), or it has all ``max_steps`` steps. A run cut short by a stopping rule
+        has a smaller ``kappa`` (its min over fewer steps) and would make ``q_hat`` too small."""
+        return self.stop_rule == "max_steps" or len(self.steps) >= self.max_steps
 
     @field_validator("choices")
     @classmethod
@@ -150,8 +161,35 @@ class CalibrationEntry(BaseModel):
     k: int  # q_hat is the k-th smallest kappa
 
 
+def _lookup(entries: Sequence[CalibrationEntry], eps: float) -> tuple[CalibrationEntry, bool] | None:
+    eps = check_eps(eps)
+    below = [e for e in entries if e.eps <= eps + EPS_MATCH_TOL]
+    if not below:
+        return None
+    best = max(below, key=lambda e: e.eps)
+    return best, abs(best.eps - eps) <= EPS_MATCH_TOL
+
+
+class GroupCalibration(BaseModel):
+    """``q_hat`` of one category of a Mondrian (per-category) table, from that category's episodes only.
+    An eps whose quantile is undefined for this group's N is absent (the group cannot certify it)."""
+
+    model_config = ConfigDict(extra="forbid")
+    n: int = Field(ge=1)
+    kappas: list[float]
+    entries: list[CalibrationEntry] = Field(default_factory=list)
+
+    def lookup(self, eps: float) -> tuple[CalibrationEntry, bool] | None:
+        return _lookup(self.entries, eps)
+
+
 class CalibrationTable(BaseModel):
-    """Non-conformity scores of N calibration episodes and ``q_hat`` for a grid of ``eps``."""
+    """Non-conformity scores of N calibration episodes and ``q_hat`` for a grid of ``eps``.
+
+    ``groups`` (optional, Mondrian conformal prediction; Vovk et al. 2005, Angelopoulos & Bates 2023 sec. 4.5):
+    the same calibration done separately per question category, so that coverage ``>= 1 - eps`` holds *within*
+    each category (exchangeability is then needed only among episodes of one category), not only on average
+    over the category mix of the calibration set."""
 
     model_config = ConfigDict(extra="forbid")
     name: str = "default"
@@ -161,6 +199,8 @@ class CalibrationTable(BaseModel):
     entries: list[CalibrationEntry]
     provenance: dict[str, Any] = Field(default_factory=dict)
     created_at: float = Field(default_factory=time.time)
+    groups: dict[str, GroupCalibration] = Field(default_factory=dict)
+    categories: list[str | None] = Field(default_factory=list)  # per score, when known
 
     @model_validator(mode="after")
     def _check(self) -> CalibrationTable:
@@ -168,23 +208,49 @@ class CalibrationTable(BaseModel):
             raise ValueError(f"table has n={self.n} but {len(self.kappas)} scores")
         if not all(math.isfinite(k) for k in self.kappas):
             raise ValueError("table scores contain NaN or inf")
+        if self.categories and len(self.categories) != self.n:
+            raise ValueError(f"table has n={self.n} but {len(self.categories)} categories")
         self.entries.sort(key=lambda e: e.eps)
+        for g in self.groups.values():
+            if len(g.kappas) != g.n or not all(math.isfinite(k) for k in g.kappas):
+                raise ValueError("a category group's scores do not match its n or are not finite")
+            g.entries.sort(key=lambda e: e.eps)
         return self
 
     @property
     def eps_grid(self) -> list[float]:
         return [e.eps for e in self.entries]
 
+    @property
+    def mondrian(self) -> bool:
+        return bool(self.groups)
+
     def lookup(self, eps: float) -> tuple[CalibrationEntry, bool] | None:
         """The entry for ``eps``: ``(entry, True)`` when stored exactly, else the nearest stored eps at or
         below the asked one (a more conservative set: coverage at least ``1 - eps``) as ``(entry, False)``,
         else None."""
-        eps = check_eps(eps)
-        below = [e for e in self.entries if e.eps <= eps + EPS_MATCH_TOL]
-        if not below:
-            return None
-        best = max(below, key=lambda e: e.eps)
-        return best, abs(best.eps - eps) <= EPS_MATCH_TOL
+        return _lookup(self.entries, eps)
+
+
+def mondrian_groups(kappas: Sequence[float], categories: Sequence[str | None], grid: Sequence[float]
+                    ) -> dict[str, GroupCalibration]:
+    """Per-category ``q_hat`` (Mondrian CP): the same quantile over each category's scores alone; an eps
+    undefined for a category's N is left out of that group."""
+    by: dict[str, list[float]] = {}
+    for k, c in zip(kappas, categories, strict=True):
+        if c:
+            by.setdefault(c, []).append(k)
+    out = {}
+    for c, ks in sorted(by.items()):
+        entries = []
+        for eps in grid:
+            try:
+                k = quantile_rank(len(ks), eps)
+                entries.append(CalibrationEntry(eps=eps, q_hat=conformal_quantile(ks, eps), k=k))
+            except CalibrationError:
+                continue
+        out[c] = GroupCalibration(n=len(ks), kappas=ks, entries=entries)
+    return out
 
 
 def calibrate(
@@ -192,8 +258,10 @@ def calibrate(
     eps_grid: Sequence[float] = DEFAULT_EPS_GRID,
     name: str = "default",
     provenance: dict[str, Any] | None = None,
+    by_category: bool = False,
 ) -> CalibrationTable:
-    """Compute ``kappa_i`` for every trace and ``q_hat(eps)`` for every eps of the grid (section V-A/B).
+    """Compute ``kappa_i`` for every trace and ``q_hat(eps)`` for every eps of the grid (section V-A/B);
+    ``by_category``: also per question category (Mondrian, :func:`mondrian_groups`).
 
     Raises :class:`CalibrationError` for an eps outside (0, 1), an empty grid, duplicate questions, a trace
     without ground truth or steps, or an eps whose quantile is undefined for this N (too few episodes).
@@ -230,7 +298,12 @@ def calibrate(
     prov = dict(provenance or {})
     prov.setdefault("strategies", sorted({t.strategy for t in items}))
     prov.setdefault("mean_steps", float(np.mean([len(t.steps) for t in items])))
-    return CalibrationTable(name=name, n=n, kappas=kappas, question_ids=ids, entries=entries, provenance=prov)
+    cats = [t.category for t in items]
+    groups = mondrian_groups(kappas, cats, grid) if by_category else {}
+    if by_category and not groups:
+        raise CalibrationError("per-category calibration asked, but no calibration trace has a category")
+    return CalibrationTable(name=name, n=n, kappas=kappas, question_ids=ids, entries=entries, provenance=prov,
+                            groups=groups, categories=cats)
 
 
 # ---- persistence ----------------------------------------------------------------------------------------
@@ -301,12 +374,46 @@ class TraceStore:
         return sorted(out, key=lambda t: t.question_id)
 
     def save_episode(self, episode_id: str, trace: Trace) -> None:
-        self.store.set(EPISODE_TRACE_PREFIX + episode_id, trace.model_dump_json().encode())
+        self.store.set(episode_trace_key(episode_id), trace.model_dump_json().encode())
 
     def trace_for_episode(self, episode_id: str) -> Trace | None:
         """The trace the stopper recorded for ``episode_id`` (None if it saw no such episode)."""
-        raw = self.store.get(EPISODE_TRACE_PREFIX + episode_id)
+        raw = self.store.get(episode_trace_key(episode_id))
         return None if raw is None else Trace.model_validate_json(raw)
+
+
+    def labelled(self, tenant: str | None = None) -> tuple[list[Trace], dict[str, int]]:
+        """The traces of labelled episodes with the label as their answer (``tenant``: only that tenant's
+        labels), ordered by episode id, and how many labels were skipped and why: no trace stored (the
+        stopper never saw the episode, or the store dropped it), a run cut short by its stopping rule (not
+        calibration data: :attr:`Trace.full_length`), a label that does not fit the trace's choices."""
+        out: list[Trace] = []
+        skipped = {"no_trace": 0, "not_full_length": 0, "invalid": 0}
+        for key in self.store.keys(LABEL_PREFIX):
+            raw = self.store.get(key)
+            if raw is None:
+                continue
+            try:
+                label = EpisodeLabel.model_validate_json(raw)
+            except ValueError as exc:
+                log.error("invalid label at %s, skipping it: %s", key, exc)
+                skipped["invalid"] += 1
+                continue
+            if tenant is not None and label.tenant != tenant:
+                continue
+            trace = self.trace_for_episode(label.episode_id)
+            if trace is None or not trace.steps:
+                skipped["no_trace"] += 1
+                continue
+            if not trace.full_length:
+                skipped["not_full_length"] += 1
+                continue
+            try:
+                out.append(Trace.model_validate({**trace.model_dump(), "answer": label.answer,
+                                                 "question_id": f"episode:{label.episode_id}"}))
+            except ValueError:
+                skipped["invalid"] += 1
+        return sorted(out, key=lambda t: t.question_id), skipped
 
 
 def read_jsonl(path: Path) -> Iterable[tuple[int, Trace]]:

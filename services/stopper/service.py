@@ -146,7 +146,7 @@ class StopperService(Service):
                 table, where = load_table(self.store, name)
             except ValueError as exc:  # bad table name in settings
                 table, where = None, str(exc)
-            choice, why = resolve_calibration(table, where, start.stop.eps, name)
+            choice, why = resolve_calibration(table, where, start.stop.eps, name, start.question.category)
             if choice is None:
                 log.error("episode %s: %s", start.episode_id, why)
                 self._finish(rec, "failed", why, None)

@@ -51,13 +51,41 @@ class CalibrationChoice(BaseModel):
     source: str
     note: str = ""
     backend: str | None = None  # the scorer backend whose scores the table was calibrated on
+    category: str | None = None  # Mondrian: the category whose own q_hat this is
+
+
+# q_hat that keeps every label (kappa <= 2 always): a Mondrian group too small to certify the asked eps
+KEEP_ALL_Q_HAT = 2.0
 
 
 def resolve_calibration(
-    table: CalibrationTable | None, where: str, eps: float, name: str
+    table: CalibrationTable | None, where: str, eps: float, name: str, category: str | None = None
 ) -> tuple[CalibrationChoice | None, str]:
     """Pick ``q_hat`` for an episode asking ``eps``: the exact entry, else the nearest stored eps at or
-    below it (said so in the note), else ``(None, reason telling the user to run eqa calibrate)``."""
+    below it (said so in the note), else ``(None, reason telling the user to run eqa calibrate)``.
+
+    A Mondrian table (``table.groups``) gives the question's category its own ``q_hat``; a category the
+    table has no group for uses the marginal one (noted); a group too small to certify ``eps`` keeps every
+    answer (``q_hat = 2``: the robot runs to its step limit, noted), never a less conservative set."""
+    if table is not None and table.mondrian:
+        marginal, why = resolve_calibration(table.model_copy(update={"groups": {}}), where, eps, name)
+        if marginal is None:
+            return None, why
+        group = table.groups.get(category or "")
+        if group is None:
+            marginal.note = "; ".join(n for n in (marginal.note, f"no per-category calibration for category "
+                                                  f"{category!r}: marginal q_hat") if n)
+            return marginal, ""
+        found = group.lookup(eps)
+        if found is None:
+            note = (f"category {category!r} has only {group.n} calibration episodes, too few for eps={eps:g}: "
+                    f"keeping every answer (calibrate on more {category} questions)")
+            return marginal.model_copy(update={"q_hat": KEEP_ALL_Q_HAT, "n": group.n, "note": note,
+                                                "category": category}), ""
+        entry, exact = found
+        note = "" if exact else f"eps={eps:g} not calibrated for category {category!r}; using eps={entry.eps:g}"
+        return marginal.model_copy(update={"q_hat": entry.q_hat, "eps": entry.eps, "n": group.n, "note": note,
+                                            "category": category}), ""
     if table is None:
         return None, (
             f"no conformal calibration table named {name!r} ({where}): run `eqa calibrate --name {name}` "
@@ -149,6 +177,7 @@ class EpisodeRecord(BaseModel):
             steps=[TraceStep(answer_probs=p, relevance=r) for p, r in zip(self.probs, self.relevance, strict=True)],
             episode_id=self.episode_id,
             end_reason=end_reason,
+            stop_rule=self.stop.rule,
         )
 
     def fallback(self) -> str | None:
@@ -209,7 +238,8 @@ def decide(rec: EpisodeRecord, scores: StepScores) -> Decision | None:
         running = [y for y in prev if y in cset]
         rec.running = running
         notes = [n for n in (cal.note, backend_mismatch(cal, scores.backend)) if n]
-        tag = f"eps={cal.eps:g}, q_hat={cal.q_hat:.4f}, N={cal.n}" + "".join(f"; {n}" for n in notes)
+        tag = (f"eps={cal.eps:g}, q_hat={cal.q_hat:.4f}, N={cal.n}" + (f" of {cal.category}" if cal.category else "")
+               + "".join(f"; {n}" for n in notes))
         answer = None
         if len(running) == 1:
             stop, answer = True, running[0]
