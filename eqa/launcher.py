@@ -8,6 +8,13 @@ own ``EQA_INSTANCE``; output goes to ``{data_dir}/logs/<instance>.log``.
 
 A supervisor thread restarts a child that exits unexpectedly (with backoff, at most ``max_restarts`` times);
 the services restore their per-episode state from the store, so the episode goes on.
+
+One host's share of a fleet (``join``, issue 21): the launcher's router also connects to an existing router
+(``eqa up --join tls/10.0.0.1:7447``) and the children are Zenoh *clients* of it, so all of this host's traffic
+goes through its router (no peer-to-peer links across hosts). With ``EQA_ZENOH_TLS_DIR`` (``eqa certs``) the
+router listens on ``tls/`` with the ``router`` certificate and each child gets its own role's certificate; with
+``EQA_ZENOH_USERS_FILE`` each child authenticates as its role with the password listed there; with
+``EQA_ZENOH_ACL`` the launcher's router enforces the stream-ownership list on its children (``eqa.security``).
 """
 
 from __future__ import annotations
@@ -76,6 +83,7 @@ class Fleet:
         extra_env: dict[str, str] | None = None,
         restart: bool = True,
         max_restarts: int = 5,
+        join: list[str] | None = None,
     ) -> None:
         unknown = set(services) - set(ALL_SERVICES)
         if unknown:
@@ -88,6 +96,8 @@ class Fleet:
         self.extra_env = dict(extra_env or {})
         self.restart_enabled = restart
         self.max_restarts = max_restarts
+        self.join = list(join or [])
+        self.secured = settings.zenoh_tls_dir is not None or settings.zenoh_users_file is not None
         self.children: list[Child] = []
         self._hub: Bus | None = None
         self._alive: set[tuple[str, str]] = set()
@@ -101,21 +111,42 @@ class Fleet:
     def _hub_settings(self) -> Settings:
         # The children connect to the router's first endpoint, so it needs a concrete port: ":0" (any port)
         # is resolved to a free one here.
+        proto = "tls" if self.settings.zenoh_tls_dir is not None else "tcp"
         listen = [
             f"{e.rsplit(':', 1)[0]}:{free_port()}" if e.endswith(":0") else e for e in self.settings.zenoh_listen
-        ] or [f"tcp/127.0.0.1:{free_port()}"]
-        return self.settings.model_copy(
-            update={"zenoh_mode": "router", "zenoh_listen": listen, "zenoh_connect": [], "instance": "launcher"}
-        )
+        ] or [f"{proto}/127.0.0.1:{free_port()}"]
+        update: dict[str, object] = {
+            "zenoh_mode": "router", "zenoh_listen": listen, "zenoh_connect": self.join, "instance": "launcher",
+        }
+        update.update(self._role_security("router"))
+        return self.settings.model_copy(update=update)
+
+    def _role_security(self, role: str) -> dict[str, object]:
+        """TLS certificate and user/password of one role, from EQA_ZENOH_TLS_DIR and EQA_ZENOH_USERS_FILE."""
+        out: dict[str, object] = {}
+        tls_dir = self.settings.zenoh_tls_dir
+        if tls_dir is not None:
+            cert, key, ca = tls_dir / f"{role}.pem", tls_dir / f"{role}.key", tls_dir / "ca.pem"
+            for path in (cert, key, ca):
+                if not path.is_file():
+                    raise LaunchError(f"{path} is missing: make the fleet's certificates with `eqa certs {tls_dir}`")
+            out.update(zenoh_tls_ca=ca, zenoh_tls_cert=cert, zenoh_tls_key=key)
+        if self.settings.zenoh_users_file is not None:
+            out.update(zenoh_user=role, zenoh_password=_password_of(self.settings.zenoh_users_file, role))
+        return out
 
     def _child_env(self, service: str, instance: str) -> dict[str, str]:
         env = {k: v for k, v in os.environ.items() if not k.startswith("EQA_")}
         env.update(self.settings.env())
+        client = bool(self.join) or self.secured  # all traffic through this host's router
+        env.update({f"EQA_{k.upper()}": str(v) for k, v in self._role_security(service).items()})
+        env.pop("EQA_ZENOH_USERS_FILE", None)  # the router checks passwords, the children only present theirs
         env.update(
             {
                 "EQA_INSTANCE": instance,
-                "EQA_ZENOH_MODE": "peer",
-                "EQA_ZENOH_LISTEN": "tcp/127.0.0.1:0",
+                "EQA_ZENOH_MODE": "client" if client else "peer",
+                "EQA_ZENOH_LISTEN": "" if client else "tcp/127.0.0.1:0",
+                "EQA_ZENOH_ACL": "false",
                 "EQA_ZENOH_CONNECT": self.endpoint,
                 "EQA_DATA_DIR": str(Path(self.settings.data_dir).resolve()),
                 "PYTHONUNBUFFERED": "1",
@@ -267,11 +298,25 @@ class Fleet:
             raise LaunchError("fleet is not started")
         return self._hub
 
-    def client_settings(self) -> Settings:
-        """Settings for another peer (a test, the CLI) joining this fleet."""
+    def client_settings(self, role: str = "operator") -> Settings:
+        """Settings for another peer (a test, the CLI) joining this fleet (as ``role`` when it is secured)."""
+        if self.join or self.secured:
+            update: dict[str, object] = {"zenoh_mode": "client", "zenoh_listen": [], "zenoh_connect": [self.endpoint],
+                                         "zenoh_acl": False, "zenoh_users_file": None}
+            update.update(self._role_security(role))
+            return self.settings.model_copy(update=update)
         return self.settings.model_copy(
             update={"zenoh_mode": "peer", "zenoh_listen": ["tcp/127.0.0.1:0"], "zenoh_connect": [self.endpoint]}
         )
+
+
+def _password_of(users_file: Path, user: str) -> str:
+    """The password of ``user`` in a Zenoh ``user:password`` dictionary file."""
+    for line in Path(users_file).read_text().splitlines():
+        name, sep, password = line.partition(":")
+        if sep and name.strip() == user:
+            return password.strip()
+    raise LaunchError(f"{users_file} has no password for {user!r}: add a line '{user}:<password>'")
 
 
 def tail(path: Path, lines: int = 20) -> str:

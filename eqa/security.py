@@ -14,7 +14,8 @@ changes. Off by default (the loopback peer fleet of ``eqa up`` needs none of it)
   allows each role exactly what its service does (:data:`STREAM_OWNERS`): the stopper alone puts
   ``EpisodeEnd``, the gateway alone ``EpisodeStart``/``EpisodeCancel``, a scorer replica alone answers score
   queries, every role holds liveliness tokens only under its own service name. With TLS the subject is the
-  certificate's common name, with user/password the user name, with both the two must agree.
+  certificate's common name (user/password then is a second gate at connection time); without TLS it is the
+  user name, which only the accepting end of a link learns: so a fleet of several routers needs TLS.
 
 Zenoh enforces the list on the node that holds it, on the messages that come in over its links. So a secured
 fleet is routers (``EQA_ZENOH_MODE=router``, ACL on) with services connected to them as clients
@@ -180,7 +181,11 @@ def security_sections(settings: Settings) -> dict[str, Any]:
     if usrpwd:
         out["transport/auth/usrpwd"] = usrpwd
     if settings.zenoh_acl:
-        out["access_control"] = acl_config(tls_on(settings), settings.zenoh_users_file is not None)
+        # With TLS the subject is the certificate's common name alone: a node that opened a link knows the
+        # other end's certificate but not its user name (user/password authenticates the opener only), so
+        # requiring both would deny everything a router forwards to the router it connected to.
+        by_cert = tls_on(settings)
+        out["access_control"] = acl_config(by_cert, not by_cert and settings.zenoh_users_file is not None)
     return out
 
 

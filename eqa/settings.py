@@ -43,6 +43,7 @@ class Settings(BaseSettings):
     zenoh_password: str | None = Field(default=None, description="its password")
     zenoh_users_file: Path | None = Field(default=None, description="user:password lines a router accepts")
     zenoh_acl: bool = Field(default=False, description="enforce the stream-ownership ACL on this node (routers)")
+    zenoh_tls_dir: Path | None = Field(default=None, description="eqa up: dir of <role>.pem/.key + ca.pem (eqa certs)")
     # robot sharding among instances of a stateful service (issue 21; eqa/sharding.py)
     shard: bool = Field(default=True, description="share robots among live instances of a service (rendezvous hash)")
 

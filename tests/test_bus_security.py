@@ -90,14 +90,14 @@ def _start(eid: str) -> EpisodeStart:
 def test_forged_episode_end_is_refused_and_the_stoppers_is_delivered(fx: Fixture):
     with Bus(fx.client("sim"), "sim", "sim") as sim, Bus(fx.client("gateway"), "gateway", "gw") as gw, \
             Bus(fx.client("stopper"), "stopper", "st") as st, Bus(fx.client("mapper"), "mapper", "forger") as mapper, \
-            Bus(fx.client("stopper", user="mapper"), "stopper", "mixed") as mixed:
+            Bus(fx.client("mapper", user="stopper"), "stopper", "mixed") as mixed:
         inbox = Inbox()
         sim.subscribe(keys.any_robot(keys.EPISODE_END), EpisodeEnd, inbox)
         time.sleep(0.5)
         end_key = keys.stream("r0", keys.EPISODE_END)
         mapper.publish(end_key, _end("D"))   # authenticated, but not the stream's owner
         gw.publish(end_key, _end("C"))       # the gateway owns EpisodeStart, not EpisodeEnd
-        mixed.publish(end_key, _end("B"))    # a stopper certificate with another role's password
+        mixed.publish(end_key, _end("B"))    # the stopper's password, but a mapper's certificate
         st.publish(end_key, _end("A"))       # the owner
         assert inbox.wait_for(lambda m: m.answer == "A"), "the stopper's EpisodeEnd was not delivered"
         time.sleep(0.5)
@@ -200,3 +200,25 @@ def test_incomplete_security_settings_say_what_to_set(tmp_path: Path):
         security.check(base.model_copy(update={"zenoh_tls_ca": ca, "zenoh_tls_cert": ca, "zenoh_tls_key": ca,
                                                "zenoh_connect": ["tcp/127.0.0.1:1"]}))
     assert security.security_sections(Settings(data_dir=tmp_path)) == {}  # the default fleet: untouched
+
+
+def test_a_forger_behind_another_hosts_router_is_refused_too(fx: Fixture):
+    """Two routers (one host's share joined to the fleet's router, as `eqa up --join` makes): the forger is a
+    client of the second router; its router refuses the message, and the owner's passes both routers."""
+    hub_port = free_port()
+    hub = fx.router().model_copy(update={"zenoh_listen": [f"tls/127.0.0.1:{hub_port}"],
+                                          "zenoh_connect": [fx.endpoint], "zenoh_user": "router",
+                                          "zenoh_password": PASSWORDS["router"]})
+    with Bus(hub, "router", "hub"):
+        behind = f"tls/127.0.0.1:{hub_port}"
+        with Bus(fx.client("sim"), "sim", "sim") as sim, \
+                Bus(fx.client("mapper", endpoint=behind), "mapper", "forger") as mapper, \
+                Bus(fx.client("stopper", endpoint=behind), "stopper", "st") as st:
+            inbox = Inbox()
+            sim.subscribe(keys.any_robot(keys.EPISODE_END), EpisodeEnd, inbox)
+            time.sleep(0.7)
+            mapper.publish(keys.stream("r1", keys.EPISODE_END), _end("D"))
+            st.publish(keys.stream("r1", keys.EPISODE_END), _end("A"))
+            assert inbox.wait_for(lambda m: m.answer == "A"), "the stopper's EpisodeEnd did not cross two routers"
+            time.sleep(0.5)
+            assert [m.answer for m in inbox.items] == ["A"]

@@ -31,6 +31,7 @@ _SUBCOMMAND_MODULES = (
     "services.vlm_scorer.cli",
     "eqa.app.calibrate",
     "eqa.app.bench_cli",
+    "eqa.app.fleet_cli",
 )
 
 
@@ -64,9 +65,14 @@ def cmd_up(args: argparse.Namespace) -> int:
     check_scorer(settings)
     setup_logging(settings.log_level, "eqa-up")
     services = list(PIPELINE if args.no_gateway else ALL_SERVICES)
+    if args.services:
+        services = [s.strip() for s in args.services.split(",") if s.strip()]
     if args.port is not None:
         settings = settings.model_copy(update={"gateway_port": args.port})
-    fleet = Fleet(settings, services=services, scorers=args.scorers)
+    try:
+        fleet = Fleet(settings, services=services, scorers=args.scorers, join=args.join)
+    except LaunchError as exc:
+        raise UsageError(str(exc)) from None
     try:
         fleet.start(timeout=args.timeout)
     except LaunchError as exc:
@@ -75,7 +81,7 @@ def cmd_up(args: argparse.Namespace) -> int:
     print(f"fleet up: {len(fleet.children)} processes, zenoh router at {fleet.endpoint}", flush=True)
     print(f"join it from another shell (eqa health, more scorer replicas): EQA_ZENOH_CONNECT={fleet.endpoint}",
           flush=True)
-    if not args.no_gateway:
+    if "gateway" in services:
         print(f"gateway: http://{settings.gateway_host}:{settings.gateway_port}/docs", flush=True)
     print(f"logs: {settings.data_dir / 'logs'}; Ctrl-C stops", flush=True)
     done = threading.Event()
@@ -123,6 +129,11 @@ def build_parser() -> argparse.ArgumentParser:
     up.add_argument("--no-gateway", action="store_true", help="run the pipeline services only")
     up.add_argument("--port", type=int, default=None, help="gateway port (default EQA_GATEWAY_PORT=8080)")
     up.add_argument("--timeout", type=float, default=90.0, help="seconds to wait until all are alive")
+    up.add_argument("--services", default=None,
+                    help="comma-separated services to run on this host (default: all; e.g. mapper,planner)")
+    up.add_argument("--join", action="append", default=None, metavar="ENDPOINT",
+                    help="join an existing fleet: this host's router connects to ENDPOINT (e.g. "
+                    "tls/10.0.0.1:7447; repeatable) and runs only --services (README 'Scaling out')")
     up.set_defaults(func=cmd_up)
 
     health = sub.add_parser("health", help="check that services hold a liveliness token (compose health checks)")
