@@ -30,6 +30,12 @@ def episode_end_key(episode_id: str) -> str:
     return f"eqa:stopper:end:{episode_id}"
 
 
+def task_metrics_key(episode_id: str) -> str:
+    """Where the sim keeps a task episode's phase metrics (FindObj ... SR, collisions, pick attempts; issue 17),
+    rewritten after every step: the stopper puts them in the episode's ``EpisodeEnd.metrics``."""
+    return f"eqa:sim:task:{episode_id}"
+
+
 def episode_trace_key(episode_id: str) -> str:
     """Where the stopper keeps the per-step scores (trace) of an episode, rewritten after each step."""
     return f"eqa:trace:episode:{episode_id}"
