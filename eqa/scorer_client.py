@@ -1,7 +1,9 @@
 """Client of the scorer replica pool.
 
 ``ScorerClient(bus, settings).score(request)`` sends one :class:`~eqa.messages.ScoreRequest` to one live
-scorer replica and returns its :class:`~eqa.messages.ScoreResult`.
+scorer replica and returns its :class:`~eqa.messages.ScoreResult`; ``detect`` (a
+:class:`~eqa.messages.DetectRequest`, HELIOS detections) and ``values`` (a :class:`~eqa.messages.ValueRequest`,
+the per-target value prompt) go through the same pool with the same balancing, failover and errors.
 
 * Discovery: a liveliness subscriber on ``eqa/v1/alive/vlm_scorer/*`` keeps the set of live replicas (a
   replica's liveliness instance is its replica id; see ``services/vlm_scorer/service.py``).
@@ -26,7 +28,16 @@ import time
 
 from eqa import keys
 from eqa.bus import Bus
-from eqa.messages import ErrorReply, ScoreRequest, ScoreResult
+from eqa.messages import (
+    DetectRequest,
+    DetectResult,
+    ErrorReply,
+    Message,
+    ScoreRequest,
+    ScoreResult,
+    ValueRequest,
+    ValueResult,
+)
 from eqa.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -108,6 +119,17 @@ class ScorerClient:
     # ---- scoring --------------------------------------------------------------------------------------
     def score(self, request: ScoreRequest) -> ScoreResult:
         """One replica's answer to ``request``; see the module docstring for failover and errors."""
+        return self._ask(request, ScoreResult)  # type: ignore[return-value]
+
+    def detect(self, request: DetectRequest) -> DetectResult:
+        """Open-vocabulary detections of one frame (HELIOS object layer), same pool, failover and errors."""
+        return self._ask(request, DetectResult)  # type: ignore[return-value]
+
+    def values(self, request: ValueRequest) -> ValueResult:
+        """The per-target value prompt "Seems like there is a (object) ahead" (HELIOS 3.1.2), same pool."""
+        return self._ask(request, ValueResult)  # type: ignore[return-value]
+
+    def _ask(self, request: ScoreRequest | DetectRequest | ValueRequest, expected: type[Message]) -> Message:
         with self._lock:
             self.stats["requests"] += 1
         tried: set[str] = set()
@@ -119,7 +141,7 @@ class ScorerClient:
                 break
             tried.add(replica)
             try:
-                replies = self.bus.query(keys.scorer_replica(replica), request, self.timeout_s, ScoreResult)
+                replies = self.bus.query(keys.scorer_replica(replica), request, self.timeout_s, expected)
             except Exception as exc:
                 replies = []
                 reasons.append(f"{replica}: {type(exc).__name__}: {exc}")
@@ -130,7 +152,7 @@ class ScorerClient:
                     with self._lock:
                         self.stats["errors"] += 1
                     raise ScorerError(reply)
-                if isinstance(reply, ScoreResult):
+                if isinstance(reply, expected) and isinstance(reply, (ScoreResult, DetectResult, ValueResult)):
                     if not reply.replica:
                         reply.replica = keys.replica_of(key)
                     with self._lock:

@@ -30,13 +30,26 @@ import zenoh
 from eqa import keys
 from eqa.bus import Bus
 from eqa.codec import CodecError
-from eqa.messages import ErrorReply, Message, ScoreRequest, ScoreResult, decode, encode
+from eqa.messages import (
+    DetectRequest,
+    DetectResult,
+    ErrorReply,
+    Message,
+    ScoreRequest,
+    ScoreResult,
+    ValueRequest,
+    ValueResult,
+    decode,
+    encode,
+)
 from eqa.recording import EpisodeRecorder
 from eqa.service import Service
 from eqa.settings import Settings
 from eqa.store import Store
 from services.vlm_scorer.backends import Backend, make_backend
 from services.vlm_scorer.backends.base import Scores
+from services.vlm_scorer.detector import Detector, make_detector
+from services.vlm_scorer.target_values import target_values
 from services.vlm_scorer.visual_prompt import annotate
 
 log = logging.getLogger(__name__)
@@ -63,6 +76,8 @@ class ScorerService(Service):
         super().__init__(settings, bus or Bus(settings, self.name, self.replica), store)
         self.backend = backend
         self.backend_error: str | None = None
+        self.detector: Detector | None = None  # HELIOS detector (EQA_DETECTOR_BACKEND), made on first request
+        self.detector_error: str | None = None
         self._jobs: queue.Queue[Any] = queue.Queue()
         self._server: threading.Thread | None = None
         self._recorders: OrderedDict[str, EpisodeRecorder] = OrderedDict()
@@ -93,6 +108,8 @@ class ScorerService(Service):
         self._recorders.clear()
         if self.backend is not None:
             self.backend.close()
+        if self.detector is not None:
+            self.detector.close()
 
     # ---- serving --------------------------------------------------------------------------------------
     def _serve(self) -> None:
@@ -112,12 +129,17 @@ class ScorerService(Service):
     def _answer(self, query: zenoh.Query) -> None:
         payload = query.payload.to_bytes() if query.payload is not None else b""
         try:
-            request = decode(payload, ScoreRequest)
+            request = decode(payload, (ScoreRequest, DetectRequest, ValueRequest))
         except CodecError as exc:
             log.warning("malformed score request: %s", exc)
             reply: Message = ErrorReply(source=f"vlm_scorer/{self.replica}", reason=str(exc))
         else:
-            reply = self.handle(request)
+            if isinstance(request, DetectRequest):
+                reply = self.handle_detect(request)
+            elif isinstance(request, ValueRequest):
+                reply = self.handle_values(request)
+            else:
+                reply = self.handle(request)
         query.reply(self.key, encode(reply))
 
     def handle(self, req: ScoreRequest) -> Message:
@@ -165,6 +187,63 @@ class ScorerService(Service):
             replica=self.replica,
             latency_ms=latency,
             proposed_choices=scores.proposed_choices,
+        )
+
+    # ---- HELIOS: detections and per-target values ------------------------------------------------------
+    def _detector(self) -> Detector | None:
+        if self.detector is None and self.detector_error is None:
+            try:
+                self.detector = make_detector(self.settings)
+            except Exception as exc:
+                self.detector_error = f"detector backend {self.settings.detector_backend!r} is unavailable: {exc}"
+                log.error("%s; replying with this error to every detection request", self.detector_error)
+        return self.detector
+
+    def _error_for(self, req: DetectRequest | ValueRequest, reason: str) -> ErrorReply:
+        return ErrorReply(
+            source=f"vlm_scorer/{self.replica}", reason=reason, episode_id=req.episode_id, step=req.step,
+            request_id=req.request_id,
+        )
+
+    def handle_detect(self, req: DetectRequest) -> Message:
+        """Detections of one frame (the in-process call; the queryable wraps it)."""
+        detector = self._detector()
+        if detector is None:
+            return self._error_for(req, self.detector_error or "detector is not loaded")
+        t0 = time.perf_counter()
+        try:
+            dets = detector.detect(req)
+        except (ValueError, RuntimeError) as exc:
+            log.warning("detect request %s (episode %s step %d) refused: %s", req.request_id, req.episode_id,
+                        req.step, exc)
+            return self._error_for(req, str(exc))
+        except Exception as exc:
+            log.exception("detector failed on %s", req.request_id)
+            return self._error_for(req, f"{type(exc).__name__}: {exc}")
+        self.served += 1
+        return DetectResult(
+            request_id=req.request_id, episode_id=req.episode_id, step=req.step, detections=dets,
+            backend=detector.name, model=detector.model_name, replica=self.replica,
+            latency_ms=(time.perf_counter() - t0) * 1000.0,
+        )
+
+    def handle_values(self, req: ValueRequest) -> Message:
+        """P(Yes) of "Seems like there is a (target) ahead" per target (HELIOS 3.1.2)."""
+        if self.backend_error is not None or self.backend is None:
+            return self._error_for(req, self.backend_error or "scorer backend is not loaded")
+        t0 = time.perf_counter()
+        try:
+            values = target_values(self.backend, req)
+        except (ValueError, RuntimeError) as exc:
+            return self._error_for(req, str(exc))
+        except Exception as exc:
+            log.exception("value prompt failed on %s", req.request_id)
+            return self._error_for(req, f"{type(exc).__name__}: {exc}")
+        self.served += 1
+        return ValueResult(
+            request_id=req.request_id, episode_id=req.episode_id, step=req.step, values=values,
+            backend=self.backend.name, model=self.backend.model_name, replica=self.replica,
+            latency_ms=(time.perf_counter() - t0) * 1000.0,
         )
 
     # ---- monitoring -----------------------------------------------------------------------------------
