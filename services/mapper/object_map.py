@@ -1,0 +1,186 @@
+"""The mapper's object layer of one task episode (HELIOS 3.1.3): detections in, ObjectInstance summaries out.
+
+Glue between the bus messages and the pure torch core (:mod:`services.mapper.objects`): it builds the
+frame's :class:`~eqa.messages.DetectRequest` for the task's classes with their per-class thresholds (object
+od_g, start receptacle od_a, goal receptacle od_b; Table 3), fuses the :class:`~eqa.messages.DetectResult`,
+and summarises every instance as an :class:`~eqa.messages.ObjectInstance` (class, S, U, Psi of Eq. 7 per task
+class, centre, extent). Candidate instances (a task class with S >= ``cs_min``, at most ``max_gaze_instances``
+of them, best first) also get gaze points (:func:`services.mapper.gaze.gaze_points`) scored with Psi' (Eq. 11)
+and the optimistic IG (Eq. 12) of their believed task class; ``ig`` is the best IG over them.
+
+A history of each instance's Psi over the steps is kept for monitoring (bounded).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import zipfile
+from collections import OrderedDict
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from eqa.messages import DetectRequest, DetectResult, Frame, GazePoint, GridSpec, ObjectInstance, Task
+from services.mapper.gaze import gaze_points
+from services.mapper.objects.config import OTHER, ObjectLayerConfig
+from services.mapper.objects.layer import ObjectLayer, UpdateStats, camera_from_gaze, pixel_classes
+
+MAX_HISTORY = 200  # Psi samples kept per instance
+MAX_TRACKED = 256  # instances with a Psi history
+
+
+@dataclass(frozen=True)
+class ObjectMapConfig:
+    layer: ObjectLayerConfig = field(default_factory=ObjectLayerConfig)
+    device: str = "cpu"
+    od_object: float = 0.25  # od_g
+    od_start: float = 0.35  # od_a
+    od_goal: float = 0.45  # od_b
+    cs_min: float = 0.3  # cs_a / cs_g / cs_b: S for an instance to be a candidate (gets gaze points)
+    gaze_radius_m: float = 0.9
+    gaze_points: int = 12
+    gaze_obstacle_m: float = 1.0
+    max_gaze_instances: int = 4
+    max_instances: int = 64
+
+    @classmethod
+    def from_settings(cls, s: object) -> ObjectMapConfig:
+        g = lambda name, default: getattr(s, name, default)  # noqa: E731
+        layer = ObjectLayerConfig(
+            alpha_cpa=g("helios_alpha_cpa", 3.0), alpha_cs=g("helios_alpha_cs", 1.0),
+            render_scale=g("helios_render_scale", 0.5), max_gaussians=g("helios_max_gaussians", 60_000),
+            max_new_per_frame=g("helios_max_new_per_frame", 6_000), gaze_width=g("helios_gaze_width", 96),
+        )
+        return cls(
+            layer=layer, device=g("helios_device", "cpu"), od_object=g("helios_od_g", 0.25),
+            od_start=g("helios_od_a", 0.35), od_goal=g("helios_od_b", 0.45), cs_min=g("helios_cs_g", 0.3),
+            gaze_radius_m=g("helios_gaze_radius_m", 0.9), gaze_points=g("helios_gaze_points", 12),
+            gaze_obstacle_m=g("helios_gaze_obstacle_m", 1.0), max_instances=g("helios_max_instances", 64),
+        )
+
+
+def task_classes(task: Task, config: ObjectMapConfig) -> tuple[list[str], list[float]]:
+    """The detector's vocabulary of a task and its per-class thresholds (od_g, od_a, od_b)."""
+    out: dict[str, float] = {}
+    for name, th in ((task.object, config.od_object), (task.start_receptacle, config.od_start),
+                     (task.goal_receptacle, config.od_goal)):
+        if name is not None and name not in out:
+            out[name] = th
+    return list(out), list(out.values())
+
+
+class ObjectMap:
+    """One episode's object layer with the task's vocabulary (see the module docstring)."""
+
+    def __init__(self, classes: list[str], thresholds: list[float], config: ObjectMapConfig | None = None) -> None:
+        if len(thresholds) != len(classes):
+            raise ValueError("one threshold per class")
+        self.config = config or ObjectMapConfig()
+        self.thresholds = list(thresholds)
+        self.layer = ObjectLayer(classes, self.config.layer, self.config.device)
+        self.history: OrderedDict[int, list[tuple[int, float]]] = OrderedDict()
+        self.last_stats: UpdateStats | None = None
+
+    @classmethod
+    def for_task(cls, task: Task, config: ObjectMapConfig | None = None) -> ObjectMap:
+        config = config or ObjectMapConfig()
+        classes, th = task_classes(task, config)
+        return cls(classes, th, config)
+
+    @property
+    def task_classes(self) -> list[str]:
+        return self.layer.classes[:-1]
+
+    def detect_request(self, frame: Frame, seed: int = 0) -> DetectRequest:
+        return DetectRequest(
+            episode_id=frame.episode_id, step=frame.step, rgb=frame.rgb, classes=self.task_classes,
+            thresholds=self.thresholds, instances=frame.instances, labels=frame.labels, depth=frame.depth, seed=seed,
+        )
+
+    def integrate(self, frame: Frame, result: DetectResult) -> UpdateStats:
+        """Fuse one frame with its detections (a frame whose detection failed is not fused: "nothing
+        detected" would count as evidence against every object in view)."""
+        h, w = frame.depth.shape
+        dets = [(d.cls, d.score, d.full_mask(h, w)) for d in result.detections]
+        pc = pixel_classes(dets, self.layer.classes, (h, w))
+        self.last_stats = self.layer.update(frame.depth, pc, frame.camera_pose, frame.intrinsics, frame.step)
+        for inst in self.layer.instances():
+            if inst.cls == self.layer.other and inst.instance_id not in self.history:
+                continue
+            hist = self.history.setdefault(inst.instance_id, [])
+            hist.append((frame.step, max(inst.psi[:-1])))
+            del hist[:-MAX_HISTORY]
+            self.history.move_to_end(inst.instance_id)
+        while len(self.history) > MAX_TRACKED:
+            self.history.popitem(last=False)
+        return self.last_stats
+
+    def summaries(
+        self, grid: GridSpec | None = None, occupancy: np.ndarray | None = None, camera_height: float = 1.5
+    ) -> list[ObjectInstance]:
+        """Every instance (up to ``max_instances``, best task-class score first); gaze points for candidates
+        when the 2D map is given."""
+        c = self.config
+        names = self.layer.classes
+        insts = sorted(self.layer.instances(), key=lambda i: -max(i.S[:-1]))[: c.max_instances]
+        out: list[ObjectInstance] = []
+        gazed = 0
+        for inst in insts:
+            best = int(np.argmax(inst.S[:-1]))  # the believed task class
+            gaze: list[GazePoint] = []
+            candidate = inst.S[best] >= c.cs_min and gazed < c.max_gaze_instances
+            if grid is not None and occupancy is not None and candidate:
+                gazed += 1
+                gaze = self._gaze(inst.instance_id, best, inst.centre, inst.extent, grid, occupancy, camera_height)
+            out.append(ObjectInstance(
+                instance_id=inst.instance_id, cls=names[inst.cls], S=inst.S[inst.cls], U=inst.U[inst.cls],
+                psi=inst.psi[inst.cls],
+                scores={names[k]: (inst.S[k], inst.U[k], inst.psi[k]) for k in range(len(names) - 1)},
+                centre=_finite3(inst.centre), extent=_finite3(inst.extent), n_gaussians=inst.n_gaussians,
+                ig=max((g.ig for g in gaze), default=0.0), gaze=gaze,
+            ))
+        return out
+
+    def _gaze(self, instance_id: int, cls: int, centre, extent, grid: GridSpec, occupancy: np.ndarray,
+              camera_height: float) -> list[GazePoint]:
+        c = self.config
+        cands = gaze_points(occupancy, None, grid, tuple(centre), tuple(max(e, 0.0) for e in extent),
+                            c.gaze_radius_m, c.gaze_points, c.gaze_obstacle_m, camera_height)
+        out = []
+        for g in cands:
+            pose = camera_from_gaze(g.x, g.y, g.yaw, g.pitch, camera_height)
+            opt = self.layer.optimistic(instance_id, cls, [pose])
+            out.append(GazePoint(x=g.x, y=g.y, yaw=g.yaw, pitch=g.pitch, psi_prime=opt.psi_prime, ig=opt.ig))
+        return out
+
+    # ---- persistence ------------------------------------------------------------------------------------
+    def snapshot(self) -> bytes:
+        buf = io.BytesIO()
+        with zipfile.ZipFile(buf, "w", zipfile.ZIP_STORED) as z:
+            z.writestr("layer.npz", self.layer.snapshot())
+            z.writestr("meta.json", json.dumps({
+                "thresholds": self.thresholds,
+                "history": [[k, v] for k, v in self.history.items()],
+            }))
+        return buf.getvalue()
+
+    @classmethod
+    def restore(cls, data: bytes, config: ObjectMapConfig | None = None) -> ObjectMap:
+        config = config or ObjectMapConfig()
+        with zipfile.ZipFile(io.BytesIO(data)) as z:
+            layer = ObjectLayer.restore(z.read("layer.npz"), config.layer, config.device)
+            meta = json.loads(z.read("meta.json"))
+        om = cls(layer.classes[:-1], meta["thresholds"], config)
+        om.layer = layer
+        om.history = OrderedDict((int(k), [(int(s), float(p)) for s, p in v]) for k, v in meta["history"])
+        return om
+
+
+def _finite3(v) -> tuple[float, float, float]:
+    a = [float(x) if math.isfinite(float(x)) else 0.0 for x in v]
+    return (a[0], a[1], a[2])
+
+
+__all__ = ["OTHER", "ObjectMap", "ObjectMapConfig", "task_classes"]

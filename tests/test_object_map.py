@@ -1,0 +1,77 @@
+"""The mapper's object map (services/mapper/object_map.py): task vocabulary and thresholds, fusion of
+DetectResults from rendered frames, ObjectInstance summaries with gaze points scored by Psi' and IG, and the
+snapshot a restarted mapper restores."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from objects_support import ring_views
+
+from eqa.messages import DetectResult, Frame, GridSpec, MapUpdate, Pose2D, Task, decode, encode
+from services.mapper.object_map import ObjectMap, ObjectMapConfig, task_classes
+from services.mapper.objects.config import ObjectLayerConfig
+from services.sim.housegen import generate_house
+from services.sim.render import Renderer
+from services.vlm_scorer.detector.oracle import OracleDetector, OracleDetectorParams
+
+TASK = Task(kind="pick_place", text="Move the chair from the table to the sofa", scene="gen-5", object="chair",
+            start_receptacle="table", goal_receptacle="sofa")
+
+
+@pytest.fixture(scope="module")
+def views():
+    scene = generate_house(5)
+    renderer = Renderer(scene)
+    return scene, renderer, ring_views(scene, renderer, 25, 160, 120)  # the kitchen chair
+
+
+def frame_of(view, step: int, renderer) -> Frame:
+    fr = view.frame
+    return Frame(episode_id="ep-om", step=step, pose=Pose2D(x=view.x, y=view.y, yaw=view.yaw),
+                 camera_pose=view.pose, intrinsics=view.K, rgb=fr.rgb, depth=fr.depth, instances=fr.instances,
+                 labels=renderer.labels(fr.instances))
+
+
+def test_task_classes_and_thresholds() -> None:
+    assert task_classes(TASK, ObjectMapConfig()) == (["chair", "table", "sofa"], [0.25, 0.35, 0.45])
+    find = Task(kind="find_object", text="Find a mug", scene="gen-1", object="mug")
+    assert task_classes(find, ObjectMapConfig()) == (["mug"], [0.25])
+
+
+def test_fusion_summaries_gaze_and_restore(views) -> None:
+    scene, renderer, vs = views
+    om = ObjectMap.for_task(TASK, ObjectMapConfig(layer=ObjectLayerConfig(render_scale=1.0)))
+    det = OracleDetector(OracleDetectorParams(recall=1.0, background_fp=0.0, confusion=0.0))
+    for step, v in enumerate(vs[:2]):
+        f = frame_of(v, step, renderer)
+        req = om.detect_request(f, seed=3)
+        assert req.classes == ["chair", "table", "sofa"] and req.thresholds == [0.25, 0.35, 0.45]
+        res = DetectResult(request_id=req.request_id, episode_id="ep-om", step=step, detections=det.detect(req),
+                           backend="oracle")
+        stats = om.integrate(f, res)
+        assert stats.gaussians > 0
+    free, ox, oy = scene.navigable_grid(0.1)
+    grid = GridSpec(origin_x=ox, origin_y=oy, resolution=0.1, rows=free.shape[0], cols=free.shape[1])
+    objs = om.summaries(grid, ~free)
+    chair = next(o for o in objs if o.cls == "chair")
+    pos = scene.instances[25].position
+    assert abs(chair.centre[0] - pos[0]) < 0.4 and abs(chair.centre[1] - pos[1]) < 0.4
+    assert set(chair.scores) == {"chair", "table", "sofa"} and chair.scores["chair"][2] == pytest.approx(chair.psi)
+    assert chair.gaze and all(g.psi_prime >= chair.psi - 1e-6 for g in chair.gaze)
+    assert chair.ig == pytest.approx(max(g.ig for g in chair.gaze)) and chair.ig > 0
+    assert om.history[chair.instance_id][-1][0] == 1
+    # on the bus
+    up = MapUpdate(episode_id="ep-om", step=1, grid=grid, occupied=~free, free=free, explored=free,
+                   pose=Pose2D(x=0, y=0), objects=objs)
+    assert decode(encode(up)).objects == objs
+    # restore: the same layer, the same next update
+    back = ObjectMap.restore(om.snapshot(), om.config)
+    assert back.thresholds == om.thresholds and back.history == om.history
+    assert [o.model_dump() for o in back.summaries()] == [o.model_dump() for o in om.summaries()]
+    f = frame_of(vs[2], 2, renderer)
+    req = om.detect_request(f, seed=3)
+    res = DetectResult(request_id="r", episode_id="ep-om", step=2, detections=det.detect(req), backend="oracle")
+    a, b = om.integrate(f, res), back.integrate(f, res)
+    assert a.gaussians == b.gaussians
+    assert np.allclose(om.layer.store.gamma.numpy(), back.layer.store.gamma.numpy())
