@@ -34,7 +34,7 @@ MAX_CHOICES = len(LETTERS)
 PADDING_CHOICE = "(Do not choose this option)"
 NOT_LISTED_CHOICE = "An option not listed here"
 
-Strategy = Literal["fbe", "semantic", "no_lsv", "no_gsv", "nearest"]
+Strategy = Literal["fbe", "semantic", "no_lsv", "no_gsv", "nearest", "cp_guided"]
 StopRule = Literal["cp", "entropy", "relevance", "max_steps"]
 EpisodeState = Literal["queued", "running", "stopped", "failed", "cancelled"]
 ScorerBackend = Literal["oracle", "hf", "remote"]

@@ -22,13 +22,13 @@ import numpy as np
 
 from eqa import grid
 
-SEMANTIC_STRATEGIES = ("semantic", "no_lsv", "no_gsv")
+SEMANTIC_STRATEGIES = ("semantic", "no_lsv", "no_gsv", "cp_guided")
 QUESTION_LAYER = "question"
 
 
 def temperatures(strategy: str, tau_lsv: float, tau_gsv: float) -> tuple[float, float] | None:
     """(tau_LSV, tau_GSV) of a strategy, or None when the strategy uses no semantic values."""
-    if strategy == "semantic":
+    if strategy in ("semantic", "cp_guided"):  # cp_guided: the planner re-tempers (issue 15)
         return tau_lsv, tau_gsv
     if strategy == "no_lsv":
         return 0.0, tau_gsv

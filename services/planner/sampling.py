@@ -23,7 +23,8 @@ import numpy as np
 
 from eqa.messages import Strategy
 
-WEIGHTED: frozenset[str] = frozenset({"semantic", "no_lsv", "no_gsv"})
+# cp_guided (services/planner/cp_guided.py): Eq. A6 weights re-tempered by the CP prediction set
+WEIGHTED: frozenset[str] = frozenset({"semantic", "no_lsv", "no_gsv", "cp_guided"})
 
 
 def step_rng(seed: int, step: int, attempt: int = 0) -> np.random.Generator:

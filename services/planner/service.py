@@ -38,6 +38,7 @@ from eqa.messages import (
 from eqa.recording import EpisodeRecorder
 from eqa.service import Service
 from eqa.store import EPISODE_STATE_TTL_S
+from services.planner import cp_guided
 from services.planner.sampling import step_rng
 from services.planner.step import Memory, PlannerParams, StepPlan, plan_step
 
@@ -229,7 +230,7 @@ class PlannerService(Service):
         if decision.stop:
             log.debug("episode %s step %d: stopper stops (%s); no goal", ep.episode_id, step, decision.reason)
             return
-        mu = ep.maps[step]
+        mu = ep.maps[step] if ep.strategy != "cp_guided" else cp_guided.guided_map(ep.maps[step], decision)
         pending = _Pending(step=step, map=mu, memory_before=ep.memory.copy(), plan=StepPlan("done", ""))
         ep.pending = pending
         self._plan_and_publish(ep, pending)
