@@ -28,17 +28,18 @@ from typing import Any
 import numpy as np
 
 from eqa import keys
-from eqa.messages import EpisodeCancel, EpisodeEnd, EpisodeStart, ErrorReply, Frame, Goal, Pose2D
+from eqa.messages import EpisodeCancel, EpisodeEnd, EpisodeStart, ErrorReply, Frame, Goal, Pose2D, SkillReport
 from eqa.recording import EpisodeRecorder
 from eqa.service import Service
 from eqa.settings import Settings
-from eqa.store import EPISODE_STATE_TTL_S, episode_end_key
+from eqa.store import EPISODE_STATE_TTL_S, episode_end_key, task_metrics_key
 from services.sim import hmeqa
 from services.sim.camera import camera_pose, intrinsics
 from services.sim.library import load_or_generate
 from services.sim.motion import START_CLEARANCE, pose_error, sample_start_pose
 from services.sim.render import Renderer
 from services.sim.scene import GEN_ID, Scene, SceneLoadError, SceneNotFound, load_mesh_scene
+from services.sim.task_runner import SimTask
 
 log = logging.getLogger(__name__)
 MAX_CACHED_SCENES = 4
@@ -61,6 +62,8 @@ class _Episode:
     recorder: EpisodeRecorder | None = None
     emitted_at: float = field(default_factory=time.monotonic)  # when the current step's frame was sent
     resends: int = 0  # of the current step
+    task: SimTask | None = None  # a task episode's skills and metrics (issue 17)
+    skill: SkillReport | None = None  # the skill outcome of the current step (on its frame, resends too)
 
 
 def load_scene(settings: Settings, scene_id: str, floor: int = 0) -> Scene:
@@ -132,6 +135,10 @@ class SimService(Service):
     def _save(self, robot: str, ep: _Episode) -> None:
         state = {"start": ep.start.model_dump(mode="json"), "pose": ep.pose.model_dump(), "step": ep.step,
                  "trajectory": ep.trajectory, "saved_at": time.time()}
+        if ep.task is not None:
+            state["task"] = ep.task.to_json()
+            state["skill"] = ep.skill.model_dump(mode="json") if ep.skill is not None else None
+            self.store.set_json(task_metrics_key(ep.episode_id), ep.task.metrics(), ttl_s=EPISODE_STATE_TTL_S)
         self.store.set_json(state_key(robot), state, ttl_s=EPISODE_STATE_TTL_S)
 
     def _restore(self, robot: str, episode_id: str, state: dict[str, Any] | None = None) -> _Episode | None:
@@ -147,6 +154,9 @@ class SimService(Service):
             return None
         ep = _Episode(episode_id, renderer.scene, renderer, Pose2D.model_validate(state["pose"]), start.max_steps,
                       start, step=int(state["step"]), trajectory=[tuple(p) for p in state["trajectory"]])
+        if state.get("task"):
+            ep.task = SimTask.from_json(state["task"])
+            ep.skill = SkillReport.model_validate(state["skill"]) if state.get("skill") else None
         if start.record and self.settings.record:
             ep.recorder = EpisodeRecorder(self.settings, episode_id, f"sim-resume{ep.step}", enabled=True)
         self._episodes[robot] = ep
@@ -213,6 +223,7 @@ class SimService(Service):
                 self._error(robot, msg.episode_id, 0, str(exc))
                 return
         ep = _Episode(msg.episode_id, scene, renderer, pose, msg.max_steps, msg)
+        ep.task = SimTask.from_start(msg)
         if msg.record and self.settings.record:
             ep.recorder = EpisodeRecorder(self.settings, msg.episode_id, "sim", enabled=True)
             self._log_static(ep)
@@ -241,9 +252,10 @@ class SimService(Service):
         if reason is not None:
             self._error(robot, ep.episode_id, goal.step, f"goal refused: {reason}")
             return
+        before = ep.pose
         ep.pose = goal.pose
         ep.step += 1
-        self._emit(robot, ep)
+        self._emit(robot, ep, goal, before)
 
     def on_cancel(self, robot: str, msg: EpisodeCancel) -> None:
         ep = self._episodes.get(robot)
@@ -274,11 +286,19 @@ class SimService(Service):
         return Frame(
             episode_id=ep.episode_id, step=ep.step, pose=ep.pose, camera_pose=T, intrinsics=self._K,
             rgb=out.rgb, depth=out.depth, instances=out.instances, labels=ep.renderer.labels(out.instances),
-            scene=ep.scene.id, floor_area_m2=ep.scene.floor_area_m2,
+            scene=ep.scene.id, floor_area_m2=ep.scene.floor_area_m2, skill=ep.skill,
         )
 
-    def _emit(self, robot: str, ep: _Episode) -> None:
+    def _emit(self, robot: str, ep: _Episode, goal: Goal | None = None, before: Pose2D | None = None) -> None:
         frame = self.render_frame(ep)
+        if ep.task is not None and frame.instances is not None:
+            if goal is not None and before is not None:  # the motion's collisions, then the goal's skill
+                ep.skill = ep.task.after_goal(ep.scene, before, goal, frame.instances)
+                frame.skill = ep.skill
+                if ep.skill is not None:
+                    log.info("episode %s step %d: %s %s (%s)", ep.episode_id, ep.step, ep.skill.skill,
+                             "succeeded" if ep.skill.success else "failed", ep.skill.reason)
+            ep.task.observe(ep.scene, ep.pose, frame.instances)
         ep.emitted_at, ep.resends = time.monotonic(), 0
         ep.trajectory.append((ep.pose.x, ep.pose.y))
         self._save(robot, ep)
@@ -314,3 +334,6 @@ class SimService(Service):
                                            vectors=[[0.5 * np.cos(p.yaw), 0.5 * np.sin(p.yaw), 0.0]]))
         pts = [[x, y, 0.05] for x, y in ep.trajectory]
         rec.log("world/trajectory", rr.LineStrips3D([pts]))
+        if frame.skill is not None:
+            s = frame.skill
+            rec.log("sim/task", rr.TextLog(f"{s.skill} {'succeeded' if s.success else 'failed'}: {s.reason}"))
