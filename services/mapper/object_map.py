@@ -184,3 +184,53 @@ def _finite3(v) -> tuple[float, float, float]:
 
 
 __all__ = ["OTHER", "ObjectMap", "ObjectMapConfig", "task_classes"]
+
+
+# ---- monitoring ----------------------------------------------------------------------------------------------
+PALETTE = np.array(
+    [[230, 60, 60], [60, 120, 230], [60, 190, 90], [240, 180, 40], [170, 80, 200], [40, 200, 200]], np.uint8
+)
+OTHER_RGB = np.array([150, 150, 150], np.uint8)
+MAX_LOGGED_GAUSSIANS = 20_000
+GAUSSIANS_ENTITY = "world/objects/gaussians"  # rr.Ellipsoids3D: colour = most likely class, alpha = certainty
+INSTANCES_ENTITY = "world/objects/instances"  # rr.Boxes3D per instance, labelled class and Psi
+PSI_ENTITY = "objects/psi"  # rr.Scalars per instance, objects/psi/<instance id>: Psi of its best task class
+
+
+def class_colours(n_task_classes: int) -> np.ndarray:
+    """RGB per class: a palette colour per task class, grey for ``other``."""
+    return np.vstack([PALETTE[np.arange(n_task_classes) % len(PALETTE)], OTHER_RGB[None]])
+
+
+def log_rerun(rec: object, om: ObjectMap, objects: list[ObjectInstance]) -> None:
+    """Log the layer into an :class:`eqa.recording.EpisodeRecorder` (its step already set): the Gaussians as
+    ellipsoids (1-sigma, coloured by most likely class, opacity = certainty 1 - 2 sqrt(Var) of that class,
+    at most ``MAX_LOGGED_GAUSSIANS``), each instance's box with its class and Psi, and each instance's Psi."""
+    import rerun as rr
+    import torch
+
+    from services.mapper.objects import dirichlet
+
+    st = om.layer.store
+    n = len(st)
+    idx = torch.arange(n) if n <= MAX_LOGGED_GAUSSIANS else torch.linspace(0, n - 1, MAX_LOGGED_GAUSSIANS).long()
+    gamma = st.gamma[idx].cpu()
+    e = dirichlet.expectation(gamma)
+    cls = e.argmax(1)
+    sd = dirichlet.variance(gamma).sqrt().gather(1, cls[:, None])[:, 0]
+    alpha = (255 * (1.0 - 2.0 * sd).clamp(0.05, 1.0)).to(torch.uint8).numpy()
+    rgb = class_colours(len(om.task_classes))[cls.numpy()]
+    colours = np.concatenate([rgb, alpha[:, None]], axis=1)
+    sigma = st.sigma[idx].cpu().numpy()
+    rec.log(GAUSSIANS_ENTITY, rr.Ellipsoids3D(  # type: ignore[attr-defined]
+        centers=st.means[idx].cpu().numpy(), half_sizes=np.repeat(sigma[:, None], 3, axis=1), colors=colours,
+        fill_mode="solid",
+    ))
+    if objects:
+        rec.log(INSTANCES_ENTITY, rr.Boxes3D(  # type: ignore[attr-defined]
+            centers=[o.centre for o in objects], sizes=[o.extent for o in objects],
+            labels=[f"{o.instance_id} {o.cls} psi {o.psi:.2f}" for o in objects],
+        ))
+    for o in objects:
+        best = max(o.scores.values(), key=lambda s: s[0], default=(o.S, o.U, o.psi))
+        rec.log(f"{PSI_ENTITY}/{o.instance_id}", rr.Scalars(best[2]))  # type: ignore[attr-defined]
