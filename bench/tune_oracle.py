@@ -164,10 +164,15 @@ def sweep(episodes: list[EpisodeRecord], grid: dict[str, list[float]]) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from eqa.seeds import TUNING_SEED, check_tuning_seed
+
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--strategy", default="semantic", help="exploration strategy of the recorded episodes")
     p.add_argument("--limit", type=int, default=100, help="questions (category mix kept)")
     p.add_argument("--split", default="all", choices=["calibration", "test", "all"])
+    p.add_argument("--seed", type=int, default=TUNING_SEED,
+                   help=f"benchmark seed of the questions (default the tuning seed {TUNING_SEED}; the evaluation "
+                        "seeds and the legacy seed 0 are refused: eqa.seeds)")
     p.add_argument("--size", default="320x240", help="image size WxH")
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--out", default="var/tune", help="where recordings are kept")
@@ -175,6 +180,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--grid", action="append", default=[], metavar="KNOB=v1,v2",
                    help="an OracleParams knob and the values to sweep (repeatable)")
     args = p.parse_args(argv)
+    try:
+        check_tuning_seed(args.seed)
+    except ValueError as exc:
+        p.error(str(exc))
     logging.basicConfig(level=logging.INFO, format="%(message)s")
 
     if args.load:
@@ -186,13 +195,13 @@ def main(argv: list[str] | None = None) -> int:
         from eqa.settings import Settings
 
         w, h = (int(v) for v in args.size.split("x"))
-        qs = _questions(args.split, args.limit, Settings())
+        qs = _questions(args.split, args.limit, Settings(), args.seed)
         t0 = time.monotonic()
         with ProcessPoolExecutor(args.workers) as pool:
             episodes = list(tqdm(pool.map(run_episode, [(q, args.strategy, w, h) for q in qs]), total=len(qs),
                                  file=sys.stderr, unit="ep"))
         log.info("recorded %d episodes in %.1f min", len(episodes), (time.monotonic() - t0) / 60)
-        out = Path(args.out) / f"{args.strategy}-{args.limit}-{args.size}.pkl"
+        out = Path(args.out) / f"seed{args.seed}-{args.strategy}-{args.limit}-{args.size}.pkl"
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_bytes(pickle.dumps(episodes))
         log.info("recording: %s", out)

@@ -17,6 +17,7 @@ wire with msgpack (see :mod:`eqa.codec`). A decoder refuses a newer major schema
 from __future__ import annotations
 
 import math
+import re
 import string
 import time
 import uuid
@@ -34,10 +35,54 @@ MAX_CHOICES = len(LETTERS)
 PADDING_CHOICE = "(Do not choose this option)"
 NOT_LISTED_CHOICE = "An option not listed here"
 
-Strategy = Literal["fbe", "semantic", "no_lsv", "no_gsv", "nearest", "cp_guided"]
+Strategy = Literal["fbe", "semantic", "no_lsv", "no_gsv", "nearest", "target_oracle", "perfect_sv", "cp_guided"]
+# Benchmark-only yardsticks (upper bounds, never product behaviour): they read the question's ground truth
+# (``Question.targets``). The gateway and the CLI refuse them; only ``eqa bench`` runs them.
+BOUND_STRATEGIES: frozenset[str] = frozenset({"target_oracle", "perfect_sv"})
 StopRule = Literal["cp", "entropy", "relevance", "max_steps"]
 EpisodeState = Literal["queued", "running", "stopped", "failed", "cancelled"]
 ScorerBackend = Literal["oracle", "hf", "remote"]
+
+
+MAX_COORD_M = 100_000.0  # |x|, |y| of a pose (metres): far past any building; 1e308 overflowed the sim's grid
+MAX_YAW_RAD = 10_000.0
+SCENE_ID = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]{0,63}")
+"""A scene id: ``gen-<seed>`` or an installed scene (HM3D ``00009-vLpv2VX547B``); matched whole (``fullmatch``:
+no trailing newline, no path separators or dots)."""
+
+
+def check_scene_id(value: str) -> str:
+    """``value`` if it is a valid scene id, else ``ValueError`` saying what one looks like."""
+    if not isinstance(value, str) or not SCENE_ID.fullmatch(value):
+        raise ValueError(
+            f"scene {str(value)[:80]!r} is not a scene id: 1-64 letters, digits, '_' or '-' starting with a letter "
+            "or digit, e.g. gen-7 (a generated house) or the id of an installed scene"
+        )
+    return value
+
+
+def check_text(value: str, what: str) -> str:
+    """No NUL (or other C0 control character but tab and newline) and not blank."""
+    if any(c < " " and c not in "\t\n\r" for c in value):
+        raise ValueError(f"{what} contains a control character (NUL or similar): remove it")
+    if not value.strip():
+        raise ValueError(f"{what} is empty")
+    return value
+
+
+def check_choices(choices: list[str]) -> list[str]:
+    """2..26 choices (or none), each non-blank without control characters, no two alike (ignoring case and
+    surrounding spaces) except the HM-EQA padding choice."""
+    if choices and not 2 <= len(choices) <= MAX_CHOICES:
+        raise ValueError(f"give between 2 and {MAX_CHOICES} choices (or none), got {len(choices)}")
+    seen: set[str] = set()
+    for i, c in enumerate(choices):
+        check_text(c, f"choice {LETTERS[i] if i < MAX_CHOICES else i}")
+        norm = c.strip().casefold()
+        if norm in seen and c != PADDING_CHOICE:
+            raise ValueError(f"choice {LETTERS[i]} ({c.strip()[:40]!r}) is given twice: each choice once")
+        seen.add(norm)
+    return choices
 
 
 def letters(n: int) -> list[str]:
@@ -70,6 +115,10 @@ class Pose2D(BaseModel):
     def _finite(self) -> Pose2D:
         if not all(math.isfinite(v) for v in (self.x, self.y, self.yaw)):
             raise ValueError("pose values must be finite numbers (no NaN or inf)")
+        if abs(self.x) > MAX_COORD_M or abs(self.y) > MAX_COORD_M or abs(self.yaw) > MAX_YAW_RAD:
+            raise ValueError(
+                f"pose out of range: |x|, |y| at most {MAX_COORD_M:g} m and |yaw| at most {MAX_YAW_RAD:g} rad"
+            )
         return self
 
     def xy(self) -> np.ndarray:
@@ -107,22 +156,26 @@ class Question(BaseModel):
     query: dict[str, str] = Field(default_factory=dict)
     answer: str | None = None
     evidence_ids: list[int] = Field(default_factory=list)
+    # Ground truth for benchmark yardsticks only: floor positions (x, y) of the evidence objects (the asked
+    # room's centre when no object is the evidence). Read by no scorer and by no product strategy.
+    targets: list[tuple[float, float]] = Field(default_factory=list, max_length=64)
     start_pose: Pose2D | None = None
     max_steps: int | None = Field(default=None, ge=1, le=10_000)
 
     @field_validator("text")
     @classmethod
     def _text_not_blank(cls, v: str) -> str:
-        if not v.strip():
-            raise ValueError("question text is empty")
-        return v
+        return check_text(v, "question text")
 
     @field_validator("choices")
     @classmethod
     def _choices_count(cls, v: list[str]) -> list[str]:
-        if v and not 2 <= len(v) <= MAX_CHOICES:
-            raise ValueError(f"give between 2 and {MAX_CHOICES} choices (or none), got {len(v)}")
-        return v
+        return check_choices(v)
+
+    @field_validator("scene")
+    @classmethod
+    def _scene_id(cls, v: str) -> str:
+        return v if v == "" else check_scene_id(v)  # "": the robot's own world (no simulator scene)
 
     @model_validator(mode="after")
     def _answer_is_letter(self) -> Question:
@@ -140,63 +193,6 @@ class Question(BaseModel):
         return f"{self.text} {opts}. Answer:" if opts else f"{self.text} Answer:"
 
 
-class StopConfig(BaseModel):
-    """How an episode decides to stop (Explore-EQA section V)."""
-
-    model_config = ConfigDict(extra="forbid")
-    rule: StopRule = "cp"
-    eps: float = Field(default=0.2, gt=0.0, lt=1.0, description="CP miscoverage: 1-eps is the success wanted")
-    threshold: float | None = Field(default=None, description="entropy (nats) or relevance threshold")
-
-
-class EpisodeStart(Message):
-    kind: ClassVar[str] = "episode_start"
-    episode_id: str
-    robot: str
-    question: Question
-    strategy: Strategy = "semantic"
-    stop: StopConfig = Field(default_factory=StopConfig)
-    max_steps: int = Field(ge=1, le=10_000)
-    seed: int = 0
-    record: bool = True
-    # A HELIOS task episode (issue 17) when set; ``question`` is then its stand-in (text = the instruction).
-    task: Task | None = None
-    ablation: Ablation = "helios"
-    pick_limit: int | None = Field(default=None, ge=1, le=1000)  # None = unlimited (Table 1: 1, 5, unlimited)
-
-    @field_validator("episode_id", "robot")
-    @classmethod
-    def _safe(cls, v: str) -> str:
-        return keys.check_id(v)
-
-
-class EpisodeCancel(Message):
-    kind: ClassVar[str] = "episode_cancel"
-    episode_id: str
-    reason: str = "cancelled by user"
-
-
-class InstanceLabel(BaseModel):
-    """Ground-truth label of one instance id visible in a simulated frame (what a perfect detector would
-    report). Only instances with at least one pixel in the frame are listed."""
-
-    model_config = ConfigDict(extra="forbid")
-    id: int
-    category: str
-    room: str | None = None
-    room_kind: str | None = None
-    attributes: dict[str, str] = Field(default_factory=dict)
-    pixels: int = 0
-
-
-class Frame(Message):
-    """One RGB-D observation at step ``step``."""
-
-    kind: ClassVar[str] = "frame"
-    episode_id: str
-    step: int = Field(ge=0)
-    pose: Pose2D
-    camera_pose: NDArray  # 4x4 float64 camera-to-world
 TaskKind = Literal["pick_place", "find_object"]
 ClassName = Annotated[str, Field(min_length=1, max_length=80, pattern=r"^[a-z0-9][a-z0-9_ -]*$")]
 
@@ -258,6 +254,65 @@ class SkillReport(BaseModel):
     reason: Annotated[str, Field(max_length=300)] = ""
 
 
+class StopConfig(BaseModel):
+    """How an episode decides to stop (Explore-EQA section V)."""
+
+    model_config = ConfigDict(extra="forbid")
+    rule: StopRule = "cp"
+    eps: float = Field(default=0.2, gt=0.0, lt=1.0, description="CP miscoverage: 1-eps is the success wanted")
+    threshold: float | None = Field(
+        default=None, ge=0.0, le=100.0, allow_inf_nan=False, description="entropy (nats) or relevance threshold"
+    )
+
+
+class EpisodeStart(Message):
+    kind: ClassVar[str] = "episode_start"
+    episode_id: str
+    robot: str
+    question: Question
+    strategy: Strategy = "semantic"
+    stop: StopConfig = Field(default_factory=StopConfig)
+    max_steps: int = Field(ge=1, le=10_000)
+    seed: int = Field(default=0, ge=0, le=2**63 - 1)
+    record: bool = True
+    # A HELIOS task episode (issue 17) when set; ``question`` is then its stand-in (text = the instruction).
+    task: Task | None = None
+    ablation: Ablation = "helios"
+    pick_limit: int | None = Field(default=None, ge=1, le=1000)  # None = unlimited (Table 1: 1, 5, unlimited)
+
+    @field_validator("episode_id", "robot")
+    @classmethod
+    def _safe(cls, v: str) -> str:
+        return keys.check_id(v)
+
+
+class EpisodeCancel(Message):
+    kind: ClassVar[str] = "episode_cancel"
+    episode_id: str
+    reason: str = "cancelled by user"
+
+
+class InstanceLabel(BaseModel):
+    """Ground-truth label of one instance id visible in a simulated frame (what a perfect detector would
+    report). Only instances with at least one pixel in the frame are listed."""
+
+    model_config = ConfigDict(extra="forbid")
+    id: int
+    category: str
+    room: str | None = None
+    room_kind: str | None = None
+    attributes: dict[str, str] = Field(default_factory=dict)
+    pixels: int = 0
+
+
+class Frame(Message):
+    """One RGB-D observation at step ``step``."""
+
+    kind: ClassVar[str] = "frame"
+    episode_id: str
+    step: int = Field(ge=0)
+    pose: Pose2D
+    camera_pose: NDArray  # 4x4 float64 camera-to-world
     intrinsics: NDArray  # 3x3 float64
     rgb: NDArray  # HxWx3 uint8
     depth: NDArray  # HxW float32 metres along the optical axis, 0 or inf where nothing was hit
@@ -655,6 +710,7 @@ def decode(payload: bytes, expected: type[M] | tuple[type[M], ...] | None = None
 def model_json(model: BaseModel) -> dict[str, Any]:
     """JSON-safe dict of a model (arrays as dtype/shape/base64)."""
     return model.model_dump(mode="json")
+
 
 class EpisodeLabel(BaseModel):
     """Ground truth given for a finished episode (``POST /v1/episodes/{id}/label``), stored under

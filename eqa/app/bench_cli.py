@@ -12,11 +12,18 @@ and every stopping rule is then read from the same traces (eqa/evaluation.py). R
 ``--out``. Every plot and table names the scorer that produced it; with the default ``oracle`` scorer the
 numbers come from a simulated perception model, not from a VLM.
 
-Traces are exported to ``<--out>/traces/<set>.jsonl`` and imported from there on the next run, so
-``--out bench/results`` replays the published 4 x 500 runs in seconds without running an episode.
+Seeds are a benchmark axis (``--seeds``): each seed is its own benchmark of 500 questions over its own
+generated houses (``eqa.seeds``: seed 11 is the tuning seed, 1 2 3 the evaluation seeds, 0 the legacy seed of the
+first figures). Results are given pooled over the seeds and per seed, with Wilson 95 % intervals on success
+rates and, for each pair of strategies, the exact sign test and a 95 % interval of the paired difference.
+``--limit`` applies per seed. The yardsticks ``target_oracle`` and ``perfect_sv`` (upper bounds that read the
+ground truth) run only here, when named in ``--strategies``.
 
-    eqa bench explore --limit 20 --out /tmp/quick      quick mode: 80 episodes, about 3 minutes here
-    eqa bench explore --out bench/results              the README's figures (from the stored traces)
+Traces are exported to ``<--out>/traces/<set>.jsonl`` (one set per strategy, scorer, size and seed) and
+imported from there on the next run, so ``--out bench/results`` replays the published runs in seconds.
+
+    eqa bench explore --seeds 1 2 3 --limit 20 --out /tmp/quick   quick mode: 240 episodes
+    eqa bench explore --seeds 1 2 3 --split test --out bench/results   the README's figures (stored traces)
     eqa bench stop --out bench/results                 the README's stopping figures
 """
 
@@ -33,6 +40,8 @@ from typing import Any
 log = logging.getLogger(__name__)
 
 STRATEGIES = ("fbe", "semantic", "no_lsv", "no_gsv")
+BOUNDS = ("target_oracle", "perfect_sv")  # benchmark-only yardsticks (upper bounds reading ground truth)
+CDF_BUDGETS = tuple(round(0.05 * k, 2) for k in range(1, 21))
 ENTROPY_SWEEP = (0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 0.9, 1.1, 1.3)
 RELEVANCE_SWEEP = (0.9, 0.8, 0.7, 0.6, 0.5, 0.4, 0.3, 0.2, 0.175, 0.15, 0.125, 0.1)
 PAIRED_BUDGETS = (0.5, 0.7, 1.0)
@@ -46,10 +55,11 @@ def scorer_label(settings: Any) -> str:
     return f"scorer: {settings.scorer_backend} ({model})"
 
 
-def set_name(strategy: str, settings: Any) -> str:
-    """One trace set per (strategy, scorer, image size), keyed by question id: the explore and the stop
-    benchmarks read the same full-length runs."""
-    return f"bench-{strategy}-{settings.scorer_backend}-{settings.sim_width}x{settings.sim_height}"
+def set_name(strategy: str, settings: Any, seed: int = 0) -> str:
+    """One trace set per (strategy, scorer, image size, benchmark seed), keyed by question id: the explore and
+    the stop benchmarks read the same full-length runs. Seed 0 keeps the legacy names of the first figures."""
+    base = f"bench-{strategy}-{settings.scorer_backend}-{settings.sim_width}x{settings.sim_height}"
+    return base if seed == 0 else f"{base}-seed{seed}"
 
 
 def tau_label(tau: float) -> str:
@@ -57,10 +67,34 @@ def tau_label(tau: float) -> str:
     return f"semantic_tau{tau:g}"
 
 
-def _questions(split: str, limit: int | None, settings: Any) -> list[Any]:
-    from services.sim.questions import benchmark
+def _benchmark(seed: int, settings: Any) -> Any:
+    """The benchmark of ``seed``, cached as JSON next to the generated houses under a key of the source of the
+    modules that make it (house generator, catalog, questions): building it loads all of its ~170 houses
+    (about a minute even when they are cached), a cached one loads in a second."""
+    import hashlib
 
-    bench = benchmark(seed=0, scenes_dir=settings.scenes_path)
+    import services.sim.catalog as catalog
+    import services.sim.housegen as housegen
+    import services.sim.questions as questions
+
+    digest = hashlib.sha256()
+    for mod in (catalog, housegen, questions):
+        digest.update(Path(str(mod.__file__)).read_bytes())
+    path = Path(settings.scenes_path) / f"benchmark-seed{seed}-{digest.hexdigest()[:12]}.json"
+    if path.is_file():
+        try:
+            return questions.Benchmark.load(path)
+        except (ValueError, KeyError) as exc:
+            log.warning("cached benchmark %s unreadable (%s): building it again", path, exc)
+    bench = questions.benchmark(seed=seed, scenes_dir=settings.scenes_path)
+    tmp = path.with_suffix(f".tmp{id(bench)}")
+    bench.save(tmp)
+    tmp.replace(path)
+    return bench
+
+
+def _questions(split: str, limit: int | None, settings: Any, seed: int = 0) -> list[Any]:
+    bench = _benchmark(seed, settings)
     qs = {"calibration": bench.calibration, "test": bench.test, "all": bench.calibration + bench.test}[split]
     if limit is not None:
         # Keep the category mix of the split: take questions round-robin over categories.
@@ -156,43 +190,83 @@ def _settings(args: argparse.Namespace) -> Any:
     return settings
 
 
+def _summary(traces: list[Any], ev: Any) -> dict[str, Any]:
+    """Success per budget with Wilson 95 % intervals, and when the evidence was first seen."""
+    n = len(traces)
+    success = ev.success_at_budgets(traces)
+    return {
+        "n": n,
+        "success": success,
+        "success_ci95": [list(ev.wilson_ci(round(v * n), n)) for v in success],
+        "evidence_share": ev.evidence_share(traces),
+        "first_evidence_at": ev.first_evidence(traces),
+        "median_first_evidence": ev.median_first_evidence(traces),
+        "evidence_cdf": ev.evidence_cdf(traces, CDF_BUDGETS),
+    }
+
+
 def cmd_explore(args: argparse.Namespace) -> int:
     from eqa.app import evaluation as ev
+    from eqa.seeds import seed_role
     from eqa.service import setup_logging
 
     settings = _settings(args)
     setup_logging(settings.log_level, "eqa-bench")
     logging.getLogger("eqa.launcher").setLevel(logging.WARNING)
-    questions = _questions(args.split, args.limit, settings)
+    seeds = list(dict.fromkeys(args.seeds))
+    roles = {s: seed_role(s) for s in seeds}
+    for s, role in roles.items():
+        if role != "evaluation":
+            log.warning("seed %d is the %s seed, not an evaluation seed: label its figures so", s, role)
+    questions = {s: _questions(args.split, args.limit, settings, s) for s in seeds}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     results: dict[str, Any] = {"scorer": scorer_label(settings), "budgets": list(ev.BUDGETS),
-                               "size": f"{settings.sim_width}x{settings.sim_height}", "strategies": {}}
-    areas = _areas(questions, settings)
-    runs: dict[str, list[Any]] = {}
+                               "size": f"{settings.sim_width}x{settings.sim_height}", "split": args.split,
+                               "limit_per_seed": args.limit, "seeds": seeds,
+                               "seed_roles": {str(s): r for s, r in roles.items()},
+                               "cdf_budgets": list(CDF_BUDGETS), "strategies": {}}
+    areas = {k: v for s in seeds for k, v in _areas(questions[s], settings).items()}
+    runs: dict[str, dict[int, list[Any]]] = {}
     # (label, strategy, settings): the strategies, then semantic exploration at other temperatures (Fig. 7c)
     plan = [(s, s, settings) for s in args.strategies]
     plan += [(tau_label(t), "semantic", settings.model_copy(update={"tau_lsv": t, "tau_gsv": t})) for t in args.tau]
     for label, strategy, run_settings in plan:
-        traces = runs[label] = _collect(questions, run_settings, strategy, set_name(label, run_settings), args)
+        runs[label] = {s: _collect(questions[s], run_settings, strategy, set_name(label, run_settings, s), args)
+                       for s in seeds}
+        traces = [t for s in seeds for t in runs[label][s]]
         results["strategies"][label] = {
-            "n": len(traces),
-            "success": ev.success_at_budgets(traces),
-            "evidence_share": ev.evidence_share(traces),
-            "first_evidence_at": ev.first_evidence(traces),
+            **_summary(traces, ev),
+            "bound": label in BOUNDS,
+            "per_seed": {str(s): _summary(runs[label][s], ev) for s in seeds},
             "by_category": {c: {"n": len(ts), "success": ev.success_at_budgets(ts)}
                             for c, ts in ev.by_group(traces, "category").items()},
             "by_area": {b: {"n": len(ts), "success_full_budget": ev.success_at_budgets(ts, (1.0,))[0]}
                         for b, ts in ev.by_group(traces, groups={q: ev.area_bin(a) for q, a in areas.items()}).items()},
         }
-    # Paired comparisons on the same questions: semantic against every other run, every run against fbe.
-    def paired(a: list[Any], b: list[Any]) -> list[dict[str, Any]]:
-        return [vars(p) for p in ev.paired_comparison(a, b, PAIRED_BUDGETS)]
 
-    if "semantic" in runs:
-        results["paired_vs_semantic"] = {k: paired(runs["semantic"], t) for k, t in runs.items() if k != "semantic"}
-    if "fbe" in runs:
-        results["paired_vs_fbe"] = {k: paired(t, runs["fbe"]) for k, t in runs.items() if k != "fbe"}
+    # Paired comparisons on the same questions: semantic against every other run, every run against fbe; per
+    # seed and pooled over the seeds (discordant counts add up), with the 95 % interval of the difference.
+    def paired(a: str, b: str) -> tuple[list[dict[str, Any]], dict[str, list[dict[str, Any]]]]:
+        per = {s: ev.paired_comparison(runs[a][s], runs[b][s], PAIRED_BUDGETS) for s in seeds}
+        return ([vars(p) for p in ev.pool_paired(list(per.values()))],
+                {str(s): [vars(p) for p in rows] for s, rows in per.items()})
+
+    def sooner(a: str, b: str) -> dict[str, Any]:
+        pooled = ev.paired_first_evidence([t for s in seeds for t in runs[a][s]],
+                                          [t for s in seeds for t in runs[b][s]])
+        return {"pooled": vars(pooled),
+                "per_seed": {str(s): vars(ev.paired_first_evidence(runs[a][s], runs[b][s])) for s in seeds}}
+
+    for base in ("semantic", "fbe"):
+        if base not in runs:
+            continue
+        others = [k for k in runs if k != base]
+        pairs = {k: (paired(base, k) if base == "semantic" else paired(k, base)) for k in others}
+        results[f"paired_vs_{base}"] = {k: v[0] for k, v in pairs.items()}
+        results[f"paired_vs_{base}_per_seed"] = {k: v[1] for k, v in pairs.items()}
+        results[f"first_evidence_vs_{base}"] = {k: (sooner(base, k) if base == "semantic" else sooner(k, base))
+                                                for k in others}
     (out / "explore.json").write_text(json.dumps(results, indent=2))
     from eqa.app.plots import plot_explore
 
@@ -214,7 +288,10 @@ def _areas(questions: list[Any], settings: Any) -> dict[str, float]:
 
 def _print_explore(results: dict[str, Any]) -> None:
     budgets = results["budgets"]
-    print(f"success rate vs normalised step budget ({results['scorer']}, {results['size']})")
+    seeds = results.get("seeds", [0])
+    roles = results.get("seed_roles", {})
+    print(f"success rate vs normalised step budget ({results['scorer']}, {results['size']}), pooled over seeds "
+          + ", ".join(f"{s} ({roles.get(str(s), '?')})" for s in seeds))
     width = max([9, *(len(k) for k in results["strategies"])])
     print(f"{'strategy':<{width}} n    " + " ".join(f"{b:>5.1f}" for b in budgets) + "  evidence seen (first at, x T)")
     for name, r in results["strategies"].items():
@@ -227,7 +304,15 @@ def _print_explore(results: dict[str, Any]) -> None:
         print(f"{what}, same questions (right only in the first / only in the second, exact sign-test p):")
         for other, rows in paired.items():
             print(f"  {other:<{width}} " + "   ".join(
-                f"{p['budget']:.1f} T: {p['a_only']:>3} / {p['b_only']:<3} p {p['p_value']:<7.3g}" for p in rows))
+                f"{p['budget']:.1f} T: {p['a_only']:>3} / {p['b_only']:<3} p {p['p_value']:<7.3g}"
+                + (f"[{p['ci_low']:+.3f}, {p['ci_high']:+.3f}]" if "ci_low" in p else "") for p in rows))
+        sooner = results.get(f"first_evidence_vs_{base}", {})
+        if sooner:
+            print(f"  evidence seen sooner ({what}; first / second, sign-test p; mean gain in share of T):")
+            for other, r in sooner.items():
+                p = r["pooled"]
+                print(f"  {other:<{width}} {p['a_only']:>4} / {p['b_only']:<4} p {p['p_value']:<7.3g} "
+                      f"{p['diff']:+.3f} [{p['ci_low']:+.3f}, {p['ci_high']:+.3f}]")
 
 
 def cmd_stop(args: argparse.Namespace) -> int:
@@ -243,14 +328,18 @@ def cmd_stop(args: argparse.Namespace) -> int:
     settings = _settings(args)
     setup_logging(settings.log_level, "eqa-bench")
     logging.getLogger("eqa.launcher").setLevel(logging.WARNING)
-    cal_q = _questions("calibration", args.limit, settings)
-    test_q = _questions("test", None if args.limit is None else max(1, args.limit * 2 // 3), settings)
-    cal = _collect(cal_q, settings, args.strategy, set_name(args.strategy, settings), args)
-    test = _collect(test_q, settings, args.strategy, set_name(args.strategy, settings), args)
+    # calibration and test splits of every seed, pooled (--limit per seed); each seed's runs in its own set
+    cal, test = [], []
+    for seed in dict.fromkeys(args.seeds):
+        name = set_name(args.strategy, settings, seed)
+        cal += _collect(_questions("calibration", args.limit, settings, seed), settings, args.strategy, name, args)
+        test_limit = None if args.limit is None else max(1, args.limit * 2 // 3)
+        test += _collect(_questions("test", test_limit, settings, seed), settings, args.strategy, name, args)
     usable = [e for e in EPS_SWEEP if _quantile_defined(len(cal), e)]
     table = ev.calibrate_traces(cal, usable, name="bench")
     results: dict[str, Any] = {
         "scorer": scorer_label(settings), "strategy": args.strategy, "n_calibration": len(cal), "n_test": len(test),
+        "seeds": list(dict.fromkeys(args.seeds)),
         "size": f"{settings.sim_width}x{settings.sim_height}",
         "cp": [vars(p) for p in ev.cp_curve(table, test)],
         "entropy": [vars(p) for p in ev.threshold_curve("entropy", ENTROPY_SWEEP, test)],
@@ -309,7 +398,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _common(e)
     e.add_argument("--split", choices=("test", "all"), default="all",
                    help="questions: the 200 test ones or all 500 (default all)")
-    e.add_argument("--strategies", nargs="+", choices=STRATEGIES, default=list(STRATEGIES))
+    e.add_argument("--strategies", nargs="+", choices=STRATEGIES + BOUNDS, default=list(STRATEGIES),
+                   help="strategies to run (default: the four of Fig. 7); target_oracle and perfect_sv are "
+                        "benchmark-only yardsticks (upper bounds that read the ground-truth target positions)")
+    e.add_argument("--seeds", nargs="+", type=int, default=[0], metavar="SEED",
+                   help="benchmark seeds, pooled and per seed (default 0, the legacy seed; the evaluation seeds "
+                        "are 1 2 3, the tuning seed 11: eqa.seeds); --limit applies per seed")
     e.add_argument("--tau", nargs="*", type=float, default=[], metavar="TAU",
                    help="also run semantic exploration with tau_LSV = tau_GSV = TAU (Fig. 7c; the default "
                         "temperatures are EQA_TAU_LSV / EQA_TAU_GSV = 1), e.g. --tau 3 5")
@@ -320,6 +414,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                        "coverage of the CP sets against 1 - eps.")
     _common(s)
     s.add_argument("--strategy", choices=STRATEGIES, default="semantic")
+    s.add_argument("--seeds", nargs="+", type=int, default=[0], metavar="SEED",
+                   help="benchmark seeds whose calibration and test splits are pooled (default 0, the legacy seed; "
+                        "evaluation seeds 1 2 3: eqa.seeds); --limit applies per seed")
     s.add_argument("--miscalibration", nargs="+", metavar="MODE",
                    choices=("category", "view", "related", "irrelevant", "all"),
                    help="sensitivity study instead (simulated perception model, not a VLM): sweep these oracle "

@@ -46,12 +46,42 @@ def success_at_budgets(traces: Sequence[Trace], budgets: Sequence[float] = BUDGE
 @dataclass(frozen=True)
 class Paired:
     """Two strategies on the same questions at one budget: the questions only ``a`` gets right, only ``b``
-    gets right, and the exact two-sided sign-test p-value over those discordant questions."""
+    gets right, and the exact two-sided sign-test p-value over those discordant questions; ``n`` paired
+    questions and the success difference ``diff`` = (a_only - b_only) / n with its 95 % confidence interval
+    (:func:`paired_diff_ci`)."""
 
     budget: float
     a_only: int
     b_only: int
     p_value: float
+    n: int = 0
+    diff: float = 0.0
+    ci_low: float = 0.0
+    ci_high: float = 0.0
+
+
+Z95 = 1.959963984540054
+
+
+def wilson_ci(k: int, n: int, z: float = Z95) -> tuple[float, float]:
+    """Wilson score 95 % interval of a success rate k / n ((nan, nan) for n = 0)."""
+    if n == 0:
+        return math.nan, math.nan
+    p = k / n
+    den = 1 + z * z / n
+    mid = (p + z * z / (2 * n)) / den
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
+    return max(0.0, mid - half), min(1.0, mid + half)
+
+
+def paired_diff_ci(a_only: int, b_only: int, n: int, z: float = Z95) -> tuple[float, float, float]:
+    """Difference of two paired success rates, (a_only - b_only) / n, and its 95 % Wald interval for matched
+    pairs (se = sqrt(a_only + b_only - (a_only - b_only)^2 / n) / n)."""
+    if n == 0:
+        return math.nan, math.nan, math.nan
+    d = (a_only - b_only) / n
+    se = math.sqrt(max(a_only + b_only - (a_only - b_only) ** 2 / n, 0.0)) / n
+    return d, d - z * se, d + z * se
 
 
 def sign_test_p(a_only: int, b_only: int) -> float:
@@ -75,8 +105,71 @@ def paired_comparison(a: Sequence[Trace], b: Sequence[Trace], budgets: Sequence[
         rb = [correct_at_budget(y, budget) for _, y in pairs]
         a_only = sum(x and not y for x, y in zip(ra, rb, strict=True))
         b_only = sum(y and not x for x, y in zip(ra, rb, strict=True))
-        out.append(Paired(budget, a_only, b_only, sign_test_p(a_only, b_only)))
+        d, lo, hi = paired_diff_ci(a_only, b_only, len(pairs))
+        out.append(Paired(budget, a_only, b_only, sign_test_p(a_only, b_only), len(pairs), d, lo, hi))
     return out
+
+
+def pool_paired(groups: Sequence[Sequence[Paired]]) -> list[Paired]:
+    """Paired comparisons of several seeds pooled budget by budget: discordant counts and n add up (the
+    questions of different seeds are different questions), then the sign test and the interval."""
+    out = []
+    for rows in zip(*groups, strict=True):
+        a = sum(r.a_only for r in rows)
+        b = sum(r.b_only for r in rows)
+        n = sum(r.n for r in rows)
+        d, lo, hi = paired_diff_ci(a, b, n)
+        out.append(Paired(rows[0].budget, a, b, sign_test_p(a, b), n, d, lo, hi))
+    return out
+
+
+def first_evidence_steps(traces: Sequence[Trace], threshold: float = 0.3) -> list[float | None]:
+    """Per episode, the normalised step ``(k + 1) / T`` by which relevance first reached ``threshold`` (the
+    scorer saw evidence of the answer within that share of the budget), None when it never did."""
+    out: list[float | None] = []
+    for t in traces:
+        k = next((i for i, s in enumerate(t.steps) if s.relevance >= threshold), None)
+        out.append(None if k is None else (k + 1) / t.max_steps)
+    return out
+
+
+def evidence_cdf(traces: Sequence[Trace], budgets: Sequence[float], threshold: float = 0.3) -> list[float]:
+    """Share of episodes that saw the evidence within each normalised budget (the first-evidence CDF)."""
+    first = first_evidence_steps(traces, threshold)
+    if not first:
+        return [math.nan] * len(budgets)
+    return [float(np.mean([f is not None and f <= b + 1e-9 for f in first])) for b in budgets]
+
+
+def median_first_evidence(traces: Sequence[Trace], threshold: float = 0.3) -> float | None:
+    """Median over all episodes of the normalised first-evidence step (episodes that never saw it count as
+    later than T); None when more than half never saw it."""
+    first = sorted(math.inf if f is None else f for f in first_evidence_steps(traces, threshold))
+    if not first:
+        return None
+    m = first[(len(first) - 1) // 2]
+    return None if math.isinf(m) else float(m)
+
+
+def paired_first_evidence(a: Sequence[Trace], b: Sequence[Trace], threshold: float = 0.3) -> Paired:
+    """Which of two strategies saw the evidence sooner on the same questions (never = later than T): the
+    questions where ``a`` was strictly sooner, where ``b`` was, the sign test, and the mean difference of
+    the first-evidence share of T (``b - a``, never counted as 1.0) with a 95 % interval."""
+    b_by_id = {t.question_id: t for t in b}
+    pairs = [(t, b_by_id[t.question_id]) for t in a if t.question_id in b_by_id]
+    fa = first_evidence_steps([x for x, _ in pairs], threshold)
+    fb = first_evidence_steps([y for _, y in pairs], threshold)
+    ia = [math.inf if v is None else v for v in fa]
+    ib = [math.inf if v is None else v for v in fb]
+    a_first = sum(x < y for x, y in zip(ia, ib, strict=True))
+    b_first = sum(y < x for x, y in zip(ia, ib, strict=True))
+    diffs = np.array([min(y, 1.0) - min(x, 1.0) for x, y in zip(ia, ib, strict=True)])
+    n = len(diffs)
+    if n == 0:
+        return Paired(1.0, 0, 0, 1.0, 0, math.nan, math.nan, math.nan)
+    d = float(diffs.mean())
+    se = float(diffs.std(ddof=1) / math.sqrt(n)) if n > 1 else math.nan
+    return Paired(1.0, a_first, b_first, sign_test_p(a_first, b_first), n, d, d - Z95 * se, d + Z95 * se)
 
 
 def first_evidence(traces: Sequence[Trace], threshold: float = 0.3) -> float:

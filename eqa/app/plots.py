@@ -11,22 +11,61 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
 COLORS = {"semantic": "tab:red", "fbe": "tab:blue", "no_lsv": "tab:orange", "no_gsv": "tab:green",
+          "target_oracle": "black", "perfect_sv": "tab:purple",
           "cp": "tab:red", "entropy": "tab:blue", "relevance": "tab:green"}
 
 
 def plot_explore(results: dict[str, Any], out: Path) -> list[Path]:
     """Fig. 7 (success vs normalised budget), Fig. A6 (per category) and Fig. A7 (by house size)."""
     budgets = results["budgets"]
-    sub = f"{results['scorer']}, {results['size']}"
+    seeds = results.get("seeds", [0])
+    sub = f"{results['scorer']}, {results['size']}, seeds {' '.join(map(str, seeds))}"
     paths = []
     everything = results["strategies"]
     tau_runs = {k: v for k, v in everything.items() if k.startswith("semantic_tau")}
     # Fig. 7a/b, A6 and A7 compare the strategies; the temperature runs get their own figure (Fig. 7c).
     results = {**results, "strategies": {k: v for k, v in everything.items() if k not in tau_runs}}
 
-    curves = [(f"{name} (n={r['n']})", r["success"], COLORS.get(name)) for name, r in results["strategies"].items()]
+    def label(name: str, r: dict[str, Any]) -> str:
+        return f"{name}{' (bound)' if r.get('bound') else ''} (n={r['n']})"
+
+    curves = [(label(name, r), r["success"], COLORS.get(name)) for name, r in results["strategies"].items()]
     paths.append(_success_plot(budgets, curves, f"Exploration: success vs steps\n{sub}",
-                               out / "explore_success_vs_steps.png"))
+                               out / "explore_success_vs_steps.png",
+                               [r.get("success_ci95") for r in results["strategies"].values()]))
+
+    if all("evidence_cdf" in r for r in results["strategies"].values()) and "cdf_budgets" in results:
+        fig, ax = plt.subplots(figsize=(6, 4.2))
+        for name, r in results["strategies"].items():
+            ax.step([0.0, *results["cdf_budgets"]], [0.0, *r["evidence_cdf"]], where="post", label=label(name, r),
+                    color=COLORS.get(name), ls="--" if r.get("bound") else "-")
+        ax.set(xlabel="normalised step budget (fraction of T)", ylabel="share of episodes that saw the evidence",
+               ylim=(0, 1), xlim=(0, 1), title=f"First evidence (Rel >= 0.3) within the budget\n{sub}")
+        ax.title.set_fontsize(9)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        paths.append(out / "explore_first_evidence_cdf.png")
+        fig.savefig(paths[-1], dpi=120)
+        plt.close(fig)
+
+    if len(seeds) > 1 and all("per_seed" in r for r in results["strategies"].values()):
+        fig, axes = plt.subplots(1, len(seeds), figsize=(3.4 * len(seeds), 3.4), sharey=True, squeeze=False)
+        for ax, seed in zip(axes[0], seeds, strict=True):
+            for name, r in results["strategies"].items():
+                ps = r["per_seed"].get(str(seed))
+                if ps:
+                    ax.plot(budgets, ps["success"], marker=".", label=f"{name} (n={ps['n']})", color=COLORS.get(name),
+                            ls="--" if r.get("bound") else "-")
+            ax.set(title=f"seed {seed}", xlabel="normalised steps", ylim=(0, 1))
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=6)
+        axes[0][0].set_ylabel("success rate")
+        fig.suptitle(f"Per benchmark seed ({results['scorer']}, {results['size']})", fontsize=9)
+        fig.tight_layout()
+        paths.append(out / "explore_per_seed.png")
+        fig.savefig(paths[-1], dpi=110)
+        plt.close(fig)
 
     categories = sorted({c for r in results["strategies"].values() for c in r["by_category"]})
     if categories:
@@ -80,11 +119,15 @@ def plot_explore(results: dict[str, Any], out: Path) -> list[Path]:
 
 
 def _success_plot(budgets: list[float], curves: list[tuple[str, list[float], str | None]], title: str,
-                  path: Path) -> Path:
-    """Success rate against the normalised step budget, one line per (label, values, colour)."""
+                  path: Path, intervals: list[Any] | None = None) -> Path:
+    """Success rate against the normalised step budget, one line per (label, values, colour); ``intervals``:
+    per line, the 95 % interval per budget (shaded) or None."""
     fig, ax = plt.subplots(figsize=(6, 4.2))
-    for label, values, color in curves:
-        ax.plot(budgets, values, marker="o", label=label, color=color)
+    for k, (label, values, color) in enumerate(curves):
+        line = ax.plot(budgets, values, marker="o", label=label, color=color)[0]
+        ci = intervals[k] if intervals and k < len(intervals) else None
+        if ci:
+            ax.fill_between(budgets, [c[0] for c in ci], [c[1] for c in ci], color=line.get_color(), alpha=0.08)
     ax.set(xlabel="normalised step budget (fraction of T)", ylabel="success rate", ylim=(0, 1), title=title)
     ax.title.set_fontsize(9)
     ax.grid(alpha=0.3)

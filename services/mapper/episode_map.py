@@ -17,10 +17,16 @@ import numpy as np
 
 from eqa.codec import packb, unpackb
 from eqa.messages import EpisodeStart, Frame, Frontier, GridSpec, MapUpdate, Pose2D, PromptPoint
-from services.mapper.frontiers import FrontierConfig, find_frontiers, weigh_frontiers
+from services.mapper.frontiers import FrontierConfig, find_frontiers, target_weights, weigh_frontiers
 from services.mapper.projection import Maps2D, ProjectionConfig, project
 from services.mapper.prompt_points import PromptConfig, prompt_points
-from services.mapper.semantic_map import QUESTION_LAYER, semantic_value, temperatures, write_values
+from services.mapper.semantic_map import (
+    QUESTION_LAYER,
+    ground_truth_scores,
+    semantic_value,
+    temperatures,
+    write_values,
+)
 from services.mapper.tsdf import TSDFVolume, VolumeConfig, check_frame
 
 SNAPSHOT_VERSION = 1
@@ -148,6 +154,9 @@ class EpisodeMap:
             return []
         if len(lsv) != len(pts):
             raise ValueError(f"{len(lsv)} LSV values for {len(pts)} prompt points")
+        if self.strategy == "perfect_sv":  # yardstick: the ground truth's values replace the scorer's
+            cam = (self.pose.x, self.pose.y) if self.pose is not None else (0.0, 0.0)
+            lsv, gsv = ground_truth_scores([(p.x, p.y) for p in pts], list(self.start.question.targets), cam)
         sv = [semantic_value(lv, gsv, temps[0], temps[1]) for lv in lsv]
         write_values(
             self.layer(layer), self.origin, self.resolution, [(p.x, p.y) for p in pts], sv, self.config.sigma
@@ -178,6 +187,10 @@ class EpisodeMap:
         if self.maps is None or self.pose is None:
             return []
         fr = self.find_frontier_candidates() if candidates is None else candidates
+        if self.strategy == "target_oracle":  # yardstick: weights from the ground-truth targets
+            self.frontiers = target_weights(fr, list(self.start.question.targets))
+            timer.lap("frontiers", t0)
+            return self.frontiers
         semantic = temperatures(self.strategy, self.config.tau_lsv, self.config.tau_gsv) is not None
         self.frontiers = weigh_frontiers(
             fr,
@@ -187,6 +200,8 @@ class EpisodeMap:
             self.config.tau_sv,
             self.config.tau_sv_normal,
             self.config.frontier.d_sv,
+            self.config.frontier.normal_scored_only,
+            self.config.frontier.unscored_sv,
         )
         timer.lap("frontiers", t0)
         return self.frontiers

@@ -28,6 +28,11 @@ class FrontierConfig:
     min_cluster_cells: int = 3
     max_cluster_cells: int = 30
     d_sv: float = 3.0  # appendix B: SV_p,normal averages the value up to 3 m along the normal
+    # SV_p,normal averages only the scored cells along the normal (the reference implementation keeps the
+    # non-zero values only), so unscored unknown space does not dilute a value seen beyond it
+    normal_scored_only: bool = False
+    # the value an unscored cell counts with in Eq. A6 (0: below every scored value, SV >= 1)
+    unscored_sv: float = 0.0
 
 
 def frontier_cells(
@@ -142,6 +147,20 @@ def sv_normal(
     return float(value_at(layer, origin, resolution, f.x + s * f.nx, f.y + s * f.ny).mean())
 
 
+def target_weights(frontiers: list[Frontier], targets: list[tuple[float, float]]) -> list[Frontier]:
+    """The ``target_oracle`` yardstick (benchmark-only upper bound): ``weight = 1 / (1 + d)`` with ``d`` the
+    straight-line distance (m) from the frontier to the nearest ground-truth target (``sv`` holds ``-d``); the
+    planner goes for the largest weight. Without targets every frontier weighs 1."""
+    if not targets:
+        return [f.model_copy(update={"sv": 0.0, "sv_normal": 0.0, "weight": 1.0}) for f in frontiers]
+    t = np.asarray(targets, dtype=np.float64)
+    out = []
+    for f in frontiers:
+        d = float(np.sqrt(((t - np.array([f.x, f.y])) ** 2).sum(-1)).min())
+        out.append(f.model_copy(update={"sv": -d, "sv_normal": 0.0, "weight": 1.0 / (1.0 + d)}))
+    return out
+
+
 MAX_LOG_WEIGHT = 700.0  # exp(709.8) overflows a float64
 
 
@@ -158,9 +177,13 @@ def weigh_frontiers(
     tau_sv: float,
     tau_sv_normal: float,
     d_sv: float = 3.0,
+    normal_scored_only: bool = False,
+    unscored_sv: float = 0.0,
 ) -> list[Frontier]:
     """Fill ``sv``, ``sv_normal`` and ``weight`` (Eq. A6) of each frontier from a semantic value layer.
-    ``layer=None`` (strategies without semantic values: fbe, nearest) gives every frontier weight 1."""
+    ``layer=None`` (strategies without semantic values: fbe, nearest) gives every frontier weight 1.
+    ``normal_scored_only``: SV_p,normal is the mean of the scored (non-zero) cells along the normal;
+    ``unscored_sv``: the value unscored cells count with (:class:`FrontierConfig`)."""
     if layer is None:
         return [f.model_copy(update={"sv": 0.0, "sv_normal": 0.0, "weight": 1.0}) for f in frontiers]
     if not frontiers:
@@ -175,7 +198,14 @@ def weigh_frontiers(
     sv_p = value_at(layer, origin, resolution, fx, fy)
     along = value_at(layer, origin, resolution, fx[:, None] + s[None, :] * fnx[:, None],
                      fy[:, None] + s[None, :] * fny[:, None])
-    sv_n = np.array([float(row.mean()) for row in along])  # row by row, as :func:`sv_normal`
+    scored = along > 0
+    if normal_scored_only:
+        count = scored.sum(axis=1)
+        sv_n = np.where(count > 0, np.where(scored, along, 0.0).sum(axis=1) / np.maximum(count, 1), unscored_sv)
+    else:
+        along = np.where(scored, along, unscored_sv)
+        sv_n = np.array([float(row.mean()) for row in along])  # row by row, as :func:`sv_normal`
+    sv_p = np.where(sv_p > 0, sv_p, unscored_sv)
     log_w = tau_sv * sv_p + tau_sv_normal * sv_n
     # Eq. A6 as is while exp() is finite; beyond (SV = exp(tau_LSV LSV + tau_GSV GSV) reaches e^10 at the
     # paper's tau = 5, Fig. 7c) every weight is divided by the largest: sampling, proportional to the

@@ -12,6 +12,8 @@ order in which the robot happened to look at a region. Never-scored cells hold 0
 
 Strategies (``EpisodeStart.strategy``): ``semantic`` uses both terms, ``no_lsv`` treats ``tau_LSV`` as 0,
 ``no_gsv`` treats ``tau_GSV`` as 0, ``fbe`` / ``nearest`` write nothing (every frontier weighs 1).
+``perfect_sv`` (benchmark-only yardstick) uses both terms with LSV / GSV from the ground truth
+(:func:`ground_truth_scores`) instead of the scorer's.
 """
 
 from __future__ import annotations
@@ -22,19 +24,43 @@ import numpy as np
 
 from eqa import grid
 
-SEMANTIC_STRATEGIES = ("semantic", "no_lsv", "no_gsv", "cp_guided")
+SEMANTIC_STRATEGIES = ("semantic", "no_lsv", "no_gsv", "perfect_sv", "cp_guided")
 QUESTION_LAYER = "question"
 
 
 def temperatures(strategy: str, tau_lsv: float, tau_gsv: float) -> tuple[float, float] | None:
     """(tau_LSV, tau_GSV) of a strategy, or None when the strategy uses no semantic values."""
-    if strategy in ("semantic", "cp_guided"):  # cp_guided: the planner re-tempers (issue 15)
+    if strategy in ("semantic", "perfect_sv", "cp_guided"):  # cp_guided: the planner re-tempers (issue 15)
         return tau_lsv, tau_gsv
     if strategy == "no_lsv":
         return 0.0, tau_gsv
     if strategy == "no_gsv":
         return tau_lsv, 0.0
     return None
+
+
+GT_LSV_SCALE_M = 1.0  # perfect LSV: softmax of -distance / 1 m over the prompt points
+
+
+def ground_truth_scores(
+    points: list[tuple[float, float]], targets: list[tuple[float, float]], camera_xy: tuple[float, float]
+) -> tuple[list[float], float]:
+    """LSV (Eq. 1) and GSV (Eq. 2) a perfect model would give, from the ground-truth target positions (the
+    ``perfect_sv`` yardstick, an upper bound, never product behaviour): LSV is the softmax over the prompt
+    points of ``-d_p / 1 m`` (``d_p``: straight-line distance from point ``p`` to the nearest target), so the
+    point nearest a target takes most of the mass; GSV = 1 when some prompt point is nearer a target than the
+    camera ("a direction worth exploring is in view"), else 0."""
+    if not points:
+        return [], 0.0
+    if not targets:
+        return [1.0 / len(points)] * len(points), 0.0
+    t = np.asarray(targets, dtype=np.float64)
+    p = np.asarray(points, dtype=np.float64)
+    d = np.sqrt(((p[:, None, :] - t[None, :, :]) ** 2).sum(-1)).min(axis=1)
+    z = -d / GT_LSV_SCALE_M
+    e = np.exp(z - z.max())
+    cam = float(np.sqrt(((t - np.asarray(camera_xy, dtype=np.float64)) ** 2).sum(-1)).min())
+    return (e / e.sum()).tolist(), 1.0 if float(d.min()) < cam else 0.0
 
 
 def semantic_value(lsv: float, gsv: float, tau_lsv: float, tau_gsv: float) -> float:

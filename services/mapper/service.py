@@ -2,9 +2,12 @@
 
 Per step (one :class:`Frame`): validate and integrate it, project to 2D, compute the prompt points, ask the
 scorer pool for the step's scores, write the semantic values (Eq. 3), compute the frontiers with their
-Eq. A6 weights, publish :class:`MapUpdate` and :class:`StepScores`, having first snapshotted the
-episode's map to the store (key ``mapper/episode/{episode_id}``), so that a restarted mapper picks the
-episode up from there when the next frame arrives.
+Eq. A6 weights, publish :class:`MapUpdate` and :class:`StepScores`.
+
+Per-episode state (:class:`eqa.episode_service.EpisodeService`, ``eqa:mapper:episode:{episode_id}``): the
+episode's map snapshot (:meth:`services.mapper.episode_map.EpisodeMap.snapshot`), written before the step's
+outputs are published; a restarted mapper picks the episode up from there when the next frame arrives. A frame
+that overtakes its ``EpisodeStart`` waits for it (one per episode, bounded in bytes, for ``EARLY_FRAME_TTL_S``).
 
 Errors go to ``MAPPER_ERROR`` as :class:`ErrorReply` with the reason: a bad frame (the map is unchanged), an
 unknown episode, a scorer failure (the map update is still published, the stopper gets no scores for that
@@ -24,6 +27,8 @@ from typing import Any
 import numpy as np
 
 from eqa import grid, keys
+from eqa.bus import Bus
+from eqa.episode_service import EpisodeService
 from eqa.messages import (
     EpisodeCancel,
     EpisodeEnd,
@@ -34,8 +39,8 @@ from eqa.messages import (
     ScoreResult,
     StepScores,
 )
-from eqa.recording import EpisodeRecorder
-from eqa.service import Service
+from eqa.settings import Settings
+from eqa.store import Store
 from services.mapper.episode_map import EpisodeMap, MapperConfig, Timer
 from services.mapper.tsdf import FrameError
 
@@ -46,24 +51,21 @@ EARLY_FRAME_TTL_S = 30.0
 Scorer = Callable[[ScoreRequest], ScoreResult]
 
 
-def snapshot_key(episode_id: str) -> str:
-    return f"mapper/episode/{episode_id}"
-
-
-SNAPSHOT_TTL_S = 7 * 24 * 3600.0
-
-
-class MapperService(Service):
+class MapperService(EpisodeService[EpisodeMap]):
     """TSDF mapping, frontiers, prompt points and the semantic value map (Explore-EQA IV-B..D)."""
 
     name = "mapper"
     description = (
         "Mapper: TSDF fusion, 2D maps, frontiers with Eq. A6 weights, prompt points, semantic values."
     )
+    error_stream = keys.MAPPER_ERROR
+    hold_ttl_s = EARLY_FRAME_TTL_S
+    hold_max_per_episode = 1  # the frame of step 0; a second one of an unknown episode is refused
+    persist_answers = False  # the snapshot is the state; a resent step is answered from it (answer_again)
+    state_ttl_s = 7 * 24 * 3600.0
 
-    def __init__(
-        self, settings: Any, bus: Any = None, store: Any = None, scorer: Scorer | None = None
-    ) -> None:
+    def __init__(self, settings: Settings, bus: Bus | None = None, store: Store | None = None, *,
+                 scorer: Scorer | None = None) -> None:
         super().__init__(settings, bus, store)
         self._scorer = scorer
         self.config = MapperConfig(
@@ -72,26 +74,16 @@ class MapperService(Service):
             tau_sv=settings.tau_sv,
             tau_sv_normal=settings.tau_sv_normal,
         )
-        self.episodes: dict[str, EpisodeMap] = {}
-        self.recorders: dict[str, EpisodeRecorder] = {}
-        # Frames that overtook their EpisodeStart (different publishers reach us on different Zenoh threads):
-        # held for EARLY_FRAME_TTL_S and handled when the start arrives.
-        self.early_frames: dict[str, tuple[float, str, Frame]] = {}
         self.last_timing_ms: dict[str, float] = {}
         # runs the scorer round trip of a step while the handler thread does the score-independent work
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mapper-score")
 
-    def setup(self) -> None:
-        self.on(keys.EPISODE_START, self.on_start)
-        self.on(keys.EPISODE_CANCEL, self.on_finish)
-        self.on(keys.EPISODE_END, self.on_finish)
-        self.on(keys.SIM_FRAME, self.on_frame)
+    def setup_episodes(self) -> None:
+        self.on_step(keys.SIM_FRAME, self.on_frame)
 
     def teardown(self) -> None:
         self._pool.shutdown(wait=True)
-        for rec in self.recorders.values():
-            rec.close()
-        self.recorders.clear()
+        super().teardown()
 
     # ---- scorer -----------------------------------------------------------------------------------------
     def scorer(self) -> Scorer:
@@ -101,86 +93,38 @@ class MapperService(Service):
             self._scorer = ScorerClient(self.bus, self.settings).score
         return self._scorer
 
-    # ---- handlers ---------------------------------------------------------------------------------------
-    def on_start(self, robot: str, msg: EpisodeStart) -> None:
-        if msg.episode_id in self.episodes:
-            log.info("episode %s already mapped; duplicate start ignored", msg.episode_id)
-            return
-        em = EpisodeMap(msg, self.config)
-        self.episodes[msg.episode_id] = em
-        self.recorders[msg.episode_id] = EpisodeRecorder(
-            self.settings, msg.episode_id, "mapper", enabled=msg.record
-        )
-        self._save(em)
-        log.info("episode %s: mapping for robot %s (strategy %s)", msg.episode_id, robot, msg.strategy)
-        early = self.early_frames.pop(msg.episode_id, None)
-        if early is not None:
-            log.info("episode %s: handling frame %d that arrived before the start", msg.episode_id, early[2].step)
-            self.on_frame(early[1], early[2])
+    # ---- episode state ----------------------------------------------------------------------------------
+    def start_episode(self, robot: str, start: EpisodeStart) -> EpisodeMap:
+        log.info("episode %s: mapping for robot %s (strategy %s)", start.episode_id, robot, start.strategy)
+        return EpisodeMap(start, self.config)
 
-    def on_finish(self, robot: str, msg: EpisodeCancel | EpisodeEnd) -> None:
-        em = self.episodes.pop(msg.episode_id, None)
-        rec = self.recorders.pop(msg.episode_id, None)
-        if rec is not None:
-            rec.close()
-        self.store.delete(snapshot_key(msg.episode_id))
-        if em is not None:
-            log.info("episode %s finished (%s); map dropped", msg.episode_id, msg.kind)
+    def finish_episode(self, robot: str, msg: EpisodeCancel | EpisodeEnd, state: EpisodeMap) -> None:
+        log.info("episode %s finished (%s); map dropped", msg.episode_id, msg.kind)
 
-    def _episode(self, episode_id: str) -> EpisodeMap | None:
-        em = self.episodes.get(episode_id)
-        if em is not None:
-            return em
-        data = self.store.get(snapshot_key(episode_id))
-        if data is None:
-            return None
-        try:
-            em = EpisodeMap.restore(data, self.config)
-        except Exception as exc:
-            log.error("episode %s: snapshot unreadable (%s)", episode_id, exc)
-            return None
-        self.episodes[episode_id] = em
-        self.recorders[episode_id] = EpisodeRecorder(
-            self.settings, episode_id, "mapper", enabled=em.start.record
-        )
+    def dump_state(self, state: EpisodeMap, **extra: Any) -> bytes:
+        return state.snapshot(extra.get("volume"))
+
+    def load_state(self, episode_id: str, data: Any) -> EpisodeMap:
+        em = EpisodeMap.restore(data, self.config)
         log.info("episode %s: restored from snapshot at step %d", episode_id, em.step)
         return em
 
-    def _error(self, robot: str, episode_id: str | None, step: int | None, reason: str) -> None:
-        log.warning("episode %s step %s: %s", episode_id, step, reason)
-        self.publish(
-            robot,
-            keys.MAPPER_ERROR,
-            ErrorReply(source="mapper", episode_id=episode_id, step=step, reason=reason),
-        )
+    def answered_step(self, episode_id: str, state: EpisodeMap) -> int:
+        return state.step
 
-    def on_frame(self, robot: str, frame: Frame) -> None:
-        em = self._episode(frame.episode_id)
-        now = time.monotonic()
-        for eid, (t, r, f) in list(self.early_frames.items()):
-            if now - t > EARLY_FRAME_TTL_S:
-                del self.early_frames[eid]
-                self._error(r, eid, f.step, "unknown episode: no EpisodeStart seen and no snapshot")
-        if em is None:
-            if frame.episode_id not in self.early_frames and len(self.early_frames) < 64:
-                log.info("episode %s: frame %d before its start; held", frame.episode_id, frame.step)
-                self.early_frames[frame.episode_id] = (now, robot, frame)
-            else:
-                self._error(
-                    robot, frame.episode_id, frame.step, "unknown episode: no EpisodeStart seen and no snapshot"
-                )
-            return
-        if frame.step == em.step:
-            self._republish(robot, em, frame)
-            return
-        if frame.step < em.step:
-            log.info(
-                "episode %s: frame %d already integrated (last %d); ignored",
-                em.episode_id,
-                frame.step,
-                em.step,
-            )
-            return
+    def answer_again(self, robot: str, state: EpisodeMap, msg: Frame) -> None:
+        self._republish(robot, state, msg)
+
+    def unknown_episode(self, robot: str, msg: Any, why: str) -> None:
+        self.error(robot, msg.episode_id, getattr(msg, "step", None),
+                   f"unknown episode: no EpisodeStart seen and no snapshot ({why})")
+
+    def _error(self, robot: str, episode_id: str | None, step: int | None, reason: str) -> None:
+        self.error(robot, episode_id, step, reason)
+
+    # ---- handlers ---------------------------------------------------------------------------------------
+    def on_frame(self, robot: str, em: EpisodeMap, frame: Frame) -> None:
+        t_start = time.perf_counter()
         t_start = time.perf_counter()
         timer = Timer()
         try:
@@ -215,9 +159,12 @@ class MapperService(Service):
         self._save(em, volume)
         timer.lap("snapshot", t0)
         timer.ms["step"] = (time.perf_counter() - t_start) * 1000.0
-        self.publish(robot, keys.MAPPER_MAP, em.map_update(timer.ms))
-        if result is not None:
-            self.publish(robot, keys.MAPPER_SCORES, self._step_scores(em, frame, result))
+        update = em.map_update(timer.ms)
+        if result is None:  # not kept as the step's answer: a resent step is scored again (answer_again)
+            self.publish(robot, keys.MAPPER_MAP, update)
+        else:
+            self.publish_step(em.episode_id, keys.MAPPER_MAP, update, frame.step)
+            self.publish_step(em.episode_id, keys.MAPPER_SCORES, self._step_scores(em, frame, result), frame.step)
         t0 = time.perf_counter()
         self._record(em, frame)
         timer.lap("record", t0)
@@ -257,7 +204,7 @@ class MapperService(Service):
             episode_id=em.episode_id,
             step=frame.step,
             # Ground truth never leaves for the scorer: it cannot read what it is not sent.
-            question=em.start.question.model_copy(update={"answer": None, "evidence_ids": []}),
+            question=em.start.question.model_copy(update={"answer": None, "evidence_ids": [], "targets": []}),
             rgb=frame.rgb,
             prompt_points=em.prompts,
             instances=frame.instances,
@@ -277,7 +224,7 @@ class MapperService(Service):
 
     def _save(self, em: EpisodeMap, volume: dict[str, Any] | None = None) -> None:
         try:
-            self.store.set(snapshot_key(em.episode_id), em.snapshot(volume), ttl_s=SNAPSHOT_TTL_S)
+            self.save(em.episode_id, volume=volume)
         except Exception:
             log.exception("episode %s: snapshot not saved", em.episode_id)
 

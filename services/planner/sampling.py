@@ -5,6 +5,11 @@
   for the episode's strategy (without LSV / GSV for the ablations); this module only samples.
 * ``fbe``: frontier-based exploration without semantic value: uniform over the reachable frontiers.
 * ``nearest``: deterministic, the reachable frontier with the shortest geodesic distance.
+* ``perfect_sv`` (benchmark-only yardstick, an upper bound): sampled by Eq. A6 like ``semantic``, but the
+  mapper wrote LSV / GSV computed from the ground-truth target positions instead of the scorer's.
+* ``target_oracle`` (benchmark-only yardstick, an upper bound): deterministic, the reachable frontier with
+  the largest weight, which the mapper sets from the frontier's distance to the nearest ground-truth
+  target (``1 / (1 + d)``); ties go to the shorter geodesic distance.
 
 The sampled strategies multiply the probabilities by a distance decay ``exp(-d / decay_m)`` of the geodesic
 distance (:func:`distance_decay`), the same for all of them, so with equal semantic values ``semantic``
@@ -24,7 +29,7 @@ import numpy as np
 from eqa.messages import Strategy
 
 # cp_guided (services/planner/cp_guided.py): Eq. A6 weights re-tempered by the CP prediction set
-WEIGHTED: frozenset[str] = frozenset({"semantic", "no_lsv", "no_gsv", "cp_guided"})
+WEIGHTED: frozenset[str] = frozenset({"semantic", "no_lsv", "no_gsv", "perfect_sv", "cp_guided"})
 
 
 def step_rng(seed: int, step: int, attempt: int = 0) -> np.random.Generator:
@@ -95,6 +100,17 @@ def choose(
     """Index of the chosen frontier (None when there is no candidate), the probabilities, and a note.
     ``decay_m``: :func:`distance_decay` for the sampled strategies."""
     cand = np.asarray(candidates, dtype=bool)
+    if strategy == "target_oracle":
+        p = np.zeros(cand.size)
+        if not cand.any():
+            return None, p, "no candidate frontier"
+        w = np.asarray(weights, dtype=np.float64)
+        w = np.where(cand & valid_weights(w), w, -np.inf)
+        d = np.asarray(geodesic_m, dtype=np.float64)
+        best = np.flatnonzero(w == w.max()) if np.isfinite(w.max()) else np.flatnonzero(cand)
+        i = int(best[np.argmin(d[best])])
+        p[i] = 1.0
+        return i, p, f"target_oracle (bound, ground truth): frontier nearest the target ({d[i]:.1f} m away)"
     if strategy == "nearest":
         p = np.zeros(cand.size)
         if not cand.any():

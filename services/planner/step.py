@@ -85,6 +85,8 @@ class StepPlan:
     frontier_index: int | None = None
     probabilities: list[float] = field(default_factory=list)  # per frontier, 0 when not a candidate
     clearance_m: float | None = None
+    geodesic_m: list[float] = field(default_factory=list)  # per frontier, inf when not reachable
+    sampled: bool = False  # the strategy chose the frontier this step (not a kept commitment)
     memory: Memory = field(default_factory=Memory)
     timing_ms: dict[str, float] = field(default_factory=dict)
 
@@ -294,6 +296,7 @@ def plan_step(
             idx = int(np.argmin(d))
             probs[idx] = 1.0
             note = f"kept the committed target (step {mem.committed_steps + 1} towards it)"
+    sampled = idx is None
     if idx is None:
         mem.committed_steps = 0
         idx, probs, note = sampling.choose(
@@ -340,6 +343,8 @@ def plan_step(
             frontier_index=idx,
             probabilities=[float(v) for v in probs],
             clearance_m=pg.clearance_m,
+            geodesic_m=[float(v) for v in geo],
+            sampled=sampled,
             memory=mem,
         )
     )

@@ -262,8 +262,20 @@ def generate_questions(scene: Scene, rng: np.random.Generator, per_category: int
             questions.append(Question(
                 id=f"{scene.id}-{cat[:3]}{k}", text=text, choices=choices, scene=scene.id, category=cat,
                 query=q, answer=answer, evidence_ids=ev, start_pose=start, max_steps=max_steps,
+                targets=question_targets(scene, ev, q.get("room_kind")),
             ))
     return questions
+
+
+def question_targets(scene: Scene, evidence_ids: list[int], room_kind: str | None) -> list[tuple[float, float]]:
+    """Ground-truth floor positions for the benchmark-only yardstick strategies (``Question.targets``): the
+    evidence objects' centres, or the centres of the asked room kind's rooms when no object is the evidence
+    (a "no" existence question: the room is the evidence). No scorer reads them."""
+    pts = [(round(float(scene.instances[i].position[0]), 3), round(float(scene.instances[i].position[1]), 3))
+           for i in evidence_ids if i in scene.instances]
+    if not pts and room_kind:
+        pts = [(round(r.center[0], 3), round(r.center[1], 3)) for r in scene.rooms if r.kind == room_kind]
+    return pts[:64]
 
 
 # ---- the fixed benchmark -----------------------------------------------------------------------------------

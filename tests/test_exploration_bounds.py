@@ -1,0 +1,142 @@
+"""Benchmark-only yardsticks (issue 14): target_oracle and perfect_sv read ground truth, the product refuses them,
+and the tuning tools refuse the evaluation seeds."""
+
+from __future__ import annotations
+
+import math
+import sys
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+from eqa.messages import BOUND_STRATEGIES, EpisodeStart, Frontier, Pose2D, PromptPoint, Question
+from services.mapper.episode_map import EpisodeMap
+from services.mapper.frontiers import target_weights
+from services.mapper.semantic_map import ground_truth_scores
+from services.planner import sampling
+
+
+def _start(strategy: str, targets: list[tuple[float, float]]) -> EpisodeStart:
+    q = Question(text="Is there a mug in the kitchen?", choices=["Yes", "No"], scene="gen-00001",
+                 answer="A", targets=targets)
+    return EpisodeStart(episode_id="ep-bound", robot="r0", question=q, max_steps=20, strategy=strategy)  # type: ignore[arg-type]
+
+
+def test_ground_truth_scores_favour_the_point_nearest_the_target() -> None:
+    lsv, gsv = ground_truth_scores([(0.0, 0.0), (5.0, 0.0), (0.0, 5.0)], [(6.0, 0.5)], (0.0, -2.0))
+    assert int(np.argmax(lsv)) == 1 and lsv[1] > 0.9 and math.isclose(sum(lsv), 1.0)
+    assert gsv == 1.0  # a prompt point is nearer the target than the camera
+    lsv, gsv = ground_truth_scores([(0.0, 0.0), (1.0, 0.0)], [(-6.0, 0.0)], (-1.0, 0.0))
+    assert gsv == 0.0  # everything in view leads away from the target
+    assert ground_truth_scores([(0.0, 0.0), (1.0, 0.0)], [], (0.0, 0.0)) == ([0.5, 0.5], 0.0)
+
+
+def test_target_oracle_goes_for_the_reachable_frontier_nearest_the_target() -> None:
+    fr = [Frontier(x=float(x), y=0.0, nx=1.0, ny=0.0, size=5) for x in (0, 4, 8, 12)]
+    w = target_weights(fr, [(11.0, 0.0), (-30.0, 0.0)])
+    assert [round(f.sv, 1) for f in w] == [-11.0, -7.0, -3.0, -1.0]
+    cand = [True, True, True, False]  # the nearest one is not reachable
+    i, p, note = sampling.choose("target_oracle", [f.weight for f in w], cand, [1.0, 2.0, 3.0, np.inf],
+                                 np.random.default_rng(0), decay_m=3.0)
+    assert i == 2 and p[2] == 1.0 and "bound" in note
+    # the same frontiers under fbe with the distance decay mostly go to the nearest one
+    _, p_fbe, _ = sampling.choose("fbe", [1.0] * 4, cand, [1.0, 2.0, 3.0, np.inf], np.random.default_rng(0), 3.0)
+    assert p_fbe[0] > p_fbe[2]
+
+
+def test_perfect_sv_writes_ground_truth_values_not_the_scorers() -> None:
+    em = EpisodeMap(_start("perfect_sv", [(6.0, 0.0)]))
+    em.pose = Pose2D(x=0.0, y=0.0, yaw=0.0)
+    em.volume.ensure(-8.0, 8.0, -8.0, 8.0)
+    em.prompts = [PromptPoint(label="A", x=0.0, y=4.0, u=10, v=10), PromptPoint(label="B", x=5.0, y=0.0, u=20, v=10)]
+    sv = em.apply_scores([0.99, 0.01], 0.0)  # the scorer says A; the ground truth says B
+    assert sv[1] > sv[0]
+    assert sv[1] > math.exp(1.5)  # GSV = 1: a point nearer the target than the camera is in view
+    em2 = EpisodeMap(_start("semantic", [(6.0, 0.0)]))
+    em2.pose, em2.prompts = em.pose, em.prompts
+    em2.volume.ensure(-8.0, 8.0, -8.0, 8.0)
+    sv2 = em2.apply_scores([0.99, 0.01], 0.0)
+    assert sv2[0] > sv2[1]  # semantic keeps the scorer's values
+
+
+def test_the_product_refuses_the_yardsticks() -> None:
+    from gateway.schemas import QuestionRequest
+
+    assert {"target_oracle", "perfect_sv"} <= BOUND_STRATEGIES
+    for s in sorted(BOUND_STRATEGIES):
+        with pytest.raises(ValidationError, match="yardstick"):
+            QuestionRequest(question="Where is the mug?", scene="gen-00001", strategy=s)  # type: ignore[arg-type]
+    assert QuestionRequest(question="Where is the mug?", scene="gen-00001", strategy="semantic").strategy == "semantic"
+
+
+def test_tuning_tool_refuses_evaluation_seeds(capsys: pytest.CaptureFixture[str]) -> None:
+    import importlib.util
+    from pathlib import Path
+
+    from eqa.seeds import EVALUATION_SEEDS
+
+    path = Path(__file__).resolve().parents[1] / "bench" / "tune_explore.py"
+    spec = importlib.util.spec_from_file_location("tune_explore", path)
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["tune_explore"] = mod  # dataclasses look their module up
+    spec.loader.exec_module(mod)
+    for seed in (*EVALUATION_SEEDS, 0):
+        with pytest.raises(SystemExit) as exc:
+            mod.main(["--seed", str(seed), "--limit", "1"])
+        assert exc.value.code == 2
+    assert "tuning seed 11" in capsys.readouterr().err
+
+
+def _trace(qid: str, rels: list[float], right_from: int | None, T: int = 10):
+    from services.stopper.calibration import Trace, TraceStep
+
+    steps = []
+    for k, r in enumerate(rels):
+        good = right_from is not None and k >= right_from
+        steps.append(TraceStep(answer_probs=[0.8, 0.2] if good else [0.2, 0.8], relevance=r))
+    return Trace(question_id=qid, scene="gen-00001", category="existence", choices=["Yes", "No"], answer="A",
+                 max_steps=T, strategy="x", steps=steps)
+
+
+def test_seed_pooled_statistics() -> None:
+    from eqa.app import evaluation as ev
+
+    lo, hi = ev.wilson_ci(5, 10)
+    assert lo < 0.5 < hi and lo > 0.2 and hi < 0.8
+    d, lo, hi = ev.paired_diff_ci(10, 2, 100)
+    assert math.isclose(d, 0.08) and lo > 0 and hi < 0.2
+    assert ev.paired_diff_ci(3, 3, 50)[0] == 0.0
+
+    # a sees the evidence at step 2 (and is right from then), b only at step 7
+    a = [_trace(f"q{i}", [0.1, 0.1, 0.5] + [0.1] * 7, 2) for i in range(6)]
+    b = [_trace(f"q{i}", [0.1] * 7 + [0.5, 0.1, 0.1], 7) for i in range(6)]
+    assert ev.evidence_cdf(a, [0.2, 0.3, 1.0]) == [0.0, 1.0, 1.0]
+    assert ev.evidence_cdf(b, [0.3, 0.8]) == [0.0, 1.0]
+    assert ev.median_first_evidence(a) == 0.3 and ev.median_first_evidence(b) == 0.8
+    assert ev.median_first_evidence([_trace("n", [0.1] * 10, None)]) is None
+    p = ev.paired_first_evidence(a, b)
+    assert (p.a_only, p.b_only, p.n) == (6, 0, 6) and math.isclose(p.diff, 0.5)
+    rows = ev.paired_comparison(a, b, (0.5, 1.0))
+    assert (rows[0].a_only, rows[0].b_only, rows[1].a_only) == (6, 0, 0)
+    pooled = ev.pool_paired([rows, rows])
+    assert (pooled[0].a_only, pooled[0].n) == (12, 12) and pooled[0].p_value < 0.001
+    assert pooled[0].ci_low <= pooled[0].diff <= pooled[0].ci_high
+
+
+def test_oracle_tuning_tool_refuses_evaluation_seeds(capsys: pytest.CaptureFixture[str]) -> None:
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "bench" / "tune_oracle.py"
+    spec = importlib.util.spec_from_file_location("tune_oracle", path)
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["tune_oracle"] = mod
+    spec.loader.exec_module(mod)
+    for seed in (1, 2, 3, 0):
+        with pytest.raises(SystemExit) as exc:
+            mod.main(["--seed", str(seed)])
+        assert exc.value.code == 2
+    assert "evaluation seed" in capsys.readouterr().err
