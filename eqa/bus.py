@@ -101,15 +101,23 @@ class Bus:
         """Publish bytes as they are (tests use it to send garbage)."""
         self.session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
 
-    def subscribe(self, key: str, expected: type[M] | tuple[type[M], ...], handler: Handler) -> Any:
-        """Call ``handler(key, message)`` for each well-formed message on ``key``; log and drop the rest."""
+    def subscribe(self, key: str, expected: type[M] | tuple[type[M], ...], handler: Handler,
+                  on_invalid: Callable[[str, bytes, str], None] | None = None) -> Any:
+        """Call ``handler(key, message)`` for each well-formed message on ``key``; log and drop the rest
+        (after ``on_invalid(key, payload, reason)`` when given: a service answers the episode at once)."""
 
         def on_sample(sample: zenoh.Sample) -> None:
             skey = str(sample.key_expr)
+            payload = sample.payload.to_bytes()
             try:
-                msg = decode(sample.payload.to_bytes(), expected)
+                msg = decode(payload, expected)
             except CodecError as exc:
                 log.warning("dropped malformed message on %s: %s", skey, exc)
+                if on_invalid is not None:
+                    try:
+                        on_invalid(skey, payload, str(exc))
+                    except Exception:
+                        log.exception("invalid-message callback for %s failed", skey)
                 return
             try:
                 handler(skey, msg)

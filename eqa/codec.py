@@ -9,6 +9,7 @@ bytes zlib-compressed (maps: large and mostly constant). In JSON mode (HTTP, log
 from __future__ import annotations
 
 import base64
+import math
 import zlib
 from typing import Annotated, Any
 
@@ -19,6 +20,13 @@ from pydantic import PlainSerializer, PlainValidator, SerializationInfo
 _EXT_RAW = 1
 _EXT_ZLIB = 2
 _ALLOWED_KINDS = set("biufc")  # bool, int, uint, float, complex: never object arrays
+MAX_ARRAY_BYTES = 4096 * 4096 * 8
+"""Largest decoded array (bytes): a 4096x4096 float64 layer (EQA_SIM_WIDTH/HEIGHT are at most 4096; a depth
+image of that size is half of it). A header that declares more is refused before anything is allocated."""
+MAX_DECODED_BYTES = 2 * MAX_ARRAY_BYTES
+"""Largest sum of the decoded arrays of one message: a 1 MB payload whose compressed arrays would expand to
+1 GB is refused before it is decompressed (it raised five services to 2.5 GB each)."""
+MAX_NDIM = 8
 
 
 class CodecError(ValueError):
@@ -57,19 +65,49 @@ def _encode_array(array: np.ndarray, compress: bool) -> msgpack.ExtType:
     )
 
 
-def _decode_array(code: int, data: bytes) -> Any:
+class _Budget:
+    """Decoded bytes left for the arrays of one message."""
+
+    __slots__ = ("left",)
+
+    def __init__(self, limit: int) -> None:
+        self.left = limit
+
+
+def _declared_size(dtype: np.dtype, shape: Any) -> int:
+    """Bytes of an array of ``shape`` (exact Python integers: no int64 overflow), checked against the caps."""
+    if not isinstance(shape, list) or len(shape) > MAX_NDIM or not all(
+        isinstance(n, int) and not isinstance(n, bool) and n >= 0 for n in shape
+    ):
+        raise CodecError(f"array shape {str(shape)[:80]} must be at most {MAX_NDIM} non-negative integers")
+    need = math.prod(shape) * dtype.itemsize
+    if need > MAX_ARRAY_BYTES:
+        raise CodecError(f"array of shape {shape} ({need} bytes) is over the cap of {MAX_ARRAY_BYTES} bytes")
+    return need
+
+
+def _decode_array(code: int, data: bytes, budget: _Budget | None = None) -> Any:
     if code not in (_EXT_RAW, _EXT_ZLIB):
         return msgpack.ExtType(code, data)
     try:
         hlen = int.from_bytes(data[:4], "little")
+        if not 0 < hlen <= min(len(data) - 4, 4096):
+            raise CodecError(f"malformed array: header length {hlen} is not valid")
         dtype_str, shape = msgpack.unpackb(data[4 : 4 + hlen])
         dtype = _check_dtype(np.dtype(dtype_str))
+        need = _declared_size(dtype, shape)
+        if budget is not None:
+            if need > budget.left:
+                raise CodecError(f"the arrays of one message decode to over {MAX_DECODED_BYTES} bytes")
+            budget.left -= need
         body: Any = memoryview(data)[4 + hlen :]  # a view: the array below shares ``data``, no copy
         if code == _EXT_ZLIB:
-            body = zlib.decompress(body)
-        count = int(np.prod(shape, dtype=np.int64)) if shape else 1
-        if count * dtype.itemsize != len(body):
-            need = count * dtype.itemsize
+            # Never inflate past what the header declared: a zlib bomb stops at need + 1 bytes.
+            inflater = zlib.decompressobj()
+            body = inflater.decompress(body, need + 1)
+            if inflater.unconsumed_tail or not inflater.eof:
+                raise CodecError(f"compressed array body does not inflate to the {need} bytes its header declares")
+        if need != len(body):
             raise CodecError(f"array body has {len(body)} bytes, shape {shape} of {dtype} needs {need}")
         return np.frombuffer(body, dtype=dtype).reshape(shape)
     except CodecError:
@@ -93,9 +131,13 @@ def packb(obj: Any) -> bytes:
     return msgpack.packb(obj, default=_default, use_bin_type=True)
 
 
-def unpackb(data: bytes) -> Any:
+def unpackb(data: bytes, max_decoded: int = MAX_DECODED_BYTES) -> Any:
+    """msgpack with numpy support; the arrays of one payload decode to at most ``max_decoded`` bytes."""
+    budget = _Budget(max_decoded)
     try:
-        return msgpack.unpackb(data, ext_hook=_decode_array, raw=False, strict_map_key=False)
+        return msgpack.unpackb(
+            data, ext_hook=lambda code, raw: _decode_array(code, raw, budget), raw=False, strict_map_key=False
+        )
     except CodecError:
         raise
     except Exception as exc:
@@ -111,6 +153,10 @@ def _validate_array(value: Any) -> np.ndarray:
         return value
     if isinstance(value, dict) and {"dtype", "shape", "b64"} <= set(value):
         dtype = _check_dtype(np.dtype(value["dtype"]))
+        shape = value["shape"]
+        need = _declared_size(dtype, list(shape) if isinstance(shape, list | tuple) else shape)
+        if len(value["b64"]) > 4 * (need // 3 + 1):
+            raise ValueError(f"array text is longer than its shape {value['shape']} of {dtype} needs")
         raw = base64.b64decode(value["b64"])
         return np.frombuffer(raw, dtype=dtype).reshape(value["shape"])
     raise ValueError(f"expected a numpy array, got {type(value).__name__}")

@@ -11,7 +11,7 @@ from __future__ import annotations
 import re
 
 ROOT = "eqa/v1"
-_ID = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
+_ID = re.compile(r"[A-Za-z0-9_-]{1,64}")
 
 SERVICES = ("sim", "mapper", "vlm_scorer", "planner", "stopper", "gateway")
 
@@ -30,7 +30,7 @@ PLANNER_GOAL = ("planner", "goal")
 
 def check_id(value: str, what: str = "id") -> str:
     """Return ``value`` if it is a safe key chunk, else raise ``ValueError`` naming the rule."""
-    if not isinstance(value, str) or not _ID.match(value):
+    if not isinstance(value, str) or not _ID.fullmatch(value):  # fullmatch: "$" would pass a trailing newline
         raise ValueError(f"{what} {value!r} must be 1-64 characters of letters, digits, '_' or '-'")
     return value
 

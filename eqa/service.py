@@ -67,14 +67,20 @@ class Service:
     def teardown(self) -> None:
         """Release resources. Called once after the worker stopped."""
 
-    def on(self, pair: tuple[str, str], handler: Callable[[str, Any], None]) -> None:
-        """Run ``handler(robot, message)`` on the worker for every message of stream ``pair`` of any robot."""
+    def on(self, pair: tuple[str, str], handler: Callable[[str, Any], None],
+           on_invalid: Callable[[str, bytes, str], None] | None = None) -> None:
+        """Run ``handler(robot, message)`` on the worker for every message of stream ``pair`` of any robot;
+        ``on_invalid(robot, payload, reason)`` on the worker for each payload that does not validate."""
         expected = STREAM_TYPES[pair]
 
         def enqueue(key: str, msg: Message) -> None:
             self._queue.put((handler, keys.robot_of(key), msg))
 
-        self.bus.subscribe(keys.any_robot(pair), expected, enqueue)
+        def enqueue_invalid(key: str, payload: bytes, reason: str) -> None:
+            if on_invalid is not None:
+                self._queue.put((on_invalid, keys.robot_of(key), payload, reason))
+
+        self.bus.subscribe(keys.any_robot(pair), expected, enqueue, enqueue_invalid if on_invalid else None)
 
     def submit(self, fn: Callable[..., None], *args: Any) -> None:
         """Run ``fn(*args)`` on the worker (after what is already queued)."""

@@ -11,6 +11,7 @@ Stream ids have the Redis form ``<ms>-<seq>`` and increase strictly within a str
 from __future__ import annotations
 
 import json
+import re
 import sqlite3
 import threading
 import time
@@ -36,6 +37,12 @@ def task_metrics_key(episode_id: str) -> str:
     return f"eqa:sim:task:{episode_id}"
 
 
+def episode_state_key(service: str, episode_id: str) -> str:
+    """Where ``service`` keeps its state of a running episode (:class:`eqa.episode_service.EpisodeService`:
+    one :mod:`eqa.codec` msgpack envelope), e.g. ``eqa:planner:episode:ep-1``."""
+    return f"eqa:{service}:episode:{episode_id}"
+
+
 def episode_trace_key(episode_id: str) -> str:
     """Where the stopper keeps the per-step scores (trace) of an episode, rewritten after each step."""
     return f"eqa:trace:episode:{episode_id}"
@@ -54,12 +61,34 @@ class StoreError(RuntimeError):
     pass
 
 
+class StoreUnavailable(StoreError):  # noqa: N818 (public API name)
+    """The store cannot be reached right now (Redis down or frozen, SQLite locked): retry later."""
+
+
+MAX_STREAM_PART = 2**63 - 1
+"""Largest part of a stream id ``<ms>-<seq>`` both backends take (SQLite integers are signed 64-bit;
+Redis takes up to 2**64-1)."""
+_STREAM_ID = re.compile(r"([0-9]{1,19})-([0-9]{1,19})")  # ASCII digits only (\\d takes other scripts)
+
+
+def parse_stream_id(entry_id: str) -> tuple[int, int]:
+    """``(ms, seq)`` of a stream id ``<ms>-<seq>``: two decimal integers of at most 19 digits, each at most
+    :data:`MAX_STREAM_PART`. Anything else raises ``ValueError`` saying what a valid id looks like (a
+    Last-Event-ID of 20-digit parts used to pass a regex and kill the stream in the backend)."""
+    m = _STREAM_ID.fullmatch(entry_id) if isinstance(entry_id, str) else None
+    if m is None:
+        raise ValueError(f"event id {str(entry_id)[:40]!r} must look like <ms>-<seq> (two integers), e.g. 0-0")
+    ms, seq = int(m.group(1)), int(m.group(2))
+    if ms > MAX_STREAM_PART or seq > MAX_STREAM_PART:
+        raise ValueError(f"event id {entry_id!r} is out of range: each part is at most {MAX_STREAM_PART}")
+    return ms, seq
+
+
 def _id_tuple(entry_id: str) -> tuple[int, int]:
     try:
-        ms, _, seq = entry_id.partition("-")
-        return int(ms), int(seq or 0)
+        return parse_stream_id(entry_id)
     except ValueError as exc:
-        raise StoreError(f"bad stream id {entry_id!r}: expected <ms>-<seq>") from exc
+        raise StoreError(str(exc)) from exc
 
 
 class Store(ABC):
@@ -97,6 +126,33 @@ class Store(ABC):
 
     def ping(self) -> bool:
         return True
+
+    # ---- many keys at once (one round trip on Redis) ---------------------------------------------------
+    def get_many(self, keys: list[str]) -> list[bytes | None]:
+        return [self.get(k) for k in keys]
+
+    def delete_many(self, keys: list[str]) -> None:
+        for k in keys:
+            self.delete(k)
+
+    # ---- sorted indexes (Redis sorted sets): list and prune without scanning every key ------------------
+    @abstractmethod
+    def index_add(self, index: str, member: str, score: float) -> None:
+        """Put ``member`` into ``index`` with ``score`` (replacing its score if present)."""
+
+    @abstractmethod
+    def index_remove(self, index: str, members: list[str]) -> None: ...
+
+    @abstractmethod
+    def index_page(self, index: str, limit: int, offset: int = 0, newest_first: bool = True) -> list[str]:
+        """Up to ``limit`` members by score (highest first with ``newest_first``), skipping ``offset``."""
+
+    @abstractmethod
+    def index_below(self, index: str, score: float, limit: int) -> list[str]:
+        """Up to ``limit`` members with a score below ``score``, lowest first."""
+
+    @abstractmethod
+    def index_len(self, index: str) -> int: ...
 
     # ---- JSON helpers -----------------------------------------------------------------------------------
     def get_json(self, key: str) -> Any:
@@ -150,6 +206,33 @@ class RedisStore(Store):
     def stream_len(self, stream: str) -> int:
         return int(self._r.xlen(stream))
 
+    def get_many(self, keys: list[str]) -> list[bytes | None]:
+        return list(self._r.mget(keys)) if keys else []
+
+    def delete_many(self, keys: list[str]) -> None:
+        if keys:
+            self._r.delete(*keys)
+
+    def index_add(self, index: str, member: str, score: float) -> None:
+        self._r.zadd(index, {member: score})
+
+    def index_remove(self, index: str, members: list[str]) -> None:
+        if members:
+            self._r.zrem(index, *members)
+
+    def index_page(self, index: str, limit: int, offset: int = 0, newest_first: bool = True) -> list[str]:
+        if limit <= 0:
+            return []
+        rows = self._r.zrange(index, offset, offset + limit - 1, desc=newest_first)
+        return [m.decode() for m in rows]
+
+    def index_below(self, index: str, score: float, limit: int) -> list[str]:
+        rows = self._r.zrangebyscore(index, "-inf", f"({score!r}", start=0, num=limit)
+        return [m.decode() for m in rows]
+
+    def index_len(self, index: str) -> int:
+        return int(self._r.zcard(index))
+
     def ping(self) -> bool:
         try:
             return bool(self._r.ping())
@@ -174,6 +257,11 @@ class EmbeddedStore(Store):
                 "CREATE TABLE IF NOT EXISTS streams (s TEXT NOT NULL, ms INTEGER NOT NULL, seq INTEGER NOT NULL,"
                 " v BLOB NOT NULL, PRIMARY KEY (s, ms, seq))"
             )
+            c.execute(
+                "CREATE TABLE IF NOT EXISTS idx (i TEXT NOT NULL, m TEXT NOT NULL, score REAL NOT NULL,"
+                " PRIMARY KEY (i, m))"
+            )
+            c.execute("CREATE INDEX IF NOT EXISTS idx_by_score ON idx (i, score)")
 
     def _conn(self) -> sqlite3.Connection:
         conn = getattr(self._local, "conn", None)
@@ -194,14 +282,15 @@ class EmbeddedStore(Store):
         exp = time.time() + ttl_s if ttl_s else None
         self._conn().execute("INSERT OR REPLACE INTO kv (k, v, exp) VALUES (?, ?, ?)", (key, value, exp))
 
-    def delete(self, key: str) -> None:
-        self._conn().execute("DELETE FROM kv WHERE k=?", (key,))
-
     def keys(self, prefix: str) -> list[str]:
+        """Keys of values, streams and indexes under ``prefix`` (as Redis lists every kind of key)."""
         now = time.time()
+        n = len(prefix)
         rows = self._conn().execute(
-            "SELECT k FROM kv WHERE substr(k, 1, ?) = ? AND (exp IS NULL OR exp >= ?) ORDER BY k",
-            (len(prefix), prefix, now),
+            "SELECT k FROM kv WHERE substr(k, 1, ?) = ? AND (exp IS NULL OR exp >= ?)"
+            " UNION SELECT DISTINCT s FROM streams WHERE substr(s, 1, ?) = ?"
+            " UNION SELECT DISTINCT i FROM idx WHERE substr(i, 1, ?) = ? ORDER BY 1",
+            (n, prefix, now, n, prefix, n, prefix),
         )
         return [r[0] for r in rows]
 
@@ -249,11 +338,66 @@ class EmbeddedStore(Store):
     def stream_len(self, stream: str) -> int:
         return int(self._conn().execute("SELECT COUNT(*) FROM streams WHERE s=?", (stream,)).fetchone()[0])
 
+    def delete(self, key: str) -> None:
+        conn = self._conn()
+        conn.execute("DELETE FROM kv WHERE k=?", (key,))
+        conn.execute("DELETE FROM streams WHERE s=?", (key,))  # streams and indexes are keys too (as on Redis)
+        conn.execute("DELETE FROM idx WHERE i=?", (key,))
+
+    def get_many(self, keys: list[str]) -> list[bytes | None]:
+        found: dict[str, bytes] = {}
+        now = time.time()
+        for i in range(0, len(keys), 500):
+            chunk = keys[i : i + 500]
+            rows = self._conn().execute(
+                f"SELECT k, v, exp FROM kv WHERE k IN ({','.join('?' * len(chunk))})", chunk
+            )
+            found.update({r[0]: bytes(r[1]) for r in rows if r[2] is None or r[2] >= now})
+        return [found.get(k) for k in keys]
+
+    def index_add(self, index: str, member: str, score: float) -> None:
+        self._conn().execute("INSERT OR REPLACE INTO idx (i, m, score) VALUES (?, ?, ?)", (index, member, score))
+
+    def index_remove(self, index: str, members: list[str]) -> None:
+        conn = self._conn()
+        for m in members:
+            conn.execute("DELETE FROM idx WHERE i=? AND m=?", (index, m))
+
+    def index_page(self, index: str, limit: int, offset: int = 0, newest_first: bool = True) -> list[str]:
+        order = "DESC" if newest_first else "ASC"
+        rows = self._conn().execute(
+            f"SELECT m FROM idx WHERE i=? ORDER BY score {order}, m {order} LIMIT ? OFFSET ?",
+            (index, max(0, limit), max(0, offset)),
+        )
+        return [r[0] for r in rows]
+
+    def index_below(self, index: str, score: float, limit: int) -> list[str]:
+        rows = self._conn().execute(
+            "SELECT m FROM idx WHERE i=? AND score < ? ORDER BY score, m LIMIT ?", (index, score, limit)
+        )
+        return [r[0] for r in rows]
+
+    def index_len(self, index: str) -> int:
+        return int(self._conn().execute("SELECT COUNT(*) FROM idx WHERE i=?", (index,)).fetchone()[0])
+
     def close(self) -> None:
         conn = getattr(self._local, "conn", None)
         if conn is not None:
             conn.close()
             self._local.conn = None
+
+
+def unavailable_errors() -> tuple[type[BaseException], ...]:
+    """Exceptions that mean "the store cannot be reached now, retry later" (what a server answers with 503):
+    :class:`StoreUnavailable`, Redis connection and timeout errors, a locked or unreadable SQLite file."""
+    found: list[type[BaseException]] = [StoreUnavailable, sqlite3.OperationalError]
+    try:
+        import redis
+
+        found += [redis.exceptions.ConnectionError, redis.exceptions.TimeoutError, redis.exceptions.BusyLoadingError]
+    except ImportError:  # pragma: no cover - redis is a dependency
+        pass
+    return tuple(found)
 
 
 def open_store(settings: Settings) -> Store:

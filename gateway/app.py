@@ -26,17 +26,23 @@ from fastapi.staticfiles import StaticFiles
 
 from eqa import keys
 from eqa.bus import Bus
-from eqa.messages import MESSAGE_TYPES, Message
+from eqa.messages import MESSAGE_TYPES, EpisodeEnd, ErrorReply, Message
 from eqa.settings import Settings
-from eqa.store import open_store
-from gateway.auth import RateLimiter
+from eqa.store import open_store, unavailable_errors
+from gateway.auth import Authenticator, retry_after
 from gateway.deps import DocsCallerDep
-from gateway.manager import EpisodeManager, SceneArea
+from gateway.errors import GatewayError
+from gateway.limits import BODY_METHODS, BodyLimit
+from gateway.manager import PRUNE_BATCH, EpisodeManager, SceneArea
 from gateway.routers import episodes, health
+from gateway.schemas import Problem
 
 log = logging.getLogger(__name__)
 
-MAX_BODY_BYTES = 2 * 1024 * 1024
+INBOX_MAX_DATA = 256  # data messages waiting for the episode logic; more are dropped (logged)
+CONTROL_TYPES = (EpisodeEnd, ErrorReply)  # never dropped for a running episode
+PRUNE_EVERY_S = 30.0  # retention pass period
+STORE_RETRY_AFTER_S = 5
 SWAGGER_ASSETS = "/docs/assets"  # Swagger UI and ReDoc files from the fastapi-offline package
 DOCS_ASSETS_DIR = Path(fastapi_offline.__file__).parent / "static"
 DOCS_CSP = (  # the docs pages load nothing from other hosts (their inline set-up scripts and styles stay allowed)
@@ -72,14 +78,31 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     store = await asyncio.to_thread(open_store, settings)
     bus = Bus(settings, "gateway").open()
     inbox: asyncio.Queue[tuple[str, Message]] = asyncio.Queue()
+    backlog = {"data": 0, "dropped": 0}  # data messages waiting in the inbox; data messages dropped
 
     def notify() -> None:
         loop.call_soon_threadsafe(hub.bump)
 
     manager = EpisodeManager(settings, store, bus, notify=notify, scene_area=app.state.scene_area)
 
+    def enqueue(robot: str, msg: Message) -> None:  # event loop
+        """Messages of episodes this gateway does not run are dropped here, before any work; data messages
+        (frames, maps, scores, goals, decisions) wait at most INBOX_MAX_DATA deep, so a flood cannot delay an
+        EpisodeEnd or an ErrorReply behind it for more than that (the drops are counted and logged)."""
+        if not manager.is_active(getattr(msg, "episode_id", None)):
+            return
+        if not isinstance(msg, CONTROL_TYPES):
+            if backlog["data"] >= INBOX_MAX_DATA:
+                backlog["dropped"] += 1
+                if backlog["dropped"] in (1, 10, 100) or backlog["dropped"] % 1000 == 0:
+                    log.warning("inbox full: %d data messages dropped so far (a flood on %s?)", backlog["dropped"],
+                                robot)
+                return
+            backlog["data"] += 1
+        inbox.put_nowait((robot, msg))
+
     def on_message(key: str, msg: Message) -> None:  # Zenoh thread
-        loop.call_soon_threadsafe(inbox.put_nowait, (keys.robot_of(key), msg))
+        loop.call_soon_threadsafe(enqueue, keys.robot_of(key), msg)
 
     all_types = tuple(MESSAGE_TYPES.values())
     for robot in settings.robots:
@@ -90,6 +113,8 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     async def consume() -> None:
         while True:
             robot, msg = await inbox.get()
+            if not isinstance(msg, CONTROL_TYPES):
+                backlog["data"] -= 1
             try:
                 await asyncio.to_thread(manager.handle, robot, msg)
             except Exception:
@@ -97,10 +122,15 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
 
     async def watchdog() -> None:
         period = _watchdog_period(settings)
+        last_prune = 0.0
         while True:
             await asyncio.sleep(period)
             try:
                 await asyncio.to_thread(manager.check_timeouts)
+                if loop.time() - last_prune >= PRUNE_EVERY_S:
+                    last_prune = loop.time()
+                    while await asyncio.to_thread(manager.prune) >= PRUNE_BATCH:
+                        await asyncio.sleep(0)  # a large backlog goes in batches, letting requests through
             except Exception:
                 log.exception("watchdog pass failed; going on")
 
@@ -126,6 +156,25 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         log.info("gateway stopped")
 
 
+async def _gateway_error(_request: Request, exc: Exception) -> JSONResponse:
+    """One handler for every :class:`GatewayError` of the episode logic: its status, its detail, and
+    ``Retry-After`` when it says when to come back (429)."""
+    assert isinstance(exc, GatewayError)
+    headers = {"Retry-After": retry_after(exc.retry_after_s)} if exc.retry_after_s is not None else None
+    return JSONResponse(status_code=exc.status_code, content={"detail": exc.detail()}, headers=headers)
+
+
+async def _store_unavailable(_request: Request, exc: Exception) -> JSONResponse:
+    """503 with ``Retry-After`` while the store cannot be reached (it was a 500)."""
+    log.warning("store unavailable: %s: %s", type(exc).__name__, exc)
+    return JSONResponse(
+        status_code=status.HTTP_503_SERVICE_UNAVAILABLE,
+        content={"detail": f"the episode store is unavailable ({type(exc).__name__}); retry in "
+                           f"{STORE_RETRY_AFTER_S} s"},
+        headers={"Retry-After": str(STORE_RETRY_AFTER_S)},
+    )
+
+
 async def _validation_error(_request: Request, exc: Exception) -> JSONResponse:
     """422 with one ``{loc, msg, type}`` per field (never echoing the input back: it may be 1 MB)."""
     assert isinstance(exc, RequestValidationError)
@@ -147,7 +196,11 @@ def create_app(settings: Settings, scene_area: SceneArea | None = None) -> FastA
             "recordings. When `EQA_API_TOKENS` is set, routes under `/v1/episodes` and `/v1/questions` need "
             "`Authorization: Bearer <token>`, and this documentation (`/docs`, `/redoc`, `/openapi.json`) needs "
             "the token too, as a bearer token or as the password of HTTP Basic authentication (what a browser "
-            "asks for); `/v1/health` and `/v1/ready` are open."
+            "asks for); `/v1/health` and `/v1/ready` are open (without a token readiness says only ready or "
+            "not). Tokens carry scopes (`submit`, `read`, `admin`); each token sees only the episodes it "
+            "submitted (404 for the others') unless it has `admin`. Limits answer 413 (body over "
+            "`EQA_MAX_BODY_BYTES`), 429 with `Retry-After` (rate, failed authentications, full queues) and 503 "
+            "with `Retry-After` while the store is unavailable."
         ),
         lifespan=lifespan,
         # Served below behind the token check instead of FastAPI's open defaults.
@@ -157,16 +210,15 @@ def create_app(settings: Settings, scene_area: SceneArea | None = None) -> FastA
     )
     app.state.settings = settings
     app.state.scene_area = scene_area
-    app.state.limiter = RateLimiter(settings.rate_limit_per_s)
+    app.state.auth = Authenticator(settings)  # ValueError naming a bad EQA_API_TOKENS entry
+    app.state.limiter = app.state.auth.limiter
     app.state.manager = None
     app.add_exception_handler(RequestValidationError, _validation_error)
-
-    @app.middleware("http")
-    async def limit_body(request: Request, call_next: Any) -> Any:
-        length = request.headers.get("content-length")
-        if length is not None and length.isdigit() and int(length) > MAX_BODY_BYTES:
-            return JSONResponse(status_code=413, content={"detail": f"body over {MAX_BODY_BYTES} bytes"})
-        return await call_next(request)
+    app.add_exception_handler(GatewayError, _gateway_error)
+    for exc_type in unavailable_errors():
+        app.add_exception_handler(exc_type, _store_unavailable)
+    # Body cap and authentication before a body is read (pure ASGI: chunked bodies are counted as they come).
+    app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
 
     if settings.cors_origins:
         app.add_middleware(
@@ -181,6 +233,47 @@ def create_app(settings: Settings, scene_area: SceneArea | None = None) -> FastA
     return app
 
 
+_EDGE_ANSWERS = {  # what the authentication, limits and store handlers may answer on any protected route
+    "401": "missing or invalid bearer token (EQA_API_TOKENS)",
+    "403": "the token lacks the scope this route needs",
+    "422": "invalid input: one entry per field saying what to change",
+    "429": "too many requests (rate, failed authentications, full queue); see Retry-After",
+    "503": "the episode store is unavailable; see Retry-After",
+}
+_BODY_ANSWERS = {"400": "malformed request (a Content-Length that is not a number)",
+                 "413": "body over EQA_MAX_BODY_BYTES (checked while it streams in, chunked too)"}
+
+
+def _protected(path: str) -> bool:
+    """Every API route but health and readiness needs the token (when tokens are configured)."""
+    return path.startswith("/v1/") and not path.startswith(("/v1/health", "/v1/ready"))
+
+
+def _document_edge_answers(spec: dict[str, Any]) -> None:
+    """Every protected operation lists the answers of the layers in front of it (authentication, scopes,
+    rate and queue limits, body cap, store outage), whichever router declared it: the document lists every
+    status a route can answer (the fuzz test checks it)."""
+    problem = {"$ref": "#/components/schemas/Problem"}
+    schemas = spec.setdefault("components", {}).setdefault("schemas", {})
+    problem_schema = Problem.model_json_schema(ref_template="#/components/schemas/{model}")
+    for name, schema in {**problem_schema.pop("$defs", {}), "Problem": problem_schema}.items():
+        schemas.setdefault(name, schema)
+    for path, operations in spec.get("paths", {}).items():
+        if not _protected(path):
+            continue
+        for method, op in operations.items():
+            answers = dict(_EDGE_ANSWERS)
+            if method.upper() in BODY_METHODS:
+                answers.update(_BODY_ANSWERS)
+            for code, description in answers.items():
+                entry = op.setdefault("responses", {}).setdefault(
+                    code, {"description": description, "content": {"application/json": {"schema": problem}}}
+                )
+                if code in ("429", "503"):
+                    entry.setdefault("headers", {"Retry-After": {"description": "seconds to wait",
+                                                                 "schema": {"type": "integer"}}})
+
+
 def _add_docs(app: FastAPI) -> None:
     """``/openapi.json``, ``/docs`` (Swagger UI) and ``/redoc``, behind :func:`gateway.auth.authenticate_docs`
     (open when no tokens are configured). With tokens the spec declares the bearer scheme on the API routes,
@@ -190,11 +283,13 @@ def _add_docs(app: FastAPI) -> None:
     def openapi_with_security() -> dict[str, Any]:
         first = app.openapi_schema is None
         spec = base_openapi()  # cached by FastAPI in app.openapi_schema after the first call
+        if first:
+            _document_edge_answers(spec)
         if first and app.state.settings.api_tokens:
             schemes = spec.setdefault("components", {}).setdefault("securitySchemes", {})
             schemes["bearerAuth"] = {"type": "http", "scheme": "bearer", "description": "a token of EQA_API_TOKENS"}
             for path, operations in spec.get("paths", {}).items():
-                if path.startswith(("/v1/episodes", "/v1/questions")):
+                if _protected(path):
                     for op in operations.values():
                         op["security"] = [{"bearerAuth": []}]
         return spec

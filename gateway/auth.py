@@ -1,7 +1,16 @@
-"""Bearer-token authentication and a per-token rate limit (token bucket).
+"""Bearer tokens with scopes, tenants, a per-token rate limit and a per-client limit on failed authentication.
 
-With ``EQA_API_TOKENS`` empty authentication is off (local use); the rate limit then applies per client
-address. Tokens are compared in constant time.
+``EQA_API_TOKENS`` lists tokens, each ``token`` or ``token:scope+scope`` with the scopes ``submit`` (POST a
+question, cancel one's own episodes), ``read`` (status, list, events, recording of one's own episodes) and
+``admin`` (everything, every tenant's episodes, the readiness details). A bare token has ``submit+read``.
+Each token is a tenant: an episode belongs to the token that created it, and every other non-admin token gets
+404 for it, as for an episode that does not exist. The tenant id stored with an episode is a hash of the
+token (``t-<16 hex>``), never the token. With ``EQA_API_TOKENS`` empty authentication is off (local use):
+every caller is the tenant ``anon`` with every scope, and the rate limit applies per client address.
+
+Tokens are compared in constant time. A client address that fails authentication more than
+``EQA_AUTH_FAILURES_PER_MIN`` times a minute gets 429 with ``Retry-After`` (without its token being checked)
+until its bucket refills.
 
 The API documentation (``/docs``, ``/redoc``, ``/openapi.json``) needs a token too when tokens are
 configured. A browser cannot send a bearer header when it opens a page, so those three routes also take the
@@ -14,11 +23,63 @@ from __future__ import annotations
 
 import base64
 import binascii
+import hashlib
 import hmac
+import math
 import threading
 import time
+from collections.abc import Mapping
+from dataclasses import dataclass
 
 from fastapi import HTTPException, Request, status
+
+from eqa.settings import Settings
+
+SCOPES = ("submit", "read", "admin")
+DEFAULT_SCOPES = frozenset({"submit", "read"})
+ANONYMOUS = "anon"
+
+
+@dataclass(frozen=True)
+class Caller:
+    """Who calls: ``tenant`` owns the episodes it submits; ``key`` is its rate-limit bucket."""
+
+    tenant: str
+    scopes: frozenset[str]
+    key: str
+
+    @property
+    def admin(self) -> bool:
+        return "admin" in self.scopes
+
+    def can(self, scope: str) -> bool:
+        return self.admin or scope in self.scopes
+
+    def sees(self, owner: str) -> bool:
+        """True when this caller may see an episode of tenant ``owner``."""
+        return self.admin or owner == self.tenant
+
+
+def tenant_of(token: str) -> str:
+    return "t-" + hashlib.sha256(token.encode()).hexdigest()[:16]
+
+
+def parse_tokens(entries: list[str]) -> dict[str, frozenset[str]]:
+    """``token -> scopes`` from ``EQA_API_TOKENS`` entries; ``ValueError`` names a bad entry."""
+    out: dict[str, frozenset[str]] = {}
+    for entry in entries:
+        token, sep, scopes_text = entry.partition(":")
+        if not token or any(c.isspace() for c in token) or any(ord(c) < 32 for c in token):
+            raise ValueError("an EQA_API_TOKENS entry has an empty token or one with spaces or control characters")
+        scopes = frozenset(s.strip() for s in scopes_text.split("+") if s.strip()) if sep else DEFAULT_SCOPES
+        unknown = scopes - set(SCOPES)
+        if not scopes or unknown:
+            raise ValueError(
+                f"EQA_API_TOKENS entry for token {token[:4]}...: unknown scope(s) {sorted(unknown) or '(none)'}; "
+                f"write token:scope+scope with scopes from {', '.join(SCOPES)}"
+            )
+        out[token] = scopes
+    return out
 
 
 class RateLimiter:
@@ -31,12 +92,15 @@ class RateLimiter:
         self._buckets: dict[str, tuple[float, float]] = {}
         self._lock = threading.Lock()
 
+    def _level(self, key: str, now: float) -> float:
+        tokens, last = self._buckets.get(key, (self.burst, now))
+        return min(self.burst, tokens + (now - last) * self.rate)
+
     def allow(self, key: str, now: float | None = None) -> tuple[bool, float]:
-        """``(allowed, seconds until the next request would be allowed)``."""
+        """``(allowed, seconds until the next request would be allowed)``; an allowed request takes a token."""
         now = time.monotonic() if now is None else now
         with self._lock:
-            tokens, last = self._buckets.get(key, (self.burst, now))
-            tokens = min(self.burst, tokens + (now - last) * self.rate)
+            tokens = self._level(key, now)
             if tokens >= 1.0:
                 self._buckets[key] = (tokens - 1.0, now)
                 ok, wait = True, 0.0
@@ -48,18 +112,83 @@ class RateLimiter:
                     del self._buckets[k]
         return ok, wait
 
+    def blocked(self, key: str, now: float | None = None) -> float:
+        """Seconds until ``key`` has a token again (0 when it has one now); takes nothing."""
+        now = time.monotonic() if now is None else now
+        with self._lock:
+            tokens = self._level(key, now)
+        return 0.0 if tokens >= 1.0 else (1.0 - tokens) / self.rate
 
-def bearer_token(request: Request) -> str | None:
-    header = request.headers.get("authorization", "")
+
+def retry_after(seconds: float) -> str:
+    return str(max(1, math.ceil(seconds)))
+
+
+class Authenticator:
+    """Token check, tenants and scopes, failed-auth limit per client address, rate limit per caller."""
+
+    def __init__(self, settings: Settings) -> None:
+        self.tokens = parse_tokens(list(settings.api_tokens))
+        self.limiter = RateLimiter(settings.rate_limit_per_s)
+        per_min = settings.auth_failures_per_min
+        self.failures = RateLimiter(per_min / 60.0, burst=max(1.0, per_min))
+
+    @property
+    def enabled(self) -> bool:
+        return bool(self.tokens)
+
+    def lookup(self, presented: str | None) -> frozenset[str] | None:
+        return lookup_token(self.tokens, presented)
+
+    def identify(self, headers: Mapping[str, str], client: str, allow_basic: bool = False) -> Caller:
+        """The caller of a request, or :class:`HTTPException` 401 (bad or missing token) / 429 (this client
+        failed authentication too often). Rate limit not applied here (see :meth:`admit`)."""
+        if not self.enabled:
+            return Caller(tenant=ANONYMOUS, scopes=frozenset(SCOPES), key=f"addr:{client}")
+        wait = self.failures.blocked(client)
+        if wait > 0:
+            raise HTTPException(
+                status.HTTP_429_TOO_MANY_REQUESTS,
+                detail=f"too many failed authentications from {client}; wait {retry_after(wait)} s",
+                headers={"Retry-After": retry_after(wait)},
+            )
+        token, via = bearer_token(headers), "bearer token"
+        if token is None and allow_basic:
+            token, via = basic_password(headers), "token (basic auth password)"
+        scopes = self.lookup(token)
+        if scopes is None:
+            self.failures.allow(client)  # one failure taken from this client's bucket
+            challenge = 'Bearer, Basic realm="EQA gateway API docs", charset="UTF-8"' if allow_basic else "Bearer"
+            raise HTTPException(
+                status.HTTP_401_UNAUTHORIZED,
+                detail="missing bearer token" if token is None else f"invalid {via}",
+                headers={"WWW-Authenticate": challenge},
+            )
+        tenant = tenant_of(token)  # type: ignore[arg-type]
+        return Caller(tenant=tenant, scopes=scopes, key=f"tenant:{tenant}")
+
+    def admit(self, caller: Caller) -> None:
+        """429 with ``Retry-After`` over the caller's request rate."""
+        ok, wait = self.limiter.allow(caller.key)
+        if not ok:
+            raise HTTPException(
+                status.HTTP_429_TOO_MANY_REQUESTS,
+                detail=f"rate limit of {self.limiter.rate:g} requests/s exceeded",
+                headers={"Retry-After": retry_after(wait)},
+            )
+
+
+def bearer_token(headers: Mapping[str, str]) -> str | None:
+    header = headers.get("authorization", "")
     scheme, _, token = header.partition(" ")
     if scheme.lower() != "bearer" or not token.strip():
         return None
     return token.strip()
 
 
-def basic_password(request: Request) -> str | None:
+def basic_password(headers: Mapping[str, str]) -> str | None:
     """The password of an ``Authorization: Basic`` header (the token, for the documentation routes)."""
-    header = request.headers.get("authorization", "")
+    header = headers.get("authorization", "")
     scheme, _, blob = header.partition(" ")
     if scheme.lower() != "basic" or not blob.strip():
         return None
@@ -71,51 +200,67 @@ def basic_password(request: Request) -> str | None:
     return password if sep and password else None
 
 
-def check_token(tokens: list[str], presented: str | None) -> bool:
+def lookup_token(tokens: dict[str, frozenset[str]], presented: str | None) -> frozenset[str] | None:
+    """Scopes of a presented token (constant time over the token list), or None."""
     if presented is None:
-        return False
-    hit = False
-    for t in tokens:  # no early exit: constant time over the token list
-        hit |= hmac.compare_digest(t.encode(), presented.encode())
-    return hit
+        return None
+    found: frozenset[str] | None = None
+    raw = presented.encode()
+    for token, scopes in tokens.items():  # no early exit
+        if hmac.compare_digest(token.encode(), raw):
+            found = scopes
+    return found
 
 
-def _caller(request: Request, allow_basic: bool) -> str:
-    """Check the token (when tokens are configured) and the rate limit; return the caller's identity."""
-    settings = request.app.state.settings
-    limiter: RateLimiter = request.app.state.limiter
-    if settings.api_tokens:
-        token, via = bearer_token(request), "bearer token"
-        if token is None and allow_basic:
-            token, via = basic_password(request), "token (basic auth password)"
-        if not check_token(settings.api_tokens, token):
-            challenge = 'Bearer, Basic realm="EQA gateway API docs", charset="UTF-8"' if allow_basic else "Bearer"
-            raise HTTPException(
-                status.HTTP_401_UNAUTHORIZED,
-                detail="missing bearer token" if token is None else f"invalid {via}",
-                headers={"WWW-Authenticate": challenge},
-            )
-        who = f"token:{token}"
-    else:
-        who = f"addr:{request.client.host if request.client else 'unknown'}"
-    ok, wait = limiter.allow(who)
-    if not ok:
+def check_token(tokens: list[str], presented: str | None) -> bool:
+    """True when ``presented`` is one of ``tokens`` (entries may carry ``:scopes``)."""
+    return lookup_token(parse_tokens(tokens), presented) is not None
+
+
+def client_address(request: Request) -> str:
+    return request.client.host if request.client else "unknown"
+
+
+def _caller(request: Request, allow_basic: bool, scope: str | None) -> Caller:
+    auth: Authenticator = request.app.state.auth
+    caller = auth.identify(request.headers, client_address(request), allow_basic=allow_basic)
+    auth.admit(caller)
+    if scope is not None and not caller.can(scope):
         raise HTTPException(
-            status.HTTP_429_TOO_MANY_REQUESTS,
-            detail=f"rate limit of {limiter.rate:g} requests/s exceeded",
-            headers={"Retry-After": str(max(1, round(wait + 0.5)))},
+            status.HTTP_403_FORBIDDEN,
+            detail=f"this token lacks the {scope!r} scope (it has {'+'.join(sorted(caller.scopes))}); "
+            f"give it in EQA_API_TOKENS as token:{'+'.join(sorted({*caller.scopes, scope}))}",
         )
-    return who
+    return caller
 
 
-async def authenticate(request: Request) -> str:
+async def authenticate(request: Request) -> Caller:
     """FastAPI dependency: 401 without a valid bearer token (when tokens are configured), 429 over the
-    rate limit. Returns the caller's identity (the token, or the client address with auth off). Async: it
-    does no I/O, so it runs on the event loop instead of costing a worker-thread hop per request."""
-    return _caller(request, allow_basic=False)
+    rate limit or after too many failures. Async: it does no I/O, so it runs on the event loop."""
+    return _caller(request, allow_basic=False, scope=None)
 
 
-async def authenticate_docs(request: Request) -> str:
+async def can_submit(request: Request) -> Caller:
+    return _caller(request, allow_basic=False, scope="submit")
+
+
+async def can_read(request: Request) -> Caller:
+    return _caller(request, allow_basic=False, scope="read")
+
+
+async def authenticate_docs(request: Request) -> Caller:
     """The same for ``/docs``, ``/redoc`` and ``/openapi.json``: the token as a bearer token or as the
     password of HTTP Basic authentication (what a browser can send when it opens the page)."""
-    return _caller(request, allow_basic=True)
+    return _caller(request, allow_basic=True, scope=None)
+
+
+def optional_caller(request: Request) -> Caller | None:
+    """The caller when the request carries a valid token (or auth is off), else None; never raises and
+    takes no rate-limit token (``/v1/ready``)."""
+    auth: Authenticator = request.app.state.auth
+    if not auth.enabled:
+        return Caller(tenant=ANONYMOUS, scopes=frozenset(SCOPES), key="")
+    scopes = auth.lookup(bearer_token(request.headers))
+    if scopes is None:
+        return None
+    return Caller(tenant=tenant_of(bearer_token(request.headers) or ""), scopes=scopes, key="")

@@ -7,7 +7,7 @@ from typing import Annotated
 from fastapi import Depends, Request
 
 from eqa.settings import Settings
-from gateway.auth import authenticate, authenticate_docs
+from gateway.auth import Caller, authenticate, authenticate_docs, can_read, can_submit
 from gateway.manager import EpisodeManager
 
 
@@ -24,5 +24,7 @@ def get_manager(request: Request) -> EpisodeManager:
 
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 ManagerDep = Annotated[EpisodeManager, Depends(get_manager)]
-CallerDep = Annotated[str, Depends(authenticate)]
-DocsCallerDep = Annotated[str, Depends(authenticate_docs)]
+CallerDep = Annotated[Caller, Depends(authenticate)]
+ReaderDep = Annotated[Caller, Depends(can_read)]
+SubmitterDep = Annotated[Caller, Depends(can_submit)]
+DocsCallerDep = Annotated[Caller, Depends(authenticate_docs)]

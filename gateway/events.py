@@ -22,6 +22,7 @@ from eqa.messages import (
 )
 
 MAX_FRONTIERS = 8  # frontiers listed in a map_update summary (the highest weights)
+MAX_TEXT = 2000  # characters of a reason kept in an event
 
 
 def _r(value: float, nd: int = 4) -> float | None:
@@ -115,6 +116,9 @@ def summarize(msg: Message) -> dict[str, Any]:
         )
     elif isinstance(msg, EpisodeCancel):
         out.update(reason=msg.reason)
+    for name in ("reason", "question"):  # texts a bus peer controls: bounded in the stored event
+        if isinstance(out.get(name), str) and len(out[name]) > MAX_TEXT:
+            out[name] = out[name][:MAX_TEXT] + "..."
     out["t"] = round(time.time(), 3)
     return out
 

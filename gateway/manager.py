@@ -4,11 +4,23 @@ production), so a restarted gateway loses no episode and no stored event.
 
 Store layout (all keys under ``gw:``):
 
-* ``gw:ep:{episode_id}``  JSON ``{"status": EpisodeStatus, "start": EpisodeStart}`` - the episode record.
+* ``gw:ep:{episode_id}``  JSON ``{"status": EpisodeStatus, "start": EpisodeStart, "owner": tenant}`` - the
+  episode record (``owner``: the tenant of the token that submitted it, :mod:`gateway.auth`).
 * ``gw:ev:{episode_id}``  stream of compact JSON events (:mod:`gateway.events`); the entry ids are the SSE
   event ids, so a client resuming with ``Last-Event-ID`` gets every stored event exactly once.
 * ``gw:robot:{robot}``    id of the episode running on the robot (absent = robot free).
-* ``gw:queue:{robot}``    JSON list of queued episode ids (``EQA_BUSY_POLICY=queue``).
+* ``gw:queue:{robot}``    JSON list of queued episode ids (``EQA_BUSY_POLICY=queue``), at most
+  ``EQA_QUEUE_MAX_PER_ROBOT``.
+* ``gw:idx:all``, ``gw:idx:o:{owner}``, ``gw:idx:s:{state}``, ``gw:idx:o:{owner}:s:{state}`` - sorted
+  indexes (score: creation time) of every stored episode, per tenant, per final state: the list route reads
+  one page of one index and the records of that page (no scan of all records); ``gw:idx:active`` the queued
+  and running ones (what a restarted gateway reconciles).
+
+Retention: ended episodes past ``EQA_EPISODE_RETENTION_COUNT`` (the oldest first) or older than
+``EQA_EPISODE_RETENTION_DAYS`` are deleted with their events and recordings (:meth:`EpisodeManager.prune`,
+run by the watchdog loop). Queued and running episodes are never pruned.
+
+The state machine itself is pure (:mod:`gateway.state`); this module is its I/O shell.
 
 Restart semantics (the choice documented for issue #8). Bus messages published while no gateway runs are
 not seen by any gateway, so they are not in the event stream. On start the gateway reconciles: every
@@ -30,6 +42,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import shutil
 import threading
 import time
 from collections.abc import Callable
@@ -41,13 +54,10 @@ from typing import Any
 from eqa import keys
 from eqa.bus import Bus
 from eqa.messages import (
-    Decision,
     EpisodeCancel,
     EpisodeEnd,
     EpisodeStart,
     EpisodeStatus,
-    ErrorReply,
-    Frame,
     Message,
     Question,
     new_id,
@@ -55,41 +65,38 @@ from eqa.messages import (
 from eqa.recording import recording_dir
 from eqa.settings import Settings
 from eqa.store import Store, episode_end_key
+from gateway import state as sm
+from gateway.auth import ANONYMOUS, Caller
+from gateway.errors import (
+    BusyError,
+    ConflictError,
+    GatewayError,
+    InvalidError,
+    NotFoundError,
+    TooManyError,
+)
 from gateway.events import gateway_event, summarize
 from gateway.schemas import QuestionRequest, Submitted
+
+__all__ = [
+    "TERMINAL",
+    "BusyError",
+    "ConflictError",
+    "EpisodeManager",
+    "GatewayError",
+    "InvalidError",
+    "NotFoundError",
+    "TooManyError",
+]
 
 log = logging.getLogger(__name__)
 
 REQUIRED_SERVICES = ("sim", "mapper", "vlm_scorer", "planner", "stopper")
-TERMINAL = frozenset({"stopped", "failed", "cancelled"})
+TERMINAL = sm.TERMINAL
 DEFAULT_MAX_STEPS = 30  # 3*sqrt(100 m^2): a mid-sized home, when the floor area is unknown
-
-
-class GatewayError(Exception):
-    """Base of the errors the routes turn into HTTP answers."""
-
-    status_code = 400
-
-    def __init__(self, message: str, field: str | None = None) -> None:
-        super().__init__(message)
-        self.message = message
-        self.field = field
-
-
-class NotFoundError(GatewayError):
-    status_code = 404
-
-
-class BusyError(GatewayError):
-    status_code = 409
-
-
-class ConflictError(GatewayError):
-    status_code = 409
-
-
-class InvalidError(GatewayError):
-    status_code = 422
+PRUNE_BATCH = 500  # records deleted per retention pass (the lock is held meanwhile)
+LEGACY_OWNER = "legacy"  # records stored before tenants existed: admin only
+INDEX_VERSION = b"1"
 
 
 def ep_key(episode_id: str) -> str:
@@ -108,20 +115,47 @@ def queue_key(robot: str) -> str:
     return f"gw:queue:{robot}"
 
 
+IDX_ALL = "gw:idx:all"
+IDX_ACTIVE = "gw:idx:active"
+IDX_VERSION_KEY = "gw:idx:version"
+
+
+def idx_owner(owner: str) -> str:
+    return f"gw:idx:o:{owner}"
+
+
+def idx_state(state: str) -> str:
+    return f"gw:idx:s:{state}"
+
+
+def idx_owner_state(owner: str, state: str) -> str:
+    return f"gw:idx:o:{owner}:s:{state}"
+
+
 @dataclass
 class Record:
     status: EpisodeStatus
     start: EpisodeStart
+    owner: str = ANONYMOUS
     last_activity: float = field(default_factory=time.time)  # watchdog clock (not persisted)
     last_error: str | None = None  # the last ErrorReply of the episode, for the watchdog's reason (not persisted)
 
     def dump(self) -> dict[str, Any]:
-        return {"status": self.status.model_dump(mode="json"), "start": self.start.model_dump(mode="json")}
+        return {
+            "status": self.status.model_dump(mode="json"),
+            "start": self.start.model_dump(mode="json"),
+            "owner": self.owner,
+        }
 
     @classmethod
     def load(cls, raw: dict[str, Any]) -> Record:
         status = EpisodeStatus.model_validate(raw["status"])
-        return cls(status=status, start=EpisodeStart.model_validate(raw["start"]), last_activity=status.updated_at)
+        return cls(
+            status=status,
+            start=EpisodeStart.model_validate(raw["start"]),
+            owner=str(raw.get("owner", LEGACY_OWNER)),
+            last_activity=status.updated_at,
+        )
 
 
 # Floor area (m2) of a scene: ``(scene id, scenes dir, hm3d dir or None)``; raises when the scene cannot be
@@ -137,22 +171,33 @@ def _scene_area(scene_area: SceneArea, scene: str, scenes_path: Path, hm3d_dir: 
 
 def step_budget(settings: Settings, req: QuestionRequest, scene_area: SceneArea | None = None) -> int:
     """``max_steps`` of an episode: the request's budget, else ``int(3*sqrt(floor area))`` (Explore-EQA
-    section VI: T = 3 * sqrt(scene area)), else :data:`DEFAULT_MAX_STEPS`."""
-    if req.max_steps is not None:
-        return req.max_steps
+    section VI: T = 3 * sqrt(scene area)), else :data:`DEFAULT_MAX_STEPS`. The scene is checked in every case
+    (an explicit budget used to skip the check: unknown scenes were accepted, then failed by the sim). The
+    422 says what a scene id looks like and never shows the server's paths or its list of scenes."""
     if req.scene is None or scene_area is None:
-        return DEFAULT_MAX_STEPS
+        return req.max_steps or DEFAULT_MAX_STEPS
     try:
         area = _scene_area(scene_area, req.scene, settings.scenes_path, settings.hm3d_dir)
+    except LookupError as exc:
+        log.info("unknown scene %r: %s", req.scene, exc)
+        raise InvalidError(
+            f"unknown scene {req.scene!r}: give gen-<number> (a generated house, e.g. gen-7) or the id of a scene "
+            "installed on this server",
+            field="scene",
+        ) from exc
     except Exception as exc:
-        raise InvalidError(f"scene {req.scene!r} cannot be loaded: {exc}", field="scene") from exc
+        log.warning("scene %r cannot be loaded: %s", req.scene, exc)
+        raise InvalidError(f"scene {req.scene!r} cannot be loaded (the gateway log says why)", field="scene") from exc
+    if req.max_steps is not None:
+        return req.max_steps
     if area is None or not math.isfinite(area) or area <= 0:
         return DEFAULT_MAX_STEPS
     return max(1, int(3 * math.sqrt(area)))
 
 
 class EpisodeManager:
-    """All episode state transitions. Thread-safe (one lock); store and bus calls are blocking, so async
+    """The I/O shell of the episode state machine (:mod:`gateway.state`): persistence, event streams, bus,
+    queues, tenants, limits, retention. Thread-safe (one lock); store and bus calls are blocking, so async
     callers run these methods in a worker thread."""
 
     def __init__(self, settings: Settings, store: Store, bus: Bus, notify: Callable[[], None] | None = None,
@@ -164,9 +209,10 @@ class EpisodeManager:
         self.notify = notify or (lambda: None)
         self._lock = threading.RLock()
         self._active: dict[str, Record] = {}
-        # Copies of the active episodes' last saved status, read without the lock (fast status route).
-        self._snapshots: dict[str, EpisodeStatus] = {}
+        # Copies of the active episodes' last saved status and owner, read without the lock (fast status route).
+        self._snapshots: dict[str, tuple[str, EpisodeStatus]] = {}
         self._alive: dict[str, set[str]] = {}
+        self._mean_episode_s = 60.0  # running mean of episode wall times (for Retry-After)
         self.started_at = time.time()
 
     # ---- startup ----------------------------------------------------------------------------------------
@@ -190,23 +236,44 @@ class EpisodeManager:
         alive = self.alive_services()
         return [s for s in REQUIRED_SERVICES if not alive.get(s)]
 
+    def _build_indexes(self) -> None:
+        """Once per store: index records written before the indexes existed (one scan, at start)."""
+        if self.store.get(IDX_VERSION_KEY) == INDEX_VERSION:
+            return
+        n = 0
+        for k in self.store.keys("gw:ep:"):
+            raw = self.store.get_json(k)
+            try:
+                rec = Record.load(raw)
+            except Exception:
+                log.warning("unreadable episode record %s; not indexed", k)
+                continue
+            self._index(rec)
+            n += 1
+        self.store.set(IDX_VERSION_KEY, INDEX_VERSION)
+        log.info("indexed %d stored episode records", n)
+
     def reconcile(self) -> None:
         now = time.time()
         with self._lock:
-            for k in self.store.keys("gw:ep:"):
-                raw = self.store.get_json(k)
+            self._build_indexes()
+            ids = self.store.index_page(IDX_ACTIVE, 1_000_000, newest_first=False)
+            raws = self.store.get_many([ep_key(e) for e in ids])
+            for eid, raw in zip(ids, raws, strict=True):
                 if raw is None:
+                    self.store.index_remove(IDX_ACTIVE, [eid])
                     continue
                 try:
-                    rec = Record.load(raw)
+                    rec = Record.load(json.loads(raw))
                 except Exception:
-                    log.exception("unreadable episode record %s; skipped", k)
+                    log.exception("unreadable episode record %s; skipped", eid)
                     continue
                 st = rec.status
                 if st.state in TERMINAL:
+                    self.store.index_remove(IDX_ACTIVE, [eid])
                     continue
                 self._active[st.episode_id] = rec
-                self._snapshots[st.episode_id] = st.model_copy(deep=True)
+                self._snapshots[st.episode_id] = (rec.owner, st.model_copy(deep=True))
                 if st.state == "running":
                     rec.last_activity = now
                     if self.store.get(robot_key(st.robot)) is None:
@@ -237,9 +304,20 @@ class EpisodeManager:
                     self._start_next(robot)
 
     # ---- persistence helpers ----------------------------------------------------------------------------
+    def _index(self, rec: Record) -> None:
+        st, score = rec.status, rec.status.created_at
+        self.store.index_add(IDX_ALL, st.episode_id, score)
+        self.store.index_add(idx_owner(rec.owner), st.episode_id, score)
+        if st.state in TERMINAL:
+            self.store.index_add(idx_state(st.state), st.episode_id, score)
+            self.store.index_add(idx_owner_state(rec.owner, st.state), st.episode_id, score)
+            self.store.index_remove(IDX_ACTIVE, [st.episode_id])
+        else:
+            self.store.index_add(IDX_ACTIVE, st.episode_id, score)
+
     def _save(self, rec: Record) -> None:
         self.store.set_json(ep_key(rec.status.episode_id), rec.dump())
-        self._snapshots[rec.status.episode_id] = rec.status.model_copy(deep=True)
+        self._snapshots[rec.status.episode_id] = (rec.owner, rec.status.model_copy(deep=True))
 
     def _append(self, episode_id: str, event: dict[str, Any]) -> str:
         entry = self.store.append(ev_key(episode_id), json.dumps(event, separators=(",", ":")).encode())
@@ -260,38 +338,68 @@ class EpisodeManager:
         raw = self.store.get_json(ep_key(episode_id))
         return None if raw is None else Record.load(raw)
 
-    # ---- queries ----------------------------------------------------------------------------------------
-    def peek(self, episode_id: str) -> EpisodeStatus | None:
+    # ---- queries (each checks the caller's tenant: another tenant's episode is "not found") --------------
+    def peek(self, episode_id: str, caller: Caller | None = None) -> EpisodeStatus | None:
         """The saved status of a queued or running episode from memory (no store access), else None."""
-        return self._snapshots.get(episode_id)
+        snap = self._snapshots.get(episode_id)
+        if snap is None or (caller is not None and not caller.sees(snap[0])):
+            return None
+        return snap[1]
 
-    def get(self, episode_id: str) -> EpisodeStatus:
+    def get(self, episode_id: str, caller: Caller | None = None) -> EpisodeStatus:
         keys.check_id(episode_id, "episode id")
         rec = self.load(episode_id)
-        if rec is None:
+        if rec is None or (caller is not None and not caller.sees(rec.owner)):
             raise NotFoundError(f"no episode {episode_id!r}")
         return rec.status
 
-    def list(self, limit: int = 50, state: str | None = None) -> list[EpisodeStatus]:
+    def list(self, caller: Caller | None = None, limit: int = 50, state: str | None = None) -> list[EpisodeStatus]:
+        """Newest first: queued/running ones from memory, the others from one page of one index."""
+        limit = max(1, min(int(limit), 1000))
+        admin = caller is None or caller.admin
+        if state in sm.ACTIVE:
+            with self._lock:
+                recs = [r for r in self._active.values() if r.status.state == state and (admin or r.owner ==
+                        caller.tenant)]  # type: ignore[union-attr]
+                out = [r.status.model_copy(deep=True) for r in recs]
+            out.sort(key=lambda s: s.created_at, reverse=True)
+            return out[:limit]
+        if state is None:
+            index = IDX_ALL if admin else idx_owner(caller.tenant)  # type: ignore[union-attr]
+        else:
+            index = idx_state(state) if admin else idx_owner_state(caller.tenant, state)  # type: ignore[union-attr]
+        ids = self.store.index_page(index, limit)
         out = []
-        for k in self.store.keys("gw:ep:"):
-            raw = self.store.get_json(k)
+        for raw in self.store.get_many([ep_key(e) for e in ids]):
             if raw is None:
                 continue
-            st = EpisodeStatus.model_validate(raw["status"])
-            if state is None or st.state == state:
-                out.append(st)
-        out.sort(key=lambda s: s.created_at, reverse=True)
-        return out[:limit]
+            try:
+                out.append(EpisodeStatus.model_validate(json.loads(raw)["status"]))
+            except Exception:
+                log.warning("unreadable episode record in index %s; skipped", index)
+        return out
 
     def events(self, episode_id: str, after: str = "0-0", count: int = 500) -> list[tuple[str, bytes]]:
         return self.store.read(ev_key(episode_id), after=after, count=count)
 
-    def robots(self) -> dict[str, str | None]:
-        return {r: self._running_on(r) for r in self.settings.robots}
+    def robots(self, caller: Caller | None = None) -> dict[str, str | None]:
+        """The episode running on each robot; another tenant's shows as ``"busy"``."""
+        out: dict[str, str | None] = {}
+        for r in self.settings.robots:
+            eid = self._running_on(r)
+            if eid is not None and caller is not None and not caller.admin:
+                snap = self._snapshots.get(eid)
+                eid = eid if snap is not None and caller.sees(snap[0]) else "busy"
+            out[r] = eid
+        return out
 
     # ---- submit / start ---------------------------------------------------------------------------------
-    def submit(self, req: QuestionRequest) -> Submitted:
+    def retry_after_s(self, waiting: int = 1) -> float:
+        """A client's wait before a slot may be free: the mean episode time (at least 1 s, at most 1 h)."""
+        return min(3600.0, max(1.0, self._mean_episode_s * max(1, waiting)))
+
+    def submit(self, req: QuestionRequest, caller: Caller | None = None) -> Submitted:
+        owner = caller.tenant if caller is not None else ANONYMOUS
         if req.robot is not None and req.robot not in self.settings.robots:
             raise InvalidError(f"unknown robot {req.robot!r}; known: {', '.join(self.settings.robots)}", field="robot")
         budget = step_budget(self.settings, req, self.scene_area)
@@ -306,16 +414,32 @@ class EpisodeManager:
             **({"id": req.question_id} if req.question_id else {}),
         )
         with self._lock:
+            owned = sum(1 for r in self._active.values() if r.owner == owner)
+            if owned >= self.settings.queue_max_per_token:
+                wait = self.retry_after_s()
+                raise TooManyError(
+                    f"this token has {owned} queued or running episodes, the most one token may have "
+                    f"(EQA_QUEUE_MAX_PER_TOKEN={self.settings.queue_max_per_token}); retry in about {wait:.0f} s",
+                    retry_after_s=wait,
+                )
             candidates = [req.robot] if req.robot else list(self.settings.robots)
-            free = [r for r in candidates if self._running_on(r) is None and not self._queue(r)]
+            queues = {r: self._queue(r) for r in candidates}
+            free = [r for r in candidates if self._running_on(r) is None and not queues[r]]
             if free:
                 robot, position = free[0], 0
             elif self.settings.busy_policy == "refuse":
-                busy = ", ".join(f"{r} (running {self._running_on(r)})" for r in candidates)
+                busy = ", ".join(f"{r} (running {self.robots(caller)[r]})" for r in candidates)
                 raise BusyError(f"robot busy: {busy}; EQA_BUSY_POLICY=refuse, submit again later")
             else:
-                robot = min(candidates, key=lambda r: len(self._queue(r)))
-                position = len(self._queue(robot)) + 1
+                robot = min(candidates, key=lambda r: len(queues[r]))
+                if len(queues[robot]) >= self.settings.queue_max_per_robot:
+                    wait = self.retry_after_s(len(queues[robot]) // max(1, self.settings.queue_max_per_robot))
+                    raise TooManyError(
+                        f"the queue of robot {robot} is full ({len(queues[robot])} episodes, "
+                        f"EQA_QUEUE_MAX_PER_ROBOT={self.settings.queue_max_per_robot}); retry in about {wait:.0f} s",
+                        retry_after_s=wait,
+                    )
+                position = len(queues[robot]) + 1
             start = EpisodeStart(
                 episode_id=episode_id,
                 robot=robot,
@@ -335,13 +459,14 @@ class EpisodeManager:
                 stop=start.stop,
                 max_steps=budget,
             )
-            rec = Record(status=status, start=start)
+            rec = Record(status=status, start=start, owner=owner)
             self._active[episode_id] = rec
             self._save(rec)
+            self._index(rec)
             if position == 0:
                 self._start(rec)
             else:
-                self._set_queue(robot, [*self._queue(robot), episode_id])
+                self._set_queue(robot, [*queues[robot], episode_id])
                 self._append(episode_id, gateway_event("queued", episode_id, robot=robot, position=position))
         return Submitted(
             episode_id=episode_id,
@@ -358,9 +483,8 @@ class EpisodeManager:
 
     def _start(self, rec: Record) -> None:
         now = time.time()
+        rec.status = sm.started(rec.status, now)
         st = rec.status
-        st.state = "running"
-        st.updated_at = now
         rec.last_activity = now
         rec.start = rec.start.model_copy(update={"sent_at": now})
         self._save(rec)
@@ -370,7 +494,8 @@ class EpisodeManager:
             self.bus.publish(keys.stream(st.robot, keys.EPISODE_START), rec.start)
         except Exception as exc:
             log.exception("could not publish EpisodeStart of %s", st.episode_id)
-            self._finish(rec, "failed", f"could not publish EpisodeStart on the bus: {type(exc).__name__}: {exc}")
+            self._finish(rec, sm.Ending("failed", f"could not publish EpisodeStart on the bus: "
+                                                  f"{type(exc).__name__}: {exc}"))
             return
         log.info("episode %s started on %s (max_steps %d)", st.episode_id, st.robot, st.max_steps)
 
@@ -385,131 +510,91 @@ class EpisodeManager:
                 return
 
     # ---- end / cancel -----------------------------------------------------------------------------------
-    def _finish(self, rec: Record, state: str, reason: str, end: EpisodeEnd | None = None) -> None:
-        st = rec.status
+    def _finish(self, rec: Record, ending: sm.Ending) -> None:
+        """Store the final status (before any end event), tell the services when the gateway decided the end
+        of a running episode, free the robot and start its next queued episode."""
+        was_running = rec.status.state == "running"
+        if ending.tell_services and was_running:
+            try:
+                self.bus.publish(
+                    keys.stream(rec.status.robot, keys.EPISODE_CANCEL),
+                    EpisodeCancel(episode_id=rec.status.episode_id, reason=ending.reason),
+                )
+            except Exception:
+                log.exception("could not publish EpisodeCancel for %s", rec.status.episode_id)
         now = time.time()
-        st.state = state  # type: ignore[assignment]
-        st.updated_at = now
-        st.stop_reason = reason
-        if end is not None:
-            st.answer = end.answer
-            st.answer_text = end.answer_text
-            st.prediction_set = list(end.prediction_set)
-            st.steps = end.steps
-            st.normalized_steps = end.steps / max(st.max_steps, 1)
-            st.correct = end.correct
-        else:
-            st.normalized_steps = st.steps / max(st.max_steps, 1)
-        choices = st.question.choices
-        if st.answer and st.answer_text is None and choices and "A" <= st.answer <= "Z":
-            idx = ord(st.answer) - ord("A")
-            st.answer_text = choices[idx] if idx < len(choices) else None
-        if st.correct is None and st.answer and st.question.answer:
-            st.correct = st.answer == st.question.answer
-        rdir = recording_dir(self.settings, st.episode_id)
-        if rdir.is_dir() and any(rdir.glob("*.rrd")):
-            st.recording = f"/v1/episodes/{st.episode_id}/recording"
+        rdir = recording_dir(self.settings, rec.status.episode_id)
+        has_recording = rdir.is_dir() and any(rdir.glob("*.rrd"))
+        rec.status = sm.finished(rec.status, ending.state, ending.reason, now, end=ending.end, recording=has_recording)
+        st = rec.status
+        if was_running:
+            self._mean_episode_s = 0.8 * self._mean_episode_s + 0.2 * max(0.0, now - st.created_at)
         self._save(rec)
+        self._index(rec)
         self._active.pop(st.episode_id, None)
         self._snapshots.pop(st.episode_id, None)  # the store holds the final record
         if self._running_on(st.robot) == st.episode_id:
             self.store.delete(robot_key(st.robot))
-        if end is None:
-            self._append(
-                st.episode_id,
-                gateway_event(
-                    "episode_end",
-                    st.episode_id,
-                    robot=st.robot,
-                    state=state,
-                    reason=reason,
-                    answer=st.answer,
-                    prediction_set=st.prediction_set,
-                    steps=st.steps,
-                    max_steps=st.max_steps,
-                    normalized_steps=round(st.normalized_steps, 4),
-                    correct=st.correct,
-                    source="gateway",
-                ),
-            )
-        log.info("episode %s %s: %s", st.episode_id, state, reason)
+        if ending.end is None:
+            self._append(st.episode_id, sm.end_event(st))
+        log.info("episode %s %s: %s", st.episode_id, st.state, st.stop_reason)
         if self._running_on(st.robot) is None:  # a cancelled queued episode leaves its robot busy
             self._start_next(st.robot)
 
-    def _abort(self, rec: Record, state: str, reason: str) -> None:
-        """End an episode from the gateway side: tell the services to drop it, then record the end."""
-        if rec.status.state == "running":
-            try:
-                self.bus.publish(
-                    keys.stream(rec.status.robot, keys.EPISODE_CANCEL),
-                    EpisodeCancel(episode_id=rec.status.episode_id, reason=reason),
-                )
-            except Exception:
-                log.exception("could not publish EpisodeCancel for %s", rec.status.episode_id)
-        self._finish(rec, state, reason)
-
-    def cancel(self, episode_id: str, reason: str = "cancelled by user") -> EpisodeStatus:
+    def cancel(self, episode_id: str, caller: Caller | None = None, reason: str = "cancelled by user") -> EpisodeStatus:
         keys.check_id(episode_id, "episode id")
         with self._lock:
             rec = self._active.get(episode_id)
             if rec is None:
                 stored = self.load(episode_id)
-                if stored is None:
+                if stored is None or (caller is not None and not caller.sees(stored.owner)):
                     raise NotFoundError(f"no episode {episode_id!r}")
                 raise ConflictError(f"episode {episode_id} already ended ({stored.status.state})")
+            if caller is not None and not caller.sees(rec.owner):
+                raise NotFoundError(f"no episode {episode_id!r}")
             if rec.status.state == "queued":
                 self._set_queue(rec.status.robot, [e for e in self._queue(rec.status.robot) if e != episode_id])
-            self._abort(rec, "cancelled", reason)
+            self._finish(rec, sm.Ending("cancelled", reason, tell_services=True))
             return rec.status
 
     # ---- bus messages -----------------------------------------------------------------------------------
+    def is_active(self, episode_id: object) -> bool:
+        """True for a queued or running episode of this gateway (read without the lock: a hint for the
+        bus hand-off, which drops messages of other episodes before queueing them)."""
+        return isinstance(episode_id, str) and episode_id in self._snapshots
+
     def handle(self, robot: str, msg: Message) -> None:
-        """One message of a robot stream: store its summary, update the episode, end it on EpisodeEnd."""
-        if isinstance(msg, EpisodeStart | EpisodeCancel):
-            return  # the gateway records the ones it publishes itself
+        """One message of a robot stream: the pure transition (:func:`gateway.state.on_message`), then its
+        effects: the final status before the stopper's end event, the event, the save."""
         episode_id = getattr(msg, "episode_id", None)
         if not isinstance(episode_id, str):
             return
         with self._lock:
             rec = self._active.get(episode_id)
-            if rec is None or rec.status.state != "running":
+            if rec is None:
                 log.debug("message %s for episode %s that is not running here; ignored", msg.kind, episode_id)
                 return
-            st = rec.status
-            if st.robot != robot:
-                log.warning(
-                    "episode %s runs on %s but a %s came from %s; ignored",
-                    episode_id,
-                    st.robot,
-                    msg.kind,
-                    robot,
-                )
-                return
             now = time.time()
+            t = sm.on_message(rec.status, robot, msg, now)
+            for note in t.notes:
+                log.warning("%s: a %s ignored", note, msg.kind)
+            if t.ignore:
+                return
             rec.last_activity = now
-            st.updated_at = now
-            if isinstance(msg, EpisodeEnd):
-                state = msg.state if msg.state in TERMINAL else "stopped"
+            if t.last_error is not None:
+                rec.last_error = t.last_error
+            if t.ending is not None and t.ending.end is not None:
                 # The final status is stored before the end event: a client that reads the event and then
                 # asks for the status gets the final one.
-                self._finish(rec, state, msg.reason, end=msg)
+                self._finish(rec, t.ending)
                 self._append(episode_id, summarize(msg))
                 return
             self._append(episode_id, summarize(msg))
-            if isinstance(msg, ErrorReply):
-                rec.last_error = f"{msg.source} at step {msg.step}: {msg.reason}"
-                if msg.source.startswith("sim") and st.steps == 0:
-                    self._abort(rec, "failed", f"sim refused the episode: {msg.reason}")
-                    return
-            step = getattr(msg, "step", None)
-            if isinstance(step, int):
-                st.step = max(st.step, step)
-            if isinstance(msg, Frame):
-                st.steps = max(st.steps, msg.step + 1)
-            elif isinstance(msg, Decision):
-                st.prediction_set = list(msg.prediction_set)
-                st.answer = msg.answer or st.answer
-            st.normalized_steps = st.steps / max(st.max_steps, 1)
+            if t.ending is not None:
+                self._finish(rec, t.ending)
+                return
+            assert t.status is not None
+            rec.status = t.status
             self._save(rec)
 
     def _recover_end(self, rec: Record) -> bool:
@@ -524,11 +609,11 @@ class EpisodeManager:
             return False
         event = summarize(end)
         event["recovered"] = "from the stopper's stored end: not seen on the bus by this gateway"
-        self._finish(rec, end.state if end.state in TERMINAL else "stopped", end.reason, end=end)
+        self._finish(rec, sm.Ending(end.state if end.state in TERMINAL else "stopped", end.reason, end=end))
         self._append(rec.status.episode_id, event)  # after the final status, as in handle()
         return True
 
-    # ---- watchdog ---------------------------------------------------------------------------------------
+    # ---- watchdog and retention -------------------------------------------------------------------------
     def check_timeouts(self, now: float | None = None) -> list[str]:
         """Fail running episodes with no message for ``episode_timeout_s``; return their ids."""
         now = time.time() if now is None else now
@@ -537,20 +622,45 @@ class EpisodeManager:
         with self._lock:
             for rec in list(self._active.values()):
                 st = rec.status
-                if st.state != "running" or now - max(rec.last_activity, self.started_at) <= timeout:
+                if not sm.timed_out(st.state, rec.last_activity, self.started_at, now, timeout):
                     continue
                 if self._recover_end(rec):
                     continue
-                missing = self.missing_services()
-                restarted = st.updated_at < self.started_at
-                reason = (
-                    f"no message for {timeout:g} s (last step {st.step}); services not alive: "
-                    f"{', '.join(missing) if missing else 'none, all alive'}"
+                reason = sm.timeout_reason(
+                    st, timeout, self.missing_services(), rec.last_error, restarted=st.updated_at < self.started_at
                 )
-                if rec.last_error:
-                    reason += f"; last error: {rec.last_error}"
-                if restarted:
-                    reason += "; the gateway restarted meanwhile, so the end may have been published while it was down"
-                self._abort(rec, "failed", reason)
+                self._finish(rec, sm.Ending("failed", reason, tell_services=True))
                 failed.append(st.episode_id)
         return failed
+
+    def prune(self, now: float | None = None, batch: int = PRUNE_BATCH) -> int:
+        """Delete up to ``batch`` ended episodes past the retention count (oldest first) or age, with their
+        events, index entries and recordings; return how many went."""
+        now = time.time() if now is None else now
+        cutoff = now - self.settings.episode_retention_days * 86400.0
+        victims = self.store.index_below(IDX_ALL, cutoff, batch)
+        excess = self.store.index_len(IDX_ALL) - self.settings.episode_retention_count
+        if excess > 0:
+            victims += self.store.index_page(IDX_ALL, min(excess + len(self._active), batch), newest_first=False)
+        with self._lock:
+            ids = list(dict.fromkeys(v for v in victims if v not in self._active))[:batch]
+            if not ids:
+                return 0
+            raws = self.store.get_many([ep_key(e) for e in ids])
+            drop: dict[str, list[str]] = {IDX_ALL: list(ids), IDX_ACTIVE: []}
+            for eid, raw in zip(ids, raws, strict=True):
+                try:
+                    rec = json.loads(raw) if raw is not None else {}
+                    owner, state = str(rec.get("owner", LEGACY_OWNER)), rec["status"]["state"]
+                except Exception:
+                    continue
+                for index in (idx_owner(owner), idx_state(state), idx_owner_state(owner, state)):
+                    drop.setdefault(index, []).append(eid)
+            for index, members in drop.items():
+                self.store.index_remove(index, members)
+            self.store.delete_many([ep_key(e) for e in ids] + [ev_key(e) for e in ids])
+        for eid in ids:
+            shutil.rmtree(recording_dir(self.settings, eid), ignore_errors=True)
+        log.info("retention: %d ended episodes deleted (keep %d, at most %g days)", len(ids),
+                 self.settings.episode_retention_count, self.settings.episode_retention_days)
+        return len(ids)

@@ -5,17 +5,22 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, StrictBool, field_validator, model_validator
 
 from eqa import keys
 from eqa.messages import (
+    BOUND_STRATEGIES,
     MAX_CHOICES,
+    SCENE_ID,
     EpisodeState,
     EpisodeStatus,
     Pose2D,
     StopConfig,
     StopRule,
     Strategy,
+    check_choices,
+    check_scene_id,
+    check_text,
     letters,
 )
 
@@ -25,54 +30,65 @@ MAX_CHOICE_CHARS = 300
 _EXAMPLE = {
     "question": "Where did I leave the black suitcase?",
     "choices": ["bedroom", "hallway", "storage room", "living room"],
-    "scene": "gen-house-7",
+    "scene": "gen-7",
     "strategy": "semantic",
     "stop_rule": "cp",
     "eps": 0.2,
     "max_steps": 30,
 }
+_EXAMPLE_POSE = {
+    "question": "Is the stove turned on?",
+    "robot": "robot0",
+    "scene": "gen-2",
+    "start_pose": {"x": 9.3, "y": 13.9, "yaw": 0.0},  # free floor of gen-2 (the sim refuses a pose in a wall)
+    "stop_rule": "relevance",
+    "threshold": 0.6,
+}
 
 
 class QuestionRequest(BaseModel):
     """A question for one robot. Give a ``scene`` (simulated robots load or generate it), a ``robot`` id, or
-    both; without ``robot`` the gateway picks a free robot (or queues, per ``EQA_BUSY_POLICY``)."""
+    both; without ``robot`` the gateway picks a free robot (or queues, per ``EQA_BUSY_POLICY``).
 
-    model_config = ConfigDict(
-        extra="forbid",
-        json_schema_extra={
-            "examples": [
-                _EXAMPLE,
-                {
-                    "question": "Is the stove turned on?",
-                    "robot": "robot0",
-                    "scene": "gen-house-2",
-                    "start_pose": {"x": 1.5, "y": 2.0, "yaw": 0.0},
-                    "stop_rule": "relevance",
-                    "threshold": 0.6,
-                },
-            ]
-        },
-    )
+    Every field is checked here, once: numbers finite and in range, texts bounded and free of NUL and other
+    control characters, choices distinct, ids by one strict pattern (matched whole: no trailing newline),
+    booleans strict (``"record": 0`` is refused). The bus messages built from it are checked again by the
+    services that receive them (:mod:`eqa.messages`)."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [_EXAMPLE, _EXAMPLE_POSE]})
     question: Annotated[str, Field(min_length=1, max_length=MAX_QUESTION_CHARS, description="the question text")]
     choices: list[Annotated[str, Field(min_length=1, max_length=MAX_CHOICE_CHARS)]] | None = Field(
-        default=None, description=f"2..{MAX_CHOICES} answer choices (labelled A, B, ...), or none"
+        default=None,
+        max_length=MAX_CHOICES,
+        description=f"2..{MAX_CHOICES} distinct answer choices (labelled A, B, ...), or none",
     )
-    scene: Annotated[str, Field(min_length=1, max_length=200)] | None = Field(
-        default=None, description="scene name for the simulator (generated scenes: any name; HM3D: scene id)"
+    scene: Annotated[str, Field(min_length=1, max_length=64, pattern=f"^{SCENE_ID.pattern}$")] | None = Field(
+        default=None, description="scene id: gen-<seed> (a generated house) or an installed scene (HM3D id)"
     )
-    robot: str | None = Field(default=None, description="robot id (one of EQA_ROBOTS); default: any free robot")
+    robot: Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_-]+$")] | None = Field(
+        default=None, description="robot id (one of EQA_ROBOTS); default: any free robot"
+    )
     start_pose: Pose2D | None = Field(default=None, description="initial pose; default: sampled by the sim")
-    strategy: Strategy = Field(default="semantic", description="exploration strategy")
+    strategy: Strategy = Field(
+        default="semantic",
+        description=f"exploration strategy ({', '.join(sorted(BOUND_STRATEGIES))}: benchmark yardsticks, refused)",
+    )
     stop_rule: StopRule = Field(default="cp", description="stopping rule (cp = multi-step conformal prediction)")
-    eps: float = Field(default=0.2, gt=0.0, lt=1.0, description="CP miscoverage level: 1-eps coverage wanted")
-    threshold: float | None = Field(default=None, description="entropy (nats) or relevance threshold")
+    eps: float = Field(
+        default=0.2, gt=0.0, lt=1.0, allow_inf_nan=False, description="CP miscoverage level: 1-eps coverage wanted"
+    )
+    threshold: float | None = Field(
+        default=None, ge=0.0, le=100.0, allow_inf_nan=False, description="entropy (nats) or relevance threshold"
+    )
     max_steps: int | None = Field(
         default=None, ge=1, le=10_000, description="step budget; default 3*sqrt(floor area) (Explore-EQA VI)"
     )
     seed: int = Field(default=0, ge=0, le=2**31 - 1, description="seed of the start pose sampling")
-    record: bool = Field(default=True, description="write a Rerun recording of the episode")
-    answer: str | None = Field(default=None, description="ground-truth letter (benchmarks only; scorers never read it)")
-    question_id: str | None = Field(
+    record: StrictBool = Field(default=True, description="write a Rerun recording of the episode")
+    answer: Annotated[str, Field(pattern=r"^[A-Z]$")] | None = Field(
+        default=None, description="ground-truth letter (benchmarks only; scorers never read it)"
+    )
+    question_id: Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_-]+$")] | None = Field(
         default=None,
         description="your id for this question (e.g. a benchmark question id); default: a new one. The oracle "
         "scorer seeds its draws with it, so the same id, scene and seed replay the same episode",
@@ -81,16 +97,27 @@ class QuestionRequest(BaseModel):
     @field_validator("question")
     @classmethod
     def _not_blank(cls, v: str) -> str:
-        if not v.strip():
-            raise ValueError("question text is empty")
-        return v
+        return check_text(v, "question text")
 
     @field_validator("choices")
     @classmethod
     def _choice_count(cls, v: list[str] | None) -> list[str] | None:
-        if v is not None and v and not 2 <= len(v) <= MAX_CHOICES:
-            raise ValueError(f"give between 2 and {MAX_CHOICES} choices (or none), got {len(v)}")
-        return v or None
+        if v is None or not v:
+            return None
+        return check_choices(v)
+
+    @field_validator("strategy")
+    @classmethod
+    def _product_strategy(cls, v: str) -> str:
+        if v in BOUND_STRATEGIES:
+            raise ValueError(f"strategy {v!r} is a benchmark yardstick that reads the ground truth: only eqa bench "
+                             "runs it")
+        return v
+
+    @field_validator("scene")
+    @classmethod
+    def _scene(cls, v: str | None) -> str | None:
+        return None if v is None else check_scene_id(v)
 
     @field_validator("robot")
     @classmethod
@@ -135,9 +162,26 @@ class Health(BaseModel):
 
 
 class Readiness(BaseModel):
+    """Without a token (when tokens are configured) only ``ready``; with one, the details (a non-admin token
+    sees the id of its own episode on a robot and ``"busy"`` for another tenant's)."""
+
     ready: bool
-    store: bool
-    bus: bool
-    services: dict[str, list[str]] = Field(description="alive instances per service (liveliness tokens)")
-    missing: list[str] = Field(default_factory=list, description="services with no alive instance")
-    robots: dict[str, str | None] = Field(default_factory=dict, description="episode running on each robot")
+    store: bool | None = None
+    bus: bool | None = None
+    services: dict[str, list[str]] | None = Field(
+        default=None, description="alive instances per service (liveliness tokens)"
+    )
+    missing: list[str] | None = Field(default=None, description="services with no alive instance")
+    robots: dict[str, str | None] | None = Field(default=None, description="episode running on each robot")
+
+
+class FieldError(BaseModel):
+    loc: list[str | int]
+    msg: str
+    type: str
+
+
+class Problem(BaseModel):
+    """Every error answer: ``detail`` says what to change (a text, or one entry per invalid field)."""
+
+    detail: str | list[FieldError]

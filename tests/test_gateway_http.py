@@ -332,11 +332,14 @@ def test_cancel(gateway, gw_settings: Settings) -> None:
 
 def test_sim_refusal(gateway) -> None:
     _gw, c = gateway
-    # With an explicit budget the gateway does not load the scene itself: the real sim refuses it.
-    eid = c.post("/v1/questions", json={**Q, "scene": "missing"}).json()["episode_id"]
+    # The gateway checks the scene even with an explicit budget (issue 19: it used to accept unknown scenes)...
+    r = c.post("/v1/questions", json={**Q, "scene": "missing"})
+    assert r.status_code == 422 and "unknown scene 'missing'" in r.json()["detail"][0]["msg"]
+    # ... and what only the sim can judge, a start pose off the floor, the real sim refuses at once.
+    eid = c.post("/v1/questions", json={**Q, "start_pose": {"x": 5000.0, "y": 5000.0}}).json()["episode_id"]
     assert wait_for(lambda: state_of(c, eid) == "failed", EPISODE_S)
     st = c.get(f"/v1/episodes/{eid}").json()
-    assert st["stop_reason"].startswith("sim refused the episode: unknown scene 'missing'") and st["steps"] == 0
+    assert st["stop_reason"].startswith("sim refused the episode: start pose refused") and st["steps"] == 0
     kinds = [e["kind"] for _, e in sse_events(c, f"/v1/episodes/{eid}/events")]
     assert kinds == ["episode_start", "error", "episode_end"]
     assert c.get("/v1/ready").json()["robots"] == {"robot0": None}  # the robot is free again

@@ -5,37 +5,70 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import re
 import time
 from collections.abc import AsyncIterator
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import APIRouter, Header, HTTPException, Query, Request, status
+from fastapi import Path as PathParam
 from fastapi.responses import FileResponse, StreamingResponse
 from starlette.concurrency import run_in_threadpool
 
 from eqa import keys
 from eqa.messages import EpisodeState, EpisodeStatus
+from eqa.store import parse_stream_id
 from gateway import recordings
-from gateway.deps import CallerDep, ManagerDep, SettingsDep
-from gateway.manager import TERMINAL, GatewayError, InvalidError
-from gateway.schemas import EpisodeList, QuestionRequest, Submitted
+from gateway.deps import ManagerDep, ReaderDep, SettingsDep, SubmitterDep
+from gateway.manager import TERMINAL
+from gateway.schemas import EpisodeList, Problem, QuestionRequest, Submitted
 
 log = logging.getLogger(__name__)
 router = APIRouter(prefix="/v1", tags=["episodes"])
 
-_EVENT_ID = re.compile(r"^\d{1,20}-\d{1,20}$")
 KEEPALIVE_S = 15.0
 END_EVENT_PREFIX = b'{"kind":"episode_end"'  # how every stored episode_end event starts (compact JSON)
 END_EVENT_WAIT_S = 2.0  # after the final status, how long a stream waits for the episode_end event
 
+_ERRORS: dict[int, tuple[str, object]] = {
+    400: ("malformed request (a Content-Length that is not a number)", "Content-Length is not a number"),
+    401: ("missing or invalid bearer token (EQA_API_TOKENS)", "missing bearer token"),
+    403: ("the token lacks the scope this route needs", "this token lacks the 'submit' scope (it has read); "
+          "give it in EQA_API_TOKENS as token:read+submit"),
+    404: ("no such episode, or one of another token's (tenants see only their own)", "no episode 'ep-0'"),
+    409: ("conflict: the episode already ended, or the robot is busy and EQA_BUSY_POLICY=refuse",
+          "episode ep-0 already ended (stopped)"),
+    413: ("body over EQA_MAX_BODY_BYTES (checked while it streams in, chunked too)",
+          "body over the cap of 2097152 bytes (EQA_MAX_BODY_BYTES)"),
+    422: ("invalid input: one entry per field saying what to change",
+          [{"loc": ["body", "eps"], "msg": "Input should be less than 1", "type": "less_than"}]),
+    429: ("too many requests (rate limit, failed authentications, or a full queue); see Retry-After",
+          "rate limit of 50 requests/s exceeded"),
+    500: ("the recording could not be merged", "rerun rrd merge failed: ..."),
+    503: ("the episode store is unavailable; see Retry-After", "the episode store is unavailable "
+          "(ConnectionError); retry in 5 s"),
+}
 
-def _http(exc: GatewayError) -> HTTPException:
-    if isinstance(exc, InvalidError) and exc.field:
-        detail: object = [{"loc": ["body", exc.field], "msg": exc.message, "type": "value_error"}]
-    else:
-        detail = exc.message
-    return HTTPException(exc.status_code, detail=detail)
+
+def errors(*codes: int) -> dict[int | str, dict[str, Any]]:
+    """OpenAPI entries (model, description, a working example) of the error answers of a route."""
+    out: dict[int | str, dict[str, Any]] = {}
+    for code in codes:
+        description, example = _ERRORS[code]
+        entry: dict[str, Any] = {
+            "model": Problem,
+            "description": description,
+            "content": {"application/json": {"example": {"detail": example}}},
+        }
+        if code in (429, 503):
+            entry["headers"] = {"Retry-After": {"description": "seconds to wait", "schema": {"type": "integer"}}}
+        out[code] = entry
+    return out
+
+
+READ_ERRORS = (401, 403, 422, 429, 503)
+EpisodeId = Annotated[
+    str, PathParam(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_-]+$", description="an episode id, ep-...")
+]
 
 
 def _episode_id(episode_id: str) -> str:
@@ -48,59 +81,64 @@ def _episode_id(episode_id: str) -> str:
         ) from exc
 
 
+def _event_id(value: str, where: list[str]) -> str:
+    try:
+        parse_stream_id(value)
+    except ValueError as exc:
+        raise HTTPException(
+            status.HTTP_422_UNPROCESSABLE_CONTENT, detail=[{"loc": where, "msg": str(exc), "type": "value_error"}]
+        ) from exc
+    return value
+
+
 @router.post(
     "/questions",
     response_model=Submitted,
     status_code=status.HTTP_202_ACCEPTED,
     summary="Submit a question; returns the episode id (running or queued)",
-    responses={
-        409: {"description": "robot busy and EQA_BUSY_POLICY=refuse"},
-        422: {"description": "invalid body: field-level messages"},
-    },
+    responses=errors(400, 401, 403, 409, 413, 422, 429, 503),
 )
-def submit(body: QuestionRequest, manager: ManagerDep, _caller: CallerDep) -> Submitted:
-    try:
-        return manager.submit(body)
-    except GatewayError as exc:
-        raise _http(exc) from exc
+def submit(body: QuestionRequest, manager: ManagerDep, caller: SubmitterDep) -> Submitted:
+    return manager.submit(body, caller)
 
 
-@router.get("/episodes", response_model=EpisodeList, summary="Recent episodes, newest first")
+@router.get(
+    "/episodes",
+    response_model=EpisodeList,
+    summary="Recent episodes of this token (all with admin), newest first",
+    responses=errors(*READ_ERRORS),
+)
 def list_episodes(
     manager: ManagerDep,
-    _caller: CallerDep,
+    caller: ReaderDep,
     limit: Annotated[int, Query(ge=1, le=1000)] = 50,
     state: Annotated[EpisodeState | None, Query()] = None,
 ) -> EpisodeList:
-    return EpisodeList(episodes=manager.list(limit=limit, state=state))
+    return EpisodeList(episodes=manager.list(caller, limit=limit, state=state))
 
 
 @router.get(
     "/episodes/{episode_id}",
     response_model=EpisodeStatus,
     summary="Status and result: answer, prediction set, steps, normalised steps, stop reason",
+    responses=errors(404, *READ_ERRORS),
 )
-async def get_episode(episode_id: str, manager: ManagerDep, _caller: CallerDep) -> EpisodeStatus:
+async def get_episode(episode_id: EpisodeId, manager: ManagerDep, caller: ReaderDep) -> EpisodeStatus:
     eid = _episode_id(episode_id)
-    live = manager.peek(eid)
+    live = manager.peek(eid, caller)
     if live is not None:
         return live
-    try:
-        return await run_in_threadpool(manager.get, eid)
-    except GatewayError as exc:
-        raise _http(exc) from exc
+    return await run_in_threadpool(manager.get, eid, caller)
 
 
 @router.delete(
     "/episodes/{episode_id}",
     response_model=EpisodeStatus,
     summary="Cancel a queued or running episode (publishes EpisodeCancel)",
+    responses=errors(400, 404, 409, 413, *READ_ERRORS),
 )
-def cancel_episode(episode_id: str, manager: ManagerDep, _caller: CallerDep) -> EpisodeStatus:
-    try:
-        return manager.cancel(_episode_id(episode_id))
-    except GatewayError as exc:
-        raise _http(exc) from exc
+def cancel_episode(episode_id: EpisodeId, manager: ManagerDep, caller: SubmitterDep) -> EpisodeStatus:
+    return manager.cancel(_episode_id(episode_id), caller)
 
 
 @router.get(
@@ -109,7 +147,8 @@ def cancel_episode(episode_id: str, manager: ManagerDep, _caller: CallerDep) -> 
     description=(
         "Each event is `id: <stream id>` and `data: <compact JSON summary of a bus message>` (fields `kind`, "
         "`episode_id`, `step`, ...). Reconnect with the `Last-Event-ID` header (or `?after=`) to get every "
-        "later event exactly once. The stream closes after the `episode_end` event."
+        "later event exactly once; an event id is `<ms>-<seq>`, two integers of at most 19 digits. The stream "
+        "closes after the `episode_end` event."
     ),
     response_class=StreamingResponse,
     responses={
@@ -119,34 +158,28 @@ def cancel_episode(episode_id: str, manager: ManagerDep, _caller: CallerDep) -> 
                     "example": 'id: 1763777000000-0\ndata: {"kind":"frame","episode_id":"ep-1","step":0}\n\n'
                 }
             }
-        }
+        },
+        **errors(404, *READ_ERRORS),
     },
 )
 async def events(
-    episode_id: str,
+    episode_id: EpisodeId,
     request: Request,
     manager: ManagerDep,
-    _caller: CallerDep,
-    last_event_id: Annotated[str | None, Header(alias="Last-Event-ID")] = None,
-    after: Annotated[str | None, Query(description="resume after this event id (same as Last-Event-ID)")] = None,
+    caller: ReaderDep,
+    last_event_id: Annotated[
+        str | None, Header(alias="Last-Event-ID", max_length=64, description="resume after this event id")
+    ] = None,
+    after: Annotated[
+        str | None, Query(max_length=64, description="resume after this event id (same as Last-Event-ID)")
+    ] = None,
 ) -> StreamingResponse:
     eid = _episode_id(episode_id)
-    start = last_event_id or after or "0-0"
-    if not _EVENT_ID.match(start):
-        raise HTTPException(
-            status.HTTP_422_UNPROCESSABLE_CONTENT,
-            detail=[
-                {
-                    "loc": ["header", "Last-Event-ID"],
-                    "msg": f"event id {start!r} must look like <ms>-<seq>",
-                    "type": "value_error",
-                }
-            ],
-        )
-    try:
-        await run_in_threadpool(manager.get, eid)
-    except GatewayError as exc:
-        raise _http(exc) from exc
+    if last_event_id is not None:
+        start = _event_id(last_event_id, ["header", "Last-Event-ID"])
+    else:
+        start = _event_id(after, ["query", "after"]) if after is not None else "0-0"
+    await run_in_threadpool(manager.get, eid, caller)
     hub = request.app.state.hub
 
     async def gen() -> AsyncIterator[bytes]:
@@ -191,14 +224,12 @@ async def events(
     "/episodes/{episode_id}/recording",
     response_class=FileResponse,
     summary="The merged Rerun recording (.rrd) of an episode (all services)",
-    responses={200: {"content": {"application/octet-stream": {}}}, 404: {"description": "no recording"}},
+    responses={200: {"content": {"application/octet-stream": {}}}, **errors(404, 500, *READ_ERRORS)},
 )
-async def recording(episode_id: str, manager: ManagerDep, settings: SettingsDep, _caller: CallerDep) -> FileResponse:
+async def recording(episode_id: EpisodeId, manager: ManagerDep, settings: SettingsDep, caller: ReaderDep
+                    ) -> FileResponse:
     eid = _episode_id(episode_id)
-    try:
-        await run_in_threadpool(manager.get, eid)
-    except GatewayError as exc:
-        raise _http(exc) from exc
+    await run_in_threadpool(manager.get, eid, caller)
     try:
         path = await run_in_threadpool(recordings.merge, settings, eid)
     except FileNotFoundError as exc:

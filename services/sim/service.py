@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from eqa import keys
+from eqa.codec import unpackb
 from eqa.messages import EpisodeCancel, EpisodeEnd, EpisodeStart, ErrorReply, Frame, Goal, Pose2D, SkillReport
 from eqa.recording import EpisodeRecorder
 from eqa.service import Service
@@ -94,7 +95,7 @@ class SimService(Service):
         self._K = intrinsics(settings.sim_width, settings.sim_height)
 
     def setup(self) -> None:
-        self.on(keys.EPISODE_START, self.on_start)
+        self.on(keys.EPISODE_START, self.on_start, on_invalid=self.on_invalid_start)
         self.on(keys.PLANNER_GOAL, self.on_goal)
         self.on(keys.EPISODE_CANCEL, self.on_cancel)
         self.on(keys.EPISODE_END, self.on_end)
@@ -202,6 +203,26 @@ class SimService(Service):
 
     # ---- handlers ----------------------------------------------------------------------------------------
     def on_start(self, robot: str, msg: EpisodeStart) -> None:
+        """Start an episode. Any failure answers the episode with an ErrorReply at once (the gateway fails it
+        and frees the robot), never silence until the watchdog."""
+        try:
+            self._start_episode(robot, msg)
+        except Exception as exc:
+            log.exception("robot %s: episode %s could not start", robot, msg.episode_id)
+            self._episodes.pop(robot, None)
+            self._error(robot, msg.episode_id, 0, f"episode could not start: {type(exc).__name__}: {exc}"[:1000])
+
+    def on_invalid_start(self, robot: str, payload: bytes, reason: str) -> None:
+        """An EpisodeStart that does not validate (a pose out of range, a bad scene id): answer its episode at
+        once when its id can be read, so the gateway fails it and frees the robot (no wait for the watchdog)."""
+        try:
+            raw = unpackb(payload, max_decoded=0)  # an EpisodeStart carries no arrays
+            episode_id = keys.check_id(raw.get("episode_id"), "episode id")
+        except Exception:
+            return
+        self._error(robot, episode_id, 0, f"episode start refused: {reason}"[:1000])
+
+    def _start_episode(self, robot: str, msg: EpisodeStart) -> None:
         self._close(robot)
         q = msg.question
         try:
