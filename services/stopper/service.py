@@ -38,7 +38,7 @@ from eqa.messages import (
 )
 from eqa.recording import EpisodeRecorder, recording_dir
 from eqa.service import Service
-from eqa.store import EPISODE_STATE_TTL_S, episode_end_key
+from eqa.store import EPISODE_STATE_TTL_S, episode_end_key, task_metrics_key
 from services.stopper.calibration import TraceStore, load_table
 from services.stopper.conformal import ScoreError
 from services.stopper.state import (
@@ -214,6 +214,9 @@ class StopperService(Service):
         rec = self.episodes.get(goal.episode_id)
         if rec is None:
             return
+        if self._task_metrics(rec.episode_id) is not None:  # a task episode: the planner ends it (issue 17)
+            self._finish(rec, "stopped", f"task ended: {goal.reason or 'the planner is done'}", None)
+            return
         answer = rec.fallback()
         why = goal.reason or "nothing left to explore"
         if answer is None:
@@ -262,6 +265,12 @@ class StopperService(Service):
         if r is not None:
             r.close()
 
+    def _task_metrics(self, episode_id: str) -> dict[str, float] | None:
+        """The sim's phase metrics of a task episode (:func:`eqa.store.task_metrics_key`); None for a question
+        episode."""
+        raw = self.store.get_json(task_metrics_key(episode_id))
+        return {str(k): float(v) for k, v in raw.items()} if isinstance(raw, dict) else None
+
     def _finish(
         self, rec: EpisodeRecord, state: EpisodeState, reason: str, answer: str | None, decision: Decision | None = None
     ) -> None:
@@ -270,6 +279,10 @@ class StopperService(Service):
         if answer is not None:
             self._recorder(rec).log("stopper/log", _text(f"final answer {answer}: {reason}"))
         end = end_message(rec, state, reason, answer, self._recording(rec))
+        metrics = self._task_metrics(rec.episode_id)
+        if metrics is not None:  # a task episode: its phase metrics, no answer
+            end = end.model_copy(update={"metrics": metrics, "answer": None, "answer_text": None,
+                                         "prediction_set": []})
         self.store.set(episode_end_key(rec.episode_id), end.model_dump_json().encode(), ttl_s=EPISODE_STATE_TTL_S)
         self._drop(rec, reason)
         if decision is not None:
