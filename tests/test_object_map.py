@@ -75,3 +75,27 @@ def test_fusion_summaries_gaze_and_restore(views) -> None:
     a, b = om.integrate(f, res), back.integrate(f, res)
     assert a.gaussians == b.gaussians
     assert np.allclose(om.layer.store.gamma.numpy(), back.layer.store.gamma.numpy())
+
+
+def test_rerun_shows_gaussians_instances_and_psi(views, tmp_path) -> None:
+    from eqa.recording import EpisodeRecorder
+    from eqa.settings import Settings
+    from gateway import recordings
+    from services.mapper.object_map import GAUSSIANS_ENTITY, INSTANCES_ENTITY, PSI_ENTITY, log_rerun
+
+    _scene, renderer, vs = views
+    om = ObjectMap.for_task(TASK, ObjectMapConfig(layer=ObjectLayerConfig(render_scale=1.0)))
+    det = OracleDetector(OracleDetectorParams(recall=1.0, background_fp=0.0))
+    rec = EpisodeRecorder(Settings(data_dir=tmp_path), "ep-om", "mapper")
+    for step, v in enumerate(vs[:2]):
+        f = frame_of(v, step, renderer)
+        req = om.detect_request(f)
+        om.integrate(f, DetectResult(request_id="r", episode_id="ep-om", step=step, detections=det.detect(req),
+                                     backend="oracle"))
+        rec.set_step(step)
+        objs = om.summaries()
+        log_rerun(rec, om, objs)
+    rec.close()
+    paths = recordings.entity_paths(rec.path)
+    assert {"/" + GAUSSIANS_ENTITY, "/" + INSTANCES_ENTITY} <= paths
+    assert any(p.startswith("/" + PSI_ENTITY + "/") for p in paths)
