@@ -84,6 +84,7 @@ class Fleet:
         restart: bool = True,
         max_restarts: int = 5,
         join: list[str] | None = None,
+        instances: dict[str, int] | None = None,
     ) -> None:
         unknown = set(services) - set(ALL_SERVICES)
         if unknown:
@@ -97,6 +98,9 @@ class Fleet:
         self.restart_enabled = restart
         self.max_restarts = max_restarts
         self.join = list(join or [])
+        self.instances = dict(instances or {})  # service -> processes (robots shared among them: eqa.sharding)
+        if any(n < 1 for n in self.instances.values()):
+            raise LaunchError("every service needs at least 1 instance")
         self.secured = settings.zenoh_tls_dir is not None or settings.zenoh_users_file is not None
         self.children: list[Child] = []
         self._hub: Bus | None = None
@@ -162,7 +166,7 @@ class Fleet:
         logs = Path(self.settings.data_dir) / "logs"
         logs.mkdir(parents=True, exist_ok=True)
         for service in self.services:
-            count = self.scorers if service == "vlm_scorer" else 1
+            count = self.scorers if service == "vlm_scorer" else self.instances.get(service, 1)
             for i in range(count):
                 instance = f"{service.replace('_', '-')}-{i}-{self.run_id}"
                 self.children.append(

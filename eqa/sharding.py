@@ -89,8 +89,13 @@ class Membership:
         self._lock = threading.Lock()
         self._on_change = on_change
 
-    def start(self) -> Membership:
+    def start(self, sync_timeout: float = 1.0) -> Membership:
+        """Watch the tokens; also ask for the present ones at once, so that the first ``owns`` answers of a
+        starting instance already count the instances that were there before it."""
         self.bus.watch_alive(keys.alive_service(self.service), self._on_alive)  # type: ignore[attr-defined]
+        if sync_timeout > 0:
+            for service, instance in self.bus.alive(keys.alive_service(self.service), timeout=sync_timeout):  # type: ignore[attr-defined]
+                self._on_alive(service, instance, True)
         return self
 
     def _on_alive(self, service: str, instance: str, up: bool) -> None:
@@ -174,3 +179,61 @@ class StepClaims:
             base = self._key(episode_id, step)
             names += [base + ":holder"] + [f"{base}:{a}" for a in range(2)]
         self.store.delete_many(names)
+
+
+class Shard:
+    """Everything a sharded instance of a stateful service needs, in one object (the episode-service base holds
+    one): :meth:`owns`, :meth:`claim`, the robots that moved when the live set changed (``on_moved(gained,
+    lost)``, called on a Zenoh thread: hand it to the worker), and the EpisodeStarts of robots owned by another
+    instance (bounded), so that an instance that gains a robot mid-episode can still start an episode whose
+    start it saw but did not own, before the episode's state was ever stored."""
+
+    MAX_STARTS = 512
+
+    def __init__(self, bus: object, store: Callable[[], Store], service: str, instance: str,
+                 on_moved: Callable[[set[str], set[str]], None] | None = None, enabled: bool = True) -> None:
+        self.enabled = enabled
+        self._store = store
+        self._on_moved = on_moved
+        self._robots: set[str] = set()
+        self._starts: dict[str, object] = {}
+        self._lock = threading.Lock()
+        self.membership = Membership(bus, service, instance, on_change=self._changed)
+        self.claims: StepClaims | None = None
+        self.service, self.me = service, instance
+
+    def start(self) -> Shard:
+        if self.enabled:
+            self.membership.start()
+            self.claims = StepClaims(self._store(), self.service, self.me, self.membership.is_alive)
+        return self
+
+    def owns(self, robot: str) -> bool:
+        if not self.enabled:
+            return True
+        with self._lock:
+            self._robots.add(robot)
+        return self.membership.owns(robot)
+
+    def claim(self, episode_id: str, step: int) -> Claim:
+        if self.claims is None:
+            return Claim(True, self.me, False)
+        return self.claims.claim(episode_id, step)
+
+    def remember_start(self, episode_id: str, start: object) -> None:
+        with self._lock:
+            self._starts[episode_id] = start
+            while len(self._starts) > self.MAX_STARTS:
+                self._starts.pop(next(iter(self._starts)))
+
+    def start_of(self, episode_id: str) -> object | None:
+        with self._lock:
+            return self._starts.get(episode_id)
+
+    def _changed(self, before: frozenset[str], after: frozenset[str]) -> None:
+        with self._lock:
+            robots = set(self._robots)
+        gained, lost = moved(robots, self.me, before, after)
+        if (gained or lost) and self._on_moved is not None:
+            log.info("%s %s: robots gained %s, lost %s", self.service, self.me, sorted(gained), sorted(lost))
+            self._on_moved(gained, lost)

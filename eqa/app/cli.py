@@ -70,7 +70,8 @@ def cmd_up(args: argparse.Namespace) -> int:
     if args.port is not None:
         settings = settings.model_copy(update={"gateway_port": args.port})
     try:
-        fleet = Fleet(settings, services=services, scorers=args.scorers, join=args.join)
+        instances = {s: args.instances for s in ("sim", "mapper", "planner", "stopper")}
+        fleet = Fleet(settings, services=services, scorers=args.scorers, join=args.join, instances=instances)
     except LaunchError as exc:
         raise UsageError(str(exc)) from None
     try:
@@ -129,6 +130,9 @@ def build_parser() -> argparse.ArgumentParser:
     up.add_argument("--no-gateway", action="store_true", help="run the pipeline services only")
     up.add_argument("--port", type=int, default=None, help="gateway port (default EQA_GATEWAY_PORT=8080)")
     up.add_argument("--timeout", type=float, default=90.0, help="seconds to wait until all are alive")
+    up.add_argument("--instances", type=int, default=1,
+                    help="processes of each stateful service (sim, mapper, planner, stopper); they share the "
+                    "robots (default 1)")
     up.add_argument("--services", default=None,
                     help="comma-separated services to run on this host (default: all; e.g. mapper,planner)")
     up.add_argument("--join", action="append", default=None, metavar="ENDPOINT",
