@@ -160,6 +160,7 @@ class MapperService(EpisodeService[EpisodeMap]):
         timer.lap("snapshot", t0)
         timer.ms["step"] = (time.perf_counter() - t_start) * 1000.0
         update = em.map_update(timer.ms)
+        update.skill = frame.skill  # a task skill's outcome, passed on to the planner's state machine (issue 17)
         if result is None:  # not kept as the step's answer: a resent step is scored again (answer_again)
             self.publish(robot, keys.MAPPER_MAP, update)
         else:
