@@ -504,6 +504,8 @@ class EpisodeStatus(BaseModel):
     stop_reason: str | None = None
     correct: bool | None = None
     recording: str | None = None
+    task: Task | None = None  # a task episode (issue 17)
+    metrics: dict[str, float] = Field(default_factory=dict)  # its phase metrics (FindObj ... SR) at the end
 
 
 # ---- HELIOS object layer (issue 16; contract: briefs/helios-interface.md) ----------------------------------

@@ -45,6 +45,8 @@ def summarize(msg: Message) -> dict[str, Any]:
             image=list(msg.rgb.shape[:2]),
             visible=sorted({lab.category for lab in msg.labels})[:32],
         )
+        if msg.skill is not None:  # a task skill's outcome (issue 17)
+            out["skill"] = msg.skill.model_dump(mode="json")
     elif isinstance(msg, MapUpdate):
         best = sorted(msg.frontiers, key=lambda f: -f.weight)[:MAX_FRONTIERS]
         out.update(
@@ -84,6 +86,9 @@ def summarize(msg: Message) -> dict[str, Any]:
             done=msg.done,
             reason=msg.reason,
             path_len=len(msg.path),
+            skill=msg.skill,
+            target=msg.target,
+            phase=msg.phase,
             frontier=None
             if msg.frontier is None
             else {"x": _r(msg.frontier.x, 2), "y": _r(msg.frontier.y, 2), "weight": _r(msg.frontier.weight)},
@@ -103,6 +108,8 @@ def summarize(msg: Message) -> dict[str, Any]:
             normalized_steps=_r(msg.normalized_steps),
             correct=msg.correct,
         )
+        if msg.metrics:  # a task episode's phase metrics (issue 17)
+            out["metrics"] = {k: _r(v) for k, v in msg.metrics.items()}
     elif isinstance(msg, EpisodeStart):
         out.update(
             robot=msg.robot,

@@ -54,12 +54,14 @@ from typing import Any
 from eqa import keys
 from eqa.bus import Bus
 from eqa.messages import (
+    Ablation,
     EpisodeCancel,
     EpisodeEnd,
     EpisodeStart,
     EpisodeStatus,
     Message,
     Question,
+    Task,
     new_id,
 )
 from eqa.recording import recording_dir
@@ -398,7 +400,10 @@ class EpisodeManager:
         """A client's wait before a slot may be free: the mean episode time (at least 1 s, at most 1 h)."""
         return min(3600.0, max(1.0, self._mean_episode_s * max(1, waiting)))
 
-    def submit(self, req: QuestionRequest, caller: Caller | None = None) -> Submitted:
+    def submit(self, req: QuestionRequest, caller: Caller | None = None, *, task: Task | None = None,
+               ablation: Ablation = "helios", pick_limit: int | None = None) -> Submitted:
+        """A question episode; with ``task`` a HELIOS task episode whose stand-in question is ``req``
+        (gateway/routers/tasks.py)."""
         owner = caller.tenant if caller is not None else ANONYMOUS
         if req.robot is not None and req.robot not in self.settings.robots:
             raise InvalidError(f"unknown robot {req.robot!r}; known: {', '.join(self.settings.robots)}", field="robot")
@@ -449,6 +454,9 @@ class EpisodeManager:
                 max_steps=budget,
                 seed=req.seed,
                 record=req.record,
+                task=task,
+                ablation=ablation,
+                pick_limit=pick_limit,
             )
             status = EpisodeStatus(
                 episode_id=episode_id,
@@ -458,6 +466,7 @@ class EpisodeManager:
                 strategy=req.strategy,
                 stop=start.stop,
                 max_steps=budget,
+                task=task,
             )
             rec = Record(status=status, start=start, owner=owner)
             self._active[episode_id] = rec

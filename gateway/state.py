@@ -108,6 +108,7 @@ def finished(
         nxt.prediction_set = list(end.prediction_set)
         nxt.steps = end.steps
         nxt.correct = end.correct
+        nxt.metrics = dict(end.metrics)
     nxt.normalized_steps = nxt.steps / max(nxt.max_steps, 1)
     choices = nxt.question.choices
     if nxt.answer and nxt.answer_text is None and choices and "A" <= nxt.answer <= "Z":

@@ -1,0 +1,73 @@
+"""Tasks (HELIOS, issue 17): submit "Move the <object> from the <start receptacle> to the <goal receptacle>" or
+"Find a <object>" as an episode. Same lifecycle, auth, queueing, status, events and recording as questions:
+the task episode is an :class:`eqa.messages.EpisodeStart` with ``task`` set and a stand-in question whose text
+is the instruction (status and events at ``/v1/episodes/{id}``)."""
+
+from __future__ import annotations
+
+import logging
+from typing import Annotated, Literal
+
+from fastapi import APIRouter, status
+from pydantic import BaseModel, ConfigDict, Field, StrictBool
+
+from eqa.instructions import InstructionError, parse_instruction
+from eqa.messages import SCENE_ID, Ablation, Pose2D, Task, TaskKind, check_text
+from gateway.deps import ManagerDep, SubmitterDep
+from gateway.errors import InvalidError
+from gateway.routers.episodes import errors
+from gateway.schemas import QuestionRequest, Submitted
+
+log = logging.getLogger(__name__)
+router = APIRouter(prefix="/v1", tags=["tasks"])
+
+_EXAMPLE = {"instruction": "Move the mug from the kitchen counter to the dining table", "scene": "gen-15000",
+            "ablation": "helios", "pick_limit": 5}
+
+
+class TaskRequest(BaseModel):
+    """A task for one robot: the instruction in words (parsed here; 422 says which forms are understood), the
+    scene and/or robot as for questions, the agent variant (Table 1: ``helios``, ``no_global``, ``trusting``) and
+    the pick-attempt limit (1, 5, ... or none = unlimited)."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [_EXAMPLE]})
+    instruction: Annotated[str, Field(min_length=1, max_length=500)]
+    kind: TaskKind | None = Field(default=None, description="pick_place or find_object; default: from the words")
+    scene: Annotated[str, Field(min_length=1, max_length=64, pattern=f"^{SCENE_ID.pattern}$")] | None = None
+    robot: Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_-]+$")] | None = None
+    start_pose: Pose2D | None = None
+    ablation: Ablation = "helios"
+    pick_limit: int | None = Field(default=None, ge=1, le=1000, description="pick attempts; none = unlimited")
+    max_steps: int | None = Field(default=None, ge=1, le=10_000)
+    seed: int = Field(default=0, ge=0, le=2**31 - 1)
+    record: StrictBool = True
+
+
+def build_task(req: TaskRequest) -> Task:
+    """The :class:`Task` of a request, or :class:`InvalidError` (422) saying what to write."""
+    try:
+        check_text(req.instruction, "instruction")
+        parsed = parse_instruction(req.instruction)
+    except (InstructionError, ValueError) as exc:
+        raise InvalidError(str(exc), field="instruction") from exc
+    if req.kind is not None and req.kind != parsed.kind:
+        raise InvalidError(f"the instruction reads as a {parsed.kind} task, not {req.kind}", field="kind")
+    kind: Literal["pick_place", "find_object"] = parsed.kind  # type: ignore[assignment]
+    return Task(kind=kind, text=req.instruction.strip(), scene=req.scene or "", object=parsed.object,
+                start_receptacle=parsed.start_receptacle, goal_receptacle=parsed.goal_receptacle,
+                start_pose=req.start_pose, max_steps=req.max_steps)
+
+
+@router.post(
+    "/tasks",
+    response_model=Submitted,
+    status_code=status.HTTP_202_ACCEPTED,
+    summary="Submit a pick-and-place or find-object task; returns the episode id (running or queued)",
+    responses=errors(400, 401, 403, 409, 413, 422, 429, 503),
+)
+def submit_task(body: TaskRequest, manager: ManagerDep, caller: SubmitterDep) -> Submitted:
+    task = build_task(body)
+    stand_in = QuestionRequest(question=body.instruction.strip(), scene=body.scene, robot=body.robot,
+                               start_pose=body.start_pose, stop_rule="max_steps", max_steps=body.max_steps,
+                               seed=body.seed, record=body.record)
+    return manager.submit(stand_in, caller, task=task, ablation=body.ablation, pick_limit=body.pick_limit)
