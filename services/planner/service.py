@@ -23,10 +23,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from eqa import keys
+from eqa.bus import Bus
+from eqa.episode_service import EpisodeService
 from eqa.messages import (
     Decision,
-    EpisodeCancel,
-    EpisodeEnd,
     EpisodeStart,
     ErrorReply,
     Frontier,
@@ -35,9 +35,8 @@ from eqa.messages import (
     Pose2D,
     Strategy,
 )
-from eqa.recording import EpisodeRecorder
-from eqa.service import Service
-from eqa.store import EPISODE_STATE_TTL_S
+from eqa.settings import Settings
+from eqa.store import Store
 from services.planner import cp_guided
 from services.planner.sampling import step_rng
 from services.planner.step import Memory, PlannerParams, StepPlan, plan_step
@@ -46,10 +45,6 @@ log = logging.getLogger(__name__)
 
 MAX_REFUSALS = 4
 _KEEP_STEPS = 3
-
-
-def state_key(episode_id: str) -> str:
-    return f"eqa:planner:episode:{episode_id}"
 
 
 @dataclass
@@ -68,159 +63,82 @@ class _Pending:
 @dataclass
 class _Episode:
     episode_id: str
-    robot: str
     strategy: Strategy
     seed: int
-    recorder: EpisodeRecorder | None
-    started: bool = False  # an EpisodeStart was seen
     memory: Memory = field(default_factory=Memory)
     maps: dict[int, MapUpdate] = field(default_factory=dict)
     decisions: dict[int, Decision] = field(default_factory=dict)
     planned: int = -1
     pending: _Pending | None = None
     done: bool = False
-    last_goal: Goal | None = None  # re-published when the planned step's map or decision comes again
 
 
-class PlannerService(Service):
-    """Frontier sampling (Eq. A6 weights), collision-free paths with clearance, next pose (Explore-EQA)."""
+class PlannerService(EpisodeService[_Episode]):
+    """Frontier sampling (Eq. A6 weights), collision-free paths with clearance, next pose (Explore-EQA).
+
+    Per-episode state (:class:`eqa.episode_service.EpisodeService`, ``eqa:planner:episode:{id}``): strategy,
+    seed, last planned step and the between-step memory (committed target, visited, refused), so a restarted
+    planner plans the next steps exactly as this one would have; the last goal is the step's stored answer."""
 
     name = "planner"
 
-    def __init__(self, *args: object, params: PlannerParams | None = None, **kwargs: object) -> None:
-        super().__init__(*args, **kwargs)  # type: ignore[arg-type]
+    def __init__(self, settings: Settings, bus: Bus | None = None, store: Store | None = None, *,
+                 params: PlannerParams | None = None) -> None:
+        super().__init__(settings, bus, store)
         self.params = params or PlannerParams()
-        self.episodes: dict[str, _Episode] = {}
 
-    def setup(self) -> None:
-        self.on(keys.EPISODE_START, self.on_start)
-        self.on(keys.EPISODE_CANCEL, self.on_cancel)
-        self.on(keys.EPISODE_END, self.on_end)
-        self.on(keys.MAPPER_MAP, self.on_map)
-        self.on(keys.STOPPER_DECISION, self.on_decision)
-        self.on(keys.SIM_ERROR, self.on_sim_error)
+    def setup_episodes(self) -> None:
+        self.on_step(keys.MAPPER_MAP, self.on_map)
+        self.on_step(keys.STOPPER_DECISION, self.on_decision)
+        self.on_step(keys.SIM_ERROR, self.on_sim_error, resend=False, hold=False)
 
-    def teardown(self) -> None:
-        for ep in list(self.episodes.values()):
-            self._close(ep)
-        self.episodes.clear()
+    # ---- episode state -------------------------------------------------------------------------------------
+    def start_episode(self, robot: str, start: EpisodeStart) -> _Episode:
+        log.info("episode %s on %s: strategy %s, seed %d", start.episode_id, robot, start.strategy, start.seed)
+        return _Episode(start.episode_id, start.strategy, start.seed)
 
-    # ---- episode lifecycle ---------------------------------------------------------------------------------
-    def on_start(self, robot: str, msg: EpisodeStart) -> None:
-        rec = EpisodeRecorder(self.settings, msg.episode_id, self.name, enabled=msg.record)
-        old = self.episodes.get(msg.episode_id)
-        if old is not None and not old.started and not old.done and old.planned < 0:
-            # the map or decision of step 0 overtook the start (streams on different keys are not ordered
-            # with respect to each other): keep what arrived, take the episode's settings
-            old.robot, old.strategy, old.seed, old.recorder, old.started = robot, msg.strategy, msg.seed, rec, True
-            self._try_plan(old, 0)
-        else:
-            if old is not None:
-                self._close(old)
-            ep = _Episode(msg.episode_id, robot, msg.strategy, msg.seed, rec, started=True)
-            self.episodes[msg.episode_id] = ep
-        self._save(self.episodes[msg.episode_id], record=msg.record)
-        log.info("episode %s on %s: strategy %s, seed %d", msg.episode_id, robot, msg.strategy, msg.seed)
+    def answered_step(self, episode_id: str, state: _Episode) -> int:
+        return state.planned
 
-    def on_cancel(self, robot: str, msg: EpisodeCancel) -> None:
-        ep = self.episodes.pop(msg.episode_id, None)
-        if ep is not None:
-            self._close(ep)
-        self.store.delete(state_key(msg.episode_id))
-
-    def on_end(self, robot: str, msg: EpisodeEnd) -> None:
-        ep = self.episodes.pop(msg.episode_id, None)
-        if ep is not None:
-            self._close(ep)
-        self.store.delete(state_key(msg.episode_id))
-
-    def _save(self, ep: _Episode, record: bool | None = None) -> None:
-        """Strategy, seed and the between-step memory (committed target, visited, refused) of an episode, so a
-        restarted planner plans the next steps exactly as this one would have."""
-        m = ep.memory
-        state = {
-            "robot": ep.robot, "strategy": ep.strategy, "seed": ep.seed, "planned": ep.planned,
-            "last_goal": ep.last_goal.model_dump(mode="json") if ep.last_goal is not None else None,
-            "record": bool(record if record is not None else ep.recorder is not None),
+    def dump_state(self, state: _Episode, **extra: object) -> dict[str, object]:
+        m = state.memory
+        return {
+            "strategy": state.strategy, "seed": state.seed, "planned": state.planned,
             "memory": {"target": m.target.model_dump() if m.target else None, "committed_steps": m.committed_steps,
                        "visited": m.visited, "refused": m.refused, "turns": m.turns},
         }
-        self.store.set_json(state_key(ep.episode_id), state, ttl_s=EPISODE_STATE_TTL_S)
 
-    def _restore(self, episode_id: str) -> _Episode | None:
-        state = self.store.get_json(state_key(episode_id))
-        if not state:
-            return None
-        try:
-            mem = state["memory"]
-            memory = Memory(
-                target=Frontier.model_validate(mem["target"]) if mem["target"] else None,
-                committed_steps=int(mem["committed_steps"]), visited=[tuple(v) for v in mem["visited"]],
-                refused=[tuple(v) for v in mem["refused"]], turns=int(mem["turns"]),
-            )
-            rec = EpisodeRecorder(self.settings, episode_id, f"{self.name}-resume{state['planned'] + 1}",
-                                  enabled=bool(state["record"]))
-            ep = _Episode(episode_id, state["robot"], state["strategy"], int(state["seed"]), rec, started=True,
-                          memory=memory, planned=int(state["planned"]))
-            if state.get("last_goal"):
-                ep.last_goal = Goal.model_validate(state["last_goal"])
-        except (KeyError, TypeError, ValueError) as exc:
-            log.error("episode %s: stored planner state unusable: %s", episode_id, exc)
-            return None
+    def load_state(self, episode_id: str, data: dict[str, object]) -> _Episode:
+        mem = data["memory"]
+        assert isinstance(mem, dict)
+        memory = Memory(
+            target=Frontier.model_validate(mem["target"]) if mem["target"] else None,
+            committed_steps=int(mem["committed_steps"]), visited=[tuple(v) for v in mem["visited"]],
+            refused=[tuple(v) for v in mem["refused"]], turns=int(mem["turns"]),
+        )
+        ep = _Episode(episode_id, data["strategy"], int(data["seed"]), memory=memory,  # type: ignore[arg-type]
+                      planned=int(data["planned"]))  # type: ignore[arg-type]
         log.info("episode %s: restored (strategy %s, last planned step %d)", episode_id, ep.strategy, ep.planned)
         return ep
 
-    def _close(self, ep: _Episode) -> None:
-        if ep.recorder is not None:
-            ep.recorder.close()
-            ep.recorder = None
-
-    def _episode(self, robot: str, episode_id: str) -> _Episode:
-        ep = self.episodes.get(episode_id) or self._restore(episode_id)
-        if ep is not None:
-            self.episodes[episode_id] = ep
-        else:
-            log.warning(
-                "episode %s: no EpisodeStart seen yet and no stored state; step 0 waits for the start, later "
-                "steps (state lost) are planned with strategy 'semantic', seed 0",
-                episode_id,
-            )
-            ep = _Episode(episode_id, robot, "semantic", 0, None)
-            self.episodes[episode_id] = ep
-        return ep
-
     # ---- inputs --------------------------------------------------------------------------------------------
-    def on_map(self, robot: str, msg: MapUpdate) -> None:
-        ep = self._episode(robot, msg.episode_id)
+    def on_map(self, robot: str, ep: _Episode, msg: MapUpdate) -> None:
         ep.maps[msg.step] = msg
         self._try_plan(ep, msg.step)
 
-    def on_decision(self, robot: str, msg: Decision) -> None:
-        ep = self._episode(robot, msg.episode_id)
+    def on_decision(self, robot: str, ep: _Episode, msg: Decision) -> None:
         ep.decisions[msg.step] = msg
         self._try_plan(ep, msg.step)
 
-    def on_sim_error(self, robot: str, msg: ErrorReply) -> None:
-        if msg.episode_id is None or msg.step is None:
-            return
-        ep = self.episodes.get(msg.episode_id)
-        if ep is None or ep.done or ep.pending is None or ep.pending.step != msg.step:
+    def on_sim_error(self, robot: str, ep: _Episode, msg: ErrorReply) -> None:
+        if msg.step is None or ep.done or ep.pending is None or ep.pending.step != msg.step:
             return
         self._replan_after_refusal(ep, msg)
 
     # ---- planning ------------------------------------------------------------------------------------------
     def _try_plan(self, ep: _Episode, step: int) -> None:
-        if step == ep.planned and ep.last_goal is not None and ep.last_goal.step == step:
-            # The step was sent again (the simulator got no goal: it was lost while a service restarted).
-            log.info("episode %s: step %d sent again; its goal re-published", ep.episode_id, step)
-            ep.maps.pop(step, None)
-            ep.decisions.pop(step, None)
-            self.publish(ep.robot, keys.PLANNER_GOAL, ep.last_goal)
-            return
         if ep.done or step <= ep.planned or step not in ep.maps or step not in ep.decisions:
             return
-        if not ep.started and step == 0:
-            return  # the EpisodeStart (strategy, seed) is on its way: on_start plans
         decision = ep.decisions[step]
         ep.planned = step
         for old in [s for s in ep.maps if s <= step - _KEEP_STEPS]:
@@ -268,7 +186,6 @@ class PlannerService(Service):
         )
         if plan.done:
             ep.done = True
-        ep.last_goal = goal
         log.info(
             "episode %s step %d: %s (%s) in %.0f ms",
             ep.episode_id,
@@ -277,8 +194,7 @@ class PlannerService(Service):
             plan.reason,
             plan.timing_ms.get("step", 0.0),
         )
-        self._save(ep)
-        self.publish(ep.robot, keys.PLANNER_GOAL, goal)
+        self.publish_step(ep.episode_id, keys.PLANNER_GOAL, goal, pending.step, save=True)
         self._record(ep, pending.step, mu, plan)
 
     def _replan_after_refusal(self, ep: _Episode, err: ErrorReply) -> None:
@@ -324,7 +240,7 @@ class PlannerService(Service):
 
     # ---- monitoring ----------------------------------------------------------------------------------------
     def _record(self, ep: _Episode, step: int, mu: MapUpdate, plan: StepPlan) -> None:
-        rec = ep.recorder
+        rec = self.recorders.get(ep.episode_id)
         if rec is None or not rec.enabled:
             return
         import rerun as rr

@@ -6,9 +6,10 @@ Publishes ``Decision`` (keys.STOPPER_DECISION) for every step and ``EpisodeEnd``
 stops. The rules are in :mod:`services.stopper.state` (decision), :mod:`services.stopper.conformal`
 (Eq. 7-10) and :mod:`services.stopper.baselines` (Eq. 4, 5).
 
-Persistence (``eqa.store``): the :class:`~services.stopper.state.EpisodeRecord` of every running episode is
-written to ``eqa:stopper:episode:<episode_id>`` after each step, before the decision is published; on start
-the service reloads them all, so a restarted stopper continues with the same running intersection. The
+Persistence (:class:`eqa.episode_service.EpisodeService`): the :class:`~services.stopper.state.EpisodeRecord`
+of every running episode is written to ``eqa:stopper:episode:<episode_id>`` after each step, before the decision
+is published; a restarted stopper reloads it when the episode's next message comes and continues with the same
+running intersection. Scores that overtake their ``EpisodeStart`` wait for it (the base). The
 trace of each episode goes to ``eqa:trace:episode:<episode_id>`` (calibration harness), and the
 ``EpisodeEnd`` it published to ``eqa:stopper:end:<episode_id>`` (so a restarted gateway can reconcile).
 Messages published while the stopper is down are not replayed by Zenoh: the gateway's watchdog covers that.
@@ -23,10 +24,11 @@ After a restart the recording continues in
 from __future__ import annotations
 
 import logging
-import time
 from typing import Any
 
 from eqa import keys, recording
+from eqa.bus import Bus
+from eqa.episode_service import EpisodeService
 from eqa.messages import (
     Decision,
     EpisodeCancel,
@@ -36,9 +38,9 @@ from eqa.messages import (
     Goal,
     StepScores,
 )
-from eqa.recording import EpisodeRecorder, recording_dir
-from eqa.service import Service
-from eqa.store import EPISODE_STATE_TTL_S, episode_end_key, task_metrics_key
+from eqa.recording import recording_dir
+from eqa.settings import Settings
+from eqa.store import EPISODE_STATE_TTL_S, Store, episode_end_key, episode_state_key, task_metrics_key
 from services.stopper.calibration import TraceStore, load_table
 from services.stopper.conformal import ScoreError
 from services.stopper.state import (
@@ -52,77 +54,55 @@ from services.stopper.state import (
 
 log = logging.getLogger(__name__)
 
-STATE_PREFIX = "eqa:stopper:episode:"
-# Zenoh runs the callbacks of different subscriptions on different threads, so the scores of step 0 can
-# overtake their EpisodeStart; they wait here (per episode, bounded, for a while) until it arrives.
+STATE_PREFIX = episode_state_key("stopper", "")
 _ENTITIES: dict[str, str] = getattr(recording, "ENTITIES", {})
 PREDICTION_SET_ENTITY = _ENTITIES.get("prediction_set", "stopper/prediction_set")
 SCORES_ENTITY = _ENTITIES.get("scores", "stopper/scores")
-PENDING_TTL_S = 30.0
-PENDING_MAX_EPISODES = 256
-PENDING_MAX_STEPS = 64
 
 
-class StopperService(Service):
+class StopperService(EpisodeService[EpisodeRecord]):
     """Explore-EQA stopping rule (multi-step conformal prediction) and its baselines."""
 
     name = "stopper"
     description = "Decides when the robot stops exploring and what it answers (Explore-EQA section V)."
+    hold_max_episodes = 256
 
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
-        super().__init__(*args, **kwargs)
-        self.episodes: dict[str, EpisodeRecord] = {}
-        self.recorders: dict[str, EpisodeRecorder] = {}
+    def __init__(self, settings: Settings, bus: Bus | None = None, store: Store | None = None) -> None:
+        super().__init__(settings, bus, store)
         self.traces: TraceStore | None = None
-        self._pending: dict[str, list[tuple[float, str, StepScores]]] = {}
 
     # ---- lifecycle ----------------------------------------------------------------------------------------
-    def setup(self) -> None:
+    def setup_episodes(self) -> None:
         self.traces = TraceStore(self.store)
-        self._reload()
-        self.on(keys.EPISODE_START, self.on_start)
-        self.on(keys.MAPPER_SCORES, self.on_scores)
-        self.on(keys.PLANNER_GOAL, self.on_goal)
-        self.on(keys.EPISODE_CANCEL, self.on_cancel)
-        self.on(keys.EPISODE_END, self.on_end)
-
-    def teardown(self) -> None:
-        for rec in list(self.recorders.values()):
-            rec.close()
-        self.recorders.clear()
-
-    def _reload(self) -> None:
-        for key in self.store.keys(STATE_PREFIX):
-            raw = self.store.get(key)
-            if raw is None:
-                continue
-            try:
-                rec = EpisodeRecord.model_validate_json(raw)
-            except ValueError as exc:
-                log.error("stored stopper state %s is invalid, dropping it: %s", key, exc)
-                self.store.delete(key)
-                continue
-            rec.restarts += 1
-            self.episodes[rec.episode_id] = rec
-            self._save(rec)
-            log.info("resumed episode %s at step %d (running set %s)", rec.episode_id, rec.last_step, rec.running)
+        self.on_step(keys.MAPPER_SCORES, self.on_scores)
+        self.on_step(keys.PLANNER_GOAL, self.on_goal, resend=False, hold=False)
 
     # ---- persistence --------------------------------------------------------------------------------------
-    def _save(self, rec: EpisodeRecord) -> None:
-        self.store.set(STATE_PREFIX + rec.episode_id, rec.model_dump_json().encode(), ttl_s=EPISODE_STATE_TTL_S)
+    def dump_state(self, state: EpisodeRecord, **extra: Any) -> dict[str, Any]:
+        return state.model_dump(mode="json")
+
+    def load_state(self, episode_id: str, data: Any) -> EpisodeRecord:
+        rec = EpisodeRecord.model_validate(data)
+        rec.restarts += 1
+        log.info("resumed episode %s at step %d (running set %s)", rec.episode_id, rec.last_step, rec.running)
+        return rec
+
+    def answered_step(self, episode_id: str, state: EpisodeRecord) -> int:
+        return state.last_step
+
+    def answer_again(self, robot: str, state: EpisodeRecord, msg: Any) -> None:
+        last = state.last_decision
+        if last is not None and last.step == msg.step and not last.stop:
+            # The step was sent again (a message after it was lost): answer it again, nothing recomputed.
+            log.info("episode %s: step %d sent again; its decision re-published", state.episode_id, msg.step)
+            self.publish(robot, keys.STOPPER_DECISION, last)
+        else:
+            log.info("episode %s: step %d already decided; duplicate scores ignored", state.episode_id, msg.step)
 
     def _save_trace(self, rec: EpisodeRecord, end_reason: str | None = None) -> None:
         trace = rec.trace(end_reason)
         if trace is not None and self.traces is not None:
             self.traces.save_episode(rec.episode_id, trace)
-
-    def _recorder(self, rec: EpisodeRecord) -> EpisodeRecorder:
-        r = self.recorders.get(rec.episode_id)
-        if r is None:
-            name = "stopper" if rec.restarts == 0 else f"stopper-resume{rec.restarts}"
-            r = EpisodeRecorder(self.settings, rec.episode_id, name, enabled=rec.record)
-            self.recorders[rec.episode_id] = r
-        return r
 
     def _recording(self, rec: EpisodeRecord) -> str | None:
         if rec.record and self.settings.record:
@@ -130,16 +110,13 @@ class StopperService(Service):
         return None
 
     # ---- handlers -----------------------------------------------------------------------------------------
-    def on_start(self, robot: str, start: EpisodeStart) -> None:
-        if start.episode_id in self.episodes:
-            log.info("episode %s already started; ignoring a repeated EpisodeStart", start.episode_id)
-            return
+    def start_episode(self, robot: str, start: EpisodeStart) -> EpisodeRecord | None:
         rec = EpisodeRecord.from_start(start, robot)
         try:
             rec.threshold = check_threshold(start)
         except ValueError as exc:
             self._finish(rec, "failed", f"invalid stop threshold: {exc}", None)
-            return
+            return None
         if start.stop.rule == "cp":
             name = self.settings.calibration_name
             try:
@@ -150,12 +127,10 @@ class StopperService(Service):
             if choice is None:
                 log.error("episode %s: %s", start.episode_id, why)
                 self._finish(rec, "failed", why, None)
-                return
+                return None
             if choice.note:
                 log.warning("episode %s: %s", start.episode_id, choice.note)
             rec.calibration = choice
-        self.episodes[rec.episode_id] = rec
-        self._save(rec)
         self._save_trace(rec)
         log.info(
             "episode %s started on %s: rule %s, %d steps max",
@@ -164,15 +139,9 @@ class StopperService(Service):
             start.stop.rule,
             rec.max_steps,
         )
-        early = sorted(self._pending.pop(rec.episode_id, []), key=lambda p: p[2].step)
-        for _t, held_robot, scores in early:
-            self.on_scores(held_robot, scores)
+        return rec
 
-    def on_scores(self, robot: str, scores: StepScores) -> None:
-        rec = self.episodes.get(scores.episode_id)
-        if rec is None:
-            self._hold(robot, scores)
-            return
+    def on_scores(self, robot: str, rec: EpisodeRecord, scores: StepScores) -> None:
         if robot != rec.robot:
             log.warning(
                 "scores of episode %s arrived for robot %s, expected %s; dropped",
@@ -190,13 +159,7 @@ class StopperService(Service):
             self._finish(rec, "failed", reason, None)
             return
         if decision is None:
-            last = rec.last_decision
-            if last is not None and last.step == scores.step and not last.stop:
-                # The step was sent again (a message after it was lost): answer it again, nothing recomputed.
-                log.info("episode %s: step %d sent again; its decision re-published", rec.episode_id, scores.step)
-                self.publish(robot, keys.STOPPER_DECISION, last)
-            else:
-                log.info("episode %s: step %d already decided; duplicate scores ignored", rec.episode_id, scores.step)
+            self.answer_again(robot, rec, scores)
             return
         work.last_decision = decision
         self.episodes[rec.episode_id] = work
@@ -205,14 +168,10 @@ class StopperService(Service):
         if decision.stop:
             self._finish(work, "stopped", decision.reason, decision.answer, decision)
         else:
-            self._save(work)
-            self.publish(robot, keys.STOPPER_DECISION, decision)
+            self.publish_step(rec.episode_id, keys.STOPPER_DECISION, decision, decision.step, save=True)
 
-    def on_goal(self, robot: str, goal: Goal) -> None:
+    def on_goal(self, robot: str, rec: EpisodeRecord, goal: Goal) -> None:
         if not goal.done:
-            return
-        rec = self.episodes.get(goal.episode_id)
-        if rec is None:
             return
         if self._task_metrics(rec.episode_id) is not None:  # a task episode: the planner ends it (issue 17)
             self._finish(rec, "stopped", f"task ended: {goal.reason or 'the planner is done'}", None)
@@ -224,46 +183,18 @@ class StopperService(Service):
             return
         self._finish(rec, "stopped", fallback_reason(f"planner ended exploration: {why}", answer), answer)
 
-    def on_cancel(self, robot: str, cancel: EpisodeCancel) -> None:
-        rec = self.episodes.get(cancel.episode_id)
-        if rec is None:
+    def finish_episode(self, robot: str, msg: EpisodeCancel | EpisodeEnd, state: EpisodeRecord) -> None:
+        if isinstance(msg, EpisodeCancel):
+            self._finish(state, "cancelled", msg.reason, None)
             return
-        self._finish(rec, "cancelled", cancel.reason, None)
-
-    def on_end(self, robot: str, end: EpisodeEnd) -> None:
-        """An episode ended elsewhere (gateway watchdog, ...): forget its state."""
-        rec = self.episodes.pop(end.episode_id, None)
-        if rec is not None:
-            log.info("episode %s ended by another service (%s); state dropped", end.episode_id, end.reason)
-            self._drop(rec, end.reason)
+        # An episode ended elsewhere (gateway watchdog, ...): keep its trace, forget its state.
+        log.info("episode %s ended by another service (%s); state dropped", msg.episode_id, msg.reason)
+        self._drop(state, msg.reason)
 
     # ---- helpers ------------------------------------------------------------------------------------------
-    def _hold(self, robot: str, scores: StepScores) -> None:
-        """Keep scores of a not (yet) started episode for ``PENDING_TTL_S``; drop those of ended ones."""
-        now = time.monotonic()
-        for eid in [e for e, items in self._pending.items() if now - items[0][0] > PENDING_TTL_S]:
-            log.warning("scores for unknown episode %s dropped: no EpisodeStart within %.0f s", eid, PENDING_TTL_S)
-            del self._pending[eid]
-        if self.store.get(episode_end_key(scores.episode_id)) is not None:
-            log.info("scores for ended episode %s (step %d) ignored", scores.episode_id, scores.step)
-            return
-        items = self._pending.get(scores.episode_id)
-        if items is None:
-            if len(self._pending) >= PENDING_MAX_EPISODES:
-                log.warning("scores for unknown episode %s (step %d) dropped", scores.episode_id, scores.step)
-                return
-            items = self._pending[scores.episode_id] = []
-        if len(items) < PENDING_MAX_STEPS:
-            items.append((now, robot, scores))
-            log.info("scores of episode %s step %d held until its EpisodeStart", scores.episode_id, scores.step)
-
     def _drop(self, rec: EpisodeRecord, reason: str) -> None:
-        self.episodes.pop(rec.episode_id, None)
         self._save_trace(rec, end_reason=reason)
-        self.store.delete(STATE_PREFIX + rec.episode_id)
-        r = self.recorders.pop(rec.episode_id, None)
-        if r is not None:
-            r.close()
+        self.drop(rec.episode_id)
 
     def _task_metrics(self, episode_id: str) -> dict[str, float] | None:
         """The sim's phase metrics of a task episode (:func:`eqa.store.task_metrics_key`); None for a question
@@ -276,8 +207,9 @@ class StopperService(Service):
     ) -> None:
         """End an episode: store the end and drop the state first, then publish (the last Decision, if any,
         and the EpisodeEnd)."""
-        if answer is not None:
-            self._recorder(rec).log("stopper/log", _text(f"final answer {answer}: {reason}"))
+        r = self.recorders.get(rec.episode_id)
+        if answer is not None and r is not None:
+            r.log("stopper/log", _text(f"final answer {answer}: {reason}"))
         end = end_message(rec, state, reason, answer, self._recording(rec))
         metrics = self._task_metrics(rec.episode_id)
         if metrics is not None:  # a task episode: its phase metrics, no answer
@@ -291,8 +223,8 @@ class StopperService(Service):
         log.info("episode %s %s after %d steps: answer %s (%s)", rec.episode_id, state, end.steps, answer, reason)
 
     def _log_rerun(self, rec: EpisodeRecord, decision: Decision) -> None:
-        r = self._recorder(rec)
-        if not r.enabled:
+        r = self.recorders.get(rec.episode_id)
+        if r is None or not r.enabled:
             return
         import rerun as rr
 

@@ -1,0 +1,367 @@
+"""The one pattern of every service that keeps per-episode state (mapper, planner, stopper).
+
+A subclass of :class:`EpisodeService` is its pure core plus a few hooks; the base does what each shell used to
+write its own way:
+
+* **EpisodeStart / EpisodeCancel / EpisodeEnd** are subscribed here. :meth:`EpisodeService.start_episode` builds
+  the state of a new episode (a repeated start of a known episode is ignored);
+  :meth:`EpisodeService.finish_episode` sees the state of an episode that ends, then the base drops it (memory,
+  store, recorder, held messages).
+* **Messages that overtake their EpisodeStart** (Zenoh delivers different keys on different threads, so step 0
+  of one stream can arrive before the start on another) are held, bounded (episodes, messages per episode,
+  bytes), for :attr:`hold_ttl_s`, and handled in step order right after the start. Expired or refused ones go
+  to :meth:`EpisodeService.unknown_episode`; those of an episode that already ended are dropped.
+* **The resent step** (the sim sends a step again when no goal came back, ``EQA_STEP_RESEND_S``): a message of
+  the step this service last answered (:meth:`answered_step`) is answered by publishing the step's outputs
+  again (recorded by :meth:`publish_step`, kept in the store when :attr:`persist_answers`), or, when they are
+  not at hand, by :meth:`answer_again`; an older step is a stale re-delivery and is ignored.
+* **Per-episode state in the store** under :func:`eqa.store.episode_state_key` (``eqa:{service}:episode:{id}``),
+  one msgpack envelope of :mod:`eqa.codec` holding the robot, the recording flag, the subclass's
+  :meth:`dump_state` and the last step's answers. :meth:`save` writes it (call it before publishing what
+  depends on it); a message of an episode not in memory restores it (:meth:`load_state`): a restarted service
+  continues where the last one stopped.
+* **Recorder bookkeeping**: one :class:`eqa.recording.EpisodeRecorder` per episode in :attr:`recorders`, named
+  after the service (``{service}-resume{k}`` after a restart: a file sink cannot be appended to).
+* **Ownership**: :meth:`owns` (default: every robot) is asked before any message is handled; an instance that
+  serves a subset of the robots (sharding) overrides it.
+* **Errors**: a handler that raises answers the episode at once with an ``ErrorReply`` on :attr:`error_stream`
+  when the service has one (and is logged either way); the service goes on.
+
+The constructor is ``(settings, bus=None, store=None)`` for every service.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Generic, TypeVar
+
+import numpy as np
+
+from eqa import keys
+from eqa.bus import Bus
+from eqa.codec import CodecError, packb, unpackb
+from eqa.messages import STREAM_TYPES, EpisodeCancel, EpisodeEnd, EpisodeStart, ErrorReply, Message, decode, encode
+from eqa.recording import EpisodeRecorder
+from eqa.service import Service
+from eqa.settings import Settings
+from eqa.store import EPISODE_STATE_TTL_S, Store, episode_end_key, episode_state_key
+
+log = logging.getLogger(__name__)
+
+S = TypeVar("S")
+Pair = tuple[str, str]
+ENVELOPE_VERSION = 1
+
+
+def message_bytes(msg: Message) -> int:
+    """Bytes of the arrays a message holds (what holding it costs)."""
+    return sum(v.nbytes for v in msg.__dict__.values() if isinstance(v, np.ndarray))
+
+
+@dataclass
+class EpisodeMeta:
+    """What the base keeps per episode beside the subclass's state."""
+
+    robot: str
+    record: bool
+    answer_step: int = -1
+    answers: dict[Pair, Message] = field(default_factory=dict)  # the outputs published for answer_step
+
+
+@dataclass
+class _Held:
+    at: float
+    robot: str
+    msg: Any
+    nbytes: int
+    route: _Route
+
+
+@dataclass
+class _Route:
+    pair: Pair
+    handler: Callable[[str, Any, Any], None]
+    resend: bool
+    hold: bool
+
+
+class EpisodeService(Service, Generic[S]):
+    """Base of the services with per-episode state. Subclasses set ``name``, implement the hooks and declare
+    their step inputs with :meth:`on_step` in :meth:`setup_episodes`."""
+
+    hold_ttl_s: ClassVar[float] = 30.0
+    hold_max_episodes: ClassVar[int] = 64
+    hold_max_per_episode: ClassVar[int] = 64
+    hold_max_bytes: ClassVar[int] = 64 * 1024 * 1024
+    persist_answers: ClassVar[bool] = True
+    state_ttl_s: ClassVar[float] = EPISODE_STATE_TTL_S
+    error_stream: ClassVar[Pair | None] = None
+
+    def __init__(self, settings: Settings, bus: Bus | None = None, store: Store | None = None) -> None:
+        super().__init__(settings, bus, store)
+        self.episodes: dict[str, S] = {}
+        self.meta: dict[str, EpisodeMeta] = {}
+        self.recorders: dict[str, EpisodeRecorder] = {}
+        self._held: dict[str, list[_Held]] = {}
+        self._routes: dict[Pair, _Route] = {}
+
+    # ---- hooks ------------------------------------------------------------------------------------------
+    def owns(self, robot: str) -> bool:
+        """Whether this instance handles ``robot`` (every robot by default; sharding overrides it)."""
+        return True
+
+    def setup_episodes(self) -> None:
+        """Declare the step inputs (:meth:`on_step`) and anything else to set up once the bus is open."""
+
+    def start_episode(self, robot: str, start: EpisodeStart) -> S | None:
+        """The state of a new episode, or None when it cannot start (the subclass has answered it)."""
+        raise NotImplementedError
+
+    def finish_episode(self, robot: str, msg: EpisodeCancel | EpisodeEnd, state: S) -> None:
+        """The episode ends (cancel, or an end published by anyone); the base drops its state afterwards."""
+
+    def dump_state(self, state: S, **extra: Any) -> Any:
+        """The state as data :func:`eqa.codec.packb` takes (dicts, lists, numbers, strings, bytes, arrays)."""
+        raise NotImplementedError
+
+    def load_state(self, episode_id: str, data: Any) -> S:
+        """The state from :meth:`dump_state`'s data (a restarted service). Raise ``ValueError`` when unusable."""
+        raise NotImplementedError
+
+    def answered_step(self, episode_id: str, state: S) -> int:
+        """The last step this service answered (-1: none)."""
+        return self.meta[episode_id].answer_step
+
+    def answer_again(self, robot: str, state: S, msg: Any) -> None:
+        """Answer a resent step whose outputs are not at hand (e.g. after a restart without
+        :attr:`persist_answers`)."""
+        log.info("%s: episode %s step %d sent again; nothing to re-publish", self.name, msg.episode_id, msg.step)
+
+    def unknown_episode(self, robot: str, msg: Any, why: str) -> None:
+        """A message of an episode with no EpisodeStart and no stored state, not held (any longer)."""
+        log.warning("%s: %s of episode %s (step %s) dropped: %s", self.name, msg.kind, msg.episode_id,
+                    getattr(msg, "step", None), why)
+
+    # ---- wiring -----------------------------------------------------------------------------------------
+    def setup(self) -> None:
+        self.on(keys.EPISODE_START, self._on_start)
+        self.on(keys.EPISODE_CANCEL, self._on_finish)
+        self.on(keys.EPISODE_END, self._on_finish)
+        self.setup_episodes()
+        self.every(min(1.0, self.hold_ttl_s / 4), self._expire_held)
+
+    def teardown(self) -> None:
+        for rec in self.recorders.values():
+            rec.close()
+        self.recorders.clear()
+
+    def on_step(self, pair: Pair, handler: Callable[[str, S, Any], None], resend: bool = True,
+                hold: bool = True) -> None:
+        """Run ``handler(robot, state, msg)`` for every message of stream ``pair`` (any robot) of an episode
+        this service holds. ``resend``: a message of an already answered step is answered by the base (see the
+        module docstring) instead of reaching the handler. ``hold``: a message of an unknown episode waits for
+        its start; otherwise it is dropped quietly."""
+        route = _Route(pair, handler, resend, hold)
+        self._routes[pair] = route
+        self.on(pair, lambda robot, msg: self._dispatch(robot, msg, route))
+
+    def receive(self, pair: Pair, robot: str, msg: Any) -> None:
+        """Handle ``msg`` as if it came on stream ``pair`` of ``robot`` (call it on the worker: tests use
+        ``svc.submit(svc.receive, pair, robot, msg)``)."""
+        if pair == keys.EPISODE_START:
+            self._on_start(robot, msg)
+        elif pair in (keys.EPISODE_CANCEL, keys.EPISODE_END):
+            self._on_finish(robot, msg)
+        else:
+            self._dispatch(robot, msg, self._routes[pair])
+
+    # ---- state ------------------------------------------------------------------------------------------
+    def episode(self, episode_id: str) -> S | None:
+        """The episode's state: in memory, else restored from the store, else None."""
+        state = self.episodes.get(episode_id)
+        return state if state is not None else self._restore(episode_id)
+
+    def save(self, episode_id: str, **extra: Any) -> None:
+        """Write the episode's state (and its last answers) to the store; ``extra`` goes to :meth:`dump_state`."""
+        meta = self.meta[episode_id]
+        body: dict[str, Any] = {
+            "version": ENVELOPE_VERSION,
+            "robot": meta.robot,
+            "record": meta.record,
+            "state": self.dump_state(self.episodes[episode_id], **extra),
+        }
+        if self.persist_answers and meta.answers:
+            body["answers"] = {"step": meta.answer_step,
+                               "messages": [[*pair, encode(m)] for pair, m in meta.answers.items()]}
+        self.store.set(episode_state_key(self.name, episode_id), packb(body), ttl_s=self.state_ttl_s)
+
+    def drop(self, episode_id: str) -> None:
+        """Forget an episode: memory, stored state, recorder, held messages."""
+        self.episodes.pop(episode_id, None)
+        self.meta.pop(episode_id, None)
+        self._held.pop(episode_id, None)
+        self.store.delete(episode_state_key(self.name, episode_id))
+        rec = self.recorders.pop(episode_id, None)
+        if rec is not None:
+            rec.close()
+
+    def robot_of(self, episode_id: str) -> str:
+        return self.meta[episode_id].robot
+
+    def publish_step(self, episode_id: str, pair: Pair, msg: Message, step: int, save: bool = False,
+                     **extra: Any) -> None:
+        """Publish an output of ``step`` and keep it as the step's answer (a resent step gets it again);
+        ``save``: store the state first (whatever a consumer has seen survives a crash of this process)."""
+        meta = self.meta[episode_id]
+        if step != meta.answer_step:
+            meta.answer_step, meta.answers = step, {}
+        meta.answers[pair] = msg
+        if save:
+            self.save(episode_id, **extra)
+        self.publish(meta.robot, pair, msg)
+
+    def error(self, robot: str, episode_id: str | None, step: int | None, reason: str) -> None:
+        """Answer an episode with an ``ErrorReply`` on :attr:`error_stream` (logged when there is none)."""
+        log.warning("%s: episode %s step %s: %s", self.name, episode_id, step, reason)
+        if self.error_stream is not None:
+            self.publish(robot, self.error_stream,
+                         ErrorReply(source=self.name, episode_id=episode_id, step=step, reason=reason[:1000]))
+
+    # ---- internals --------------------------------------------------------------------------------------
+    def _register(self, episode_id: str, state: S, meta: EpisodeMeta, recorder_name: str) -> None:
+        self.episodes[episode_id] = state
+        self.meta[episode_id] = meta
+        old = self.recorders.pop(episode_id, None)
+        if old is not None:
+            old.close()
+        self.recorders[episode_id] = EpisodeRecorder(self.settings, episode_id, recorder_name, enabled=meta.record)
+
+    def _restore(self, episode_id: str) -> S | None:
+        raw = self.store.get(episode_state_key(self.name, episode_id))
+        if raw is None:
+            return None
+        try:
+            body = unpackb(raw)
+            if not isinstance(body, dict) or body.get("version") != ENVELOPE_VERSION:
+                raise ValueError(f"not a {self.name} state of version {ENVELOPE_VERSION}")
+            meta = EpisodeMeta(robot=str(body["robot"]), record=bool(body["record"]))
+            answers = body.get("answers")
+            if answers:
+                meta.answer_step = int(answers["step"])
+                for service, stream, payload in answers["messages"]:
+                    pair = (str(service), str(stream))
+                    meta.answers[pair] = decode(payload, STREAM_TYPES[pair])
+            state = self.load_state(episode_id, body["state"])
+        except (CodecError, KeyError, TypeError, ValueError) as exc:
+            log.error("%s: stored state of episode %s unusable (%s); dropped", self.name, episode_id, exc)
+            self.store.delete(episode_state_key(self.name, episode_id))
+            return None
+        self.episodes[episode_id] = state  # answered_step may need it
+        self.meta[episode_id] = meta
+        resumed = self.answered_step(episode_id, state) + 1
+        self._register(episode_id, state, meta, f"{self.name}-resume{resumed}")
+        log.info("%s: episode %s restored from the store (next step %d)", self.name, episode_id, resumed)
+        return state
+
+    def _on_start(self, robot: str, start: EpisodeStart) -> None:
+        if not self.owns(robot):
+            return
+        eid = start.episode_id
+        if self.episode(eid) is not None:
+            log.info("%s: episode %s already started; repeated EpisodeStart ignored", self.name, eid)
+            return
+        try:
+            state = self.start_episode(robot, start)
+        except Exception as exc:
+            log.exception("%s: episode %s could not start", self.name, eid)
+            self.error(robot, eid, 0, f"episode could not start: {type(exc).__name__}: {exc}")
+            return
+        if state is None:
+            self._held.pop(eid, None)
+            return
+        self._register(eid, state, EpisodeMeta(robot=robot, record=bool(start.record)), self.name)
+        self.save(eid)
+        held = sorted(self._held.pop(eid, []), key=lambda h: getattr(h.msg, "step", 0))
+        for h in held:
+            log.info("%s: episode %s: %s of step %s that came before the start handled", self.name, eid,
+                     h.msg.kind, getattr(h.msg, "step", None))
+            self._dispatch(h.robot, h.msg, h.route)
+
+    def _on_finish(self, robot: str, msg: EpisodeCancel | EpisodeEnd) -> None:
+        if not self.owns(robot):
+            return
+        state = self.episode(msg.episode_id)
+        try:
+            if state is not None:
+                self.finish_episode(robot, msg, state)
+        finally:
+            self.drop(msg.episode_id)
+
+    def _dispatch(self, robot: str, msg: Any, route: _Route) -> None:
+        if not self.owns(robot):
+            return
+        eid = msg.episode_id
+        if eid is None:
+            return
+        state = self.episode(eid)
+        if state is None:
+            if route.hold:
+                self._hold(robot, msg, route)
+            return
+        step = getattr(msg, "step", None)
+        if route.resend and step is not None:
+            answered = self.answered_step(eid, state)
+            if step < answered:
+                log.info("%s: episode %s: %s of step %d already answered (last %d); ignored", self.name, eid,
+                         msg.kind, step, answered)
+                return
+            if step == answered:
+                self._answer_again(robot, eid, state, msg)
+                return
+        try:
+            route.handler(robot, state, msg)
+        except Exception as exc:
+            log.exception("%s: episode %s: %s handler failed", self.name, eid, msg.kind)
+            self.error(robot, eid, step, f"{self.name} failed on {msg.kind}: {type(exc).__name__}: {exc}")
+
+    def _answer_again(self, robot: str, episode_id: str, state: S, msg: Any) -> None:
+        meta = self.meta[episode_id]
+        if meta.answer_step == msg.step and meta.answers:
+            log.info("%s: episode %s step %d sent again; its %s re-published", self.name, episode_id, msg.step,
+                     ", ".join(m.kind for m in meta.answers.values()))
+            for pair, out in meta.answers.items():
+                self.publish(meta.robot, pair, out)
+            return
+        self.answer_again(robot, state, msg)
+
+    def _hold(self, robot: str, msg: Any, route: _Route) -> None:
+        eid = msg.episode_id
+        if self.store.get(episode_end_key(eid)) is not None:
+            log.info("%s: %s of ended episode %s ignored", self.name, msg.kind, eid)
+            return
+        items = self._held.get(eid)
+        nbytes = message_bytes(msg)
+        total = sum(h.nbytes for hs in self._held.values() for h in hs)
+        if items is None and len(self._held) >= self.hold_max_episodes:
+            why = f"no EpisodeStart seen and {self.hold_max_episodes} episodes already wait for theirs"
+        elif items is not None and len(items) >= self.hold_max_per_episode:
+            why = f"no EpisodeStart seen and {self.hold_max_per_episode} of its messages already wait"
+        elif total + nbytes > self.hold_max_bytes:
+            why = f"no EpisodeStart seen and the held messages would exceed {self.hold_max_bytes} bytes"
+        else:
+            self._held.setdefault(eid, []).append(_Held(time.monotonic(), robot, msg, nbytes, route))
+            log.info("%s: %s of episode %s step %s held until its EpisodeStart", self.name, msg.kind, eid,
+                     getattr(msg, "step", None))
+            return
+        self.unknown_episode(robot, msg, why)
+
+    def _expire_held(self) -> None:
+        now = time.monotonic()
+        for eid in [e for e, hs in self._held.items() if now - hs[0].at > self.hold_ttl_s]:
+            for h in self._held.pop(eid):
+                self.unknown_episode(h.robot, h.msg, f"no EpisodeStart within {self.hold_ttl_s:.0f} s and no "
+                                                      "stored state")
+
