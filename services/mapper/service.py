@@ -3,6 +3,8 @@
 Per step (one :class:`Frame`): validate and integrate it, project to 2D, compute the prompt points, ask the
 scorer pool for the step's scores, write the semantic values (Eq. 3), compute the frontiers with their
 Eq. A6 weights, publish :class:`MapUpdate` and :class:`StepScores`.
+A task episode (``EpisodeStart.task``) also keeps the HELIOS object layer and per-target value layers,
+fed by detections and value prompts from the scorer pool (:mod:`services.mapper.object_shell`).
 
 Per-episode state (:class:`eqa.episode_service.EpisodeService`, ``eqa:mapper:episode:{episode_id}``): the
 episode's map snapshot (:meth:`services.mapper.episode_map.EpisodeMap.snapshot`), written before the step's
@@ -42,6 +44,8 @@ from eqa.messages import (
 from eqa.settings import Settings
 from eqa.store import Store
 from services.mapper.episode_map import EpisodeMap, MapperConfig, Timer
+from services.mapper.object_shell import Detect, ObjectLayerShell, Values
+from services.mapper.semantic_map import QUESTION_LAYER
 from services.mapper.tsdf import FrameError
 
 log = logging.getLogger(__name__)
@@ -51,7 +55,7 @@ EARLY_FRAME_TTL_S = 30.0
 Scorer = Callable[[ScoreRequest], ScoreResult]
 
 
-class MapperService(EpisodeService[EpisodeMap]):
+class MapperService(ObjectLayerShell, EpisodeService[EpisodeMap]):
     """TSDF mapping, frontiers, prompt points and the semantic value map (Explore-EQA IV-B..D)."""
 
     name = "mapper"
@@ -65,9 +69,10 @@ class MapperService(EpisodeService[EpisodeMap]):
     state_ttl_s = 7 * 24 * 3600.0
 
     def __init__(self, settings: Settings, bus: Bus | None = None, store: Store | None = None, *,
-                 scorer: Scorer | None = None) -> None:
+                 scorer: Scorer | None = None, detector: Detect | None = None, values: Values | None = None) -> None:
         super().__init__(settings, bus, store)
         self._scorer = scorer
+        self.objects_init(detector, values)  # HELIOS object layer of task episodes (object_shell.py)
         self.config = MapperConfig(
             tau_lsv=settings.tau_lsv,
             tau_gsv=settings.tau_gsv,
@@ -83,6 +88,7 @@ class MapperService(EpisodeService[EpisodeMap]):
 
     def teardown(self) -> None:
         self._pool.shutdown(wait=True)
+        self.objects_close()
         super().teardown()
 
     # ---- scorer -----------------------------------------------------------------------------------------
@@ -96,16 +102,18 @@ class MapperService(EpisodeService[EpisodeMap]):
     # ---- episode state ----------------------------------------------------------------------------------
     def start_episode(self, robot: str, start: EpisodeStart) -> EpisodeMap:
         log.info("episode %s: mapping for robot %s (strategy %s)", start.episode_id, robot, start.strategy)
-        return EpisodeMap(start, self.config)
+        return EpisodeMap(start, self.config, layers=self.objects_layers(start))
 
     def finish_episode(self, robot: str, msg: EpisodeCancel | EpisodeEnd, state: EpisodeMap) -> None:
+        self.objects_finish(msg.episode_id)
         log.info("episode %s finished (%s); map dropped", msg.episode_id, msg.kind)
 
-    def dump_state(self, state: EpisodeMap, **extra: Any) -> bytes:
-        return state.snapshot(extra.get("volume"))
+    def dump_state(self, state: EpisodeMap, **extra: Any) -> Any:
+        # a task episode's object layer rides along: {"map": ..., "objects": ...}; otherwise the map's bytes
+        return self.objects_dump(state.episode_id, state.snapshot(extra.get("volume")))
 
     def load_state(self, episode_id: str, data: Any) -> EpisodeMap:
-        em = EpisodeMap.restore(data, self.config)
+        em = self.objects_load(episode_id, data, lambda b: EpisodeMap.restore(b, self.config))
         log.info("episode %s: restored from snapshot at step %d", episode_id, em.step)
         return em
 
@@ -137,6 +145,7 @@ class MapperService(EpisodeService[EpisodeMap]):
         # step's work that does not depend on the scores: the frontier candidates and the voxel part of the
         # snapshot. Same results, same order of effects (snapshot saved before anything is published).
         pending = self._pool.submit(self._timed_score, robot, em, frame)
+        pending_objects = self.objects_submit(robot, em, frame)  # detections + value prompts (task episodes)
         t0 = time.perf_counter()
         candidates = em.find_frontier_candidates()
         t0 = timer.lap("frontiers", t0)
@@ -153,7 +162,8 @@ class MapperService(EpisodeService[EpisodeMap]):
             except ValueError as exc:
                 self._error(robot, em.episode_id, frame.step, f"semantic values not written: {exc}")
         t0 = timer.lap("semantic_values", t0)
-        em.compute_frontiers(timer=timer, candidates=candidates)
+        frontier_layer = self.objects_apply(robot, em, frame, pending_objects, timer.ms)
+        em.compute_frontiers(frontier_layer or QUESTION_LAYER, timer=timer, candidates=candidates)
         # Persist before publishing: whatever a consumer has seen survives a crash of this process.
         t0 = time.perf_counter()
         self._save(em, volume)
@@ -161,6 +171,7 @@ class MapperService(EpisodeService[EpisodeMap]):
         timer.ms["step"] = (time.perf_counter() - t_start) * 1000.0
         update = em.map_update(timer.ms)
         update.skill = frame.skill  # a task skill's outcome, passed on to the planner's state machine (issue 17)
+        self.objects_attach(em, update, frame, {})
         if result is None:  # not kept as the step's answer: a resent step is scored again (answer_again)
             self.publish(robot, keys.MAPPER_MAP, update)
         else:
@@ -168,6 +179,7 @@ class MapperService(EpisodeService[EpisodeMap]):
             self.publish_step(em.episode_id, keys.MAPPER_SCORES, self._step_scores(em, frame, result), frame.step)
         t0 = time.perf_counter()
         self._record(em, frame)
+        self.objects_record(em, frame)
         timer.lap("record", t0)
         self.last_timing_ms = timer.ms
 
@@ -176,7 +188,9 @@ class MapperService(EpisodeService[EpisodeMap]):
         it was lost while a service restarted). Publish the step's map update and scores again from the stored
         map, without integrating the frame twice or writing its semantic values twice."""
         log.info("episode %s: frame %d sent again; its map update and scores re-published", em.episode_id, frame.step)
-        self.publish(robot, keys.MAPPER_MAP, em.map_update({}))
+        update = em.map_update({})
+        self.objects_attach(em, update, frame, {})
+        self.publish(robot, keys.MAPPER_MAP, update)
         result = self._score(robot, em, frame)
         if result is not None:
             self.publish(robot, keys.MAPPER_SCORES, self._step_scores(em, frame, result))

@@ -1,0 +1,183 @@
+"""The mapper shell's part for the HELIOS object layer (task episodes only), as a mixin of
+:class:`services.mapper.service.MapperService` so the service keeps one obvious home per idea.
+
+Per task episode (``EpisodeStart.task`` set): an :class:`~services.mapper.object_map.ObjectMap` with the task's
+classes, and one value layer per task class, ``helios:<class>`` (paper 3.1.2). Per frame, while the mapper
+integrates and the question's scores are computed, one worker asks the scorer pool for the frame's detections
+(:class:`~eqa.messages.DetectRequest`) and for the per-target value prompt "Seems like there is a (class)
+ahead" (:class:`~eqa.messages.ValueRequest`); then the detections are fused, the values written at the frame's
+prompt points (max-fused Gaussians, as the question layer), and the map update carries the instances
+(:attr:`~eqa.messages.MapUpdate.objects`). A detection that fails is reported on the mapper's error stream and
+the frame is not fused (no detection is not "nothing detected"). The object layer goes into the episode's
+stored state with the map, so a restarted mapper continues it. Question episodes are untouched: no request,
+no layer, the same state bytes as before.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
+from typing import Any
+
+from eqa.messages import (
+    DetectRequest,
+    DetectResult,
+    EpisodeStart,
+    ErrorReply,
+    Frame,
+    MapUpdate,
+    ValueRequest,
+    ValueResult,
+)
+from services.mapper.object_map import ObjectMap, ObjectMapConfig, log_rerun, task_classes
+from services.mapper.semantic_map import QUESTION_LAYER, write_values
+
+log = logging.getLogger(__name__)
+
+Detect = Callable[[DetectRequest], DetectResult]
+Values = Callable[[ValueRequest], ValueResult]
+LAYER_PREFIX = "helios:"
+
+
+def value_layer(cls: str) -> str:
+    return f"{LAYER_PREFIX}{cls}"
+
+
+class ObjectLayerShell:
+    """Mixin: needs ``self.settings``, ``self.bus``, ``self.error(robot, episode_id, step, reason)`` and
+    ``self.recorders`` of :class:`eqa.episode_service.EpisodeService`."""
+
+    settings: Any
+    bus: Any
+    recorders: dict[str, Any]
+    error: Callable[..., None]
+
+    def objects_init(self, detector: Detect | None = None, values: Values | None = None) -> None:
+        self.objects_config = ObjectMapConfig.from_settings(self.settings)
+        self.objects: dict[str, ObjectMap] = {}
+        self.last_objects: dict[str, list] = {}
+        self._detect, self._values = detector, values
+        self._objects_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mapper-objects")
+
+    def objects_close(self) -> None:
+        self._objects_pool.shutdown(wait=True)
+
+    def _pool_client(self) -> tuple[Detect, Values]:
+        if self._detect is None or self._values is None:
+            from eqa.scorer_client import ScorerClient
+
+            client = ScorerClient(self.bus, self.settings)
+            self._detect = self._detect or client.detect
+            self._values = self._values or client.values
+        return self._detect, self._values
+
+    # ---- episode lifecycle ------------------------------------------------------------------------------
+    def objects_layers(self, start: EpisodeStart) -> list[str] | None:
+        """The value layers of a new episode (None: the default question layer only) and, for a task episode,
+        its object map."""
+        if start.task is None:
+            return None
+        self.objects[start.episode_id] = ObjectMap.for_task(start.task, self.objects_config)
+        classes, _ = task_classes(start.task, self.objects_config)
+        return [QUESTION_LAYER, *(value_layer(c) for c in classes)]
+
+    def objects_finish(self, episode_id: str) -> None:
+        self.objects.pop(episode_id, None)
+        self.last_objects.pop(episode_id, None)
+
+    def objects_dump(self, episode_id: str, map_state: bytes) -> Any:
+        om = self.objects.get(episode_id)
+        return map_state if om is None else {"map": map_state, "objects": om.snapshot()}
+
+    def objects_load(self, episode_id: str, data: Any, start_of: Callable[[bytes], Any]) -> Any:
+        """Restore: ``data`` is the map's bytes (question episodes, older states) or ``{"map", "objects"}``;
+        ``start_of`` restores the map from its bytes. Returns the map."""
+        if isinstance(data, dict):
+            em = start_of(data["map"])
+            self.objects[episode_id] = ObjectMap.restore(data["objects"], self.objects_config)
+            return em
+        em = start_of(data)
+        if em.start.task is not None:  # a task episode saved before its layer existed: start a fresh one
+            self.objects[episode_id] = ObjectMap.for_task(em.start.task, self.objects_config)
+        return em
+
+    # ---- per frame --------------------------------------------------------------------------------------
+    def objects_submit(self, robot: str, em: Any, frame: Frame) -> Future | None:
+        om = self.objects.get(em.episode_id)
+        if om is None:
+            return None
+        return self._objects_pool.submit(self._objects_ask, om, em, frame)
+
+    def _objects_ask(self, om: ObjectMap, em: Any, frame: Frame) -> tuple[Any, Any, float]:
+        detect, values = self._pool_client()
+        t0 = time.perf_counter()
+        try:
+            det: Any = detect(om.detect_request(frame, seed=em.start.seed))
+        except Exception as exc:
+            det = exc
+        try:
+            val: Any = values(ValueRequest(
+                episode_id=em.episode_id, step=frame.step, rgb=frame.rgb, targets=om.task_classes,
+                instances=frame.instances, labels=frame.labels, depth=frame.depth, seed=em.start.seed,
+            ))
+        except Exception as exc:
+            val = exc
+        return det, val, (time.perf_counter() - t0) * 1000.0
+
+    def objects_apply(self, robot: str, em: Any, frame: Frame, pending: Future | None,
+                      timing: dict[str, float]) -> str | None:
+        """Fuse the frame's detections and write its values; returns the layer the frontiers take their
+        values from in a task episode (the pick location: start receptacle, else the object), or None."""
+        om = self.objects.get(em.episode_id)
+        if pending is None or om is None:
+            return None
+        det, val, ask_ms = pending.result()
+        timing["objects_ask"] = ask_ms
+        t0 = time.perf_counter()
+        if isinstance(det, DetectResult):
+            try:
+                stats = om.integrate(frame, det)
+                timing.update({f"objects_{k}": v for k, v in stats.timing_ms.items()})
+            except Exception as exc:
+                log.exception("episode %s: object layer update failed", em.episode_id)
+                self.error(robot, em.episode_id, frame.step, f"object layer not updated: {type(exc).__name__}: {exc}")
+        else:
+            reason = det.reason if isinstance(det, ErrorReply) else f"{type(det).__name__}: {det}"
+            self.error(robot, em.episode_id, frame.step, f"detector failed, frame not fused: {reason}")
+        if isinstance(val, ValueResult) and len(val.values) == len(om.task_classes):
+            pts = [(p.x, p.y) for p in em.prompts]
+            for cls, v in zip(om.task_classes, val.values, strict=True):
+                if pts:
+                    write_values(em.layer(value_layer(cls)), em.origin, em.resolution, pts, [float(v)] * len(pts),
+                                 em.config.sigma)
+        elif not isinstance(val, ValueResult):
+            reason = val.reason if isinstance(val, ErrorReply) else f"{type(val).__name__}: {val}"
+            self.error(robot, em.episode_id, frame.step, f"value prompt failed: {reason}")
+        timing["objects_fuse"] = (time.perf_counter() - t0) * 1000.0
+        task = em.start.task
+        return value_layer(task.start_receptacle or task.object)
+
+    def objects_attach(self, em: Any, update: MapUpdate, frame: Frame | None, timing: dict[str, float]) -> None:
+        """Put the episode's instances (with gaze points on this update's map) into ``update``."""
+        om = self.objects.get(em.episode_id)
+        if om is None:
+            return
+        t0 = time.perf_counter()
+        height = float(frame.camera_pose[2, 3]) if frame is not None else 1.5
+        update.objects = om.summaries(update.grid, update.occupied, camera_height=height)
+        self.last_objects[em.episode_id] = update.objects
+        timing["objects_summary"] = (time.perf_counter() - t0) * 1000.0
+        update.timing_ms.update(timing)
+
+    def objects_record(self, em: Any, frame: Frame) -> None:
+        om = self.objects.get(em.episode_id)
+        rec = self.recorders.get(em.episode_id)
+        if om is None or rec is None or getattr(rec, "stream", None) is None:
+            return
+        try:
+            rec.set_step(frame.step)
+            log_rerun(rec, om, self.last_objects.get(em.episode_id, []))
+        except Exception:
+            log.exception("episode %s: recording the object layer failed; going on", em.episode_id)
