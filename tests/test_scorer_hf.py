@@ -73,3 +73,17 @@ def test_not_a_model_directory(tmp_path):
     (tmp_path / "llm" / "config.json").write_text('{"model_type": "gpt2"}')
     with pytest.raises(BackendUnavailable, match="not a supported vision-language model"):
         HFBackend(tmp_path / "llm")
+
+
+def test_helios_value_prompt_reads_p_yes(backend):
+    """HELIOS 3.1.2 on the hf backend: P(Yes) of "Seems like there is a (object) ahead. Answer Yes or No.",
+    normalised over Yes / No, one per target (issue 16)."""
+    from eqa.messages import ValueRequest
+    from services.vlm_scorer.target_values import QUESTION, target_values
+
+    rgb = frame_request(h=56, w=84).rgb
+    values = target_values(backend, ValueRequest(episode_id="e", step=0, rgb=rgb, targets=["mug", "sofa"]))
+    q = prompts.Query("value", QUESTION.format(target="mug"), prompts.YES_NO)
+    direct = backend.candidate_probs(rgb, None, [q])[0]
+    assert len(values) == 2 and all(0 < v < 1 for v in values)
+    assert values[0] == pytest.approx(direct["Yes"] / (direct["Yes"] + direct["No"]), rel=1e-4)
