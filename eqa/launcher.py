@@ -31,14 +31,14 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from eqa import keys
+from eqa import dataflow, keys
 from eqa.bus import Bus
 from eqa.settings import Settings
 
 log = logging.getLogger(__name__)
 
-PIPELINE = ("sim", "mapper", "vlm_scorer", "planner", "stopper")
-ALL_SERVICES = (*PIPELINE, "gateway")
+PIPELINE = dataflow.PIPELINE
+ALL_SERVICES = dataflow.SERVICES
 
 
 class LaunchError(RuntimeError):

@@ -51,7 +51,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
-from eqa import keys
+from eqa import dataflow, keys
 from eqa.bus import Bus
 from eqa.messages import (
     Ablation,
@@ -93,7 +93,7 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-REQUIRED_SERVICES = ("sim", "mapper", "vlm_scorer", "planner", "stopper")
+REQUIRED_SERVICES = dataflow.PIPELINE
 TERMINAL = sm.TERMINAL
 DEFAULT_MAX_STEPS = 30  # 3*sqrt(100 m^2): a mid-sized home, when the floor area is unknown
 PRUNE_BATCH = 500  # records deleted per retention pass (the lock is held meanwhile)

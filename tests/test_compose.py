@@ -11,11 +11,12 @@ from pathlib import Path
 
 import yaml
 
+from eqa.dataflow import SERVICES
 from eqa.settings import env_names
 
 REPO = Path(__file__).resolve().parents[1]
 COMPOSE = yaml.safe_load((REPO / "docker-compose.yml").read_text())
-EQA_SERVICES = {"sim", "mapper", "vlm_scorer", "planner", "stopper", "gateway"}
+EQA_SERVICES = set(SERVICES)
 
 
 def _module_exists(module: str) -> bool:

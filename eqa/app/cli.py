@@ -58,6 +58,7 @@ def check_scorer(settings: Settings) -> None:
 
 
 def cmd_up(args: argparse.Namespace) -> int:
+    from eqa.dataflow import STATEFUL
     from eqa.launcher import ALL_SERVICES, PIPELINE, Fleet, LaunchError
     from eqa.service import setup_logging
 
@@ -70,7 +71,7 @@ def cmd_up(args: argparse.Namespace) -> int:
     if args.port is not None:
         settings = settings.model_copy(update={"gateway_port": args.port})
     try:
-        instances = {s: args.instances for s in ("sim", "mapper", "planner", "stopper")}
+        instances = {s: args.instances for s in STATEFUL}
         fleet = Fleet(settings, services=services, scorers=args.scorers, join=args.join, instances=instances)
     except LaunchError as exc:
         raise UsageError(str(exc)) from None
