@@ -52,7 +52,7 @@ class UpdateStats:
 
 def scale_intrinsics(K: np.ndarray | torch.Tensor, s: float) -> torch.Tensor:
     """Intrinsics of the same camera at ``s`` times the resolution (pixel centres at integers)."""
-    k = torch.as_tensor(np.asarray(K, dtype=np.float64)).clone()
+    k = torch.as_tensor(np.array(K, dtype=np.float64))
     k[0, 0] *= s
     k[1, 1] *= s
     k[0, 2] = (k[0, 2] + 0.5) * s - 0.5
@@ -160,11 +160,11 @@ class ObjectLayer:
         d = torch.as_tensor(np.nan_to_num(np.asarray(depth, np.float32), nan=0.0, posinf=0.0, neginf=0.0))
         d = downsample(d.to(self.device), h, w)
         d = torch.where((d > 0) & (d <= c.max_depth_m), d, torch.zeros_like(d))
-        pc = downsample(torch.as_tensor(np.asarray(pixel_class, np.int64)).to(self.device), h, w)
+        pc = downsample(torch.as_tensor(np.array(pixel_class, np.int64)).to(self.device), h, w)
         if int(pc.min()) < 0 or int(pc.max()) > self.other:
             raise ValueError(f"pixel_class must hold class indices 0..{self.other}")
         Ks = scale_intrinsics(K, h / big_h)
-        pose = torch.as_tensor(np.asarray(camera_pose, np.float64), dtype=torch.float32, device=self.device)
+        pose = torch.as_tensor(np.array(camera_pose, np.float64), dtype=torch.float32, device=self.device)
         self.last_camera = (np.asarray(camera_pose, np.float64), np.asarray(K, np.float64), big_h, big_w)
         self.step = step
         lap("prepare")
