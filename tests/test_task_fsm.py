@@ -112,3 +112,21 @@ def test_the_machine_survives_a_restart_mid_task() -> None:
     robot = (*first.pose[:2], 0.0)
     assert m2.step(robot, FRONTIER, seen) == m.step(robot, FRONTIER, seen)  # the same next action
     assert m2.budget.attempts == 1 and m2.budget.limit == 5
+
+
+def test_looking_again_visits_each_gaze_point_once_then_gives_up() -> None:
+    m = _machine()
+    gaze = tuple(Gaze(float(x), 1.0, 0.0, psi_prime=0.6 - 0.01 * x) for x in range(1, 6))
+    mug = SeenObject(20, "mug", {"mug": (0.4, 0.1, 0.3)}, 2.0, 1.2, 1.0, gaze)
+    robot = ROBOT
+    visited = []
+    for _ in range(6):
+        a = m.step(robot, FRONTIER, [mug])
+        if a.kind != "move":
+            break
+        assert a.phase == "looking"
+        visited.append(a.pose[:2])
+        robot = (*a.pose[:2], 0.0)  # the robot gets there; Psi does not change
+    assert visited == [(1.0, 1.0), (2.0, 1.0), (3.0, 1.0)]  # best Psi' first, each once, at most 3
+    assert a.kind == "frontier"  # then back to the global search
+    assert TaskMachine.from_json(m.to_json()).looked == m.looked

@@ -37,6 +37,7 @@ from services.planner.helios import Ablation, CandidateObservation, FrontierOpti
 ActionKind = Literal["frontier", "move", "pick", "place", "stop", "done"]
 Phase = Literal["searching", "local_search", "looking", "picking", "placing", "finished"]
 MAX_FAILS_PER_INSTANCE = 2
+MAX_LOOKS_PER_INSTANCE = 3  # gaze points visited to look again at one candidate (this implementation's bound)
 ARRIVED_M = 0.3  # a gaze pose counts as reached within this distance
 
 
@@ -135,6 +136,7 @@ class TaskMachine:
     queue_owner: int | None = None
     fails: dict[int, int] = field(default_factory=dict)  # failed picks per instance
     bad_goals: set[int] = field(default_factory=set)  # goal instances a place failed on
+    looked: dict[int, list[tuple[float, float]]] = field(default_factory=dict)  # gaze points looked from
     pending: Action | None = None  # the pick / place / stop action waiting for its outcome
     finished: Action | None = None
 
@@ -220,8 +222,20 @@ class TaskMachine:
         return self.pending
 
     def _look(self, o: SeenObject, robot: tuple[float, float, float], reason: str) -> Action | None:
-        g = self._approach(o, robot, best=True)
-        if g is None:
+        """Go to the candidate's best gaze point not looked from yet (paper: one at a time). Standing at it means
+        the last frame was the look: it is marked and the next one is taken; after MAX_LOOKS_PER_INSTANCE looks
+        (or none left) the candidate gets no more looks (None: the caller goes on with the search)."""
+        done = self.looked.setdefault(o.instance_id, [])
+        while len(done) < MAX_LOOKS_PER_INSTANCE:
+            left = [g for g in o.gaze if not any(math.hypot(g.x - x, g.y - y) <= ARRIVED_M for x, y in done)]
+            g = self._approach(SeenObject(o.instance_id, o.cls, o.scores, o.x, o.y, o.ig, tuple(left)), robot,
+                               best=True)
+            if g is None:
+                return None
+            if math.hypot(g.x - robot[0], g.y - robot[1]) > ARRIVED_M:
+                break
+            done.append((g.x, g.y))
+        else:
             return None
         self.phase = "looking"
         return Action("move", "looking", o.instance_id, (g.x, g.y, g.yaw), g.pitch, reason)
@@ -317,6 +331,7 @@ class TaskMachine:
             "budget": {"attempts": self.budget.attempts, "successes": self.budget.successes},
             "memory": self.memory.to_json(), "queue": [vars(g) for g in self.queue], "queue_owner": self.queue_owner,
             "fails": {str(k): v for k, v in self.fails.items()}, "bad_goals": sorted(self.bad_goals),
+            "looked": {str(k): [list(p) for p in v] for k, v in self.looked.items()},
             "pending": act(self.pending), "finished": act(self.finished),
         }
 
@@ -334,5 +349,6 @@ class TaskMachine:
         m.queue_owner = d["queue_owner"]
         m.fails = {int(k): int(v) for k, v in d["fails"].items()}
         m.bad_goals = {int(v) for v in d["bad_goals"]}
+        m.looked = {int(k): [(float(p[0]), float(p[1])) for p in v] for k, v in d.get("looked", {}).items()}
         m.pending, m.finished = act(d["pending"]), act(d["finished"])
         return m

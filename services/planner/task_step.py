@@ -119,7 +119,9 @@ def task_step(machine: TaskMachine, grid: GridSpec, free: np.ndarray, occupied: 
     (not modified; the result carries the one to keep)."""
     params = params or PlannerParams()
     robot = (pose.x, pose.y, pose.yaw)
-    options = frontier_options(frontiers)
+    # frontiers the robot already went to are no option (plan_step would refuse them and turn in place)
+    options = [o for o in frontier_options(frontiers)
+               if not any(math.hypot(o.x - vx, o.y - vy) <= params.visited_radius_m for vx, vy in memory.visited)]
     for _ in range(max_tries):
         act: Action = machine.step(robot, options, objects, outcome)
         outcome = None  # consumed

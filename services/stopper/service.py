@@ -213,6 +213,8 @@ class StopperService(EpisodeService[EpisodeRecord]):
         end = end_message(rec, state, reason, answer, self._recording(rec))
         metrics = self._task_metrics(rec.episode_id)
         if metrics is not None:  # a task episode: its phase metrics, no answer
+            reason = reason.split("; answering")[0]
+            end = end_message(rec, state, reason, None, self._recording(rec))
             end = end.model_copy(update={"metrics": metrics, "answer": None, "answer_text": None,
                                          "prediction_set": []})
         self.store.set(episode_end_key(rec.episode_id), end.model_dump_json().encode(), ttl_s=EPISODE_STATE_TTL_S)
