@@ -67,14 +67,16 @@ class Outcome:
     seconds: float
 
 
-def follow(url: str, body: dict[str, Any], token: str | None, timeout: float, quiet: bool) -> Outcome:
-    """Submit over HTTP, print progress from the SSE stream, return the final status."""
+def follow(url: str, body: dict[str, Any], token: str | None, timeout: float, quiet: bool,
+           path: str = "/v1/questions") -> Outcome:
+    """Submit over HTTP (``path``: ``/v1/questions`` or ``/v1/tasks``), print progress from the SSE stream, return
+    the final status."""
     import httpx
 
     headers = {"Authorization": f"Bearer {token}"} if token else {}
     t0 = time.monotonic()
     with httpx.Client(base_url=url, headers=headers, timeout=httpx.Timeout(30.0, read=timeout)) as client:
-        r = client.post("/v1/questions", json=body)
+        r = client.post(path, json=body)
         if r.status_code == 422:
             raise AskError(f"the gateway refused the question: {r.json().get('detail')}")
         if r.status_code >= 400:
@@ -105,6 +107,14 @@ def _print_event(event: dict[str, Any]) -> None:
             print(f"  step {event.get('step'):>3}: set {pset:<11} {event.get('reason', '')}", flush=True)
         else:
             print(f"  step {event.get('step'):>3}: {event.get('reason', '')}", flush=True)
+    elif kind == "goal" and event.get("phase"):  # a task episode (eqa task)
+        skill = event.get("skill") or "move"
+        what = f"{skill} " if skill != "move" else ""
+        print(f"  step {event.get('step'):>3}: {event.get('phase'):<12} {what}{event.get('reason', '')[:100]}",
+              flush=True)
+    elif kind == "frame" and event.get("skill"):
+        s = event["skill"]
+        print(f"           {s['skill']} {'succeeded' if s['success'] else 'failed'}: {s['reason']}", flush=True)
     elif kind == "error":
         print(f"  error from {event.get('source')}: {event.get('reason')}", flush=True)
 
@@ -206,7 +216,8 @@ def run(args: argparse.Namespace) -> int:
     return 0 if outcome.status.get("state") == "stopped" else 1
 
 
-def _with_fleet(settings: Any, body: dict[str, Any], args: argparse.Namespace) -> Outcome:
+def _with_fleet(settings: Any, body: dict[str, Any], args: argparse.Namespace,
+                path: str = "/v1/questions") -> Outcome:
     from eqa.launcher import ALL_SERVICES, Fleet, LaunchError, free_port
 
     port = free_port()
@@ -219,7 +230,7 @@ def _with_fleet(settings: Any, body: dict[str, Any], args: argparse.Namespace) -
             if not args.json:
                 print(f"fleet up in {time.monotonic() - t0:.1f} s: {len(fleet.children)} processes over Zenoh "
                       f"({fleet.endpoint})", flush=True)
-            return follow(f"http://127.0.0.1:{port}", body, None, args.timeout, args.json)
+            return follow(f"http://127.0.0.1:{port}", body, None, args.timeout, args.json, path)
     except LaunchError as exc:
         raise AskError(f"the fleet did not start: {exc}") from None
 

@@ -1,6 +1,7 @@
 """``eqa``: the command line of the system.
 
     eqa ask ["QUESTION" --choice A --choice B ... --scene S]   run one question end to end and print the answer
+    eqa task ["Move the X from the Y to the Z" --scene S]      run one HELIOS task and print each phase
     eqa up [--scorers N]                                      run the fleet until Ctrl-C
     eqa health SERVICE...                                     exit 0 when each service has a live instance
     eqa sim ...  eqa calibrate ...  eqa bench ...  eqa gateway   (see each --help)
@@ -27,6 +28,7 @@ log = logging.getLogger(__name__)
 # Modules that add sub-commands with ``register(subparsers)``.
 _SUBCOMMAND_MODULES = (
     "eqa.app.ask",
+    "eqa.app.task",
     "services.sim.cli",
     "services.vlm_scorer.cli",
     "eqa.app.calibrate",
