@@ -60,12 +60,12 @@ def scale_intrinsics(K: np.ndarray | torch.Tensor, s: float) -> torch.Tensor:
     return k
 
 
-def downsample(a: torch.Tensor, h: int, w: int) -> torch.Tensor:
-    """Nearest-pixel downsampling of (H, W) to (h, w): each output pixel takes the input pixel at its centre."""
-    big_h, big_w = a.shape
-    rows = ((torch.arange(h, device=a.device) + 0.5) * big_h / h).long().clamp(max=big_h - 1)
-    cols = ((torch.arange(w, device=a.device) + 0.5) * big_w / w).long().clamp(max=big_w - 1)
-    return a[rows][:, cols]
+def sample_grid(big_h: int, big_w: int, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rows and columns of a nearest-pixel downsampling of (H, W) to (h, w): each output pixel takes the
+    input pixel at its centre."""
+    rows = np.minimum(((np.arange(h) + 0.5) * big_h / h).astype(np.int64), big_h - 1)
+    cols = np.minimum(((np.arange(w) + 0.5) * big_w / w).astype(np.int64), big_w - 1)
+    return rows, cols
 
 
 def pixel_classes(
@@ -157,10 +157,11 @@ class ObjectLayer:
         if pixel_class.shape != depth.shape:
             raise ValueError(f"pixel_class {pixel_class.shape} and depth {depth.shape} differ")
         h, w = max(1, round(big_h * c.render_scale)), max(1, round(big_w * c.render_scale))
-        d = torch.as_tensor(np.nan_to_num(np.asarray(depth, np.float32), nan=0.0, posinf=0.0, neginf=0.0))
-        d = downsample(d.to(self.device), h, w)
+        rows, cols = sample_grid(big_h, big_w, h, w)  # nearest-pixel downsampling before any conversion
+        small = np.asarray(depth)[np.ix_(rows, cols)].astype(np.float32)
+        d = torch.as_tensor(np.nan_to_num(small, nan=0.0, posinf=0.0, neginf=0.0)).to(self.device)
         d = torch.where((d > 0) & (d <= c.max_depth_m), d, torch.zeros_like(d))
-        pc = downsample(torch.as_tensor(np.array(pixel_class, np.int64)).to(self.device), h, w)
+        pc = torch.as_tensor(np.asarray(pixel_class)[np.ix_(rows, cols)].astype(np.int64)).to(self.device)
         if int(pc.min()) < 0 or int(pc.max()) > self.other:
             raise ValueError(f"pixel_class must hold class indices 0..{self.other}")
         Ks = scale_intrinsics(K, h / big_h)
