@@ -19,6 +19,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -40,6 +41,8 @@ from eqa.store import Store
 from services.planner import cp_guided
 from services.planner.sampling import step_rng
 from services.planner.step import Memory, PlannerParams, StepPlan, plan_step
+from services.planner.task_fsm import Thresholds
+from services.planner.task_runner import PlannerTask
 
 log = logging.getLogger(__name__)
 
@@ -71,6 +74,8 @@ class _Episode:
     planned: int = -1
     pending: _Pending | None = None
     done: bool = False
+    task: PlannerTask | None = None  # a task episode's state machine (issue 17)
+    task_before: dict[str, Any] | None = None  # its state before the pending step (to re-plan a refused goal)
 
 
 class PlannerService(EpisodeService[_Episode]):
@@ -95,7 +100,9 @@ class PlannerService(EpisodeService[_Episode]):
     # ---- episode state -------------------------------------------------------------------------------------
     def start_episode(self, robot: str, start: EpisodeStart) -> _Episode:
         log.info("episode %s on %s: strategy %s, seed %d", start.episode_id, robot, start.strategy, start.seed)
-        return _Episode(start.episode_id, start.strategy, start.seed)
+        ep = _Episode(start.episode_id, start.strategy, start.seed)
+        ep.task = PlannerTask.from_start(start, Thresholds.from_settings(self.settings))
+        return ep
 
     def answered_step(self, episode_id: str, state: _Episode) -> int:
         return state.planned
@@ -106,6 +113,7 @@ class PlannerService(EpisodeService[_Episode]):
             "strategy": state.strategy, "seed": state.seed, "planned": state.planned,
             "memory": {"target": m.target.model_dump() if m.target else None, "committed_steps": m.committed_steps,
                        "visited": m.visited, "refused": m.refused, "turns": m.turns},
+            "task": state.task.to_json() if state.task is not None else None,
         }
 
     def load_state(self, episode_id: str, data: dict[str, object]) -> _Episode:
@@ -118,6 +126,8 @@ class PlannerService(EpisodeService[_Episode]):
         )
         ep = _Episode(episode_id, data["strategy"], int(data["seed"]), memory=memory,  # type: ignore[arg-type]
                       planned=int(data["planned"]))  # type: ignore[arg-type]
+        if data.get("task"):
+            ep.task = PlannerTask.from_json(data["task"])  # type: ignore[arg-type]
         log.info("episode %s: restored (strategy %s, last planned step %d)", episode_id, ep.strategy, ep.planned)
         return ep
 
@@ -155,8 +165,17 @@ class PlannerService(EpisodeService[_Episode]):
 
     def _plan_and_publish(self, ep: _Episode, pending: _Pending, forced: StepPlan | None = None) -> None:
         mu = pending.map
+        task_fields: dict[str, Any] = {}
         if forced is not None:
             plan = forced
+        elif ep.task is not None:  # a task episode: the state machine chooses (services/planner/task_runner.py)
+            memory = pending.memory_before.copy()
+            memory.refused.extend(pending.refused)
+            if pending.attempt == 0:
+                ep.task_before = ep.task.to_json()
+            tgoal, plan = ep.task.goal(ep.episode_id, mu, memory, step_rng(ep.seed, pending.step, pending.attempt),
+                                       self.params, before=ep.task_before if pending.attempt else None)
+            task_fields = {"skill": tgoal.skill, "target": tgoal.target, "phase": tgoal.phase}
         else:
             memory = pending.memory_before.copy()
             memory.refused.extend(pending.refused)
@@ -183,6 +202,7 @@ class PlannerService(EpisodeService[_Episode]):
             weights=plan.probabilities,
             done=plan.done,
             reason=plan.reason,
+            **task_fields,
         )
         if plan.done:
             ep.done = True
