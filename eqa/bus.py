@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import logging
+import queue
 import threading
 from collections.abc import Callable
 from typing import Any
@@ -43,6 +44,42 @@ def zenoh_config(settings: Settings) -> zenoh.Config:
         conf.insert_json5("connect/endpoints", json.dumps(list(settings.zenoh_connect)))
     security.apply(conf, settings)  # TLS, user/password, ACL: nothing unless EQA_ZENOH_TLS_*/USER/ACL are set
     return conf
+
+
+class _SerialQueryable:
+    """A queryable whose queries one worker thread answers in order (``Bus.declare_queryable(serial=True)``)."""
+
+    _STOP = object()
+
+    def __init__(self, key: str, answer: Callable[[Any], None]) -> None:
+        self.jobs: queue.Queue[Any] = queue.Queue()
+        self.queryable: Any = None
+        self._answer = answer
+        self._thread = threading.Thread(target=self._serve, name=f"queryable {key}", daemon=True)
+        self._thread.start()
+
+    def _serve(self) -> None:
+        while True:
+            query = self.jobs.get()
+            if query is self._STOP:
+                return
+            try:
+                self._answer(query)
+            except Exception:
+                log.exception("could not answer a query; going on")
+            finally:
+                # finalise now (sends the end-of-replies marker) rather than whenever the object is collected: a
+                # logged exception's traceback may keep it alive, and the client would wait for its timeout
+                query.drop()
+
+    def undeclare(self) -> None:
+        if self.queryable is not None:
+            queryable, self.queryable = self.queryable, None
+            try:
+                queryable.undeclare()
+            finally:
+                self.jobs.put(self._STOP)
+                self._thread.join(timeout=30)
 
 
 class Bus:
@@ -128,10 +165,15 @@ class Bus:
 
     # ---- queries --------------------------------------------------------------------------------------
     def declare_queryable(
-        self, key: str, expected: type[M] | tuple[type[M], ...], handler: Callable[[M], Message]
+        self, key: str, expected: type[M] | tuple[type[M], ...], handler: Callable[[M], Message],
+        serial: bool = False,
     ) -> Any:
         """Answer each query on ``key`` with ``handler(request)``; malformed requests and handler errors are
-        answered with :class:`ErrorReply` carrying the reason, and the queryable keeps serving."""
+        answered with :class:`ErrorReply` carrying the reason, and the queryable keeps serving.
+
+        ``serial``: the Zenoh callback only queues the query and one worker thread of this queryable answers
+        them in arrival order (a slow handler, e.g. a VLM, never holds a Zenoh thread). The returned object's
+        ``undeclare()`` stops serving (the query in hand is answered first); :meth:`close` does it too."""
 
         def on_query(query: zenoh.Query) -> None:
             payload = query.payload.to_bytes() if query.payload is not None else b""
@@ -155,7 +197,11 @@ class Bus:
             except Exception:
                 log.exception("could not reply on %s", query.key_expr)
 
-        return self._keep(self.session.declare_queryable(key, on_query))
+        if not serial:
+            return self._keep(self.session.declare_queryable(key, on_query))
+        server = _SerialQueryable(key, on_query)
+        server.queryable = self.session.declare_queryable(key, server.jobs.put)
+        return self._keep(server)
 
     def query(self, key: str, msg: Message, timeout: float, expected: type[M] | tuple[type[M], ...] | None = None
               ) -> list[tuple[str, Message]]:

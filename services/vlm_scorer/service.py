@@ -4,9 +4,10 @@ The replica id is ``EQA_SCORER_REPLICA`` (default: the instance id); the bus ins
 liveliness token ``eqa/v1/alive/vlm_scorer/{replica}`` names the same replica as the queryable key, which is
 how :class:`eqa.scorer_client.ScorerClient` finds it.
 
-Concurrency: the Zenoh callback only queues the query; one worker thread decodes, scores and replies, so a
-replica serves one request at a time (a model is not safe to share between threads, and on CPU a second
-concurrent forward pass only competes for the same cores) and queues the rest. Scale with replicas.
+Concurrency (``Bus.declare_queryable(serial=True)``): the Zenoh callback only queues the query; one worker
+thread decodes, scores and replies, so a replica serves one request at a time (a model is not safe to share
+between threads, and on CPU a second concurrent forward pass only competes for the same cores) and queues the
+rest. Scale with replicas.
 
 Errors are replies, never crashes: a malformed request, a bad image, an empty question, too many choices or
 a backend that could not load (missing model directory, not a vision-language model) give an
@@ -19,17 +20,12 @@ recording (``EpisodeRecorder(settings, episode_id, "vlm_scorer")``, entity ``cam
 from __future__ import annotations
 
 import logging
-import queue
-import threading
 import time
 from collections import OrderedDict
 from typing import Any
 
-import zenoh
-
 from eqa import keys
 from eqa.bus import Bus
-from eqa.codec import CodecError
 from eqa.messages import (
     DetectRequest,
     DetectResult,
@@ -39,8 +35,6 @@ from eqa.messages import (
     ScoreResult,
     ValueRequest,
     ValueResult,
-    decode,
-    encode,
 )
 from eqa.recording import EpisodeRecorder
 from eqa.service import Service
@@ -56,7 +50,6 @@ log = logging.getLogger(__name__)
 
 ANNOTATED_ENTITY = "camera/annotated"
 MAX_OPEN_RECORDINGS = 4
-_STOP = object()
 
 
 class ScorerService(Service):
@@ -78,8 +71,7 @@ class ScorerService(Service):
         self.backend_error: str | None = None
         self.detector: Detector | None = None  # HELIOS detector (EQA_DETECTOR_BACKEND), made on first request
         self.detector_error: str | None = None
-        self._jobs: queue.Queue[Any] = queue.Queue()
-        self._server: threading.Thread | None = None
+        self._queryable: Any = None
         self._recorders: OrderedDict[str, EpisodeRecorder] = OrderedDict()
         self.served = 0
 
@@ -94,15 +86,14 @@ class ScorerService(Service):
             except Exception as exc:
                 self.backend_error = f"scorer backend {self.settings.scorer_backend!r} is unavailable: {exc}"
                 log.error("%s; replying with this error to every request", self.backend_error)
-        self._server = threading.Thread(target=self._serve, name=f"scorer-{self.replica}", daemon=True)
-        self._server.start()
-        self.bus._keep(self.bus.session.declare_queryable(self.key, self._jobs.put))
+        self._queryable = self.bus.declare_queryable(
+            self.key, (ScoreRequest, DetectRequest, ValueRequest), self._route, serial=True
+        )
         log.info("scorer replica %s on %s (backend %s)", self.replica, self.key, self.settings.scorer_backend)
 
     def teardown(self) -> None:
-        self._jobs.put(_STOP)
-        if self._server is not None:
-            self._server.join(timeout=30)
+        if self._queryable is not None:
+            self._queryable.undeclare()  # stop serving (the request in hand is answered) before the backend closes
         for rec in self._recorders.values():
             rec.close()
         self._recorders.clear()
@@ -111,36 +102,13 @@ class ScorerService(Service):
         if self.detector is not None:
             self.detector.close()
 
-    # ---- serving --------------------------------------------------------------------------------------
-    def _serve(self) -> None:
-        while True:
-            item = self._jobs.get()
-            if item is _STOP:
-                return
-            try:
-                self._answer(item)
-            except Exception:
-                log.exception("scorer %s: could not answer a query; going on", self.replica)
-            finally:
-                # finalise now (sends the end-of-replies marker) rather than whenever the object is collected:
-                # a logged exception's traceback may keep it alive, and the client would wait for its timeout
-                item.drop()
-
-    def _answer(self, query: zenoh.Query) -> None:
-        payload = query.payload.to_bytes() if query.payload is not None else b""
-        try:
-            request = decode(payload, (ScoreRequest, DetectRequest, ValueRequest))
-        except CodecError as exc:
-            log.warning("malformed score request: %s", exc)
-            reply: Message = ErrorReply(source=f"vlm_scorer/{self.replica}", reason=str(exc))
-        else:
-            if isinstance(request, DetectRequest):
-                reply = self.handle_detect(request)
-            elif isinstance(request, ValueRequest):
-                reply = self.handle_values(request)
-            else:
-                reply = self.handle(request)
-        query.reply(self.key, encode(reply))
+    # ---- serving (eqa.bus.Bus.declare_queryable decodes, answers errors and replies) -------------------
+    def _route(self, request: ScoreRequest | DetectRequest | ValueRequest) -> Message:
+        if isinstance(request, DetectRequest):
+            return self.handle_detect(request)
+        if isinstance(request, ValueRequest):
+            return self.handle_values(request)
+        return self.handle(request)
 
     def handle(self, req: ScoreRequest) -> Message:
         """Score one request (the in-process call; the queryable wraps it)."""
