@@ -1,12 +1,15 @@
-"""Load test of the gateway: N status requests per second for D seconds during a running episode.
+"""Load test of the gateway: N status requests per second for D seconds during a running episode, with a
+history of stored episodes, then POSTs against a full queue.
 
 Loopback only and bounded (rate x duration requests, at most --connections at once). Starts a private
 redis-server on a free port (or uses --redis-url / --embedded), the real services (sim, mapper, vlm_scorer,
 planner, stopper as processes, eqa.launcher.Fleet, 160x120 images) sharing that store, and the gateway as a
 separate ``python -m gateway`` process joined to them; submits one long episode (budget --max-steps, stop
-rule ``max_steps``) and, while it runs, sends open-loop GET /v1/episodes/{id} requests; prints latency
-percentiles, errors and how far the episode got meanwhile, then cancels it. Exit code 1 when any request
-failed.
+rule ``max_steps``) and, while it runs, sends open-loop GET /v1/episodes/{id} requests (the running episode
+and random ones of --stored ended episodes written into the store first); prints latency percentiles, the
+machine's load average, errors and how far the episode got meanwhile; then fills the robot's queue and times
+POSTs that must be refused at once (429 + Retry-After); then cancels everything. Exit code 1 when any
+request failed.
 
     python bench/bench_gateway.py                  # 200 rps for 30 s
     python bench/bench_gateway.py --rate 50 --duration 5
@@ -27,6 +30,7 @@ from pathlib import Path
 
 import httpx
 import numpy as np
+from tqdm import tqdm
 
 os.environ.setdefault("RERUN_TELEMETRY_ENABLED", "false")
 
@@ -35,6 +39,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # test s
 from fleet_support import GatewayProcess, fleet_settings, wait_for
 
 from eqa.launcher import Fleet, LaunchError, free_port
+from eqa.settings import Settings
 
 TOKEN = "bench-token"
 
@@ -74,21 +79,29 @@ async def _request(reader: asyncio.StreamReader, writer: asyncio.StreamWriter, r
     return status, body
 
 
-async def load(port: int, path: str, rate: float, duration: float, conns: int) -> tuple[list[float], list[str], float]:
-    """Open-loop load: request i is due at i/rate; ``conns`` keep-alive connections take due requests.
-    Returns latencies (send to full response), errors and the worst lag behind the schedule."""
-    latencies: list[float] = []
+async def load(
+    port: int, paths: list[str], rate: float, duration: float, conns: int
+) -> tuple[dict[str, list[float]], list[str], float]:
+    """Open-loop load: request i (of path i mod len(paths)) is due at i/rate; ``conns`` keep-alive connections
+    take due requests. Returns latencies per path kind (send to full response), errors and the worst lag."""
+    latencies: dict[str, list[float]] = {}
     errors: list[str] = []
     total = int(rate * duration)
-    raw = (f"GET {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nAuthorization: Bearer {TOKEN}\r\n\r\n").encode()
-    due: asyncio.Queue[float | None] = asyncio.Queue()
+    raws = [
+        (p, (f"GET {p} HTTP/1.1\r\nHost: 127.0.0.1\r\nAuthorization: Bearer {TOKEN}\r\n\r\n").encode())
+        for p in paths
+    ]
+    due: asyncio.Queue[tuple[float, int] | None] = asyncio.Queue()
     lag = 0.0
 
     async def worker() -> None:
         nonlocal lag
         reader, writer = await asyncio.open_connection("127.0.0.1", port)
         try:
-            while (t_due := await due.get()) is not None:
+            while (item := await due.get()) is not None:
+                t_due, i = item
+                path, raw = raws[i % len(raws)]
+                kind = "running episode" if path == raws[0][0] else "stored episode"
                 t0 = time.perf_counter()
                 lag = max(lag, t0 - t_due)
                 try:
@@ -98,9 +111,9 @@ async def load(port: int, path: str, rate: float, duration: float, conns: int) -
                     writer.close()
                     reader, writer = await asyncio.open_connection("127.0.0.1", port)
                     continue
-                latencies.append(time.perf_counter() - t0)
+                latencies.setdefault(kind, []).append(time.perf_counter() - t0)
                 if status != 200:
-                    errors.append(f"HTTP {status}: {body[:100]!r}")
+                    errors.append(f"HTTP {status} for {path}: {body[:100]!r}")
         finally:
             writer.close()
 
@@ -111,13 +124,58 @@ async def load(port: int, path: str, rate: float, duration: float, conns: int) -
         delay = t_due - time.perf_counter()
         if delay > 0:
             await asyncio.sleep(delay)
-        due.put_nowait(t_due)
+        due.put_nowait((t_due, i))
     for _ in workers:
         due.put_nowait(None)
     await asyncio.gather(*workers)
     elapsed = time.perf_counter() - start
     print(f"sent {total} requests in {elapsed:.1f} s ({total / elapsed:.1f} req/s), {conns} keep-alive connections")
     return latencies, errors, lag
+
+
+def seed_history(settings: Settings, n: int) -> list[str]:
+    """``n`` ended episodes of the bench's token written into the gateway's store (its record and index
+    layout, :meth:`gateway.manager.EpisodeManager.store_record`), as a long-running gateway would hold them."""
+    from eqa.messages import EpisodeStart, EpisodeStatus, Question, new_id
+    from eqa.store import open_store
+    from gateway.auth import tenant_of
+    from gateway.manager import EpisodeManager, Record
+
+    ids = []
+    with open_store(settings) as store:
+        manager = EpisodeManager(settings, store, bus=None)  # type: ignore[arg-type]  # no bus needed to store
+        now = time.time() - n
+        for i in tqdm(range(n), desc="stored episodes", unit="ep", mininterval=2.0):
+            eid = new_id("ep")
+            q = Question(text=f"Where is object {i}?", choices=["bedroom", "hallway"], scene="gen-00002")
+            start = EpisodeStart(episode_id=eid, robot="robot0", question=q, max_steps=30)
+            status = EpisodeStatus(episode_id=eid, robot="robot0", state="stopped", question=q, strategy="semantic",
+                                   stop=start.stop, max_steps=30, steps=30, answer="A", stop_reason="step limit",
+                                   created_at=now + i, updated_at=now + i + 1)
+            manager.store_record(Record(status=status, start=start, owner=tenant_of(TOKEN)))
+            ids.append(eid)
+    return ids
+
+
+def post_with_full_queue(c: httpx.Client, body: dict, queue_max: int, n: int) -> tuple[list[float], list[str]]:
+    """Fill the robot's queue (``queue_max`` episodes behind the running one), then time ``n`` more POSTs:
+    each must be refused at once with 429 and a Retry-After."""
+    queued = []
+    for _ in range(queue_max):
+        r = c.post("/v1/questions", json=body)
+        if r.status_code != 202:
+            return [], [f"filling the queue: HTTP {r.status_code} {r.text[:200]}"]
+        queued.append(r.json()["episode_id"])
+    times, errors = [], []
+    for _ in range(n):
+        t0 = time.perf_counter()
+        r = c.post("/v1/questions", json=body)
+        times.append(time.perf_counter() - t0)
+        if r.status_code != 429 or int(r.headers.get("retry-after", "0")) < 1:
+            errors.append(f"full queue: HTTP {r.status_code} {r.text[:200]}")
+    for eid in queued:
+        c.delete(f"/v1/episodes/{eid}")
+    return times, errors
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -130,6 +188,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scorers", type=int, default=1, help="scorer replicas of the fleet (default 1)")
     ap.add_argument("--redis-url", default=None, help="use this Redis instead of a private redis-server")
     ap.add_argument("--embedded", action="store_true", help="use the embedded SQLite store instead of Redis")
+    ap.add_argument("--stored", type=int, default=10_000, help="ended episodes in the store during the load (10000)")
+    ap.add_argument("--queue-max", type=int, default=20, help="EQA_QUEUE_MAX_PER_ROBOT for the full-queue POSTs (20)")
     args = ap.parse_args(argv)
     if not (0 < args.rate <= 5000 and 0 < args.duration <= 600 and 1 <= args.connections <= 256):
         print("error: need 0 < rate <= 5000, 0 < duration <= 600, 1 <= connections <= 256", file=sys.stderr)
@@ -137,6 +197,10 @@ def main(argv: list[str] | None = None) -> int:
     if not (1 <= args.max_steps <= 10_000 and 1 <= args.scorers <= 8):
         print("error: need 1 <= max-steps <= 10000, 1 <= scorers <= 8", file=sys.stderr)
         return 2
+    if not (0 <= args.stored <= 200_000 and 1 <= args.queue_max <= 1000):
+        print("error: need 0 <= stored <= 200000, 1 <= queue-max <= 1000", file=sys.stderr)
+        return 2
+    print(f"machine: {os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f} (1 min) at the start")
     tmp = Path(tempfile.mkdtemp(prefix="bench-gateway-"))
     redis_proc = None
     redis_url = args.redis_url
@@ -151,8 +215,11 @@ def main(argv: list[str] | None = None) -> int:
     try:
         with Fleet(base, scorers=args.scorers) as fleet:
             gw_settings = fleet.client_settings().model_copy(
-                update={"api_tokens": [TOKEN], "rate_limit_per_s": max(1000.0, 4 * args.rate)}
+                update={"api_tokens": [TOKEN], "rate_limit_per_s": max(1000.0, 4 * args.rate),
+                        "queue_max_per_robot": args.queue_max, "queue_max_per_token": args.queue_max + 10,
+                        "episode_retention_count": max(50_000, 2 * args.stored)}
             )
+            stored = seed_history(gw_settings, args.stored) if args.stored else []
             with (
                 GatewayProcess(gw_settings, log_path=tmp / "gateway.log") as gw,
                 httpx.Client(base_url=gw.url, headers={"Authorization": f"Bearer {TOKEN}"}, timeout=30) as c,
@@ -184,10 +251,26 @@ def main(argv: list[str] | None = None) -> int:
                     f"episode {eid} running on the real fleet ({args.scene}, step {before['step']}); "
                     f"{args.rate:g} req/s for {args.duration:g} s ({'embedded store' if args.embedded else 'redis'})"
                 )
+                rng = np.random.default_rng(0)
+                # every other request: the running episode (served from memory), else a random stored one
+                paths = [p for k in rng.integers(0, len(stored), 3000)
+                         for p in (f"/v1/episodes/{eid}", f"/v1/episodes/{stored[int(k)]}")] if stored else []
+                load_before = os.getloadavg()[0]
                 lat, errors, lag = asyncio.run(
-                    load(gw.port, f"/v1/episodes/{eid}", args.rate, args.duration, args.connections)
+                    load(gw.port, paths or [f"/v1/episodes/{eid}"], args.rate, args.duration, args.connections)
                 )
+                load_after = os.getloadavg()[0]
                 st = c.get(f"/v1/episodes/{eid}").json()
+                t0 = time.perf_counter()
+                listed = c.get("/v1/episodes", params={"limit": 10})
+                list_ms = (time.perf_counter() - t0) * 1000
+                if listed.status_code != 200 or len(listed.json()["episodes"]) != 10:
+                    errors.append(f"list: HTTP {listed.status_code}")
+                full_times, full_errors = post_with_full_queue(
+                    c, {"question": "Is the oven on?", "scene": args.scene, "max_steps": 5, "record": False},
+                    args.queue_max, 50,
+                )
+                errors += full_errors
                 if st["state"] == "running":
                     c.delete(f"/v1/episodes/{eid}")
     except LaunchError as exc:
@@ -197,12 +280,22 @@ def main(argv: list[str] | None = None) -> int:
         if redis_proc is not None:
             redis_proc.terminate()
             redis_proc.wait(timeout=10)
-    if lat:
-        ms = np.asarray(lat) * 1000
+    print(f"machine load average (1 min): {load_before:.2f} before the load, {load_after:.2f} after "
+          f"({os.cpu_count()} cores; the fleet and the gateway run on them too)")
+    print(f"stored episodes: {len(stored)} ended + the running one")
+    for kind, values in [("all", [x for v in lat.values() for x in v]), *sorted(lat.items())]:
+        if not values:
+            continue
+        ms = np.asarray(values) * 1000
         print(
-            f"latency ms: p50 {np.percentile(ms, 50):.2f}  p90 {np.percentile(ms, 90):.2f}  "
+            f"status latency ms ({kind}): p50 {np.percentile(ms, 50):.2f}  p90 {np.percentile(ms, 90):.2f}  "
             f"p99 {np.percentile(ms, 99):.2f}  max {ms.max():.2f}  (n={len(ms)})"
         )
+    print(f"GET /v1/episodes?limit=10 with {len(stored)} stored: {list_ms:.1f} ms")
+    if full_times:
+        ms = np.asarray(full_times) * 1000
+        print(f"POST with a full queue ({args.queue_max} queued): 429 + Retry-After, p50 {np.percentile(ms, 50):.2f} "
+              f"p99 {np.percentile(ms, 99):.2f} max {ms.max():.2f} ms (n={len(ms)})")
     print(f"worst lag of a request behind its schedule: {lag * 1000:.1f} ms")
     print(
         f"episode during the load: steps {before['step']} -> {st['step']} "

@@ -68,7 +68,7 @@ from eqa.recording import recording_dir
 from eqa.settings import Settings
 from eqa.store import Store, episode_end_key
 from gateway import state as sm
-from gateway.auth import ANONYMOUS, Caller
+from gateway.auth import ANONYMOUS, Caller, RateLimiter
 from gateway.errors import (
     BusyError,
     ConflictError,
@@ -99,6 +99,8 @@ DEFAULT_MAX_STEPS = 30  # 3*sqrt(100 m^2): a mid-sized home, when the floor area
 PRUNE_BATCH = 500  # records deleted per retention pass (the lock is held meanwhile)
 LEGACY_OWNER = "legacy"  # records stored before tenants existed: admin only
 INDEX_VERSION = b"1"
+NEW_SCENES_PER_MIN = 30  # scenes new to this gateway (a load, maybe a generated house) per tenant and minute
+ENDED_CACHE = 4096  # final statuses kept in memory after a read (an ended episode's status never changes)
 
 
 def ep_key(episode_id: str) -> str:
@@ -214,6 +216,9 @@ class EpisodeManager:
         # Copies of the active episodes' last saved status and owner, read without the lock (fast status route).
         self._snapshots: dict[str, tuple[str, EpisodeStatus]] = {}
         self._alive: dict[str, set[str]] = {}
+        self._ended: dict[str, tuple[str, EpisodeStatus]] = {}  # final statuses read lately (insertion order)
+        self._known_scenes: dict[str, None] = {}  # scenes loaded once (insertion order, bounded)
+        self._new_scenes = RateLimiter(NEW_SCENES_PER_MIN / 60.0, burst=NEW_SCENES_PER_MIN)
         self._mean_episode_s = 60.0  # running mean of episode wall times (for Retry-After)
         self.started_at = time.time()
 
@@ -336,6 +341,12 @@ class EpisodeManager:
         raw = self.store.get(robot_key(robot))
         return raw.decode() if raw else None
 
+    def store_record(self, rec: Record) -> None:
+        """Store and index an episode record as it is (an ended one from elsewhere: an import, a benchmark's
+        stored history); active records are taken up by :meth:`reconcile` at the next start."""
+        self.store.set_json(ep_key(rec.status.episode_id), rec.dump())
+        self._index(rec)
+
     def load(self, episode_id: str) -> Record | None:
         raw = self.store.get_json(ep_key(episode_id))
         return None if raw is None else Record.load(raw)
@@ -349,11 +360,23 @@ class EpisodeManager:
         return snap[1]
 
     def get(self, episode_id: str, caller: Caller | None = None) -> EpisodeStatus:
+        """The stored status (an ended episode's is final: kept in a small cache after the first read)."""
         keys.check_id(episode_id, "episode id")
-        rec = self.load(episode_id)
-        if rec is None or (caller is not None and not caller.sees(rec.owner)):
+        hit = self._ended.get(episode_id)
+        if hit is None:
+            raw = self.store.get(ep_key(episode_id))
+            if raw is None:
+                raise NotFoundError(f"no episode {episode_id!r}")
+            data = json.loads(raw)
+            hit = (str(data.get("owner", LEGACY_OWNER)), EpisodeStatus.model_validate(data["status"]))
+            if hit[1].state in TERMINAL:
+                with self._lock:
+                    self._ended[episode_id] = hit
+                    while len(self._ended) > ENDED_CACHE:
+                        self._ended.pop(next(iter(self._ended)))
+        if caller is not None and not caller.sees(hit[0]):
             raise NotFoundError(f"no episode {episode_id!r}")
-        return rec.status
+        return hit[1]
 
     def list(self, caller: Caller | None = None, limit: int = 50, state: str | None = None) -> list[EpisodeStatus]:
         """Newest first: queued/running ones from memory, the others from one page of one index."""
@@ -400,6 +423,22 @@ class EpisodeManager:
         """A client's wait before a slot may be free: the mean episode time (at least 1 s, at most 1 h)."""
         return min(3600.0, max(1.0, self._mean_episode_s * max(1, waiting)))
 
+    def _check_new_scene(self, scene: str | None, owner: str) -> None:
+        """A scene this gateway has not loaded yet costs a load (a new ``gen-<seed>`` house is generated and
+        saved: ~130 ms and ~114 KB): at most :data:`NEW_SCENES_PER_MIN` per tenant a minute, then 429."""
+        if scene is None or self.scene_area is None or scene in self._known_scenes:
+            return
+        ok, wait = self._new_scenes.allow(owner)
+        if not ok:
+            raise TooManyError(
+                f"this token asked for {NEW_SCENES_PER_MIN} scenes new to the gateway within a minute, the most it "
+                f"may; retry in {wait:.0f} s or use a scene already loaded",
+                retry_after_s=wait,
+            )
+        self._known_scenes[scene] = None
+        while len(self._known_scenes) > 10_000:
+            self._known_scenes.pop(next(iter(self._known_scenes)))
+
     def submit(self, req: QuestionRequest, caller: Caller | None = None, *, task: Task | None = None,
                ablation: Ablation = "helios", pick_limit: int | None = None) -> Submitted:
         """A question episode; with ``task`` a HELIOS task episode whose stand-in question is ``req``
@@ -407,6 +446,7 @@ class EpisodeManager:
         owner = caller.tenant if caller is not None else ANONYMOUS
         if req.robot is not None and req.robot not in self.settings.robots:
             raise InvalidError(f"unknown robot {req.robot!r}; known: {', '.join(self.settings.robots)}", field="robot")
+        self._check_new_scene(req.scene, owner)
         budget = step_budget(self.settings, req, self.scene_area)
         episode_id = new_id("ep")
         question = Question(
@@ -667,6 +707,8 @@ class EpisodeManager:
                     drop.setdefault(index, []).append(eid)
             for index, members in drop.items():
                 self.store.index_remove(index, members)
+            for eid in ids:
+                self._ended.pop(eid, None)
             self.store.delete_many([ep_key(e) for e in ids] + [ev_key(e) for e in ids])
         for eid in ids:
             shutil.rmtree(recording_dir(self.settings, eid), ignore_errors=True)

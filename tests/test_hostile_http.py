@@ -299,3 +299,18 @@ def test_openapi_lists_every_answer_and_its_examples_work(gw) -> None:
         assert r.status_code == 202, (example, r.text)
         c.delete(f"/v1/episodes/{r.json()['episode_id']}", headers=A)
     assert json.dumps(spec).count("gen-house") == 0
+
+
+def test_scenes_new_to_the_gateway_are_rate_limited_per_token(tmp_path: Path) -> None:
+    """Each new gen-<seed> scene used to cost a house generation (~130 ms, 114 KB of disk) inside the request,
+    without limit. Scenes new to the gateway are limited per token (NEW_SCENES_PER_MIN)."""
+    from gateway.manager import NEW_SCENES_PER_MIN
+
+    with GatewayThread(gw_settings(tmp_path)) as g, httpx.Client(base_url=g.url, timeout=30) as c:
+        codes = [c.post("/v1/questions", json={**Q, "scene": f"room-{i}"}, headers=A).status_code
+                 for i in range(NEW_SCENES_PER_MIN + 3)]
+        assert codes[:NEW_SCENES_PER_MIN] == [422] * NEW_SCENES_PER_MIN and codes[-1] == 429, codes
+        r = c.post("/v1/questions", json={**Q, "scene": "room-x"}, headers=A)
+        assert r.status_code == 429 and int(r.headers["retry-after"]) >= 1 and "new to the gateway" in r.text
+        assert c.post("/v1/questions", json={**Q, "scene": "room-y"}, headers=B).status_code == 422  # per token
+        assert c.post("/v1/questions", json={**Q, "scene": "room-1"}, headers=A).status_code == 422  # known
