@@ -39,4 +39,18 @@ def reobservation_mask(
     """Pixels where the layer is seen again: ``|measured - rendered| < max_diff_m`` where both are defined
     (> 0), closed with radius ``close_px``, and never where nothing was measured."""
     ok = (measured > 0) & (rendered > 0) & ((measured - rendered).abs() < max_diff_m)
-    return close(ok, close_px) & (measured > 0)
+    out = torch.zeros_like(ok)
+    y0, y1, x0, x1 = bbox(ok, 2 * close_px)
+    if y0 < y1:  # the closing only changes pixels within 2r of the set ones: work on that box
+        out[y0:y1, x0:x1] = close(ok[y0:y1, x0:x1], close_px)
+    return out & (measured > 0)
+
+
+def bbox(mask: torch.Tensor, pad: int) -> tuple[int, int, int, int]:
+    """``(y0, y1, x0, x1)`` of the set pixels grown by ``pad`` and clipped to the image; empty as (0, 0, 0, 0)."""
+    rows, cols = torch.nonzero(mask.any(1)).squeeze(1), torch.nonzero(mask.any(0)).squeeze(1)
+    if rows.numel() == 0:
+        return 0, 0, 0, 0
+    h, w = mask.shape
+    return (max(int(rows[0]) - pad, 0), min(int(rows[-1]) + pad + 1, h),
+            max(int(cols[0]) - pad, 0), min(int(cols[-1]) + pad + 1, w))
