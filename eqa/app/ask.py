@@ -229,7 +229,7 @@ def _with_fleet(settings: Any, body: dict[str, Any], args: argparse.Namespace,
         with Fleet(fleet_settings, services=ALL_SERVICES, scorers=args.scorers) as fleet:
             if not args.json:
                 print(f"fleet up in {time.monotonic() - t0:.1f} s: {len(fleet.children)} processes over Zenoh "
-                      f"({fleet.endpoint})", flush=True)
+                      f"({fleet.endpoint}); web console while it runs: http://127.0.0.1:{port}/", flush=True)
             return follow(f"http://127.0.0.1:{port}", body, None, args.timeout, args.json, path)
     except LaunchError as exc:
         raise AskError(f"the fleet did not start: {exc}") from None

@@ -86,7 +86,8 @@ def cmd_up(args: argparse.Namespace) -> int:
     print(f"join it from another shell (eqa health, more scorer replicas): EQA_ZENOH_CONNECT={fleet.endpoint}",
           flush=True)
     if "gateway" in services:
-        print(f"gateway: http://{settings.gateway_host}:{settings.gateway_port}/docs", flush=True)
+        base = f"http://{settings.gateway_host}:{settings.gateway_port}"
+        print(f"web console: {base}/ (ask, watch, fleet); API docs: {base}/docs", flush=True)
     print(f"logs: {settings.data_dir / 'logs'}; Ctrl-C stops", flush=True)
     done = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: done.set())
