@@ -65,6 +65,13 @@ def _encode_array(array: np.ndarray, compress: bool) -> msgpack.ExtType:
     )
 
 
+def packed_array(array: np.ndarray, compress: bool = True) -> msgpack.ExtType:
+    """``array`` encoded now, as the msgpack extension a message field uses (zlib-compressed when ``compress``):
+    put it anywhere in a :func:`packb` payload and :func:`unpackb` gives the array back. For state written to
+    the store (a mapper snapshot) whose arrays are encoded ahead of the rest."""
+    return _encode_array(array, compress)
+
+
 class _Budget:
     """Decoded bytes left for the arrays of one message."""
 

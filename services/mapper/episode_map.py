@@ -9,13 +9,12 @@
 from __future__ import annotations
 
 import time
-import zlib
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from eqa.codec import packb, unpackb
+from eqa.codec import packb, packed_array, unpackb
 from eqa.messages import EpisodeStart, Frame, Frontier, GridSpec, MapUpdate, Pose2D, PromptPoint
 from services.mapper.frontiers import FrontierConfig, find_frontiers, target_weights, weigh_frontiers
 from services.mapper.projection import Maps2D, ProjectionConfig, project
@@ -29,7 +28,7 @@ from services.mapper.semantic_map import (
 )
 from services.mapper.tsdf import TSDFVolume, VolumeConfig, check_frame
 
-SNAPSHOT_VERSION = 1
+SNAPSHOT_VERSION = 2  # 2: arrays as eqa.codec extensions (1: dicts of zlib bytes)
 
 
 @dataclass(frozen=True)
@@ -46,12 +45,7 @@ class MapperConfig:
     tau_sv_normal: float = 1.0
 
 
-def _arr(a: np.ndarray, compress: bool = True) -> dict[str, Any]:
-    """One array of a snapshot: dtype, shape and the (zlib-compressed) C-order bytes."""
-    a = np.ascontiguousarray(a)
-    raw = a.tobytes()
-    body = zlib.compress(raw, 1) if compress else raw
-    return {"dtype": a.dtype.str, "shape": list(a.shape), "z": body, "zlib": compress}
+_arr = packed_array  # one array of a snapshot, encoded by eqa.codec (the wire's array extension) when taken
 
 
 class Timer:
@@ -284,9 +278,10 @@ class EpisodeMap:
         if not isinstance(body, dict) or body.get("version") != SNAPSHOT_VERSION:
             raise ValueError(f"not a mapper snapshot of version {SNAPSHOT_VERSION}")
 
-        def arr(d: dict[str, Any]) -> np.ndarray:
-            raw = zlib.decompress(d["z"]) if d.get("zlib", True) else d["z"]
-            return np.frombuffer(raw, dtype=np.dtype(d["dtype"])).reshape(d["shape"]).copy()
+        def arr(a: Any) -> np.ndarray:
+            if not isinstance(a, np.ndarray):
+                raise ValueError(f"snapshot field is a {type(a).__name__}, not an array")
+            return a.copy()  # decoded arrays are read-only views of the payload
 
         em = cls(EpisodeStart.model_validate(body["start"]), config, layers=list(body["layers"]))
         v = em.volume
