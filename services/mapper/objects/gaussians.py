@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from services.mapper.objects.reobserve import erode
+from services.mapper.objects.reobserve import bbox, erode
 
 
 @dataclass
@@ -102,10 +102,12 @@ def spawn_pixels(
     """(K, 2) int64 (row, col) of the pixels that make new Gaussians (see the module docstring)."""
     h, w = pixel_class.shape
     new = torch.zeros(h, w, dtype=torch.bool, device=pixel_class.device)
-    for c in torch.unique(pixel_class).tolist():
-        if c == other:
-            continue
-        new |= erode(pixel_class == c, erosion_px)
+    y0, y1, x0, x1 = bbox(pixel_class != other, erosion_px + 1)  # erode only around the detections
+    crop = pixel_class[y0:y1, x0:x1]
+    for c in range(other):
+        m = crop == c
+        if bool(m.any()):
+            new[y0:y1, x0:x1] |= erode(m, erosion_px)
     err = (measured - rendered).abs()
     new &= (measured > 0) & (measured <= max_depth_m)
     new &= torch.where(rendered > 0, err > new_depth_error_m, err > new_empty_error_m)
