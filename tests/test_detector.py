@@ -145,3 +145,11 @@ def test_value_prompt_oracle() -> None:
     rgb, inst, labels, depth = frame(mug_box=None)
     unseen = ValueRequest(episode_id="e", step=0, rgb=rgb, targets=["mug"], instances=inst, labels=labels, depth=depth)
     assert target_values(OracleBackend(), unseen)[0] < v[0]
+
+
+def test_fleet_preflight_refuses_a_remote_detector(tmp_path) -> None:
+    from services.vlm_scorer.backends import check_settings
+
+    check_settings(Settings(data_dir=tmp_path))  # the default simulated detector passes
+    with pytest.raises(BackendUnavailable, match="EQA_DETECTOR_BACKEND=hf"):
+        check_settings(Settings(detector_backend="remote", data_dir=tmp_path))

@@ -7,8 +7,9 @@ from services.vlm_scorer.backends.base import Backend, BackendUnavailable
 
 
 def check_settings(settings: Settings) -> None:
-    """Cheap checks of the chosen backend's settings (no model is loaded), for the command line to refuse a
-    fleet whose scorer could only answer errors. :class:`BackendUnavailable` says what to set."""
+    """Cheap checks of the chosen backend's settings and of the detector's (no model is loaded), for the
+    command line to refuse a fleet whose scorer could only answer errors. :class:`BackendUnavailable` says
+    what to set."""
     if settings.scorer_backend == "hf":
         from services.vlm_scorer.backends.hf import check_model_dir
 
@@ -17,6 +18,9 @@ def check_settings(settings: Settings) -> None:
         from services.vlm_scorer.backends.remote import check_endpoint
 
         check_endpoint(settings.remote_base_url, settings.remote_model)
+    from services.vlm_scorer.detector import check_detector_settings  # HELIOS detector (issue 16)
+
+    check_detector_settings(settings)
 
 
 def make_backend(settings: Settings) -> Backend:
