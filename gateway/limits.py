@@ -47,10 +47,15 @@ class BodyLimit:
         self.max_bytes = max_bytes
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http" or scope["method"] not in BODY_METHODS:
+        if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
         headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope.get("headers", [])}
+        if scope["method"] not in BODY_METHODS and "transfer-encoding" not in headers and headers.get(
+            "content-length", "0"
+        ) in ("", "0"):
+            await self.app(scope, receive, send)  # no body (a GET with a body is held to the same rules)
+            return
         path: str = scope.get("path", "")
         auth: Authenticator | None = getattr(scope["app"].state, "auth", None) if "app" in scope else None
         if auth is not None and path.startswith("/v1/") and not path.startswith(OPEN_PREFIXES):

@@ -173,6 +173,9 @@ def test_chunked_body_without_token_is_refused_before_reading(gw) -> None:
     code, sent = _http(g.port, head.replace(b"Host: x", b"Host: x\r\nAuthorization: Bearer tok-a"),
                        _chunked(400 * 1024 * 1024), max_send=400 * 1024 * 1024)
     assert code == 413 and sent < 64 * 1024 * 1024, (code, sent)  # counted while streaming: over 2 MB -> 413
+    get_head = head.replace(b"POST /v1/questions", b"GET /v1/episodes")  # a body on a GET: the same rules
+    code, sent = _http(g.port, get_head, _chunked(100 * 1024 * 1024), max_send=100 * 1024 * 1024)
+    assert code == 401 and sent < 64 * 1024 * 1024, (code, sent)
     grown_mb = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss0) / 1024
     assert grown_mb < 100, grown_mb
     r = httpx.post(f"{g.url}/v1/questions", content=b"x" * (3 * 1024 * 1024), headers=A)
