@@ -22,8 +22,14 @@ write its own way:
   continues where the last one stopped.
 * **Recorder bookkeeping**: one :class:`eqa.recording.EpisodeRecorder` per episode in :attr:`recorders`, named
   after the service (``{service}-resume{k}`` after a restart: a file sink cannot be appended to).
-* **Ownership**: :meth:`owns` (default: every robot) is asked before any message is handled; an instance that
-  serves a subset of the robots (sharding) overrides it.
+* **Ownership** (sharding, issue 21): :meth:`owns` is asked before any message is handled. With ``EQA_SHARD``
+  (the default) the robots are shared among the live instances of the service by :class:`eqa.sharding.Shard`
+  (rendezvous hashing over liveliness; one instance alone owns every robot). Before a step's handler runs the
+  step is claimed in the store, so no step is computed by two instances while their views of the live set
+  differ for a moment; a claim whose holder died is taken over, so none is skipped; an instance finishes the
+  steps it claimed even after its robot moved; when the previous step was computed elsewhere the episode is
+  reloaded from the store first. Robots that move away are forgotten in memory (their state stays stored);
+  robots that move here are restored from the store with their next message.
 * **Errors**: a handler that raises answers the episode at once with an ``ErrorReply`` on :attr:`error_stream`
   when the service has one (and is logged either way); the service goes on.
 
@@ -47,6 +53,7 @@ from eqa.messages import STREAM_TYPES, EpisodeCancel, EpisodeEnd, EpisodeStart, 
 from eqa.recording import EpisodeRecorder
 from eqa.service import Service
 from eqa.settings import Settings
+from eqa.sharding import Shard
 from eqa.store import EPISODE_STATE_TTL_S, Store, episode_end_key, episode_state_key
 
 log = logging.getLogger(__name__)
@@ -107,11 +114,13 @@ class EpisodeService(Service, Generic[S]):
         self.recorders: dict[str, EpisodeRecorder] = {}
         self._held: dict[str, list[_Held]] = {}
         self._routes: dict[Pair, _Route] = {}
+        self.shard: Shard | None = None
 
     # ---- hooks ------------------------------------------------------------------------------------------
     def owns(self, robot: str) -> bool:
-        """Whether this instance handles ``robot`` (every robot by default; sharding overrides it)."""
-        return True
+        """Whether this instance handles ``robot``: its share of the robots under :class:`eqa.sharding.Shard`
+        (every robot when sharding is off or before :meth:`setup`)."""
+        return self.shard is None or self.shard.owns(robot)
 
     def setup_episodes(self) -> None:
         """Declare the step inputs (:meth:`on_step`) and anything else to set up once the bus is open."""
@@ -147,6 +156,10 @@ class EpisodeService(Service, Generic[S]):
 
     # ---- wiring -----------------------------------------------------------------------------------------
     def setup(self) -> None:
+        # Membership first: the first messages are already judged against the instances present.
+        self.shard = Shard(self.bus, lambda: self.store, self.name, self.bus.instance,
+                           on_moved=lambda gained, lost: self.submit(self._robots_moved, gained, lost),
+                           enabled=self.settings.shard).start()
         self.on(keys.EPISODE_START, self._on_start)
         self.on(keys.EPISODE_CANCEL, self._on_finish)
         self.on(keys.EPISODE_END, self._on_finish)
@@ -267,9 +280,11 @@ class EpisodeService(Service, Generic[S]):
         return state
 
     def _on_start(self, robot: str, start: EpisodeStart) -> None:
-        if not self.owns(robot):
-            return
         eid = start.episode_id
+        if not self.owns(robot):
+            if self.shard is not None:  # the robot may move here before this episode's state is stored
+                self.shard.remember_start(eid, start)
+            return
         if self.episode(eid) is not None:
             log.info("%s: episode %s already started; repeated EpisodeStart ignored", self.name, eid)
             return
@@ -292,6 +307,7 @@ class EpisodeService(Service, Generic[S]):
 
     def _on_finish(self, robot: str, msg: EpisodeCancel | EpisodeEnd) -> None:
         if not self.owns(robot):
+            self._forget(msg.episode_id)  # a copy left from when the robot was ours; its owner drops the rest
             return
         state = self.episode(msg.episode_id)
         try:
@@ -301,17 +317,33 @@ class EpisodeService(Service, Generic[S]):
             self.drop(msg.episode_id)
 
     def _dispatch(self, robot: str, msg: Any, route: _Route) -> None:
-        if not self.owns(robot):
-            return
         eid = msg.episode_id
         if eid is None:
             return
+        step = getattr(msg, "step", None)
+        mine = self.owns(robot)
+        if not mine and not self._claimed_here(eid, step):
+            return
         state = self.episode(eid)
+        if state is None and mine and self.shard is not None:
+            start = self.shard.start_of(eid)  # its start came while another instance owned the robot
+            if isinstance(start, EpisodeStart):
+                self._on_start(robot, start)
+                state = self.episode(eid)
         if state is None:
             if route.hold:
                 self._hold(robot, msg, route)
             return
-        step = getattr(msg, "step", None)
+        if self.shard is not None and step is not None:
+            claim = self.shard.claim(eid, step)
+            if not claim.won:
+                log.info("%s: episode %s step %d is %s's; not computed here", self.name, eid, step, claim.holder)
+                return
+            if claim.stale:  # the previous step was computed by another instance: take its stored state
+                self._forget(eid)
+                state = self.episode(eid)
+                if state is None:
+                    return
         if route.resend and step is not None:
             answered = self.answered_step(eid, state)
             if step < answered:
@@ -326,6 +358,28 @@ class EpisodeService(Service, Generic[S]):
         except Exception as exc:
             log.exception("%s: episode %s: %s handler failed", self.name, eid, msg.kind)
             self.error(robot, eid, step, f"{self.name} failed on {msg.kind}: {type(exc).__name__}: {exc}")
+
+    def _claimed_here(self, episode_id: str, step: int | None) -> bool:
+        """Whether this instance claimed ``step`` (it finishes it even when the robot has moved meanwhile)."""
+        if self.shard is None or self.shard.claims is None or step is None:
+            return False
+        return self.shard.claims.holder(episode_id, step) == self.bus.instance
+
+    def _forget(self, episode_id: str) -> None:
+        """Drop an episode from memory only (its stored state is the next owner's)."""
+        self.episodes.pop(episode_id, None)
+        self.meta.pop(episode_id, None)
+        self._held.pop(episode_id, None)
+        rec = self.recorders.pop(episode_id, None)
+        if rec is not None:
+            rec.close()
+
+    def _robots_moved(self, gained: set[str], lost: set[str]) -> None:
+        for eid, meta in list(self.meta.items()):
+            if meta.robot in lost:
+                log.info("%s: robot %s moved to another instance; episode %s left to it", self.name, meta.robot,
+                         eid)
+                self._forget(eid)
 
     def _answer_again(self, robot: str, episode_id: str, state: S, msg: Any) -> None:
         meta = self.meta[episode_id]

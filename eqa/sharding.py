@@ -189,6 +189,7 @@ class Shard:
     start it saw but did not own, before the episode's state was ever stored."""
 
     MAX_STARTS = 512
+    MAX_ROBOTS = 100_000
 
     def __init__(self, bus: object, store: Callable[[], Store], service: str, instance: str,
                  on_moved: Callable[[set[str], set[str]], None] | None = None, enabled: bool = True) -> None:
@@ -212,7 +213,8 @@ class Shard:
         if not self.enabled:
             return True
         with self._lock:
-            self._robots.add(robot)
+            if len(self._robots) < self.MAX_ROBOTS:
+                self._robots.add(robot)
         return self.membership.owns(robot)
 
     def claim(self, episode_id: str, step: int) -> Claim:
@@ -229,6 +231,14 @@ class Shard:
     def start_of(self, episode_id: str) -> object | None:
         with self._lock:
             return self._starts.get(episode_id)
+
+    def latest_start(self, robot: str) -> object | None:
+        """The last remembered EpisodeStart of ``robot`` (any object with a ``robot`` attribute)."""
+        with self._lock:
+            for start in reversed(list(self._starts.values())):
+                if getattr(start, "robot", None) == robot:
+                    return start
+        return None
 
     def _changed(self, before: frozenset[str], after: frozenset[str]) -> None:
         with self._lock:

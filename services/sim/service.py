@@ -33,6 +33,7 @@ from eqa.messages import EpisodeCancel, EpisodeEnd, EpisodeStart, ErrorReply, Fr
 from eqa.recording import EpisodeRecorder
 from eqa.service import Service
 from eqa.settings import Settings
+from eqa.sharding import Shard
 from eqa.store import EPISODE_STATE_TTL_S, episode_end_key, task_metrics_key
 from services.sim import hmeqa
 from services.sim.camera import camera_pose, intrinsics
@@ -93,8 +94,14 @@ class SimService(Service):
         self._episodes: dict[str, _Episode] = {}
         self._scenes: OrderedDict[tuple[str, int], Renderer] = OrderedDict()
         self._K = intrinsics(settings.sim_width, settings.sim_height)
+        self.shard: Shard | None = None
 
     def setup(self) -> None:
+        # Robots shared among the live sim instances (eqa.sharding; EQA_SHARD): this one drives only its own,
+        # claims each step it renders, and takes a robot that moves here up from the store.
+        self.shard = Shard(self.bus, lambda: self.store, self.name, self.bus.instance,
+                           on_moved=lambda gained, lost: self.submit(self._robots_moved, gained, lost),
+                           enabled=self.settings.shard).start()
         self.on(keys.EPISODE_START, self.on_start, on_invalid=self.on_invalid_start)
         self.on(keys.PLANNER_GOAL, self.on_goal)
         self.on(keys.EPISODE_CANCEL, self.on_cancel)
@@ -170,8 +177,10 @@ class SimService(Service):
         prefix = state_key("")
         for key in self.store.keys(prefix):
             robot = key[len(prefix):]
+            if robot in self._episodes or not self.owns(robot):
+                continue
             state = self.store.get_json(key)
-            if robot in self._episodes or not isinstance(state, dict):
+            if not isinstance(state, dict):
                 continue
             age = time.time() - float(state.get("saved_at", 0.0))
             episode_id = state.get("start", {}).get("episode_id")
@@ -188,6 +197,8 @@ class SimService(Service):
         for robot, ep in list(self._episodes.items()):
             if now - ep.emitted_at < self.settings.step_resend_s:
                 continue
+            if not self.owns(robot):  # moved away: its new owner resends
+                continue
             if ep.resends >= self.settings.step_resends_max:
                 if ep.resends == self.settings.step_resends_max:
                     ep.resends += 1
@@ -201,10 +212,49 @@ class SimService(Service):
                         self.settings.step_resends_max)
             self.publish(robot, keys.SIM_FRAME, self.render_frame(ep))
 
+    # ---- sharding ----------------------------------------------------------------------------------------
+    def owns(self, robot: str) -> bool:
+        return self.shard is None or self.shard.owns(robot)
+
+    def _claim(self, robot: str, episode_id: str, step: int) -> bool:
+        """Claim rendering ``step``; when the step before was rendered elsewhere, drop the copy in memory so the
+        stored state is read."""
+        if self.shard is None:
+            return True
+        claim = self.shard.claim(episode_id, step)
+        if not claim.won:
+            log.info("robot %s episode %s step %d is %s's; not rendered here", robot, episode_id, step, claim.holder)
+            return False
+        if claim.stale:
+            self._drop_memory(robot)
+        return True
+
+    def _drop_memory(self, robot: str) -> None:
+        ep = self._episodes.pop(robot, None)
+        if ep is not None and ep.recorder is not None:
+            ep.recorder.close()
+
+    def _robots_moved(self, gained: set[str], lost: set[str]) -> None:
+        for robot in lost:
+            self._drop_memory(robot)
+        if gained:
+            self._resume_stored()
+        for robot in gained - set(self._episodes):  # its owner died before it stored the episode's first step
+            start = self.shard.latest_start(robot) if self.shard is not None else None
+            if isinstance(start, EpisodeStart) and self.store.get(episode_end_key(start.episode_id)) is None:
+                log.info("robot %s moved here before its episode %s began; starting it", robot, start.episode_id)
+                self.on_start(robot, start)
+
     # ---- handlers ----------------------------------------------------------------------------------------
     def on_start(self, robot: str, msg: EpisodeStart) -> None:
         """Start an episode. Any failure answers the episode with an ErrorReply at once (the gateway fails it
         and frees the robot), never silence until the watchdog."""
+        if not self.owns(robot):
+            if self.shard is not None:
+                self.shard.remember_start(msg.episode_id, msg)
+            return
+        if not self._claim(robot, msg.episode_id, 0):
+            return
         try:
             self._start_episode(robot, msg)
         except Exception as exc:
@@ -252,6 +302,10 @@ class SimService(Service):
         self._emit(robot, ep)
 
     def on_goal(self, robot: str, goal: Goal) -> None:
+        if goal.done:
+            return
+        if not self.owns(robot) or not self._claim(robot, goal.episode_id, goal.step + 1):
+            return
         ep = self._episodes.get(robot)
         if ep is None or ep.episode_id != goal.episode_id:
             ep = self._restore(robot, goal.episode_id)
@@ -279,6 +333,9 @@ class SimService(Service):
         self._emit(robot, ep, goal, before)
 
     def on_cancel(self, robot: str, msg: EpisodeCancel) -> None:
+        if not self.owns(robot):
+            self._drop_memory_of(robot, msg.episode_id)
+            return
         ep = self._episodes.get(robot)
         if ep is not None and ep.episode_id == msg.episode_id:
             log.info("robot %s: episode %s cancelled (%s)", robot, msg.episode_id, msg.reason)
@@ -287,11 +344,19 @@ class SimService(Service):
             self._forget(robot, msg.episode_id)
 
     def on_end(self, robot: str, msg: EpisodeEnd) -> None:
+        if not self.owns(robot):
+            self._drop_memory_of(robot, msg.episode_id)
+            return
         ep = self._episodes.get(robot)
         if ep is not None and ep.episode_id == msg.episode_id:
             self._close(robot)
         else:
             self._forget(robot, msg.episode_id)
+
+    def _drop_memory_of(self, robot: str, episode_id: str) -> None:
+        ep = self._episodes.get(robot)
+        if ep is not None and ep.episode_id == episode_id:
+            self._drop_memory(robot)
 
     def _forget(self, robot: str, episode_id: str) -> None:
         """Drop the stored state of an episode this process does not hold (it ended while we were down)."""
