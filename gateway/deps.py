@@ -11,11 +11,13 @@ from gateway.auth import Caller, authenticate, authenticate_docs, can_read, can_
 from gateway.manager import EpisodeManager
 
 
-def get_settings(request: Request) -> Settings:
+# Async although they do no I/O: FastAPI runs a plain ``def`` dependency in its thread pool, a hop per request
+# that costs more than the work under load.
+async def get_settings(request: Request) -> Settings:
     return request.app.state.settings
 
 
-def get_manager(request: Request) -> EpisodeManager:
+async def get_manager(request: Request) -> EpisodeManager:
     manager = getattr(request.app.state, "manager", None)
     if manager is None:
         raise RuntimeError("the gateway is not started (no lifespan)")

@@ -59,6 +59,7 @@ from eqa.messages import (
     EpisodeEnd,
     EpisodeStart,
     EpisodeStatus,
+    ErrorReply,
     Message,
     Question,
     Task,
@@ -101,6 +102,7 @@ LEGACY_OWNER = "legacy"  # records stored before tenants existed: admin only
 INDEX_VERSION = b"1"
 NEW_SCENES_PER_MIN = 30  # scenes new to this gateway (a load, maybe a generated house) per tenant and minute
 ENDED_CACHE = 4096  # final statuses kept in memory after a read (an ended episode's status never changes)
+EVENTS_PER_STEP = 20  # events stored per step of an episode's budget at most (about 6 are normal; resends more)
 
 
 def ep_key(episode_id: str) -> str:
@@ -143,6 +145,7 @@ class Record:
     owner: str = ANONYMOUS
     last_activity: float = field(default_factory=time.time)  # watchdog clock (not persisted)
     last_error: str | None = None  # the last ErrorReply of the episode, for the watchdog's reason (not persisted)
+    events: int = 0  # bus messages stored as events by this process (bounded per episode; not persisted)
 
     def dump(self) -> dict[str, Any]:
         return {
@@ -358,6 +361,13 @@ class EpisodeManager:
         if snap is None or (caller is not None and not caller.sees(snap[0])):
             return None
         return snap[1]
+
+    def peek_ended(self, episode_id: str, caller: Caller | None = None) -> EpisodeStatus | None:
+        """The final status of an ended episode read lately (memory only), else None."""
+        hit = self._ended.get(episode_id)
+        if hit is None or (caller is not None and not caller.sees(hit[0])):
+            return None
+        return hit[1]
 
     def get(self, episode_id: str, caller: Caller | None = None) -> EpisodeStatus:
         """The stored status (an ended episode's is final: kept in a small cache after the first read)."""
@@ -638,7 +648,13 @@ class EpisodeManager:
                 self._finish(rec, t.ending)
                 self._append(episode_id, summarize(msg))
                 return
-            self._append(episode_id, summarize(msg))
+            rec.events += 1
+            cap = EVENTS_PER_STEP * rec.status.max_steps + 100
+            if rec.events <= cap or isinstance(msg, ErrorReply):
+                self._append(episode_id, summarize(msg))
+            elif rec.events == cap + 1:
+                log.warning("episode %s: over %d events (a flood on the bus?); further data messages are not "
+                            "stored as events", episode_id, cap)
             if t.ending is not None:
                 self._finish(rec, t.ending)
                 return

@@ -107,3 +107,23 @@ def test_old_records_without_tenant_are_indexed_once_and_admin_only(store: Store
         assert [s.episode_id for s in m2.list(ADMIN)] == [eid] and m2.list(ALICE) == []
     finally:
         bus.close()
+
+
+def test_events_of_one_episode_are_bounded(manager: EpisodeManager, store: Store) -> None:
+    """A bus peer that floods a running episode with messages cannot grow its event stream without end."""
+    import numpy as np
+
+    from eqa.messages import ErrorReply, Frame, Pose2D
+    from gateway.manager import EVENTS_PER_STEP
+
+    eid = manager.submit(QuestionRequest(question="q?", robot="robot0", max_steps=3, record=False), ALICE).episode_id
+    frame = Frame(episode_id=eid, step=0, pose=Pose2D(x=0, y=0), camera_pose=np.eye(4), intrinsics=np.eye(3),
+                  rgb=np.zeros((2, 2, 3), np.uint8), depth=np.zeros((2, 2), np.float32))
+    for _ in range(400):
+        manager.handle("robot0", frame)
+    manager.handle("robot0", ErrorReply(source="mapper", episode_id=eid, step=0, reason="still told"))
+    events = store.read(ev_key(eid), count=10_000)
+    assert len(events) <= EVENTS_PER_STEP * 3 + 100 + 3, len(events)
+    assert b"still told" in events[-1][1]  # errors are always kept
+    manager.cancel(eid, ALICE)
+    assert b'"kind":"episode_end"' in store.read(ev_key(eid), count=10_000)[-1][1]

@@ -125,9 +125,9 @@ def list_episodes(
 )
 async def get_episode(episode_id: EpisodeId, manager: ManagerDep, caller: ReaderDep) -> EpisodeStatus:
     eid = _episode_id(episode_id)
-    live = manager.peek(eid, caller)
-    if live is not None:
-        return live
+    known = manager.peek(eid, caller) or manager.peek_ended(eid, caller)  # from memory, on the event loop
+    if known is not None:
+        return known
     return await run_in_threadpool(manager.get, eid, caller)
 
 
