@@ -61,3 +61,22 @@ def test_modes() -> None:
     assert params_at("all", 0.5).miscal_view == 0.5 and params_at("view", 0.5).miscal_category == 0.0
     with pytest.raises(ValueError):
         params_at("bogus", 0.5)
+
+
+def test_recorded_perceptions_rescore_exactly_at_every_level() -> None:
+    """Record one short episode with the pure cores; the level-0 re-score is what the scorer computed live,
+    and the fast re-score equals the full one in every mode (the sweep's numbers are the oracle's)."""
+    from eqa.app import stop_sensitivity as ss
+    from eqa.settings import Settings
+    from services.sim.questions import benchmark_candidates
+
+    cands = benchmark_candidates(11, 3, Settings().scenes_path)  # one house of the tuning seed
+    q = next(qs[0] for qs in cands.values() if qs)
+    ep = ss.run_episode((q.model_copy(update={"max_steps": 8}), "semantic", 160, 120))
+    assert len(ep.steps) == 8
+    ss.rescore(ep, params_at("all", 0.0), check_level0=True)
+    for mode in ("category", "view", "related", "irrelevant", "all"):
+        for level in (0.3, 1.0):
+            f, rel = ss.rescore(ep, params_at(mode, level)).arrays()
+            f2, rel2 = ss.rescore_arrays(ep, params_at(mode, level))
+            assert np.array_equal(f, f2) and np.array_equal(rel, rel2), (mode, level)

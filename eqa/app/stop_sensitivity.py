@@ -78,8 +78,12 @@ def benchmark_questions(seed: int, split: str, limit: int | None, scenes_dir: An
     return out
 
 
-def run_episode(args: tuple[Any, str, int, int]) -> PerceptionEpisode:
-    """One full-length episode with the pure cores in this process (the services' step functions)."""
+def run_episode(args: tuple[Any, ...]) -> PerceptionEpisode:
+    """One full-length episode with the pure cores in this process (the services' step functions).
+
+    ``args`` = (question, strategy, width, height[, q_hat]): with strategy ``cp_guided`` the stopper's decision
+    (:func:`services.stopper.state.decide` with ``q_hat``) is taken every step, as the planner service receives
+    it, the frontier weights are re-tempered by its prediction set, and the episode ends when CP stops."""
     try:
         from eqa.app.benchmark_runner import question_seed
     except ImportError:  # before the application layer moved (issue 18)
@@ -95,7 +99,16 @@ def run_episode(args: tuple[Any, str, int, int]) -> PerceptionEpisode:
     from services.sim.service import load_scene
     from services.vlm_scorer.backends.oracle import OracleBackend, parse_target
 
-    question, strategy, w, h = args
+    question, strategy, w, h = args[:4]
+    q_hat = args[4] if len(args) > 4 else None
+    rec = None
+    if strategy == "cp_guided":
+        from eqa.messages import StepScores, StopConfig
+        from services.planner.cp_guided import guided_map
+        from services.stopper.state import CalibrationChoice, EpisodeRecord, decide
+
+        if q_hat is None:
+            raise ValueError("cp_guided needs the q_hat of the stopping rule")
     t0 = time.monotonic()
     settings = Settings()
     scene = load_scene(settings, question.scene)
@@ -107,6 +120,9 @@ def run_episode(args: tuple[Any, str, int, int]) -> PerceptionEpisode:
     start = EpisodeStart(episode_id=f"sens-{question.id}", robot="r0", question=question, strategy=strategy,
                          max_steps=question.max_steps, seed=seed)
     emap = EpisodeMap(start)
+    if strategy == "cp_guided":
+        rec = EpisodeRecord.from_start(start.model_copy(update={"stop": StopConfig(rule="cp", eps=0.2)}), "r0")
+        rec.calibration = CalibrationChoice(q_hat=q_hat, eps=0.2, asked_eps=0.2, n=1, source="in-process")
     K = camera.intrinsics(w, h)
     pose = question.start_pose
     memory = Memory()
@@ -130,6 +146,12 @@ def run_episode(args: tuple[Any, str, int, int]) -> PerceptionEpisode:
         mu = emap.map_update()
         if step + 1 >= question.max_steps:
             break
+        if rec is not None:  # the stopper's decision of this step reaches the planner before it plans
+            d = decide(rec, StepScores(episode_id=start.episode_id, step=step, answer_probs=scores.answer_probs,
+                                       relevance=scores.relevance))
+            if d is None or d.stop:
+                break
+            mu = guided_map(mu, d)
         plan = None
         for attempt in range(4):
             plan = plan_step(mu.grid, mu.free, mu.occupied, mu.pose, mu.frontiers, strategy, memory,
@@ -143,12 +165,14 @@ def run_episode(args: tuple[Any, str, int, int]) -> PerceptionEpisode:
     return PerceptionEpisode(question, seed, strategy, steps, time.monotonic() - t0)
 
 
-def recording_path(out: Path, seed: int, split: str, limit: int | None, strategy: str, size: str) -> Path:
-    return out / f"seed{seed}-{split}-{'all' if limit is None else limit}-{strategy}-{size}.pkl"
+def recording_path(out: Path, seed: int, split: str, strategy: str, size: str) -> Path:
+    """One file per seed, split, strategy and image size, holding every question recorded so far (a smaller
+    ``--limit`` reuses a larger run: the round-robin order of :func:`benchmark_questions` is the same)."""
+    return out / f"seed{seed}-{split}-{strategy}-{size}.pkl"
 
 
 def record(questions: list[Any], strategy: str, w: int, h: int, workers: int, path: Path,
-           progress: bool = True) -> list[PerceptionEpisode]:
+           progress: bool = True, q_hat: float | None = None) -> list[PerceptionEpisode]:
     """Record ``questions`` (resumable: a partial file is extended, never recomputed)."""
     from tqdm import tqdm
 
@@ -161,7 +185,7 @@ def record(questions: list[Any], strategy: str, w: int, h: int, workers: int, pa
         with ProcessPoolExecutor(workers) as pool, tqdm(total=len(questions), initial=len(questions) - len(todo),
                                                        desc=path.stem, unit="ep", file=sys.stderr,
                                                        disable=not progress) as bar:
-            for i, ep in enumerate(pool.map(run_episode, [(q, strategy, w, h) for q in todo])):
+            for i, ep in enumerate(pool.map(run_episode, [(q, strategy, w, h, q_hat) for q in todo])):
                 done.append(ep)
                 bar.update(1)
                 if i % 10 == 9:  # checkpoint
@@ -196,9 +220,8 @@ def _write(path: Path, episodes: list[PerceptionEpisode]) -> None:
 def rescore(ep: PerceptionEpisode, params: Any, check_level0: bool = False) -> Any:
     """The episode's :class:`Trace` under the oracle knobs ``params`` (f and Rel re-drawn as the service
     draws them). ``check_level0``: assert that the level-0 re-score equals what was recorded."""
-    import numpy as np
 
-    from eqa.messages import Question, ScoreRequest
+    from eqa.messages import Question
     from services.stopper.calibration import Trace, TraceStep
     from services.vlm_scorer.backends.oracle import OracleBackend, parse_target
 
@@ -209,14 +232,82 @@ def rescore(ep: PerceptionEpisode, params: Any, check_level0: bool = False) -> A
     choices = list(q.choices)
     steps = []
     for step, s in enumerate(ep.steps):
-        req = ScoreRequest.model_construct(episode_id="rescore", step=step, question=blind, seed=ep.seed,
-                                           rgb=np.zeros((1, 1, 3), np.uint8))
+        req = _Req(ep.seed, step, blind)
         probs, rel = oracle.miscalibrated_scores(req, choices, t, s.targets, s.related, s.clutter)
         if check_level0 and (probs != s.probs or rel != s.relevance):
             raise AssertionError(f"{q.id} step {step}: level-0 re-score differs from the recorded scores")
         steps.append(TraceStep(answer_probs=probs, relevance=rel))
     return Trace(question_id=q.id, scene=q.scene, category=q.category, choices=choices, answer=q.answer,
                  max_steps=q.max_steps, strategy=ep.strategy, steps=steps)
+
+
+@dataclasses.dataclass
+class _Req:
+    """What the oracle's answer and relevance draws read of a ScoreRequest (seed, step, question)."""
+
+    seed: int
+    step: int
+    question: Any
+
+
+@dataclasses.dataclass
+class _Level0:
+    """An episode's level-0 draws, computed once: answer distributions, relevance, evidence quality."""
+
+    probs: list[list[float]]
+    relevance: list[float]
+    quality: list[float]
+
+
+_LEVEL0: dict[tuple[str, int], _Level0] = {}
+
+
+def _level0(ep: PerceptionEpisode) -> _Level0:
+    import numpy as np
+
+    from services.vlm_scorer.backends.oracle import OracleBackend, _h, parse_target
+
+    key = (ep.question.id, ep.seed)
+    if key not in _LEVEL0:
+        oracle = OracleBackend()
+        q = ep.question.model_copy(update={"answer": None, "evidence_ids": []})
+        t = parse_target(q)
+        probs, rel, qual = [], [], []
+        for step, s in enumerate(ep.steps):
+            rng = np.random.default_rng([ep.seed, _h(q.id), step])
+            f, quality, right = oracle._answer(rng, _Req(ep.seed, step, q), list(q.choices), t,
+                                               oracle.seen_targets(s.targets))
+            probs.append(f)
+            rel.append(oracle._relevance(rng, quality, right))
+            qual.append(quality)
+        _LEVEL0[key] = _Level0(probs, rel, qual)
+    return _LEVEL0[key]
+
+
+def rescore_arrays(ep: PerceptionEpisode, params: Any) -> tuple[Any, Any]:
+    """``(f, Rel)`` arrays of the episode under ``params``: the same numbers as :func:`rescore` (a test checks
+    it), computed from the episode's level-0 draws; only a step where a related object is taken for the target
+    is drawn again in full."""
+    import numpy as np
+
+    from services.vlm_scorer.backends.oracle import OracleBackend, parse_target
+
+    base = _level0(ep)
+    oracle = OracleBackend(params)
+    q = ep.question.model_copy(update={"answer": None, "evidence_ids": []})
+    t = parse_target(q)
+    choices = list(q.choices)
+    f, rel = [], []
+    for step, s in enumerate(ep.steps):
+        req = _Req(ep.seed, step, q)
+        if s.related and oracle.related_confused(req, s.related):
+            probs, r = oracle.miscalibrated_scores(req, choices, t, s.targets, s.related, s.clutter)
+        else:
+            probs = oracle.confident_when_irrelevant(base.probs[step], base.quality[step])
+            r = oracle.biased_relevance(base.relevance[step], t.type, s.clutter)
+        f.append(probs)
+        rel.append(r)
+    return np.asarray(f, dtype=np.float64), np.asarray(rel, dtype=np.float64)
 
 
 # ---- fast replay of the stopping rules (the stopper's decide(), vectorised; tests check they agree) -------
@@ -327,12 +418,17 @@ def _rules(table: Any) -> dict[str, list[tuple[float, Any]]]:
     """(parameter, how to get the per-episode CP threshold) for each rule; CP parameters are eps."""
     from services.stopper.state import resolve_calibration
 
+    marginal = table.model_copy(update={"groups": {}})
+    cache: dict[tuple[float, bool, str], float] = {}
+
     def cp(eps: float, mondrian: bool) -> Any:
         def q(ep: Episode) -> float:
-            choice, _ = resolve_calibration(table if mondrian else table.model_copy(update={"groups": {}}),
-                                            "sweep", eps, "sweep", ep.category)
-            assert choice is not None
-            return choice.q_hat
+            key = (eps, mondrian, ep.category)
+            if key not in cache:
+                choice, _ = resolve_calibration(table if mondrian else marginal, "sweep", eps, "sweep", ep.category)
+                assert choice is not None
+                cache[key] = choice.q_hat
+            return cache[key]
         return q
 
     out: dict[str, list[tuple[float, Any]]] = {
@@ -344,15 +440,35 @@ def _rules(table: Any) -> dict[str, list[tuple[float, Any]]]:
     return out
 
 
+def _episode(ep: PerceptionEpisode, params: Any) -> Episode:
+    from eqa.messages import letters
+
+    f, rel = rescore_arrays(ep, params)
+    q = ep.question
+    return Episode(q.id, q.category or "", f, rel, letters(len(q.choices)).index(q.answer), q.max_steps)
+
+
+def sweep_table(cal: list[Episode], grid: list[float]) -> Any:
+    """The calibration table of these episodes, marginal and per category (what ``calibrate(...,
+    by_category=True)`` computes from traces: the same kappas, quantiles and groups)."""
+    from services.stopper.calibration import CalibrationEntry, CalibrationTable, mondrian_groups
+    from services.stopper.conformal import conformal_quantile, nonconformity, quantile_rank
+
+    kappas = [nonconformity(e.f, e.rel, e.truth) for e in cal]
+    cats = [e.category for e in cal]
+    entries = [CalibrationEntry(eps=x, q_hat=conformal_quantile(kappas, x), k=quantile_rank(len(kappas), x))
+               for x in grid]
+    return CalibrationTable(name="sweep", n=len(kappas), kappas=kappas, question_ids=[e.qid for e in cal],
+                            entries=entries, groups=mondrian_groups(kappas, cats, grid), categories=cats)
+
+
 def evaluate_seed(data: SeedData, params: Any) -> dict[str, Any]:
     """Calibrate on the seed's calibration split (marginal and per category), replay every rule and parameter
     on its test split; per-episode outcomes keyed by rule -> parameter."""
-    from services.stopper.calibration import calibrate
-
-    cal = [rescore(e, params) for e in data.calibration]
-    test = [Episode.of(rescore(e, params)) for e in data.test]
+    cal = [_episode(e, params) for e in data.calibration]
+    test = [_episode(e, params) for e in data.test]
     grid = [e for e in EPS_SWEEP if _defined(len(cal), e)]
-    table = calibrate(cal, grid, name="sweep", by_category=True)
+    table = sweep_table(cal, grid)
     runs: dict[str, dict[float, list[Outcome]]] = {}
     for rule, plist in _rules(table).items():
         base = "cp" if rule.startswith("cp") else rule
@@ -586,7 +702,7 @@ def load_seeds(out: Path, seeds: list[int], limit: int | None, strategy: str, si
         for split in ("calibration", "test"):
             lim = limit if split == "calibration" or limit is None else max(1, limit * 2 // 3)
             qs = benchmark_questions(seed, split, lim, scenes_dir)
-            parts.append(record(qs, strategy, w, h, workers, recording_path(out, seed, split, lim, strategy, size),
+            parts.append(record(qs, strategy, w, h, workers, recording_path(out, seed, split, strategy, size),
                                 progress))
         data[seed] = SeedData(seed, *parts)
     return data
@@ -618,6 +734,66 @@ def run(modes: list[str], levels: list[float], limit: int | None, out: Path, rec
     return 0
 
 
+# ---- cp_guided against semantic (issue 15, item 4) -----------------------------------------------------------
+
+GUIDED_EPS = 0.2  # the product's default eps (eqa ask / make demo), fixed in advance, not tuned
+
+
+def compare_guided(recordings: Path, seeds: list[int], limit: int | None, size: str, workers: int, out: Path,
+                   progress: bool = True) -> dict[str, Any]:
+    """Steps to a single-answer CP set, and success, of ``cp_guided`` against ``semantic`` on each seed's test
+    split: both stop by CP at :data:`GUIDED_EPS` with the q_hat calibrated on the seed's ``semantic``
+    calibration split (level-0 perception); ``semantic`` is replayed from its full-length recording,
+    ``cp_guided`` runs live (its path depends on the decisions). Paired on the same questions."""
+    import json
+
+    from eqa.settings import Settings
+    from services.stopper.calibration import calibrate
+    from services.vlm_scorer.backends.oracle import OracleParams
+
+    settings = Settings()
+    w, h = (int(v) for v in size.split("x"))
+    data = load_seeds(recordings, seeds, limit, "semantic", size, workers, settings.scenes_path, progress)
+    res: dict[str, Any] = {"eps": GUIDED_EPS, "seeds": seeds, "per_seed": {}, "label": LABEL}
+    pooled_sem: list[Outcome] = []
+    pooled_gui: list[Outcome] = []
+    for seed, d in data.items():
+        table = calibrate([rescore(e, OracleParams()) for e in d.calibration], [GUIDED_EPS], name="guided")
+        q_hat = table.entries[0].q_hat
+        qs = [e.question for e in d.test]
+        guided = record(qs, "cp_guided", w, h, workers,
+                        recording_path(recordings, seed, "test", f"cp_guided-eps{GUIDED_EPS:g}", size), progress, q_hat)
+        sem = [replay_fast(Episode.of(rescore(e, OracleParams())), "cp", q_hat) for e in d.test]
+        gui = [replay_fast(Episode.of(rescore(e, OracleParams())), "cp", q_hat) for e in guided]
+        single = [sum(1 for o in outs if o.norm_steps < 1.0) for outs in (sem, gui)]
+        def summary(outs: list[Outcome], stopped: int) -> dict[str, Any]:
+            return {"success": _mean([o.correct for o in outs]), "mean_norm_steps": _mean([o.norm_steps for o in outs]),
+                    "stopped_before_limit": stopped}
+
+        res["per_seed"][str(seed)] = {
+            "n": len(sem), "q_hat": q_hat, "semantic": summary(sem, single[0]), "cp_guided": summary(gui, single[1]),
+            "paired_guided_vs_semantic": paired_steps(gui, sem)}
+        pooled_sem += sem
+        pooled_gui += gui
+    res["pooled"] = {"n": len(pooled_sem),
+                     "semantic": {"success": _mean([o.correct for o in pooled_sem]),
+                                  "mean_norm_steps": _mean([o.norm_steps for o in pooled_sem])},
+                     "cp_guided": {"success": _mean([o.correct for o in pooled_gui]),
+                                   "mean_norm_steps": _mean([o.norm_steps for o in pooled_gui])},
+                     "paired_guided_vs_semantic": paired_steps(pooled_gui, pooled_sem)}
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "cp_guided.json").write_text(json.dumps(res, indent=1))
+    p = res["pooled"]
+    pr = p["paired_guided_vs_semantic"]
+    print(f"cp_guided vs semantic, CP eps {GUIDED_EPS} ({LABEL}), seeds {', '.join(map(str, seeds))}, n = {p['n']}:")
+    for name in ("semantic", "cp_guided"):
+        print(f"  {name:<10} success {p[name]['success']:.3f}  mean normalised steps {p[name]['mean_norm_steps']:.3f}")
+    print(f"  cp_guided - semantic steps {pr['mean_diff']:+.3f} [{pr['ci_low']:+.3f}, {pr['ci_high']:+.3f}] "
+          f"(sign p {pr['steps_sign_p']:.2g}); right only with cp_guided / only with semantic "
+          f"{pr['a_only_right']} / {pr['b_only_right']} (p {pr['success_sign_p']:.2g})")
+    return res
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -629,10 +805,20 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--size", default="320x240")
     r.add_argument("--workers", type=int, default=1)
     r.add_argument("--out", type=Path, default=DEFAULT_DIR)
+    g = sub.add_parser("guided", help="cp_guided against semantic on the evaluation seeds' test splits")
+    g.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
+    g.add_argument("--limit", type=int, default=None, help="as for record (the same recordings are reused)")
+    g.add_argument("--size", default="320x240")
+    g.add_argument("--workers", type=int, default=1)
+    g.add_argument("--recordings", type=Path, default=DEFAULT_DIR)
+    g.add_argument("--out", type=Path, default=Path("var/bench"))
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     from eqa.settings import Settings
 
+    if args.cmd == "guided":
+        compare_guided(args.recordings, args.seeds, args.limit, args.size, args.workers, args.out)
+        return 0
     load_seeds(args.out, args.seeds, args.limit, args.strategy, args.size, args.workers, Settings().scenes_path)
     return 0
 

@@ -509,34 +509,48 @@ class OracleBackend(Backend):
         """``(f, Rel)`` of a step under the miscalibration modes (module docstring), drawn from the step's own
         generator as at level 0; every mode's extra draw has a generator of its own. Pure in its arguments,
         so a recorded step (its views and clutter) can be re-scored offline at any level."""
-        p = self.p
         rng = np.random.default_rng([req.seed, _h(req.question.id), req.step])
-        views = list(targets)
-        if p.miscal_related > 0:
-            for view in related:  # the same instance is confused at every level above its draw (monotone)
-                u = np.random.default_rng([req.seed, _h(req.question.id), view[0].id + 1, 15]).random()
-                if u < p.miscal_related:
-                    views.append(view)
+        views = list(targets) + self.related_confused(req, related)
         seen = self.seen_targets(views)
         probs, quality, right = self._answer(rng, req, choices, t, seen)
         rel = self._relevance(rng, quality, right)
-        if p.miscal_irrelevant > 0 and quality == 0:
-            f = np.asarray(probs)
-            top = int(np.argmax(f))
-            new_top = f[top] + p.miscal_irrelevant * max(IRRELEVANT_TOP - f[top], 0.0)
-            rest = f.sum() - f[top]
-            if rest > 0:
-                f = f * ((1.0 - new_top) / rest)
-            f[top] = new_top
-            probs = (f / f.sum()).tolist()
+        return self.confident_when_irrelevant(probs, quality), self.biased_relevance(rel, t.type, clutter)
+
+    def confident_when_irrelevant(self, probs: list[float], quality: float) -> list[float]:
+        """``miscal_irrelevant``: on a view without evidence (``quality == 0``) the top probability moves
+        towards :data:`IRRELEVANT_TOP`, the others shrink in proportion."""
+        level = self.p.miscal_irrelevant
+        if level <= 0 or quality != 0:
+            return probs
+        f = np.asarray(probs)
+        top = int(np.argmax(f))
+        new_top = f[top] + level * max(IRRELEVANT_TOP - f[top], 0.0)
+        rest = f.sum() - f[top]
+        if rest > 0:
+            f = f * ((1.0 - new_top) / rest)
+        f[top] = new_top
+        return (f / f.sum()).tolist()
+
+    def biased_relevance(self, rel: float, qtype: str, clutter: float) -> float:
+        """``miscal_category`` and ``miscal_view``: ``Rel * exp(level_c * b_category + level_v * (2 c - 1))``."""
+        p = self.p
         log_bias = 0.0
         if p.miscal_category > 0:
-            log_bias += p.miscal_category * CATEGORY_RELEVANCE_BIAS.get(t.type, 0.0)
+            log_bias += p.miscal_category * CATEGORY_RELEVANCE_BIAS.get(qtype, 0.0)
         if p.miscal_view > 0:
             log_bias += p.miscal_view * (2.0 * min(max(clutter / CLUTTER_FULL, 0.0), 1.0) - 1.0)
         if log_bias:
             rel = float(np.clip(rel * np.exp(log_bias), 0.01, 0.99))
-        return probs, rel
+        return rel
+
+    def related_confused(self, req: ScoreRequest, related: list[View]) -> list[View]:
+        """``miscal_related``: the related-but-wrong instances taken for the target in this request (a draw per
+        question and instance, so a level's confusions include the lower levels')."""
+        level = self.p.miscal_related
+        if level <= 0:
+            return []
+        return [v for v in related
+                if np.random.default_rng([req.seed, _h(req.question.id), v[0].id + 1, 15]).random() < level]
 
 
 def _choice_room(choice: str) -> str:
