@@ -429,3 +429,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     s.add_argument("--recordings", default="var/sensitivity", help="where --miscalibration keeps its recordings")
     s.add_argument("--record-workers", type=int, default=1, help="recording processes for --miscalibration")
     s.set_defaults(func=cmd_stop)
+    from eqa.app import task_bench  # HELIOS Tables 1, 2 (issue 17)
+
+    task_bench.register(sub)
