@@ -34,7 +34,7 @@ from gateway.deps import DocsCallerDep
 from gateway.errors import GatewayError
 from gateway.limits import BODY_METHODS, BodyLimit
 from gateway.manager import PRUNE_BATCH, EpisodeManager, SceneArea
-from gateway.routers import console, episodes, health, tasks
+from gateway.routers import console, episodes, health, labels, tasks
 from gateway.schemas import Problem
 
 log = logging.getLogger(__name__)
@@ -229,6 +229,7 @@ def create_app(settings: Settings, scene_area: SceneArea | None = None) -> FastA
         )
     app.include_router(health.router)
     app.include_router(episodes.router)
+    app.include_router(labels.router)
     console.install(app)  # the web console at / and the routes it needs
     app.include_router(tasks.router)
     _add_docs(app)
