@@ -18,7 +18,7 @@ from typing import Any
 import httpx
 import pytest
 from browser_helpers import body_text, chromium, wait_until
-from fleet_support import GatewayThread, clear_gateway_state, sse_events, wait_for
+from fleet_support import GatewayThread, clear_gateway_state, paused, sse_events, wait_for
 from gateway_helpers import AUTH, EPISODE_S, SCENE, TOKEN
 
 from eqa.launcher import Fleet
@@ -194,7 +194,7 @@ def test_ask_with_the_keyboard_and_watch_live(gw: GatewayThread, client: httpx.C
 
 def test_reload_mid_episode_resumes_without_a_gap(gw: GatewayThread, client: httpx.Client, tmp_path: Path) -> None:
     r = client.post("/v1/questions", json={"question": "Where is the car?", "choices": CHOICES, "scene": SCENE,
-                                            "max_steps": 60, "stop_rule": "max_steps", "record": False})
+                                            "max_steps": 30, "stop_rule": "max_steps", "record": False})
     assert r.status_code == 202, r.text
     eid = r.json()["episode_id"]
     with chromium(tmp_path / "profile") as b:
@@ -202,10 +202,10 @@ def test_reload_mid_episode_resumes_without_a_gap(gw: GatewayThread, client: htt
         b.get(f"{gw.url}/#watch/{eid}")
         wait_until(lambda: len(page_event_ids(b)) >= 12, timeout=EPISODE_S, what="the first events")
         before = len(page_event_ids(b))
+        assert client.get(f"/v1/episodes/{eid}").json()["state"] == "running", "the episode ended before the reload"
         b.refresh()
         # After the reload the page shows what it had, then resumes after its last event.
         after_reload = wait_until(lambda: len(page_event_ids(b)) >= before and page_event_ids(b), what="the log back")
-        assert client.get(f"/v1/episodes/{eid}").json()["state"] == "running", "the episode ended before the reload"
         assert len(after_reload) >= before
         wait_until(lambda: answer_shown(b), timeout=EPISODE_S, what="the episode's end")
         ids = page_event_ids(b)
@@ -214,7 +214,55 @@ def test_reload_mid_episode_resumes_without_a_gap(gw: GatewayThread, client: htt
         assert ids == server, f"the page has {len(ids)} events, the server {len(server)}"
         steps = [int(s) for s in b.execute_script(
             "return Array.from(document.querySelectorAll('#w-log li[data-kind=decision]')).map(li => li.dataset.step)")]
-        assert steps == list(range(60))
+        assert steps == list(range(30))
+
+
+def crash(t: GatewayThread) -> None:
+    """Stop a gateway thread at once, open event streams and all (uvicorn's force exit): its clients see the
+    connection drop, as when the process dies."""
+    t.server.force_exit = True
+    t.__exit__(None, None, None)
+
+
+def test_gateway_crash_mid_episode_the_page_reconnects_and_resumes(fleet: Fleet, gw: GatewayThread,
+                                                                     tmp_path: Path) -> None:
+    """A gateway of its own (its own store; the module's gateway stays idle) dies while the page follows an
+    episode and comes back on the same port: the page reconnects by itself with Last-Event-ID and ends with
+    exactly the server's events. The sim is paused while the gateway is down (a few seconds, inside Zenoh's
+    lease), so the episode is still running when it is back (as in test_gateway_restart)."""
+    alone = gw.settings.model_copy(update={"redis_url": None, "data_dir": tmp_path / "gw", "instance": "gw-crash"})
+    first = GatewayThread(alone).__enter__()
+    second: GatewayThread | None = None
+    try:
+        with httpx.Client(base_url=first.url, headers=AUTH, timeout=30) as c:
+            assert wait_for(lambda: c.get("/v1/ready").status_code == 200, 60), c.get("/v1/ready").text
+            body = {"question": "Where is the car?", "choices": CHOICES, "scene": SCENE, "max_steps": 30,
+                    "stop_rule": "max_steps", "record": False}
+            eid = c.post("/v1/questions", json=body).json()["episode_id"]
+        with chromium(tmp_path / "profile") as b:
+            with_token(b, first.url)
+            b.get(f"{first.url}/#watch/{eid}")
+            wait_until(lambda: len(page_event_ids(b)) >= 8, timeout=EPISODE_S, what="the first events")
+            with paused(fleet, "sim"):
+                crash(first)
+                wait_until(lambda: "reconnecting" in b.find_element("id", "w-conn").text, what="the lost connection")
+                second = GatewayThread(alone, port=first.port).__enter__()
+                wait_until(lambda: "reconnected (resumed after" in b.find_element("id", "w-conn").text,
+                           what="the page to reconnect by itself")
+            wait_until(lambda: answer_shown(b), timeout=EPISODE_S, what="the episode's end after the crash")
+            ids = page_event_ids(b)
+            kinds = b.execute_script(
+                "return Array.from(document.querySelectorAll('#w-log li')).map(e => e.dataset.kind)"
+            )
+            with httpx.Client(base_url=second.url, headers=AUTH, timeout=30) as c:
+                server = server_event_ids(c, eid)
+                st = c.get(f"/v1/episodes/{eid}").json()
+        assert len(ids) == len(set(ids)), "an event shown twice after the reconnect"
+        assert ids == server, f"the page has {len(ids)} events, the server {len(server)}"
+        assert "gateway_restart" in kinds and kinds[-1] == "episode_end"
+        assert st["state"] == "stopped" and st["steps"] == 30, st
+    finally:
+        crash(second or first)
 
 
 def test_wrong_token_and_unreachable_gateway_are_explained(gw: GatewayThread, tmp_path: Path) -> None:
@@ -233,42 +281,48 @@ def test_wrong_token_and_unreachable_gateway_are_explained(gw: GatewayThread, tm
         wait_until(lambda: b.find_element("id", "banner").get_attribute("hidden") is not None, what="banner gone")
         wait_until(lambda: b.find_elements("css selector", "#f-services tr[data-service=planner]"), what="fleet")
 
-    # A gateway of its own on a port of its own: stopped while the page is open, then started again.
-    alone = gw.settings.model_copy(update={"redis_url": None, "data_dir": tmp_path / "other", "instance": "gw-other"})
-    other = GatewayThread(alone)
-    with other, chromium(tmp_path / "profile2") as b:
+        # A gateway of its own on a port of its own: stopped while the page is open, then started again.
+        alone = gw.settings.model_copy(update={"redis_url": None, "data_dir": tmp_path / "other",
+                                               "instance": "gw-other"})
+        other = GatewayThread(alone).__enter__()
         with_token(b, other.url)
         b.get(other.url + "/#fleet")
         wait_until(lambda: b.find_elements("css selector", "#f-services tr[data-service=planner]"), what="fleet")
-        other.__exit__(None, None, None)
+        crash(other)
         text = wait_until(lambda: "Cannot reach the gateway" in b.find_element("id", "banner").text
                           and b.find_element("id", "banner").text, what="the unreachable message")
         assert other.url in text
-        again = GatewayThread(alone, port=other.port)
-        with again:
+        again = GatewayThread(alone, port=other.port).__enter__()
+        try:
             wait_until(lambda: b.find_element("id", "banner").get_attribute("hidden") is not None, timeout=15,
                        what="the page to notice the gateway is back (no manual refresh)")
             assert "updated" in b.find_element("id", "f-updated").text
+        finally:
+            crash(again)
 
 
 # Keep last: it kills a service of the module's fleet (restart=False).
-def test_killed_service_shows_on_the_fleet_view(gw: GatewayThread, client: httpx.Client, fleet: Fleet,
-                                                 tmp_path: Path) -> None:
+def test_fleet_view_shows_failures_and_a_killed_service(gw: GatewayThread, client: httpx.Client, fleet: Fleet,
+                                                         tmp_path: Path) -> None:
     with chromium(tmp_path / "profile", height=1100) as b:
         with_token(b, gw.url)
         b.get(gw.url + "/#fleet")
         row = "#f-services tr[data-service=planner]"
         wait_until(lambda: b.find_element("css selector", row).get_attribute("data-alive") == "1", what="planner up")
         assert "none alive" not in body_text(b)
+        # An episode the sim refuses (a start pose outside the house) fails at once: listed with its reason.
+        r = client.post("/v1/questions", json={"question": "Where is the car?", "choices": CHOICES, "scene": SCENE,
+                                                "start_pose": {"x": 90.0, "y": 90.0}, "max_steps": 5,
+                                                "stop_rule": "max_steps", "record": False})
+        assert r.status_code == 202, r.text
+        eid = r.json()["episode_id"]
+        item = wait_until(lambda: next((li.text for li in b.find_elements("css selector", "#f-failures li")
+                                        if eid in li.text), None), timeout=30, what="the failure listed")
+        assert "start pose refused" in item, item
+        # A killed service: its kind shows with none alive.
         fleet.kill("planner")
         wait_until(lambda: b.find_element("css selector", row).get_attribute("data-alive") == "0", timeout=30,
                    what="the planner reported down")
         assert "none alive" in b.find_element("css selector", row).text
-        # An episode asked now fails (watchdog) and shows among the recent failures with its reason.
-        r = client.post("/v1/questions", json={"question": "Where is the car?", "choices": CHOICES, "scene": SCENE,
-                                                "max_steps": 5, "stop_rule": "max_steps", "record": False})
-        eid = r.json()["episode_id"]
-        item = wait_until(lambda: next((li.text for li in b.find_elements("css selector", "#f-failures li")
-                                        if eid in li.text), None), timeout=60, what="the failure listed")
-        assert "planner" in item, item
+        assert b.find_element("css selector", row).get_attribute("class") == "down"
         shot(b, "console-fleet.png")
