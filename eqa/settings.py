@@ -147,6 +147,9 @@ class Settings(BaseSettings):
         default="oracle", description="open-vocabulary detector of the scorer pool (remote: no standard protocol)"
     )
     detector_model_path: Path | None = Field(default=None, description="hf detector: OWL-ViT / OWLv2 directory")
+    detector_ground_truth: bool = Field(
+        default=False, description="oracle detector as ground-truth semantics (HELIOS Table 4 yardstick)"
+    )
     helios_device: str = Field(default="cpu", description="torch device of the object layer (cpu, cuda)")
     helios_render_scale: float = Field(default=0.5, ge=0.05, le=1.0, description="object layer works at this scale")
     helios_max_gaussians: int = Field(default=60_000, ge=1, le=5_000_000, description="Gaussians kept per episode")

@@ -153,3 +153,12 @@ def test_fleet_preflight_refuses_a_remote_detector(tmp_path) -> None:
     check_settings(Settings(data_dir=tmp_path))  # the default simulated detector passes
     with pytest.raises(BackendUnavailable, match="EQA_DETECTOR_BACKEND=hf"):
         check_settings(Settings(detector_backend="remote", data_dir=tmp_path))
+
+
+def test_ground_truth_semantics_yardstick(tmp_path) -> None:
+    det = make_detector(Settings(detector_ground_truth=True, data_dir=tmp_path))
+    assert det.model_name == "ground-truth-semantics"
+    for step in range(5):  # a tiny, far mug and a vase: the mug always, exactly, the vase never
+        dets = det.detect(request(step=step, mug_box=(50, 50, 52, 52), vase_box=(10, 10, 40, 40), depth_m=7.5))
+        assert [(d.cls, d.score, d.box, int(d.mask.sum())) for d in dets] == [("mug", 1.0, (50, 50, 52, 52), 4)]
+    assert make_detector(Settings(data_dir=tmp_path)).model_name == "simulated-detector"

@@ -30,6 +30,9 @@ two-stage detectors bleed over object borders), each a knob of :class:`OracleDet
 * Masks that bleed: each mask is dilated by 0 .. ``bleed_frac`` x the short side pixels over its border.
 * Per-class thresholds from the request (HELIOS od_a 0.35 / od_g 0.25 / od_b 0.45).
 
+``EQA_DETECTOR_GROUND_TRUTH=true`` turns it into the paper's ground-truth-semantics yardstick (Table 4):
+every visible pixel of a requested class, score 1, no error of any kind (``model == "ground-truth-semantics"``).
+
 Draws come from generators seeded by (``seed``, episode id, step[, instance id]): the same request gives the
 same detections, and errors are view-dependent (a different step is a different draw), which is what
 multi-view fusion can correct. The defaults are set by hand to plausible rates; they were not tuned on
@@ -51,6 +54,7 @@ from services.vlm_scorer.backends.base import BadRequest
 from services.vlm_scorer.detector.base import Detector, finish, make_detection, validate_detect_request
 
 MODEL_LABEL = "simulated-detector"
+GROUND_TRUTH_LABEL = "ground-truth-semantics"  # EQA_DETECTOR_GROUND_TRUTH: a yardstick, not a detector
 STRUCTURE = frozenset({"floor", "wall", "ceiling", "door frame", "door_frame"})
 
 SIMILAR: tuple[frozenset[str], ...] = tuple(
@@ -94,7 +98,17 @@ class OracleDetectorParams:
     bleed_frac: float = 0.015
 
     @classmethod
+    def ground_truth(cls) -> OracleDetectorParams:
+        """The paper's "with ground-truth semantics" yardstick (Table 4): every visible pixel of an instance of
+        a requested class, at any size and range, with score 1, no confusion, no false positive, no bleeding."""
+        return cls(recall=1.0, min_pixels_frac=0.0, full_pixels_frac=1e-9, near_m=1e9, max_range_m=2e9,
+                   score_lo=1.0, score_hi=1.0, score_sd=0.0, confusion=0.0, similar_fp=0.0, background_fp=0.0,
+                   bleed_frac=0.0)
+
+    @classmethod
     def from_settings(cls, settings: Settings) -> OracleDetectorParams:
+        if getattr(settings, "detector_ground_truth", False):
+            return cls.ground_truth()
         kw = {}
         for f in fields(cls):
             value = getattr(settings, f"detector_oracle_{f.name}", None)
@@ -131,6 +145,8 @@ class OracleDetector(Detector):
 
     def __init__(self, params: OracleDetectorParams | None = None) -> None:
         self.p = params or OracleDetectorParams()
+        if self.p == OracleDetectorParams.ground_truth():
+            self.model_name = GROUND_TRUTH_LABEL
 
     @classmethod
     def from_settings(cls, settings: Settings) -> OracleDetector:
