@@ -1,9 +1,9 @@
 """A fleet across three hosts (Linux network namespaces made by the test, see tests/netns_fleet.py), with the
-bus secured (mTLS, passwords, the ownership ACL): the fleet's router on h1 with the sim and the stopper, Redis,
-the mapper and the planner on h2, two scorer replicas on their own host h3; each host's share started by
-`eqa up --join`. 8 robots run at once; the mapper (h2) and the stopper (h1) are killed with SIGKILL and
-restarted by their host's launcher, and the scorer host is cut off (link down) and comes back. Every episode
-runs to its end, none is lost.
+bus secured (mTLS, passwords, the ownership ACL): the fleet's router on h1 with the sim and the stopper, Redis
+and two instances each of the mapper and the planner (sharing the robots) on h2, two scorer replicas on their
+own host h3; each host's share started by `eqa up --join`. 8 robots run at once; a mapper (h2) and the stopper
+(h1) are killed with SIGKILL and restarted by their host's launcher, and the scorer host is cut off (link down)
+and comes back. Every episode runs to its end with all its steps, none is lost.
 
 Skipped, with the reason, only where namespaces cannot be made (not root, no iproute2); `make test-netns` (see
 README "Scaling out") runs it on its own."""
@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 import pytest
+from exactly_once import StepLedger
 from netns_fleet import PY, Hosts, why_not
 
 from eqa import keys, security
@@ -85,16 +86,16 @@ def fleet(tmp_path_factory: pytest.TempPathFactory):
         router_env = {**base_env, "EQA_ZENOH_TLS_CA": str(pki / "ca.pem"),
                       "EQA_ZENOH_TLS_CERT": str(pki / "router.pem"), "EQA_ZENOH_TLS_KEY": str(pki / "router.key")}
         hosts.run("h1", [PY, "-m", "eqa", "router", "--listen", endpoint], router_env, logs / "router.log")
-        shares = {
-            "h1": ("sim,stopper", 1),
-            "h2": ("mapper,planner", 1),
-            "h3": ("vlm_scorer", 2),
+        shares = {  # host: (services, scorer replicas, instances of each stateful service)
+            "h1": ("sim,stopper", 1, 1),
+            "h2": ("mapper,planner", 1, 2),
+            "h3": ("vlm_scorer", 2, 1),
         }
         ups = {}
-        for host, (services, scorers) in shares.items():
+        for host, (services, scorers, instances) in shares.items():
             env = {**base_env, "EQA_DATA_DIR": str(data)}
             argv = [PY, "-m", "eqa", "up", "--join", endpoint, "--services", services, "--scorers", str(scorers),
-                    "--timeout", "120"]
+                    "--instances", str(instances), "--timeout", "120"]
             ups[host] = hosts.run(host, argv, env, logs / f"up-{host}.log")
         all_logs = [logs / f"up-{h}.log" for h in shares] + [logs / "router.log"]
         _wait(lambda: all("fleet up" in (logs / f"up-{h}.log").read_text(errors="replace") for h in shares),
@@ -118,6 +119,7 @@ def _start(robot: str, i: int) -> EpisodeStart:
 def test_eight_robots_across_three_hosts_survive_kills_and_a_partition(fleet):
     hosts, ups, driver, _data, _logs, all_logs = fleet
     ends: dict[str, EpisodeEnd] = {}
+    ledger = StepLedger()
     lock = threading.Lock()
 
     def on_end(_key: str, end: EpisodeEnd) -> None:
@@ -126,6 +128,7 @@ def test_eight_robots_across_three_hosts_survive_kills_and_a_partition(fleet):
 
     with Bus(driver, "gateway", "netns-driver") as bus:
         bus.subscribe(keys.any_robot(keys.EPISODE_END), EpisodeEnd, on_end)
+        ledger.subscribe(bus)
         alive = {s for s, _ in bus.alive(timeout=3.0)}
         assert {"sim", "mapper", "planner", "stopper", "vlm_scorer"} <= alive, alive
         starts = [_start(r, i) for i, r in enumerate(ROBOTS)]
@@ -133,14 +136,14 @@ def test_eight_robots_across_three_hosts_survive_kills_and_a_partition(fleet):
         for st in starts:
             bus.publish(keys.stream(st.robot, keys.EPISODE_START), st)
         time.sleep(2.0)
-        # kill -9 on two hosts: the mapper on h2, the stopper on h1 (their launchers restart them)
+        # kill -9 on two hosts: one of the two mappers on h2 (the other takes its robots over until it is back),
+        # the stopper on h1; their launchers restart them
         killed = []
-        for host, module in (("h2", "services.mapper"), ("h1", "services.stopper")):
+        for host, module, count in (("h2", "services.mapper", 2), ("h1", "services.stopper", 1)):
             pids = hosts.children(ups[host], module)
-            assert pids, f"no {module} under eqa up on {host}"
-            for pid in pids:
-                os.kill(pid, signal.SIGKILL)
-            killed.append((host, module, pids))
+            assert len(pids) == count, f"{len(pids)} {module} under eqa up on {host}, expected {count}"
+            os.kill(pids[0], signal.SIGKILL)
+            killed.append((host, module, pids[:1]))
         # the scorer host is cut off for 4 s (shorter than Zenoh's 10 s lease: the links survive)
         hosts.partition("h3")
         time.sleep(4.0)
@@ -155,6 +158,8 @@ def test_eight_robots_across_three_hosts_survive_kills_and_a_partition(fleet):
     bad = {e.episode_id: (e.state, e.reason) for e in ends.values() if e.state != "stopped"}
     assert not bad, bad
     assert all(ends[i].steps == MAX_STEPS for i in ids), {i: ends[i].steps for i in ids}
+    problems = ledger.problems({i: MAX_STEPS for i in ids})  # each step integrated, decided, planned once
+    assert not problems, problems
     print(f"8 episodes x {MAX_STEPS} steps across 3 namespaces with 2 kills and a 4 s partition: {took:.1f} s")
 
 

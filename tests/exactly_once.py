@@ -1,0 +1,62 @@
+"""What the services publish, read back to tell whether a step was computed once (issue 21's sharding tests).
+
+Every message carries ``sent_at``, the time it was made. A step *integrated* by the mapper is a ``MapUpdate``
+with its stage timings (a resent frame is answered from the stored map with an empty ``timing_ms``); a step
+*decided* by the stopper is a ``Decision`` (a resent step gets the stored decision again, same ``sent_at``); a
+step *planned* by the planner is a ``Goal`` (the stored goal again for a resent step; a goal the simulator
+refused with a ``sim/error`` is replanned once more by design, so each such error allows one more goal).
+Two instances computing one step leave two different ``sent_at``; a skipped step leaves none.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import defaultdict
+from typing import Any
+
+from eqa import keys
+from eqa.messages import STREAM_TYPES
+
+PAIRS = (keys.MAPPER_MAP, keys.STOPPER_DECISION, keys.PLANNER_GOAL, keys.SIM_ERROR)
+
+
+class StepLedger:
+    def __init__(self) -> None:
+        self.made: dict[tuple[str, str, int], set[float]] = defaultdict(set)
+        self.lock = threading.Lock()
+
+    def subscribe(self, bus: Any) -> None:
+        for pair in PAIRS:
+            bus.subscribe(keys.any_robot(pair), STREAM_TYPES[pair], self._on(pair))
+
+    def _on(self, pair: tuple[str, str]):
+        name = "/".join(pair)
+
+        def on(_key: str, msg: Any) -> None:
+            step = getattr(msg, "step", None)
+            if msg.episode_id is None or step is None:
+                return
+            if pair == keys.MAPPER_MAP and not msg.timing_ms:
+                return  # answered again from the stored map, not integrated
+            with self.lock:
+                self.made[(name, msg.episode_id, int(step))].add(float(msg.sent_at))
+
+        return on
+
+    def problems(self, episodes: dict[str, int]) -> list[str]:
+        """Every step computed more than once or not at all, for ``episode -> steps run``."""
+        out = []
+        with self.lock:
+            made = {k: set(v) for k, v in self.made.items()}
+        for eid, steps in episodes.items():
+            for t in range(steps):
+                for stream in ("mapper/map", "stopper/decision"):
+                    n = len(made.get((stream, eid, t), ()))
+                    if n != 1:
+                        out.append(f"{stream} step {t} of {eid}: made {n} times")
+                if t < steps - 1:
+                    n = len(made.get(("planner/goal", eid, t), ()))
+                    allowed = 1 + len(made.get(("sim/error", eid, t), ()))
+                    if not 1 <= n <= allowed:
+                        out.append(f"planner/goal step {t} of {eid}: made {n} times ({allowed - 1} refused)")
+        return out
