@@ -107,9 +107,12 @@ class RateLimiter:
             else:
                 self._buckets[key] = (tokens, now)
                 ok, wait = False, (1.0 - tokens) / self.rate
-            if len(self._buckets) > self.max_keys:  # forget idle clients
+            if len(self._buckets) > self.max_keys:  # forget idle clients, then (many at once) the oldest half
                 for k in [k for k, (_, t) in self._buckets.items() if now - t > 60]:
                     del self._buckets[k]
+                if len(self._buckets) > self.max_keys:
+                    for k in sorted(self._buckets, key=lambda k: self._buckets[k][1])[: len(self._buckets) // 2]:
+                        del self._buckets[k]
         return ok, wait
 
     def blocked(self, key: str, now: float | None = None) -> float:

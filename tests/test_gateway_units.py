@@ -72,3 +72,11 @@ def test_request_validation_messages() -> None:
         QuestionRequest(question="q", choices=["a", "b"], scene="s", answer="C")
     r = QuestionRequest(question="q", choices=[], robot="r0")
     assert r.choices is None and r.stop_config().eps == 0.2
+
+
+def test_rate_limiter_memory_is_bounded_by_many_clients() -> None:
+    rl = RateLimiter(rate=1.0, burst=1, max_keys=100)
+    for i in range(1000):  # 1000 addresses within a second: none idle
+        rl.allow(f"addr-{i}", now=i / 1000)
+    assert len(rl._buckets) <= 100
+    assert not rl.allow("addr-999", now=0.9995)[0]  # the newest are remembered
