@@ -99,3 +99,19 @@ def test_rerun_shows_gaussians_instances_and_psi(views, tmp_path) -> None:
     paths = recordings.entity_paths(rec.path)
     assert {"/" + GAUSSIANS_ENTITY, "/" + INSTANCES_ENTITY} <= paths
     assert any(p.startswith("/" + PSI_ENTITY + "/") for p in paths)
+
+
+def test_obstacle_heights_follow_the_occupancy_map(views) -> None:
+    from eqa.messages import EpisodeStart, Question
+    from services.mapper.episode_map import EpisodeMap
+    from services.mapper.object_shell import obstacle_heights
+
+    _scene, renderer, vs = views
+    em = EpisodeMap(EpisodeStart(episode_id="ep-h", robot="r0", question=Question(text="q?", scene="gen-5"),
+                                 max_steps=3))
+    assert obstacle_heights(em) is None  # nothing integrated yet
+    em.integrate(frame_of(vs[0], 0, renderer))
+    h = obstacle_heights(em)
+    assert h is not None and h.shape == em.maps.occupied.shape
+    assert bool((h[em.maps.occupied] > 0).all()) and bool((h[~em.maps.occupied] == 0).all())
+    assert float(h.max()) <= 1.5 + 0.1 and float(h[em.maps.occupied].min()) >= 0.1

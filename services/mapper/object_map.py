@@ -6,7 +6,8 @@ od_g, start receptacle od_a, goal receptacle od_b; Table 3), fuses the :class:`~
 and summarises every instance as an :class:`~eqa.messages.ObjectInstance` (class, S, U, Psi of Eq. 7 per task
 class, centre, extent). Candidate instances (a task class with S >= ``cs_min``, at most ``max_gaze_instances``
 of them, best first) also get gaze points (:func:`services.mapper.gaze.gaze_points`) scored with Psi' (Eq. 11)
-and the optimistic IG (Eq. 12) of their believed task class; ``ig`` is the best IG over them.
+and the optimistic IG (Eq. 12) of their believed task class; ``ig`` is the best IG over them. The mapper
+passes the obstacle height of each cell, so only obstacles taller than ``gaze_obstacle_m`` occlude.
 
 A history of each instance's Psi over the steps is kept for monitoring (bounded).
 """
@@ -118,7 +119,8 @@ class ObjectMap:
         return self.last_stats
 
     def summaries(
-        self, grid: GridSpec | None = None, occupancy: np.ndarray | None = None, camera_height: float = 1.5
+        self, grid: GridSpec | None = None, occupancy: np.ndarray | None = None, heights: np.ndarray | None = None,
+        camera_height: float = 1.5,
     ) -> list[ObjectInstance]:
         """Every instance (up to ``max_instances``, best task-class score first); gaze points for candidates
         when the 2D map is given."""
@@ -133,7 +135,8 @@ class ObjectMap:
             candidate = inst.S[best] >= c.cs_min and gazed < c.max_gaze_instances
             if grid is not None and occupancy is not None and candidate:
                 gazed += 1
-                gaze = self._gaze(inst.instance_id, best, inst.centre, inst.extent, grid, occupancy, camera_height)
+                gaze = self._gaze(inst.instance_id, best, inst.centre, inst.extent, grid, occupancy, heights,
+                                  camera_height)
             out.append(ObjectInstance(
                 instance_id=inst.instance_id, cls=names[inst.cls], S=inst.S[inst.cls], U=inst.U[inst.cls],
                 psi=inst.psi[inst.cls],
@@ -144,9 +147,9 @@ class ObjectMap:
         return out
 
     def _gaze(self, instance_id: int, cls: int, centre, extent, grid: GridSpec, occupancy: np.ndarray,
-              camera_height: float) -> list[GazePoint]:
+              heights: np.ndarray | None, camera_height: float) -> list[GazePoint]:
         c = self.config
-        cands = gaze_points(occupancy, None, grid, tuple(centre), tuple(max(e, 0.0) for e in extent),
+        cands = gaze_points(occupancy, heights, grid, tuple(centre), tuple(max(e, 0.0) for e in extent),
                             c.gaze_radius_m, c.gaze_points, c.gaze_obstacle_m, camera_height)
         out = []
         for g in cands:

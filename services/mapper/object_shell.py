@@ -21,6 +21,8 @@ from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
+import numpy as np
+
 from eqa.messages import (
     DetectRequest,
     DetectResult,
@@ -43,6 +45,27 @@ LAYER_PREFIX = "helios:"
 
 def value_layer(cls: str) -> str:
     return f"{LAYER_PREFIX}{cls}"
+
+
+def obstacle_heights(em: Any) -> np.ndarray | None:
+    """Height (m) of the highest occupied voxel of each map cell up to the camera height, 0 where none: the
+    heights the gaze-point occlusion test compares with ``EQA_HELIOS_GAZE_OBSTACLE_M`` (occupied = observed
+    and within the occupied band behind a surface, as the 2D occupancy map)."""
+    v, pc = em.volume, em.config.projection
+    if v.tsdf.size == 0:
+        return None
+    z = v.z_centers
+    sel = np.nonzero((z >= pc.floor_clearance) & (z <= pc.camera_height))[0]
+    if sel.size == 0:
+        return None
+    t, w = v.tsdf[:, :, sel], v.weight[:, :, sel]
+    occ = (w > 0) & (t <= 0) & (t >= -pc.occupied_band)
+    top = occ.shape[2] - 1 - np.argmax(occ[:, :, ::-1], axis=2)
+    any_occ = occ.any(axis=2)
+    traversed = v.planes.get("traversed")
+    if traversed is not None:  # cells the robot stood on are free (as the occupancy map)
+        any_occ &= ~traversed
+    return np.where(any_occ, z[sel][top] + v.config.voxel_size / 2, 0.0).astype(np.float32)
 
 
 class ObjectLayerShell:
@@ -166,7 +189,7 @@ class ObjectLayerShell:
             return
         t0 = time.perf_counter()
         height = float(frame.camera_pose[2, 3]) if frame is not None else 1.5
-        update.objects = om.summaries(update.grid, update.occupied, camera_height=height)
+        update.objects = om.summaries(update.grid, update.occupied, obstacle_heights(em), camera_height=height)
         self.last_objects[em.episode_id] = update.objects
         timing["objects_summary"] = (time.perf_counter() - t0) * 1000.0
         update.timing_ms.update(timing)
