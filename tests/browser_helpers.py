@@ -66,6 +66,21 @@ def chromium(profile_dir: Path, offline: bool = True, width: int = 1280, height:
         driver.quit()
 
 
+@contextlib.contextmanager
+def fresh_page(driver: Any) -> Iterator[Any]:
+    """The same browser for another test, in a new tab (so an empty sessionStorage: no token, no episode
+    events kept by an earlier test), with no extra headers and no cookies."""
+    old = driver.current_window_handle
+    driver.switch_to.new_window("tab")
+    new = driver.current_window_handle
+    driver.switch_to.window(old)
+    driver.close()
+    driver.switch_to.window(new)
+    driver.delete_all_cookies()
+    driver.get_log("browser")  # drop what earlier tests logged
+    yield driver
+
+
 def send_header(driver: Any, name: str, value: str) -> None:
     """Send ``name: value`` with every request of this browser (DevTools ``Network.setExtraHTTPHeaders``)."""
     driver.execute_cdp_cmd("Network.enable", {})

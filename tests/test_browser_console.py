@@ -17,7 +17,7 @@ from typing import Any
 
 import httpx
 import pytest
-from browser_helpers import body_text, chromium, wait_until
+from browser_helpers import body_text, chromium, fresh_page, wait_until
 from fleet_support import GatewayThread, clear_gateway_state, paused, sse_events, wait_for
 from gateway_helpers import AUTH, EPISODE_S, SCENE, TOKEN
 
@@ -42,6 +42,13 @@ def gw(fleet: Fleet) -> Iterator[GatewayThread]:
     with GatewayThread(s) as g, httpx.Client(base_url=g.url, headers=AUTH, timeout=30) as c:
         assert wait_for(lambda: c.get("/v1/ready").status_code == 200, 60), c.get("/v1/ready").text
         yield g
+
+
+@pytest.fixture(scope="module")
+def browser(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
+    """One headless Chromium for the module (a fresh page per test: see browser_helpers.fresh_page)."""
+    with chromium(tmp_path_factory.mktemp("chromium") / "profile", height=1100) as b:
+        yield b
 
 
 @pytest.fixture
@@ -112,10 +119,10 @@ def watched_episode(b: Any) -> str:
     return h.split("/", 1)[1]
 
 
-def test_ask_with_the_keyboard_and_watch_live(gw: GatewayThread, client: httpx.Client, tmp_path: Path) -> None:
+def test_ask_with_the_keyboard_and_watch_live(browser: Any, gw: GatewayThread, client: httpx.Client) -> None:
     from selenium.webdriver.common.keys import Keys
 
-    with chromium(tmp_path / "profile", height=1100) as b:
+    with fresh_page(browser) as b:
         b.get(gw.url + "/")
         # The token, once: Tab to its field, type, Enter.
         tab_to(b, "token")
@@ -192,12 +199,12 @@ def test_ask_with_the_keyboard_and_watch_live(gw: GatewayThread, client: httpx.C
         shot(b, "console-watch.png")
 
 
-def test_reload_mid_episode_resumes_without_a_gap(gw: GatewayThread, client: httpx.Client, tmp_path: Path) -> None:
+def test_reload_mid_episode_resumes_without_a_gap(browser: Any, gw: GatewayThread, client: httpx.Client) -> None:
     r = client.post("/v1/questions", json={"question": "Where is the car?", "choices": CHOICES, "scene": SCENE,
                                             "max_steps": 30, "stop_rule": "max_steps", "record": False})
     assert r.status_code == 202, r.text
     eid = r.json()["episode_id"]
-    with chromium(tmp_path / "profile") as b:
+    with fresh_page(browser) as b:
         with_token(b, gw.url)
         b.get(f"{gw.url}/#watch/{eid}")
         wait_until(lambda: len(page_event_ids(b)) >= 12, timeout=EPISODE_S, what="the first events")
@@ -224,8 +231,9 @@ def crash(t: GatewayThread) -> None:
     t.__exit__(None, None, None)
 
 
-def test_gateway_crash_mid_episode_the_page_reconnects_and_resumes(fleet: Fleet, gw: GatewayThread,
-                                                                     tmp_path: Path) -> None:
+def test_gateway_crash_mid_episode_the_page_reconnects_and_resumes(
+    browser: Any, fleet: Fleet, gw: GatewayThread, tmp_path: Path
+) -> None:
     """A gateway of its own (its own store; the module's gateway stays idle) dies while the page follows an
     episode and comes back on the same port: the page reconnects by itself with Last-Event-ID and ends with
     exactly the server's events. The sim is paused while the gateway is down (a few seconds, inside Zenoh's
@@ -239,7 +247,7 @@ def test_gateway_crash_mid_episode_the_page_reconnects_and_resumes(fleet: Fleet,
             body = {"question": "Where is the car?", "choices": CHOICES, "scene": SCENE, "max_steps": 30,
                     "stop_rule": "max_steps", "record": False}
             eid = c.post("/v1/questions", json=body).json()["episode_id"]
-        with chromium(tmp_path / "profile") as b:
+        with fresh_page(browser) as b:
             with_token(b, first.url)
             b.get(f"{first.url}/#watch/{eid}")
             wait_until(lambda: len(page_event_ids(b)) >= 8, timeout=EPISODE_S, what="the first events")
@@ -265,10 +273,10 @@ def test_gateway_crash_mid_episode_the_page_reconnects_and_resumes(fleet: Fleet,
         crash(second or first)
 
 
-def test_wrong_token_and_unreachable_gateway_are_explained(gw: GatewayThread, tmp_path: Path) -> None:
+def test_wrong_token_and_unreachable_gateway_are_explained(browser: Any, gw: GatewayThread, tmp_path: Path) -> None:
     from selenium.webdriver.common.keys import Keys
 
-    with chromium(tmp_path / "profile") as b:
+    with fresh_page(browser) as b:
         b.get(gw.url + "/#fleet")
         banner = wait_until(lambda: b.find_element("id", "banner").text, what="the banner without a token")
         assert "refused the token" in banner and "missing bearer token" in banner
@@ -301,10 +309,35 @@ def test_wrong_token_and_unreachable_gateway_are_explained(gw: GatewayThread, tm
             crash(again)
 
 
+def test_task_from_the_form_shows_its_phases_and_metrics(browser: Any, gw: GatewayThread, client: httpx.Client) -> None:
+    house = 115000  # the task house of tests/test_task_fleet.py; its first pick-and-place task:
+    instruction = "Move the lamp from the nightstand to the dining table"  # (what the test checks holds for any)
+    with fresh_page(browser) as b:
+        with_token(b, gw.url)
+        b.get(gw.url + "/#ask")
+        for field, text in (("t-instruction", instruction), ("t-scene", f"gen-{house}"), ("t-pick-limit", "5"),
+                            ("t-max-steps", "3")):
+            b.find_element("id", field).send_keys(text)
+        b.find_element("id", "task-submit").click()
+        eid = watched_episode(b)
+        wait_until(lambda: answer_shown(b), timeout=EPISODE_S, what="the task's end")
+        st = client.get(f"/v1/episodes/{eid}").json()
+        assert st["task"]["kind"] == "pick_place" and st["state"] == "stopped", st
+        phase = b.find_element("id", "w-phase")
+        assert phase.is_displayed() and phase.get_attribute("data-phase") in (
+            "searching", "local_search", "looking", "picking", "placing", "finished")
+        assert "phases so far:" in b.find_element("id", "w-phase-history").text
+        metrics = wait_until(lambda: b.find_element("id", "w-metrics").text, what="the task metrics")
+        assert all(f"{k} " in metrics for k in ("FindObj", "Pick", "SR")), metrics
+        assert b.find_element("id", "w-answer").text.startswith("Task stopped")
+        assert page_event_ids(b) == server_event_ids(client, eid)
+
+
 # Keep last: it kills a service of the module's fleet (restart=False).
-def test_fleet_view_shows_failures_and_a_killed_service(gw: GatewayThread, client: httpx.Client, fleet: Fleet,
-                                                         tmp_path: Path) -> None:
-    with chromium(tmp_path / "profile", height=1100) as b:
+def test_fleet_view_shows_failures_and_a_killed_service(
+    browser: Any, gw: GatewayThread, client: httpx.Client, fleet: Fleet
+) -> None:
+    with fresh_page(browser) as b:
         with_token(b, gw.url)
         b.get(gw.url + "/#fleet")
         row = "#f-services tr[data-service=planner]"

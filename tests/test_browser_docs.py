@@ -11,9 +11,10 @@ from __future__ import annotations
 import os
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
-from browser_helpers import body_text, chromium, send_header, wait_until
+from browser_helpers import body_text, chromium, fresh_page, send_header, wait_until
 from fleet_support import GatewayThread
 from gateway_helpers import TOKEN
 
@@ -42,6 +43,12 @@ def docs_gateway(tmp_path_factory: pytest.TempPathFactory) -> Iterator[GatewayTh
         yield gw
 
 
+@pytest.fixture(scope="module")
+def browser(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Any]:
+    with chromium(tmp_path_factory.mktemp("chromium") / "profile") as b:
+        yield b
+
+
 def _failed_loads(driver: object) -> list[str]:
     """Requests the browser could not complete (a CDN it cannot reach shows up here)."""
     return [e["message"] for e in driver.get_log("browser") if e.get("source") == "network"]  # type: ignore[attr-defined]
@@ -53,8 +60,8 @@ def _shot(driver: object, name: str) -> None:
         driver.save_screenshot(str(Path(SHOTS) / name))  # type: ignore[attr-defined]
 
 
-def test_swagger_ui_lists_the_operations_offline(docs_gateway: GatewayThread, tmp_path: Path) -> None:
-    with chromium(tmp_path / "profile") as b:
+def test_swagger_ui_lists_the_operations_offline(browser: Any, docs_gateway: GatewayThread) -> None:
+    with fresh_page(browser) as b:
         send_header(b, "Authorization", f"Bearer {TOKEN}")
         b.get(f"{docs_gateway.url}/docs")
         wait_until(
@@ -77,8 +84,8 @@ def test_swagger_ui_lists_the_operations_offline(docs_gateway: GatewayThread, tm
         _shot(b, "docs.png")
 
 
-def test_redoc_lists_the_operations_offline(docs_gateway: GatewayThread, tmp_path: Path) -> None:
-    with chromium(tmp_path / "profile") as b:
+def test_redoc_lists_the_operations_offline(browser: Any, docs_gateway: GatewayThread) -> None:
+    with fresh_page(browser) as b:
         send_header(b, "Authorization", f"Bearer {TOKEN}")
         b.get(f"{docs_gateway.url}/redoc")
         wait_until(lambda: "Submit a question" in body_text(b), timeout=30, what="ReDoc to list the operations")
@@ -97,8 +104,8 @@ def test_redoc_lists_the_operations_offline(docs_gateway: GatewayThread, tmp_pat
         _shot(b, "redoc.png")
 
 
-def test_docs_pages_still_need_the_token(docs_gateway: GatewayThread, tmp_path: Path) -> None:
-    with chromium(tmp_path / "profile") as b:
+def test_docs_pages_still_need_the_token(browser: Any, docs_gateway: GatewayThread) -> None:
+    with fresh_page(browser) as b:
         send_header(b, "Authorization", "Bearer wrong")
         for page in ("/docs", "/redoc"):
             b.get(f"{docs_gateway.url}{page}")
@@ -111,7 +118,7 @@ def test_docs_pages_still_need_the_token(docs_gateway: GatewayThread, tmp_path: 
     reason="gateway/auth.py offers both schemes in one WWW-Authenticate line ('Bearer, Basic realm=...'); "
     "Chromium reads no Basic challenge from it, so it never sends the password a person typed",
 )
-def test_browser_sends_the_password_the_docs_page_asks_for(docs_gateway: GatewayThread, tmp_path: Path) -> None:
-    with chromium(tmp_path / "profile") as b:
+def test_browser_sends_the_password_the_docs_page_asks_for(browser: Any, docs_gateway: GatewayThread) -> None:
+    with fresh_page(browser) as b:
         b.get(f"http://anyone:{TOKEN}@127.0.0.1:{docs_gateway.port}/docs")  # as if typed into the prompt
         assert "missing bearer token" not in body_text(b)  # the page loaded: a 401 answer or Swagger UI

@@ -121,10 +121,11 @@
     }
     document.title = "EQA console - " + name;
     if (name === "watch") {
-      if (arg) watch(arg); else { stopWatching(); showRecent(); }
+      if (arg) watch(arg); else { stopWatching(); showRecent(); startRecent(); }
     } else {
       stopWatching();
     }
+    if (name !== "watch" || arg) stopRecent();
     if (name === "fleet") startFleet(); else stopFleet();
   }
   window.addEventListener("hashchange", () => { route(); focusView(); });
@@ -170,6 +171,36 @@
     }
   });
 
+  // ---- task (HELIOS pick-and-place / find-object) -------------------------------------------------------
+  $("task-form").addEventListener("submit", async (ev) => {
+    ev.preventDefault();
+    const body = {instruction: $("t-instruction").value.trim(), ablation: $("t-ablation").value};
+    if (!body.instruction) {
+      $("task-state").textContent = "Please enter an instruction.";
+      $("t-instruction").focus();
+      return;
+    }
+    const scene = $("t-scene").value.trim();
+    if (scene) body.scene = scene;
+    for (const [id, key] of [["t-pick-limit", "pick_limit"], ["t-max-steps", "max_steps"], ["t-seed", "seed"]]) {
+      const v = parseInt($(id).value, 10);
+      if (!Number.isNaN(v)) body[key] = v;
+    }
+    $("task-submit").disabled = true;
+    $("task-state").textContent = "submitting ...";
+    try {
+      const r = await api("/v1/tasks", {method: "POST", body: JSON.stringify(body),
+                                        headers: {"Content-Type": "application/json"}});
+      const sub = await r.json();
+      $("task-state").textContent = "episode " + sub.episode_id + " " + sub.state + " on " + sub.robot;
+      location.hash = "#watch/" + sub.episode_id;
+    } catch (e) {
+      $("task-state").textContent = describe(e);
+    } finally {
+      $("task-submit").disabled = false;
+    }
+  });
+
   // ---- watch: one episode's events, resumable ---------------------------------------------------------
   let w = null;  // the watched episode's state
 
@@ -201,12 +232,23 @@
   }
   window.addEventListener("pagehide", () => save(w));
 
+  let recentTimer = null;
+  function startRecent() {
+    if (!recentTimer) recentTimer = setInterval(showRecent, FLEET_PERIOD_MS * 2);
+  }
+  function stopRecent() {
+    clearInterval(recentTimer);
+    recentTimer = null;
+  }
+
   async function showRecent() {
+    if (w) return;
     $("watch-pick").hidden = false;
     $("watch-episode").hidden = true;
     try {
       const r = await api("/v1/episodes?limit=20");
       const list = (await r.json()).episodes;
+      if (w) return;  // an episode was opened meanwhile
       const ul = $("recent");
       ul.textContent = "";
       if (!list.length) ul.innerHTML = "<li>none yet: ask a question</li>";
@@ -229,12 +271,15 @@
     const saved = load(eid);
     w = {eid, lastId: saved.lastId, events: [], choices: [], maxSteps: null, step: -1, sets: [],
          ended: false, stopped: false, abort: null, imageTimer: null, lastFrameStep: -2, lastMapStep: -2,
-         stepsSeen: -1, stopRule: null, eps: null, probs: {}};
+         stepsSeen: -1, stopRule: null, eps: null, probs: {}, task: null, phases: []};
     $("w-log").textContent = "";
     $("w-set").textContent = "";
     $("w-set-history").textContent = "";
     $("w-answer").hidden = true;
     $("w-recording").hidden = true;
+    $("w-task").hidden = true;
+    $("w-phase").textContent = "";
+    $("w-phase-history").textContent = "";
     $("w-cancel").hidden = false;
     $("w-frame").removeAttribute("src");
     $("w-map").removeAttribute("src");
@@ -254,6 +299,7 @@
       if (s !== w) return;
       $("w-question").textContent = st.question.text;
       if (!s.choices.length) s.choices = st.question.choices || [];
+      if (st.task) showTask(s, st.task);
       s.maxSteps = s.maxSteps || st.max_steps;
       s.stopRule = st.stop.rule;
       s.eps = st.stop.eps;
@@ -376,6 +422,21 @@
         break;
       case "frame":
         s.step = Math.max(s.step, ev.step);
+        if (ev.skill) {
+          li.textContent += ": " + ev.skill.skill + (ev.skill.success ? " succeeded" : " failed") +
+            (ev.skill.reason ? " (" + ev.skill.reason + ")" : "");
+        }
+        break;
+      case "goal":
+        if (ev.phase) {
+          $("w-task").hidden = false;
+          s.phases.push(ev.phase);
+          $("w-phase").textContent = "phase: " + ev.phase + (ev.skill ? ", next skill " + ev.skill : "") +
+            (ev.target !== undefined && ev.target !== null ? " on #" + ev.target : "");
+          $("w-phase").dataset.phase = ev.phase;
+          $("w-phase-history").textContent = "phases so far: " + compress(s.phases).join(" > ");
+          li.textContent += ": " + ev.phase;
+        }
         break;
       case "step_scores":
         s.probs = {};
@@ -458,7 +519,10 @@
     box.textContent = "";
     const h = document.createElement("p");
     h.className = "final";
-    if (ev.answer) {
+    if (s.task) {
+      const sr = ev.metrics ? ev.metrics.SR : undefined;
+      h.textContent = "Task " + (ev.state || "ended") + (sr === undefined ? "" : sr ? ": success" : ": not achieved");
+    } else if (ev.answer) {
       h.textContent = "Answer: " + ev.answer + ") " + (ev.answer_text || "");
     } else {
       h.textContent = "No answer (" + (ev.state || "ended") + ")";
@@ -479,7 +543,13 @@
       parts.push("scorer's probability of " + ev.answer + " at the last step: " + Number(s.probs[ev.answer]).toFixed(2));
     }
     conf.textContent = "Confidence: " + (parts.length ? parts.join("; ") : "not stated");
-    box.append(conf);
+    if (!s.task) box.append(conf);
+    if (ev.metrics && Object.keys(ev.metrics).length) {
+      const m = document.createElement("p");
+      m.id = "w-metrics";
+      m.textContent = "Task metrics: " + Object.entries(ev.metrics).map(([k, v]) => k + " " + v).join(", ");
+      box.append(m);
+    }
     const why = document.createElement("p");
     why.className = "muted";
     why.textContent = (ev.steps !== undefined ? ev.steps + " of " + ev.max_steps + " steps. " : "") + (ev.reason || "");
@@ -548,11 +618,19 @@
     if (s.ended && s === w && !force) clearInterval(s.imageTimer);
   }
 
+  function showTask(s, task) {
+    s.task = task;
+    $("w-task").hidden = false;
+    $("w-set-title").textContent = "Prediction set (questions only)";
+    if (!$("w-phase").textContent) $("w-phase").textContent = "task " + task.kind + ": " + task.text;
+  }
+
   function finalStatus(s, st) {
     if (!s.ended && st.state !== "stopped") return;
     if (st.answer && !$("w-answer").hidden) return;
     showAnswer(s, {answer: st.answer, answer_text: st.answer_text, prediction_set: st.prediction_set,
-                   steps: st.steps, max_steps: st.max_steps, reason: st.stop_reason, state: st.state});
+                   steps: st.steps, max_steps: st.max_steps, reason: st.stop_reason, state: st.state,
+                   metrics: st.metrics});
   }
 
   // ---- fleet -----------------------------------------------------------------------------------------
