@@ -18,6 +18,8 @@ from dataclasses import dataclass
 from eqa import keys
 from eqa.messages import (
     Decision,
+    DetectRequest,
+    DetectResult,
     EpisodeCancel,
     EpisodeEnd,
     EpisodeStart,
@@ -29,6 +31,8 @@ from eqa.messages import (
     ScoreRequest,
     ScoreResult,
     StepScores,
+    ValueRequest,
+    ValueResult,
 )
 
 GATEWAY = "gateway"
@@ -80,6 +84,10 @@ STREAMS: tuple[Stream, ...] = (
 QUERIES: tuple[Query, ...] = (
     Query(keys.SCORER_ANY, ScoreRequest, ScoreResult, "vlm_scorer", ("mapper",),
           "the four VLM queries of a step (Eq. 1, 2, 5), to any replica"),
+    Query(keys.SCORER_ANY, DetectRequest, DetectResult, "vlm_scorer", ("mapper",),
+          "HELIOS: open-vocabulary detections of a task episode's frame (same replicas)"),
+    Query(keys.SCORER_ANY, ValueRequest, ValueResult, "vlm_scorer", ("mapper",),
+          'HELIOS 3.1.2: "Seems like there is a (object) ahead" per task class (same replicas)'),
 )
 
 STREAM_TYPES: dict[tuple[str, str], tuple[type[Message], ...]] = {s.pair: s.types for s in STREAMS}
