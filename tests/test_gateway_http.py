@@ -88,7 +88,8 @@ def test_submit_stream_and_result(gateway, gw_settings: Settings) -> None:
     # The real services: one frame, map, scores and decision per step; a goal after every step but the last.
     for kind in ("frame", "map_update", "step_scores", "decision"):
         assert sorted(e["step"] for _, e in events if e["kind"] == kind) == [0, 1, 2, 3], kind
-    assert sorted(e["step"] for _, e in events if e["kind"] == "goal") == [0, 1, 2]
+    # (a goal the sim refuses is re-planned within its step, so a step may carry two goals)
+    assert sorted({e["step"] for _, e in events if e["kind"] == "goal"}) == [0, 1, 2]
     ids = [i for i, _ in events]
     assert len(set(ids)) == len(ids) and ids == sorted(ids, key=lambda s: tuple(map(int, s.split("-"))))
     frame = next(e for _, e in events if e["kind"] == "frame")
