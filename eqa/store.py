@@ -170,11 +170,13 @@ class Store(ABC):
 
 
 class RedisStore(Store):
-    def __init__(self, url: str) -> None:
+    def __init__(self, url: str, timeout_s: float = 10.0) -> None:
+        """``timeout_s``: how long one call waits for a frozen server before it raises (a connection error
+        :func:`unavailable_errors` lists)."""
         import redis
 
         self.url = url
-        self._r = redis.Redis.from_url(url, socket_timeout=10, socket_connect_timeout=5)
+        self._r = redis.Redis.from_url(url, socket_timeout=timeout_s, socket_connect_timeout=min(5.0, timeout_s))
         try:
             self._r.ping()
         except redis.RedisError as exc:
@@ -400,8 +402,9 @@ def unavailable_errors() -> tuple[type[BaseException], ...]:
     return tuple(found)
 
 
-def open_store(settings: Settings) -> Store:
-    """Redis when ``EQA_REDIS_URL`` is set, else the embedded store under ``data_dir``."""
+def open_store(settings: Settings, timeout_s: float = 10.0) -> Store:
+    """Redis when ``EQA_REDIS_URL`` is set, else the embedded store under ``data_dir``; ``timeout_s`` bounds
+    one Redis call (a server that answers HTTP requests uses less, to answer 503 soon when Redis freezes)."""
     if settings.redis_url:
-        return RedisStore(settings.redis_url)
+        return RedisStore(settings.redis_url, timeout_s=timeout_s)
     return EmbeddedStore(settings.data_dir / "store.sqlite")

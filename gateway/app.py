@@ -43,6 +43,7 @@ INBOX_MAX_DATA = 256  # data messages waiting for the episode logic; more are dr
 CONTROL_TYPES = (EpisodeEnd, ErrorReply)  # never dropped for a running episode
 PRUNE_EVERY_S = 30.0  # retention pass period
 STORE_RETRY_AFTER_S = 5
+STORE_TIMEOUT_S = 3.0  # one Redis call; a frozen Redis gives 503 after this, not after 10 s
 SWAGGER_ASSETS = "/docs/assets"  # Swagger UI and ReDoc files from the fastapi-offline package
 DOCS_ASSETS_DIR = Path(fastapi_offline.__file__).parent / "static"
 DOCS_CSP = (  # the docs pages load nothing from other hosts (their inline set-up scripts and styles stay allowed)
@@ -75,7 +76,7 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     loop = asyncio.get_running_loop()
     hub = Hub()
     app.state.hub = hub
-    store = await asyncio.to_thread(open_store, settings)
+    store = await asyncio.to_thread(open_store, settings, STORE_TIMEOUT_S)
     bus = Bus(settings, "gateway").open()
     inbox: asyncio.Queue[tuple[str, Message]] = asyncio.Queue()
     backlog = {"data": 0, "dropped": 0}  # data messages waiting in the inbox; data messages dropped

@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import resource
 import shutil
+import signal
 import socket
 import subprocess
 import time
@@ -271,6 +272,14 @@ def test_store_down_gives_503_with_retry_after(tmp_path: Path, own_redis) -> Non
     s = gw_settings(tmp_path, redis_url=url)
     with GatewayThread(s) as g, httpx.Client(base_url=g.url, timeout=30) as c:
         eid = c.post("/v1/questions", json=Q, headers=A).json()["episode_id"]
+        proc.send_signal(signal.SIGSTOP)  # frozen: a call times out (3 s) instead of hanging for 10 s
+        try:
+            t0 = time.monotonic()
+            r = c.get("/v1/episodes/ep-frozen", headers=A)
+            assert r.status_code == 503 and int(r.headers["retry-after"]) >= 1, r.text
+            assert time.monotonic() - t0 < 8
+        finally:
+            proc.send_signal(signal.SIGCONT)
         proc.kill()
         proc.wait(timeout=10)
         for method, path in [("POST", "/v1/questions"), ("GET", "/v1/episodes"), ("GET", "/v1/episodes/ep-x"),
