@@ -333,6 +333,36 @@ def test_task_from_the_form_shows_its_phases_and_metrics(browser: Any, gw: Gatew
         assert page_event_ids(b) == server_event_ids(client, eid)
 
 
+def test_console_routes_keep_the_tenant_rules(gw: GatewayThread, tmp_path: Path) -> None:
+    """The images and the fleet view answer like the rest of the API: another tenant's episode is not found,
+    its robot shows as busy, no token is 401 (a gateway of its own with two tokens)."""
+    alone = gw.settings.model_copy(update={"redis_url": None, "data_dir": tmp_path / "gw", "instance": "gw-tenants",
+                                           "api_tokens": [TOKEN, "other-token:read+submit"]})
+    with GatewayThread(alone) as g, httpx.Client(base_url=g.url, headers=AUTH, timeout=30) as a, \
+            httpx.Client(base_url=g.url, headers={"Authorization": "Bearer other-token"}, timeout=30) as b:
+        assert wait_for(lambda: a.get("/v1/ready").status_code == 200, 60)
+        body = {"question": "Where is the car?", "choices": CHOICES, "scene": SCENE, "max_steps": 400,
+                "stop_rule": "max_steps", "record": False}
+        eid = a.post("/v1/questions", json=body).json()["episode_id"]
+        try:
+            assert wait_for(lambda: a.get(f"/v1/episodes/{eid}/map.png").status_code == 200, EPISODE_S)
+            for kind in ("frame", "map"):
+                r = a.get(f"/v1/episodes/{eid}/{kind}.png")
+                assert r.headers["content-type"] == "image/png" and r.content[:4] == b"\x89PNG"
+                assert int(r.headers["x-eqa-step"]) >= 0
+                assert b.get(f"/v1/episodes/{eid}/{kind}.png").status_code == 404  # another tenant's
+                assert httpx.get(f"{g.url}/v1/episodes/{eid}/{kind}.png").status_code == 401
+            assert a.get("/v1/episodes/ep-nosuch/frame.png").status_code == 404
+            assert a.get("/v1/episodes/bad%20id/frame.png").status_code == 422
+            mine, theirs = a.get("/v1/fleet").json(), b.get("/v1/fleet").json()
+            assert mine["robots"][0]["episode_id"] == eid and mine["robots"][0]["max_steps"] == 400
+            assert theirs["robots"][0]["episode_id"] == "busy" and theirs["robots"][0]["question"] is None
+            assert httpx.get(f"{g.url}/v1/fleet").status_code == 401
+        finally:
+            a.delete(f"/v1/episodes/{eid}")
+            wait_for(lambda: a.get(f"/v1/episodes/{eid}").json()["state"] == "cancelled")
+
+
 # Keep last: it kills a service of the module's fleet (restart=False).
 def test_fleet_view_shows_failures_and_a_killed_service(
     browser: Any, gw: GatewayThread, client: httpx.Client, fleet: Fleet
