@@ -140,3 +140,31 @@ def test_oracle_tuning_tool_refuses_evaluation_seeds(capsys: pytest.CaptureFixtu
             mod.main(["--seed", str(seed)])
         assert exc.value.code == 2
     assert "evaluation seed" in capsys.readouterr().err
+
+
+def test_planner_enters_a_room_behind_a_narrowed_doorway() -> None:
+    """Two rooms joined by a doorway the map narrows to 0.5 m: a frontier inside the far room is approached
+    through the door at the reduced clearance, not 'reached' from this side of the wall (issue 14: rooms behind
+    such doors were never entered, even by target_oracle)."""
+    from eqa.messages import GridSpec
+    from services.planner.sampling import step_rng
+    from services.planner.step import Memory, plan_step
+
+    res = 0.1
+    rows, cols = 40, 100  # 4 m x 10 m
+    grid = GridSpec(origin_x=0.0, origin_y=0.0, resolution=res, rows=rows, cols=cols)
+    free = np.zeros((rows, cols), dtype=bool)
+    occ = np.zeros((rows, cols), dtype=bool)
+    free[1:-1, 1:49] = True  # room A: x 0.1 .. 4.9
+    occ[:, 49:51] = True  # wall at x 4.9 .. 5.1
+    free[1:-1, 51:-1] = True  # room B: x 5.1 .. 9.9
+    occ[18:23, 49:51] = False
+    free[18:23, 49:51] = True  # doorway 0.5 m wide at y 1.8 .. 2.3
+    far = Frontier(x=5.65, y=2.05, nx=1.0, ny=0.0, size=10)  # inside room B, 1 m from room A's reach
+    near = Frontier(x=1.0, y=3.5, nx=-1.0, ny=0.0, size=10)  # in room A
+    pose = Pose2D(x=2.0, y=2.0, yaw=0.0)
+    frontiers = target_weights([far, near], [(8.0, 2.0)])
+    plan = plan_step(grid, free, occ, pose, frontiers, "target_oracle", Memory(), step_rng(0, 0))
+    assert plan.kind == "move" and plan.frontier_index == 0
+    assert plan.full_path[-1][0] > 5.1, f"approach point {plan.full_path[-1]} is not inside room B"
+    assert plan.clearance_m is not None and plan.clearance_m < 0.3

@@ -55,11 +55,22 @@ def scorer_label(settings: Any) -> str:
     return f"scorer: {settings.scorer_backend} ({model})"
 
 
+# Bumped when the exploration itself changes (planner, mapper value layers), so that traces of the earlier
+# behaviour are not resumed into new figures. 2: every clearance searched per frontier (doorways), scored-only
+# SV_p,normal with unscored cells at the Eq. 3 floor (issue 14). Seed 0 keeps the legacy traces of version 1.
+EXPLORATION_VERSION = 2
+
+
 def set_name(strategy: str, settings: Any, seed: int = 0) -> str:
-    """One trace set per (strategy, scorer, image size, benchmark seed), keyed by question id: the explore and
-    the stop benchmarks read the same full-length runs. Seed 0 keeps the legacy names of the first figures."""
+    """One trace set per (strategy, scorer, image size, benchmark seed, exploration version), keyed by question
+    id: the explore and the stop benchmarks read the same full-length runs. Seed 0 keeps the legacy names (and
+    traces) of the first figures."""
     base = f"bench-{strategy}-{settings.scorer_backend}-{settings.sim_width}x{settings.sim_height}"
-    return base if seed == 0 else f"{base}-seed{seed}"
+    return base if seed == 0 else f"{base}-seed{seed}-x{EXPLORATION_VERSION}"
+
+
+def _runner_suffix(args: argparse.Namespace) -> str:
+    return "-cores" if getattr(args, "runner", "fleet") == "cores" else ""
 
 
 def tau_label(tau: float) -> str:
@@ -152,8 +163,12 @@ def _collect(questions: list[Any], settings: Any, strategy: str, name: str, args
     steps = 0
     with tqdm(total=len(questions), initial=done, desc=f"{strategy:>8}", unit="ep", file=sys.stderr,
               disable=args.no_progress) as bar:
-        for trace in collect_traces(questions, settings, strategy=strategy, set_name=name, progress=bar,
-                                    robots=args.robots, scorers=args.scorers):
+        if getattr(args, "runner", "fleet") == "cores":
+            runs = _collect_cores(questions, settings, strategy, name, args.workers)
+        else:
+            runs = collect_traces(questions, settings, strategy=strategy, set_name=name, progress=bar,
+                                  robots=args.robots, scorers=args.scorers)
+        for trace in runs:
             bar.update(1)
             steps += len(trace.steps)
     ran = len(questions) - done
@@ -166,6 +181,29 @@ def _collect(questions: list[Any], settings: Any, strategy: str, name: str, args
     _export(export, everything)
     by_id = {t.question_id: t for t in everything}
     return [by_id[q.id] for q in questions if q.id in by_id]
+
+
+def _collect_cores(questions: list[Any], settings: Any, strategy: str, name: str, workers: int) -> Any:
+    """Run the questions without a stored trace in ``name`` with the pure cores (:mod:`eqa.app.core_runner`),
+    ``workers`` processes; store and yield each trace as it finishes."""
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    from eqa.app.core_runner import core_episode
+    from eqa.store import open_store
+    from services.stopper.calibration import TraceStore
+
+    with open_store(settings) as store:
+        traces = TraceStore(store)
+        missing = [q for q in questions if not traces.has(name, q.id)]
+        if not missing:
+            return
+        dump = settings.model_dump(mode="json")
+        with ProcessPoolExecutor(workers) as pool:
+            futures = [pool.submit(core_episode, (q, strategy, dump)) for q in missing]
+            for fut in as_completed(futures):
+                trace = fut.result()
+                traces.save(name, trace)
+                yield trace
 
 
 def _settings(args: argparse.Namespace) -> Any:
@@ -223,7 +261,7 @@ def cmd_explore(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     results: dict[str, Any] = {"scorer": scorer_label(settings), "budgets": list(ev.BUDGETS),
                                "size": f"{settings.sim_width}x{settings.sim_height}", "split": args.split,
-                               "limit_per_seed": args.limit, "seeds": seeds,
+                               "limit_per_seed": args.limit, "seeds": seeds, "runner": args.runner,
                                "seed_roles": {str(s): r for s, r in roles.items()},
                                "cdf_budgets": list(CDF_BUDGETS), "strategies": {}}
     areas = {k: v for s in seeds for k, v in _areas(questions[s], settings).items()}
@@ -232,8 +270,8 @@ def cmd_explore(args: argparse.Namespace) -> int:
     plan = [(s, s, settings) for s in args.strategies]
     plan += [(tau_label(t), "semantic", settings.model_copy(update={"tau_lsv": t, "tau_gsv": t})) for t in args.tau]
     for label, strategy, run_settings in plan:
-        runs[label] = {s: _collect(questions[s], run_settings, strategy, set_name(label, run_settings, s), args)
-                       for s in seeds}
+        runs[label] = {s: _collect(questions[s], run_settings, strategy,
+                                   set_name(label, run_settings, s) + _runner_suffix(args), args) for s in seeds}
         traces = [t for s in seeds for t in runs[label][s]]
         results["strategies"][label] = {
             **_summary(traces, ev),
@@ -290,7 +328,8 @@ def _print_explore(results: dict[str, Any]) -> None:
     budgets = results["budgets"]
     seeds = results.get("seeds", [0])
     roles = results.get("seed_roles", {})
-    print(f"success rate vs normalised step budget ({results['scorer']}, {results['size']}), pooled over seeds "
+    print(f"success rate vs normalised step budget ({results['scorer']}, {results['size']}, runner "
+          f"{results.get('runner', 'fleet')}), pooled over seeds "
           + ", ".join(f"{s} ({roles.get(str(s), '?')})" for s in seeds))
     width = max([9, *(len(k) for k in results["strategies"])])
     print(f"{'strategy':<{width}} n    " + " ".join(f"{b:>5.1f}" for b in budgets) + "  evidence seen (first at, x T)")
@@ -319,9 +358,13 @@ def cmd_stop(args: argparse.Namespace) -> int:
     from eqa.app import evaluation as ev
     from eqa.service import setup_logging
 
-    if args.miscalibration:  # issue 15: the sensitivity study, from perceptions recorded in-process
+    if args.miscalibration or args.cp_guided:  # issue 15: from perceptions recorded in-process
         from eqa.app import stop_sensitivity as sens
 
+        if args.cp_guided:
+            sens.compare_guided(Path(args.recordings), list(sens.EVALUATION_SEEDS), args.limit, args.size,
+                                args.record_workers, Path(args.out), not args.no_progress)
+            return 0
         return sens.run(args.miscalibration, args.levels, args.limit, Path(args.out), Path(args.recordings),
                         args.strategy, args.size, args.record_workers, not args.no_progress)
 
@@ -331,7 +374,7 @@ def cmd_stop(args: argparse.Namespace) -> int:
     # calibration and test splits of every seed, pooled (--limit per seed); each seed's runs in its own set
     cal, test = [], []
     for seed in dict.fromkeys(args.seeds):
-        name = set_name(args.strategy, settings, seed)
+        name = set_name(args.strategy, settings, seed) + _runner_suffix(args)
         cal += _collect(_questions("calibration", args.limit, settings, seed), settings, args.strategy, name, args)
         test_limit = None if args.limit is None else max(1, args.limit * 2 // 3)
         test += _collect(_questions("test", test_limit, settings, seed), settings, args.strategy, name, args)
@@ -386,6 +429,11 @@ def _common(p: argparse.ArgumentParser) -> None:
                    help="scorer backend (default: EQA_SCORER_BACKEND, normally oracle; hf reads EQA_HF_MODEL_PATH, "
                         "remote reads EQA_REMOTE_BASE_URL / EQA_REMOTE_MODEL / EQA_REMOTE_API_KEY)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--runner", choices=("fleet", "cores"), default="fleet",
+                   help="fleet (default): every service as its own process over Zenoh; cores: the services' step "
+                        "functions in-process (eqa/app/core_runner.py), several times less CPU, same seeds; its "
+                        "trace sets are kept apart (name suffix -cores) and the results say which runner")
+    p.add_argument("--workers", type=int, default=2, help="processes of the cores runner (default 2)")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -428,6 +476,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="miscalibration levels in [0, 1] (0 = the default model), with --miscalibration")
     s.add_argument("--recordings", default="var/sensitivity", help="where --miscalibration keeps its recordings")
     s.add_argument("--record-workers", type=int, default=1, help="recording processes for --miscalibration")
+    s.add_argument("--cp-guided", action="store_true",
+                   help="compare the cp_guided strategy with semantic instead: steps to a single-answer CP set and "
+                        "success at eps 0.2 on the evaluation seeds' test splits (simulated perception model)")
     s.set_defaults(func=cmd_stop)
     from eqa.app import task_bench  # HELIOS Tables 1, 2 (issue 17)
 

@@ -19,7 +19,8 @@ def plot_explore(results: dict[str, Any], out: Path) -> list[Path]:
     """Fig. 7 (success vs normalised budget), Fig. A6 (per category) and Fig. A7 (by house size)."""
     budgets = results["budgets"]
     seeds = results.get("seeds", [0])
-    sub = f"{results['scorer']}, {results['size']}, seeds {' '.join(map(str, seeds))}"
+    sub = (f"{results['scorer']}, {results['size']}, seeds {' '.join(map(str, seeds))}, "
+           f"runner {results.get('runner', 'fleet')}")
     paths = []
     everything = results["strategies"]
     tau_runs = {k: v for k, v in everything.items() if k.startswith("semantic_tau")}
