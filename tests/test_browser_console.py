@@ -124,13 +124,31 @@ def test_ask_with_the_keyboard_and_watch_live(browser: Any, gw: GatewayThread, c
 
     with fresh_page(browser) as b:
         b.get(gw.url + "/")
-        # The token, once: Tab to its field, type, Enter.
-        tab_to(b, "token")
+        # Everything in the header by Tab, in reading order.
+        order = []
+        for _ in range(6):
+            keys(b, Keys.TAB)
+            order.append(focused(b))
+        assert order == ["skip", "nav-ask", "nav-watch", "nav-fleet", "token", "token-save"], order
+        # The token, once: back to its field, type, Enter.
+        shift_tab(b)
+        assert focused(b) == "token"
         keys(b, TOKEN, Keys.ENTER)
         wait_until(lambda: "token accepted" in b.find_element("id", "token-state").text, what="the token accepted")
         assert b.find_element("id", "banner").get_attribute("hidden") is not None
-        passed = tab_to(b, "q-question")
-        assert {"nav-ask", "nav-watch", "nav-fleet"} <= set(passed) or "token-save" in passed
+        # Enter on a view's link opens it and puts the focus on its title.
+        shift_tab(b)
+        assert focused(b) == "nav-fleet"
+        keys(b, Keys.ENTER)
+        wait_until(lambda: focused(b) == "fleet-title" and b.find_element("id", "view-fleet").is_displayed(),
+                   what="the fleet view by keyboard")
+        wait_until(lambda: b.find_elements("css selector", "#f-robots tr[data-robot=robot0]"), what="fleet rows")
+        shift_tab(b, 5)
+        assert focused(b) == "nav-ask"
+        keys(b, Keys.ENTER)
+        wait_until(lambda: focused(b) == "ask-title", what="the ask view by keyboard")
+        keys(b, Keys.TAB)
+        assert focused(b) == "q-question"
         keys(b, "Where is the car?", Keys.TAB)
         assert focused(b) == "q-choices"
         keys(b, "\n".join(CHOICES).replace("\n", Keys.ENTER), Keys.TAB)

@@ -270,7 +270,7 @@
     $("watch-episode").hidden = false;
     const saved = load(eid);
     w = {eid, lastId: saved.lastId, events: [], choices: [], maxSteps: null, step: -1, sets: [],
-         ended: false, stopped: false, abort: null, imageTimer: null, lastFrameStep: -2, lastMapStep: -2,
+         ended: false, stopped: false, abort: null, imageTimer: null, lastFrameStep: -2, lastMapStep: -2, mapStep: -1,
          stepsSeen: -1, stopRule: null, eps: null, probs: {}, task: null, phases: []};
     $("w-log").textContent = "";
     $("w-set").textContent = "";
@@ -426,6 +426,9 @@
           li.textContent += ": " + ev.skill.skill + (ev.skill.success ? " succeeded" : " failed") +
             (ev.skill.reason ? " (" + ev.skill.reason + ")" : "");
         }
+        break;
+      case "map_update":  // the map and the frame's prompt points of this step exist now
+        s.mapStep = Math.max(s.mapStep, ev.step);
         break;
       case "goal":
         if (ev.phase) {
@@ -592,8 +595,7 @@
     s.busy = true;
     try {
       for (const [kind, key, cap] of [["frame", "lastFrameStep", "camera view"], ["map", "lastMapStep", "map"]]) {
-        if (!force && s[key] >= s.step && s.step >= 0 && s.ended) continue;
-        if (!force && s[key] >= Math.max(s.step, s.stepsSeen)) continue;
+        if (!force && s[key] >= s.mapStep) continue;  // fetched once the step's map (and prompt points) is in
         const r = await fetch("/v1/episodes/" + encodeURIComponent(s.eid) + "/" + kind + ".png",
                               {headers: headers(), cache: "no-store"});
         if (r.status === 401) { authBlocked = true; return; }
