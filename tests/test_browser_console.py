@@ -273,8 +273,8 @@ def test_gateway_crash_mid_episode_the_page_reconnects_and_resumes(
                 crash(first)
                 wait_until(lambda: "reconnecting" in b.find_element("id", "w-conn").text, what="the lost connection")
                 second = GatewayThread(alone, port=first.port).__enter__()
-                wait_until(lambda: "reconnected (resumed after" in b.find_element("id", "w-conn").text,
-                           what="the page to reconnect by itself")
+            wait_until(lambda: "reconnected (resumed after" in b.find_element("id", "w-conn").text,
+                       what="the page to reconnect by itself")
             wait_until(lambda: answer_shown(b), timeout=EPISODE_S, what="the episode's end after the crash")
             ids = page_event_ids(b)
             kinds = b.execute_script(

@@ -8,7 +8,7 @@
   const MAX_EVENTS = 5000;                 // events kept per episode (page and sessionStorage)
   const FLEET_PERIOD_MS = 1500;
   const IMAGE_PERIOD_MS = 400;             // at most one frame and one map fetch per period
-  const RETRY_MS = [500, 1000, 2000, 4000, 5000];
+  const RETRY_MS = [500, 1000, 2000];        // reconnect backoff (then every 2 s)
 
   const $ = (id) => document.getElementById(id);
   const letters = "ABCDEFGHIJKLMNOPQRSTUVWXYZ";
