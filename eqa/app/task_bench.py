@@ -27,6 +27,7 @@ import logging
 import math
 import queue
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -104,8 +105,10 @@ def sign_test(wins: int, losses: int) -> float:
 
 
 def run_tasks(settings: Settings, jobs: list[tuple[Task, str, int]], robots: int = 2, scorers: int = 1,
-              step_timeout_s: float = 300.0, progress: bool = True) -> list[TaskResult]:
-    """Run ``(task, variant, max_steps)`` jobs through a fleet over ``robots`` simulated robots."""
+              step_timeout_s: float = 300.0, progress: bool = True,
+              on_result: Callable[[TaskResult], None] | None = None) -> list[TaskResult]:
+    """Run ``(task, variant, max_steps)`` jobs through a fleet over ``robots`` simulated robots; ``on_result`` is
+    called as each one ends (so an interrupted benchmark keeps what it ran)."""
     from eqa.launcher import PIPELINE, Fleet
 
     if not jobs:
@@ -158,6 +161,8 @@ def run_tasks(settings: Settings, jobs: list[tuple[Task, str, int]], robots: int
                     reason = end.reason if end is not None else f"{msg.source}: {msg.reason}"
                     out.append(TaskResult(task.id, task.kind, variant, steps, dict(end.metrics) if end else {},
                                           state, reason, now - t0))
+                    if on_result is not None:
+                        on_result(out[-1])
                     if bar is not None:
                         bar.update(1)
             for eid, (robot, task, variant, steps, t0, seen) in list(running.items()):
@@ -167,6 +172,8 @@ def run_tasks(settings: Settings, jobs: list[tuple[Task, str, int]], robots: int
                     del running[eid]
                     free.append(robot)
                     out.append(TaskResult(task.id, task.kind, variant, steps, {}, "failed", why, now - t0))
+                    if on_result is not None:
+                        on_result(out[-1])
                     if bar is not None:
                         bar.update(1)
     if bar is not None:
@@ -265,11 +272,13 @@ def cmd(args: argparse.Namespace) -> int:
             for v in variants:
                 if (t.id, v, steps) not in done:
                     jobs.append((t, v, steps))
-        new = run_tasks(settings, jobs, robots=args.robots, scorers=args.scorers, progress=not args.no_progress)
-        with path.open("a") as f:
-            for r in new:
+        def keep(r: TaskResult, path: Path = path, done: dict[tuple[str, str, int], TaskResult] = done) -> None:
+            with path.open("a") as f:
                 f.write(json.dumps(r.__dict__) + "\n")
-                done[r.key()] = r
+            done[r.key()] = r
+
+        run_tasks(settings, jobs, robots=args.robots, scorers=args.scorers, progress=not args.no_progress,
+                  on_result=keep)
         wanted = {(t.id, v, min(t.max_steps or 1, args.max_steps) if args.max_steps else (t.max_steps or 1))
                   for t in tasks for v in variants}
         results = [r for k, r in done.items() if k in wanted]
