@@ -405,6 +405,10 @@ class ScoreResult(Message):
     replica: str = ""
     latency_ms: float = 0.0
     proposed_choices: list[str] = Field(default_factory=list)  # questions without choices (VI-A)
+    # issue 23: how the distribution was read: "logprobs" (the model's probabilities) or "sampling" (frequencies
+    # of sampled completions, multiples of ``resolution`` = 1/valid samples); "" from older replicas
+    mode: str = Field(default="", max_length=32)
+    resolution: float = Field(default=0.0, ge=0.0, le=1.0)
 
 
 class ErrorReply(Message):
@@ -428,6 +432,7 @@ class StepScores(Message):
     gsv: float = 0.0
     backend: str = ""
     choices: list[str] = Field(default_factory=list)
+    mode: str = Field(default="", max_length=32)  # the scorer's mode (ScoreResult.mode, issue 23)
 
 
 class Decision(Message):

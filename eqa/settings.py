@@ -67,6 +67,12 @@ class Settings(BaseSettings):
     remote_api_key: str | None = None
     remote_timeout_s: float = Field(default=30.0, gt=0)
     remote_max_retries: int = Field(default=4, ge=0)
+    # issue 23: endpoints without chat-completions logprobs (services/vlm_scorer/backends/remote.py)
+    remote_mode: Literal["auto", "logprobs", "sampling"] = Field(
+        default="auto", description="auto: logprobs, or sampling when the endpoint returns none (decided once)"
+    )
+    remote_samples: int = Field(default=8, ge=1, le=64, description="sampled completions per query (sampling)")
+    remote_sample_temperature: float = Field(default=1.0, gt=0.0, le=2.0)
     oracle_accuracy: float = Field(default=0.85, ge=0.0, le=1.0)
     # simulated perception model (services/vlm_scorer/backends/oracle.py documents each knob)
     oracle_evidence_confidence: float = Field(default=0.8, gt=0.0, lt=1.0)

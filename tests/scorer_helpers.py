@@ -84,3 +84,111 @@ def start_replica(settings: Settings, replica: str, **env: str) -> subprocess.Po
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
     )
+
+
+# ---- an OpenAI-compatible chat-completions double (real HTTP on loopback), logprobs on or off ---------------
+# Its "model" has a fixed next-token distribution per prompt kind; with logprobs on it returns the top list
+# like vLLM, with logprobs off it ignores the fields like `transformers serve` and answers sampled text.
+DOUBLE_DISTRIBUTIONS: dict[str, list[tuple[str, float]]] = {
+    "yesno": [("Yes", 0.3), ("No", 0.6), ("Maybe", 0.1)],
+    "letter": [("A", 0.2), ("B", 0.7), ("x", 0.1)],
+    "answer": [("B", 0.6), ("A", 0.2), ("C", 0.1), ("hmm", 0.1)],
+}
+
+
+def double_kind(text: str) -> str:
+    if "Yes or No" in text:
+        return "yesno"
+    if "single letter" in text:
+        return "letter"
+    return "answer"
+
+
+class OpenAIDouble:
+    """Behaviour of the double: ``logprobs`` (return them or ignore the fields), ``n`` ("honour", "ignore":
+    one choice whatever n, "refuse": HTTP 400 for n > 1), ``image`` (False: 400 for image content)."""
+
+    def __init__(self, logprobs: bool = True, n: str = "honour", image: bool = True, seed: int = 0,
+                 models: tuple[str, ...] = ("tiny-vlm",)) -> None:
+        import threading
+
+        self.logprobs = logprobs
+        self.n = n
+        self.image = image
+        self.models = models
+        self.rng = np.random.default_rng(seed)
+        self.requests: list[dict] = []
+        self.lock = threading.Lock()
+
+    def chat(self, body: dict) -> tuple[int, dict]:
+        with self.lock:
+            self.requests.append(body)
+        content = body["messages"][-1]["content"]
+        if not self.image and any(c.get("type") == "image_url" for c in content):
+            return 400, {"error": {"message": "this model does not accept images"}}
+        text = content[-1]["text"]
+        n = int(body.get("n", 1))
+        if n > 1 and self.n == "refuse":
+            return 400, {"error": {"message": "only n=1 is supported"}}
+        if n > 1 and self.n == "ignore":
+            n = 1
+        if body.get("max_tokens", 1) > 3:  # a proposal (VI-A)
+            return 200, {"choices": [{"index": 0, "message": {"role": "assistant", "content": "Red\nBlue"}}]}
+        dist = DOUBLE_DISTRIBUTIONS[double_kind(text)]
+        toks = [t for t, _ in dist]
+        probs = np.array([p for _, p in dist])
+        choices = []
+        for i in range(n):
+            if body.get("temperature", 1.0) == 0:
+                tok = toks[int(np.argmax(probs))]
+            else:
+                with self.lock:
+                    tok = toks[int(self.rng.choice(len(toks), p=probs))]
+            choice: dict = {"index": i, "message": {"role": "assistant", "content": tok}, "finish_reason": "length"}
+            if self.logprobs and body.get("logprobs"):
+                import math
+
+                choice["logprobs"] = {"content": [{
+                    "token": tok, "logprob": math.log(dict(dist)[tok]),
+                    "top_logprobs": [{"token": t, "logprob": math.log(p)} for t, p in dist],
+                }]}
+            choices.append(choice)
+        return 200, {"object": "chat.completion", "model": body.get("model"), "choices": choices}
+
+
+def serve_double(double: OpenAIDouble) -> tuple[str, object]:
+    """Start the double on a free loopback port: ``(base_url ending in /v1, server)``; stop with
+    ``server.shutdown(); server.server_close()``."""
+    import json
+    import threading
+    from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+    class Handler(BaseHTTPRequestHandler):
+        def _send(self, status: int, out: dict) -> None:
+            data = json.dumps(out).encode()
+            self.send_response(status)
+            self.send_header("Content-Type", "application/json")
+            self.send_header("Content-Length", str(len(data)))
+            self.end_headers()
+            self.wfile.write(data)
+
+        def do_GET(self) -> None:
+            if self.path == "/v1/models":
+                self._send(200, {"object": "list", "data": [{"id": m, "object": "model"} for m in double.models]})
+            else:
+                self._send(404, {"error": "not found"})
+
+        def do_POST(self) -> None:
+            if self.path != "/v1/chat/completions":
+                self._send(404, {"error": "not found"})
+                return
+            body = json.loads(self.rfile.read(int(self.headers["Content-Length"])))
+            self._send(*double.chat(body))
+
+        def log_message(self, *args: object) -> None:
+            pass
+
+    httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+    httpd.daemon_threads = True
+    threading.Thread(target=httpd.serve_forever, daemon=True).start()
+    return f"http://127.0.0.1:{httpd.server_address[1]}/v1", httpd

@@ -181,6 +181,20 @@ def _run_missing(
             bar.update(1)
 
 
+def scorer_mode(settings: Settings) -> str:
+    """The mode the scorer reads distributions in (recorded in the table; issue 23): ``logprobs`` for the
+    oracle and hf backends, the remote endpoint's resolved mode (EQA_REMOTE_MODE; auto is probed)."""
+    if settings.scorer_backend != "remote":
+        return "logprobs"
+    if settings.remote_mode != "auto":
+        return settings.remote_mode
+    from services.vlm_scorer.backends.remote import probe_endpoint
+
+    report = probe_endpoint(settings.remote_base_url or "", settings.remote_model, settings.remote_api_key,
+                            settings.remote_timeout_s, "auto", settings.remote_samples, score_step=False)
+    return report.mode or "auto"
+
+
 def run_calibrate(args: argparse.Namespace, settings: Settings, store: Store) -> CalibrationTable:
     grid = parse_eps_grid(args.eps)
     if args.limit is not None and args.limit < 1:
@@ -199,7 +213,7 @@ def run_calibrate(args: argparse.Namespace, settings: Settings, store: Store) ->
         if args.limit is not None:
             traces = traces[: args.limit]
         provenance.update(source="labelled episodes", tenant=args.tenant, set_name="labelled episodes",
-                          scorer_backend=settings.scorer_backend)
+                          scorer_backend=settings.scorer_backend, scorer_mode=scorer_mode(settings))
         table = calibrate(traces, grid, name=name, provenance=provenance, by_category=args.by_category)
         return _save(store, table, args)
     if args.from_traces is not None:
@@ -227,6 +241,7 @@ def run_calibrate(args: argparse.Namespace, settings: Settings, store: Store) ->
             benchmark_seed=args.benchmark_seed,
             strategy=args.strategy,
             scorer_backend=settings.scorer_backend,
+            scorer_mode=scorer_mode(settings),
         )
     provenance["set_name"] = set_name
     wanted = set(ids)

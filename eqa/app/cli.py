@@ -57,6 +57,23 @@ def check_scorer(settings: Settings) -> None:
         check_settings(settings)
     except BackendUnavailable as exc:
         raise UsageError(str(exc)) from None
+    if settings.scorer_backend == "remote":
+        check_remote(settings)
+
+
+def check_remote(settings: Settings) -> None:
+    """``eqa scorer check`` on the configured endpoint (issue 23): :class:`UsageError` with its findings when
+    the remote scorer could not use it; else one line saying the mode and the latency of a step."""
+    from services.vlm_scorer.backends.remote import probe_endpoint
+
+    report = probe_endpoint(settings.remote_base_url or "", settings.remote_model, settings.remote_api_key,
+                            settings.remote_timeout_s, settings.remote_mode, settings.remote_samples,
+                            settings.remote_sample_temperature)
+    if not report.usable:
+        raise UsageError("the remote scorer cannot use this endpoint:\n  " + "\n  ".join(report.lines()))
+    latency = f", one step {report.step_latency_s * 1000:.0f} ms" if report.step_latency_s is not None else ""
+    print(f"remote scorer: {report.base_url} model {report.model}, mode {report.mode}{latency} "
+          f"({report.calls_per_step} HTTP calls)", flush=True)
 
 
 def cmd_up(args: argparse.Namespace) -> int:

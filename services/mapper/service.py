@@ -205,6 +205,7 @@ class MapperService(ObjectLayerShell, EpisodeService[EpisodeMap]):
             lsv=result.lsv,
             gsv=result.gsv,
             backend=result.backend,
+            mode=result.mode,  # logprobs / sampling (issue 23): the stopper warns on a calibration mismatch
             # a question without choices: the ones the scorer proposed (Explore-EQA section VI-A)
             choices=em.start.question.choices or result.proposed_choices,
         )

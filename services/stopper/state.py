@@ -51,6 +51,7 @@ class CalibrationChoice(BaseModel):
     source: str
     note: str = ""
     backend: str | None = None  # the scorer backend whose scores the table was calibrated on
+    mode: str | None = None  # ... and its mode: logprobs / sampling (issue 23)
     category: str | None = None  # Mondrian: the category whose own q_hat this is
 
 
@@ -107,8 +108,9 @@ def resolve_calibration(
         )
     )
     backend = table.provenance.get("scorer_backend")
+    mode = table.provenance.get("scorer_mode")
     choice = CalibrationChoice(q_hat=entry.q_hat, eps=entry.eps, asked_eps=eps, n=table.n, source=where, note=note,
-                               backend=str(backend) if backend else None)
+                               backend=str(backend) if backend else None, mode=str(mode) if mode else None)
     return choice, ""
 
 
@@ -119,6 +121,15 @@ def backend_mismatch(cal: CalibrationChoice, scores_backend: str | None) -> str:
         return ""
     return (f"table calibrated on the {cal.backend} scorer, these scores come from {scores_backend}: "
             f"run `eqa calibrate` with this scorer for the guarantee")
+
+
+def mode_mismatch(cal: CalibrationChoice, scores_mode: str | None) -> str:
+    """A warning when the scores were read in another mode than the calibration's (issue 23): sampled
+    frequencies and logprobs are different score functions, so Claim 1 holds only for the table's mode."""
+    if not cal.mode or not scores_mode or scores_mode == cal.mode:
+        return ""
+    return (f"table calibrated in {cal.mode} mode, these scores come from {scores_mode} mode: "
+            f"run `eqa calibrate` in this mode (EQA_REMOTE_MODE) for the guarantee")
 
 
 class EpisodeRecord(BaseModel):
@@ -237,7 +248,7 @@ def decide(rec: EpisodeRecord, scores: StepScores) -> Decision | None:
         prev = labels if rec.running is None else rec.running
         running = [y for y in prev if y in cset]
         rec.running = running
-        notes = [n for n in (cal.note, backend_mismatch(cal, scores.backend)) if n]
+        notes = [n for n in (cal.note, backend_mismatch(cal, scores.backend), mode_mismatch(cal, scores.mode)) if n]
         tag = (f"eps={cal.eps:g}, q_hat={cal.q_hat:.4f}, N={cal.n}" + (f" of {cal.category}" if cal.category else "")
                + "".join(f"; {n}" for n in notes))
         answer = None

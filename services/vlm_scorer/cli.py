@@ -3,6 +3,9 @@
 eqa scorer build-tiny PATH     write a tiny random Qwen2-VL directory (offline) to try scorer_backend=hf
 eqa scorer replicas            list the live scorer replicas
 eqa scorer ping [--n N]        score N synthetic frames through the replica pool and print the results
+eqa scorer check --url URL [--model M]
+                               probe an OpenAI-compatible endpoint (models, image input, logprobs, latency of
+                               one scoring step) and print the mode the remote scorer will use and what to set
 """
 
 from __future__ import annotations
@@ -108,8 +111,36 @@ def cmd_ping(args: argparse.Namespace) -> int:
         bus.close()
 
 
+def cmd_check(args: argparse.Namespace) -> int:
+    from eqa.settings import Settings
+    from services.vlm_scorer.backends.remote import probe_endpoint
+
+    settings = Settings()
+    url = args.url or settings.remote_base_url
+    if not url:
+        return _fail("give --url (e.g. http://127.0.0.1:8000/v1) or set EQA_REMOTE_BASE_URL")
+    if not url.startswith(("http://", "https://")):
+        return _fail(f"--url {url!r} must start with http:// or https://")
+    samples = args.samples if args.samples is not None else settings.remote_samples
+    if not 1 <= samples <= 64:
+        return _fail("--samples must be 1..64")
+    report = probe_endpoint(
+        url,
+        args.model or settings.remote_model,
+        api_key=settings.remote_api_key,
+        timeout_s=args.timeout,
+        mode=args.mode or settings.remote_mode,
+        samples=samples,
+        temperature=settings.remote_sample_temperature,
+        score_step=not args.no_step,
+    )
+    for line in report.lines():
+        print(line)
+    return 0 if report.usable else 1
+
+
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("scorer", help="VLM scorer tools (tiny model, replicas, ping)")
+    p = subparsers.add_parser("scorer", help="VLM scorer tools (tiny model, replicas, ping, endpoint check)")
     sub = p.add_subparsers(dest="scorer_cmd", required=True)
     b = sub.add_parser("build-tiny", help="write a tiny random Qwen2-VL model directory (offline)")
     b.add_argument("path")
@@ -122,3 +153,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     g.add_argument("--n", type=int, default=1)
     g.add_argument("--timeout", type=float, default=10.0)
     g.set_defaults(func=cmd_ping)
+    c = sub.add_parser(
+        "check",
+        help="probe an OpenAI-compatible endpoint and say which scorer mode to use",
+        description="Probe an OpenAI-compatible chat-completions endpoint: models listed (GET /models), image "
+        "input accepted, logprobs returned, the latency and HTTP calls of one scoring step; print the mode the "
+        "remote scorer will use (logprobs, or sampling for servers without logprobs) and the EQA_* settings. "
+        "Exit 0 when usable, 1 when not.",
+    )
+    c.add_argument("--url", default=None, help="base URL ending in /v1 (default EQA_REMOTE_BASE_URL)")
+    c.add_argument("--model", default=None, help="served model name (default EQA_REMOTE_MODEL, else the first "
+                   "listed)")
+    c.add_argument("--mode", choices=("auto", "logprobs", "sampling"), default=None,
+                   help="force a mode (default EQA_REMOTE_MODE=auto: logprobs when returned, else sampling)")
+    c.add_argument("--samples", type=int, default=None, help="samples per query in sampling mode (default "
+                   "EQA_REMOTE_SAMPLES=8)")
+    c.add_argument("--timeout", type=float, default=60.0, help="seconds per HTTP request")
+    c.add_argument("--no-step", action="store_true", help="skip the timed scoring step")
+    c.set_defaults(func=cmd_check)

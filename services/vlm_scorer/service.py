@@ -63,6 +63,7 @@ class ScorerService(Service):
         settings: Settings,
         bus: Bus | None = None,
         store: Store | None = None,
+        *,
         backend: Backend | None = None,
     ) -> None:
         self.replica = keys.check_id(settings.scorer_replica or settings.instance, "replica")
@@ -155,6 +156,8 @@ class ScorerService(Service):
             replica=self.replica,
             latency_ms=latency,
             proposed_choices=scores.proposed_choices,
+            mode=scores.mode,
+            resolution=scores.resolution,
         )
 
     # ---- HELIOS: detections and per-target values ------------------------------------------------------
