@@ -28,13 +28,14 @@ from typing import Any
 import numpy as np
 
 from eqa import keys
+from eqa.bus import Bus
 from eqa.codec import unpackb
 from eqa.messages import EpisodeCancel, EpisodeEnd, EpisodeStart, ErrorReply, Frame, Goal, Pose2D, SkillReport
 from eqa.recording import EpisodeRecorder
 from eqa.service import Service
 from eqa.settings import Settings
 from eqa.sharding import Shard
-from eqa.store import EPISODE_STATE_TTL_S, episode_end_key, task_metrics_key
+from eqa.store import EPISODE_STATE_TTL_S, Store, episode_end_key, task_metrics_key
 from services.sim import hmeqa
 from services.sim.camera import camera_pose, intrinsics
 from services.sim.library import load_or_generate
@@ -89,8 +90,8 @@ class SimService(Service):
     name = "sim"
     description = "Simulator: renders RGB, depth and instance ids of generated houses or real meshes."
 
-    def __init__(self, settings: Settings, *args: object, **kwargs: object) -> None:
-        super().__init__(settings, *args, **kwargs)  # type: ignore[arg-type]
+    def __init__(self, settings: Settings, bus: Bus | None = None, store: Store | None = None) -> None:
+        super().__init__(settings, bus, store)
         self._episodes: dict[str, _Episode] = {}
         self._scenes: OrderedDict[tuple[str, int], Renderer] = OrderedDict()
         self._K = intrinsics(settings.sim_width, settings.sim_height)
