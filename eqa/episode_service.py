@@ -212,9 +212,11 @@ class EpisodeService(Service, Generic[S]):
         self.store.set(episode_state_key(self.name, episode_id), packb(body), ttl_s=self.state_ttl_s)
 
     def drop(self, episode_id: str) -> None:
-        """Forget an episode: memory, stored state, recorder, held messages."""
+        """Forget an episode: memory, stored state, recorder, held messages, step claims."""
         self.episodes.pop(episode_id, None)
-        self.meta.pop(episode_id, None)
+        meta = self.meta.pop(episode_id, None)
+        if meta is not None and self.shard is not None and self.shard.claims is not None:
+            self.shard.claims.forget(episode_id, meta.answer_step + 1)  # they would expire; not wait for it
         self._held.pop(episode_id, None)
         self.store.delete(episode_state_key(self.name, episode_id))
         rec = self.recorders.pop(episode_id, None)

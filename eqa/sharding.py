@@ -30,7 +30,7 @@ from eqa.store import Store
 log = logging.getLogger(__name__)
 
 CLAIM_PREFIX = "eqa:claim:"
-CLAIM_TTL_S = 3600.0
+CLAIM_TTL_S = 900.0  # a step claim matters while its episode runs: resends, the next step's staleness check
 MAX_ATTEMPTS = 64
 
 

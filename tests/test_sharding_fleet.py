@@ -25,6 +25,8 @@ from eqa import keys
 from eqa.launcher import PIPELINE, Fleet
 from eqa.messages import EpisodeEnd, EpisodeStart, Question, StopConfig
 from eqa.settings import Settings
+from eqa.sharding import CLAIM_PREFIX
+from eqa.store import RedisStore
 
 REPO = Path(__file__).resolve().parents[1]
 ROBOTS = [f"shard{i}" for i in range(6)]
@@ -96,5 +98,14 @@ def test_every_step_once_with_several_instances_through_kills_and_a_join(tmp_pat
     bad = {e: (m.state, m.reason) for e, m in watch.ends.items() if e in ids and m.state != "stopped"}
     assert not bad, bad
     assert all(watch.ends[eid].steps == STEPS for eid in ids)
+    store = RedisStore(redis_url)  # the claims of ended episodes are deleted, not left to expire
+
+    def left() -> list[str]:
+        return [k for k in store.keys(CLAIM_PREFIX) if k.endswith(":holder") and any(e in k for e in ids)]
+
+    try:
+        assert _wait(lambda: not left(), 10), left()[:20]
+    finally:
+        store.close()
     problems = ledger.problems({eid: STEPS for eid in ids})
     assert not problems, problems

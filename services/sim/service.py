@@ -340,6 +340,7 @@ class SimService(Service):
         ep = self._episodes.get(robot)
         if ep is not None and ep.episode_id == msg.episode_id:
             log.info("robot %s: episode %s cancelled (%s)", robot, msg.episode_id, msg.reason)
+            self._forget_claims(ep)
             self._close(robot)
         else:
             self._forget(robot, msg.episode_id)
@@ -350,9 +351,14 @@ class SimService(Service):
             return
         ep = self._episodes.get(robot)
         if ep is not None and ep.episode_id == msg.episode_id:
+            self._forget_claims(ep)
             self._close(robot)
         else:
             self._forget(robot, msg.episode_id)
+
+    def _forget_claims(self, ep: _Episode) -> None:
+        if self.shard is not None and self.shard.claims is not None:  # they would expire; not wait for it
+            self.shard.claims.forget(ep.episode_id, ep.step + 1)
 
     def _drop_memory_of(self, robot: str, episode_id: str) -> None:
         ep = self._episodes.get(robot)
