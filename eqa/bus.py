@@ -32,6 +32,10 @@ log = logging.getLogger(__name__)
 Handler = Callable[[str, Any], None]
 
 
+class BusError(RuntimeError):
+    """The session could not be opened (nothing listens there, or it refused this node's credentials)."""
+
+
 def zenoh_config(settings: Settings) -> zenoh.Config:
     """Zenoh configuration from settings: mode, listen/connect endpoints, multicast scouting, and the bus
     security of :mod:`eqa.security` when configured."""
@@ -96,7 +100,17 @@ class Bus:
     # ---- lifecycle ------------------------------------------------------------------------------------
     def open(self) -> Bus:
         if self._session is None:
-            self._session = zenoh.open(zenoh_config(self.settings))
+            conf = zenoh_config(self.settings)
+            try:
+                self._session = zenoh.open(conf)
+            except zenoh.ZError as exc:
+                s = self.settings
+                hint = (" (a secured fleet also needs this node's EQA_ZENOH_TLS_CA/CERT/KEY and "
+                        "EQA_ZENOH_USER/PASSWORD: README 'Scaling out')")
+                raise BusError(
+                    f"could not open a Zenoh {s.zenoh_mode} session connecting to "
+                    f"{', '.join(s.zenoh_connect) or 'nothing'}: {exc}; check EQA_ZENOH_CONNECT{hint}"
+                ) from exc
         return self
 
     def close(self) -> None:

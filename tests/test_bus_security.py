@@ -16,7 +16,7 @@ import pytest
 import zenoh
 
 from eqa import keys, security
-from eqa.bus import Bus, zenoh_config
+from eqa.bus import Bus, BusError, zenoh_config
 from eqa.launcher import free_port
 from eqa.messages import EpisodeEnd, EpisodeStart, Question, ScoreRequest
 from eqa.settings import Settings
@@ -143,6 +143,11 @@ def test_unauthenticated_peers_cannot_connect(fx: Fixture, case: str, tmp_path: 
         opener = lambda: zenoh.open(zenoh_config(s))  # noqa: E731
     with pytest.raises(zenoh.ZError):
         opener().close()
+
+
+def test_a_refused_node_gets_an_error_that_says_what_to_check(fx: Fixture):
+    with pytest.raises(BusError, match=r"EQA_ZENOH_CONNECT.*EQA_ZENOH_USER/PASSWORD"):
+        Bus(fx.client("stopper", password="guess"), "stopper", "st").open()
 
 
 def test_only_scorer_replicas_answer_score_queries_and_tokens_are_per_role(fx: Fixture):

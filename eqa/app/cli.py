@@ -21,6 +21,7 @@ import threading
 from pathlib import Path
 from typing import NoReturn
 
+from eqa.bus import BusError
 from eqa.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -200,6 +201,9 @@ def main(argv: list[str] | None = None) -> int:
     except UsageError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except BusError as exc:  # nothing to connect to, or the fleet refused this node's credentials
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
