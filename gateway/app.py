@@ -14,23 +14,23 @@ import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import fastapi_offline
-from fastapi import FastAPI, Request, status
+from fastapi import Depends, FastAPI, HTTPException, Request, status
 from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
 from fastapi.responses import HTMLResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
+from starlette.datastructures import Headers
 
 from eqa import keys
 from eqa.bus import Bus
 from eqa.messages import MESSAGE_TYPES, EpisodeEnd, ErrorReply, Message
 from eqa.settings import Settings
 from eqa.store import open_store, unavailable_errors
-from gateway.auth import Authenticator, retry_after
-from gateway.deps import DocsCallerDep
+from gateway.auth import Authenticator, authenticate_docs, retry_after
 from gateway.errors import GatewayError
 from gateway.limits import BODY_METHODS, BodyLimit
 from gateway.manager import PRUNE_BATCH, EpisodeManager, SceneArea
@@ -278,6 +278,25 @@ def _document_edge_answers(spec: dict[str, Any]) -> None:
                                                                  "schema": {"type": "integer"}}})
 
 
+DOCS_CHALLENGES = (b"Bearer", b'Basic realm="EQA gateway API docs", charset="UTF-8"')
+
+
+async def docs_caller(request: Request) -> Any:
+    """:func:`gateway.auth.authenticate_docs` (the same check), with its 401 challenge as one
+    ``WWW-Authenticate`` line per scheme: browsers read one scheme per line, and Chromium shows no password
+    prompt for ``Bearer, Basic realm=...`` in one line (so a person could not open /docs with tokens set)."""
+    try:
+        return await authenticate_docs(request)
+    except HTTPException as exc:
+        if exc.status_code != status.HTTP_401_UNAUTHORIZED:
+            raise
+        lines = Headers(raw=[(b"www-authenticate", c) for c in DOCS_CHALLENGES])
+        raise HTTPException(exc.status_code, detail=exc.detail, headers=lines) from None  # type: ignore[arg-type]
+
+
+DocsAuth = Annotated[Any, Depends(docs_caller)]
+
+
 def _add_docs(app: FastAPI) -> None:
     """``/openapi.json``, ``/docs`` (Swagger UI) and ``/redoc``, behind :func:`gateway.auth.authenticate_docs`
     (open when no tokens are configured). With tokens the spec declares the bearer scheme on the API routes,
@@ -301,7 +320,7 @@ def _add_docs(app: FastAPI) -> None:
     app.openapi = openapi_with_security  # type: ignore[method-assign]
 
     @app.get("/openapi.json", include_in_schema=False)
-    async def openapi(_caller: DocsCallerDep) -> JSONResponse:
+    async def openapi(_caller: DocsAuth) -> JSONResponse:
         return JSONResponse(app.openapi())
 
     # Swagger UI (5.x, reads OpenAPI 3.1) and ReDoc come with the fastapi-offline package: /docs and /redoc work
@@ -310,7 +329,7 @@ def _add_docs(app: FastAPI) -> None:
     app.mount(SWAGGER_ASSETS, StaticFiles(directory=str(DOCS_ASSETS_DIR)), name="docs-assets")
 
     @app.get("/docs", include_in_schema=False)
-    async def swagger(_caller: DocsCallerDep) -> HTMLResponse:
+    async def swagger(_caller: DocsAuth) -> HTMLResponse:
         page = get_swagger_ui_html(
             openapi_url="/openapi.json",
             title=f"{app.title} - Swagger UI",
@@ -322,7 +341,7 @@ def _add_docs(app: FastAPI) -> None:
         return page
 
     @app.get("/redoc", include_in_schema=False)
-    async def redoc(_caller: DocsCallerDep) -> HTMLResponse:
+    async def redoc(_caller: DocsAuth) -> HTMLResponse:
         page = get_redoc_html(
             openapi_url="/openapi.json",
             title=f"{app.title} - ReDoc",
