@@ -36,6 +36,8 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
+from eqa.seeds import EVALUATION_SEEDS
+
 log = logging.getLogger("stop_sensitivity")
 
 DEFAULT_DIR = Path("var/sensitivity")
@@ -539,7 +541,7 @@ def sweep(seeds: dict[int, SeedData], tuning_seed: int, eval_seeds: list[int], m
     ``tuning_seed``, evaluated on ``eval_seeds`` pooled and per seed."""
     from tqdm import tqdm
 
-    from eqa.seeds import EVALUATION_SEEDS, check_tuning_seed
+    from eqa.seeds import check_tuning_seed
 
     check_tuning_seed(tuning_seed)
     results: dict[str, Any] = {"tuning_seed": tuning_seed, "evaluation_seeds": eval_seeds,
@@ -709,12 +711,17 @@ def load_seeds(out: Path, seeds: list[int], limit: int | None, strategy: str, si
 
 
 def run(modes: list[str], levels: list[float], limit: int | None, out: Path, recordings: Path, strategy: str,
-        size: str, workers: int, progress: bool = True) -> int:
-    """``eqa bench stop --miscalibration``: record what is missing, sweep, print, store JSON and the plot."""
+        size: str, workers: int, progress: bool = True, eval_seeds: list[int] | None = None) -> int:
+    """``eqa bench stop --miscalibration``: record what is missing, sweep, print, store JSON and the plot.
+    ``eval_seeds``: a subset of :data:`eqa.seeds.EVALUATION_SEEDS` (default all of them)."""
     import json
 
-    from eqa.seeds import EVALUATION_SEEDS, TUNING_SEED
+    from eqa.seeds import TUNING_SEED
     from eqa.settings import Settings
+
+    eval_seeds = list(eval_seeds or EVALUATION_SEEDS)
+    if not set(eval_seeds) <= set(EVALUATION_SEEDS):
+        raise ValueError(f"evaluation seeds must be among {EVALUATION_SEEDS} (eqa.seeds), got {eval_seeds}")
 
     for m in modes:
         params_at(m, 0.0)  # validates the mode name
@@ -722,9 +729,9 @@ def run(modes: list[str], levels: list[float], limit: int | None, out: Path, rec
         raise ValueError("miscalibration levels must lie in [0, 1]")
     levels = sorted(set(levels) | {0.0})
     settings = Settings()
-    seeds = [TUNING_SEED, *EVALUATION_SEEDS]
+    seeds = [TUNING_SEED, *eval_seeds]
     data = load_seeds(recordings, seeds, limit, strategy, size, workers, settings.scenes_path, progress)
-    results = sweep(data, TUNING_SEED, list(EVALUATION_SEEDS), modes, levels, progress)
+    results = sweep(data, TUNING_SEED, eval_seeds, modes, levels, progress)
     results.update({"scorer": f"oracle ({LABEL})", "strategy": strategy, "size": size, "limit_per_seed": limit})
     out.mkdir(parents=True, exist_ok=True)
     (out / "stop_miscalibration.json").write_text(json.dumps(results, indent=1))
@@ -812,10 +819,22 @@ def main(argv: list[str] | None = None) -> int:
     g.add_argument("--workers", type=int, default=1)
     g.add_argument("--recordings", type=Path, default=DEFAULT_DIR)
     g.add_argument("--out", type=Path, default=Path("var/bench"))
+    w = sub.add_parser("sweep", help="the sensitivity study (as eqa bench stop --miscalibration)")
+    w.add_argument("--modes", nargs="+", default=list(MODES), choices=MODES)
+    w.add_argument("--levels", nargs="+", type=float, default=list(DEFAULT_LEVELS))
+    w.add_argument("--eval-seeds", type=int, nargs="+", default=None)
+    w.add_argument("--limit", type=int, default=None)
+    w.add_argument("--size", default="320x240")
+    w.add_argument("--workers", type=int, default=1)
+    w.add_argument("--recordings", type=Path, default=DEFAULT_DIR)
+    w.add_argument("--out", type=Path, default=Path("var/bench"))
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     from eqa.settings import Settings
 
+    if args.cmd == "sweep":
+        return run(args.modes, args.levels, args.limit, args.out, args.recordings, "semantic", args.size,
+                   args.workers, eval_seeds=args.eval_seeds)
     if args.cmd == "guided":
         compare_guided(args.recordings, args.seeds, args.limit, args.size, args.workers, args.out)
         return 0
