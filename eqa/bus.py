@@ -153,12 +153,17 @@ class Bus:
         self.session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
 
     def subscribe(self, key: str, expected: type[M] | tuple[type[M], ...], handler: Handler,
-                  on_invalid: Callable[[str, bytes, str], None] | None = None) -> Any:
+                  on_invalid: Callable[[str, bytes, str], None] | None = None,
+                  accept: Callable[[str], bool] | None = None) -> Any:
         """Call ``handler(key, message)`` for each well-formed message on ``key``; log and drop the rest
-        (after ``on_invalid(key, payload, reason)`` when given: a service answers the episode at once)."""
+        (after ``on_invalid(key, payload, reason)`` when given: a service answers the episode at once).
+        ``accept(key)``, when given, is asked first: a sample it refuses is dropped without being decoded (an
+        instance skips the frames of robots another instance owns)."""
 
         def on_sample(sample: zenoh.Sample) -> None:
             skey = str(sample.key_expr)
+            if accept is not None and not accept(skey):
+                return
             payload = sample.payload.to_bytes()
             try:
                 msg = decode(payload, expected)

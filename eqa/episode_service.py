@@ -61,6 +61,7 @@ log = logging.getLogger(__name__)
 S = TypeVar("S")
 Pair = tuple[str, str]
 ENVELOPE_VERSION = 1
+LOST_GRACE_S = 60.0  # an instance still decodes a robot's step inputs this long after the robot moved away
 
 
 def message_bytes(msg: Message) -> int:
@@ -115,6 +116,7 @@ class EpisodeService(Service, Generic[S]):
         self._held: dict[str, list[_Held]] = {}
         self._routes: dict[Pair, _Route] = {}
         self.shard: Shard | None = None
+        self._lost_at: dict[str, float] = {}  # robots that moved away recently (replaced whole, read on Zenoh threads)
 
     # ---- hooks ------------------------------------------------------------------------------------------
     def owns(self, robot: str) -> bool:
@@ -179,7 +181,7 @@ class EpisodeService(Service, Generic[S]):
         its start; otherwise it is dropped quietly."""
         route = _Route(pair, handler, resend, hold)
         self._routes[pair] = route
-        self.on(pair, lambda robot, msg: self._dispatch(robot, msg, route))
+        self.on(pair, lambda robot, msg: self._dispatch(robot, msg, route), prefilter=True)
 
     def receive(self, pair: Pair, robot: str, msg: Any) -> None:
         """Handle ``msg`` as if it came on stream ``pair`` of ``robot`` (call it on the worker: tests use
@@ -376,7 +378,18 @@ class EpisodeService(Service, Generic[S]):
         if rec is not None:
             rec.close()
 
+    def wants(self, robot: str) -> bool:
+        """Decode the step inputs of robots this instance owns, or owned within ``LOST_GRACE_S`` (it finishes the
+        steps it claimed); the rest are dropped undecoded."""
+        if self.owns(robot):
+            return True
+        lost = self._lost_at.get(robot)
+        return lost is not None and time.monotonic() - lost < LOST_GRACE_S
+
     def _robots_moved(self, gained: set[str], lost: set[str]) -> None:
+        now = time.monotonic()
+        self._lost_at = {**{r: t for r, t in self._lost_at.items() if now - t < LOST_GRACE_S},
+                         **dict.fromkeys(lost, now)}
         for eid, meta in list(self.meta.items()):
             if meta.robot in lost:
                 log.info("%s: robot %s moved to another instance; episode %s left to it", self.name, meta.robot,

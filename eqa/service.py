@@ -68,9 +68,10 @@ class Service:
         """Release resources. Called once after the worker stopped."""
 
     def on(self, pair: tuple[str, str], handler: Callable[[str, Any], None],
-           on_invalid: Callable[[str, bytes, str], None] | None = None) -> None:
+           on_invalid: Callable[[str, bytes, str], None] | None = None, prefilter: bool = False) -> None:
         """Run ``handler(robot, message)`` on the worker for every message of stream ``pair`` of any robot;
-        ``on_invalid(robot, payload, reason)`` on the worker for each payload that does not validate."""
+        ``on_invalid(robot, payload, reason)`` on the worker for each payload that does not validate.
+        ``prefilter``: messages of robots :meth:`wants` refuses are dropped before they are decoded."""
         expected = STREAM_TYPES[pair]
 
         def enqueue(key: str, msg: Message) -> None:
@@ -80,7 +81,14 @@ class Service:
             if on_invalid is not None:
                 self._queue.put((on_invalid, keys.robot_of(key), payload, reason))
 
-        self.bus.subscribe(keys.any_robot(pair), expected, enqueue, enqueue_invalid if on_invalid else None)
+        accept = (lambda key: self.wants(keys.robot_of(key))) if prefilter else None
+        self.bus.subscribe(keys.any_robot(pair), expected, enqueue, enqueue_invalid if on_invalid else None,
+                           accept=accept)
+
+    def wants(self, robot: str) -> bool:
+        """Whether messages of ``robot`` are worth decoding here (sharded services: their robots). Runs on Zenoh
+        threads."""
+        return True
 
     def submit(self, fn: Callable[..., None], *args: Any) -> None:
         """Run ``fn(*args)`` on the worker (after what is already queued)."""

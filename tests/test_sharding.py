@@ -170,3 +170,22 @@ def test_shard_reports_the_robots_that_move_when_an_instance_joins(settings: Set
         assert sa.claim("ep", 0).won and not sb.claim("ep", 0).won
         off = sharding.Shard(b, lambda: store, "stopper", "st-c", enabled=False).start()
         assert all(off.owns(r) for r in robots) and off.claim("ep", 0).won
+
+
+def test_refused_robots_are_dropped_before_decoding(settings: Settings, hub_settings: Settings):
+    from eqa import keys
+    from eqa.messages import Frame
+
+    seen: list[str] = []
+    invalid: list[str] = []
+    done = threading.Event()
+    with Bus(hub_settings, "mapper", "m-a") as a, Bus(settings, "sim", "s") as sim:
+        a.subscribe(keys.any_robot(keys.SIM_FRAME), Frame, lambda k, m: seen.append(k),
+                    on_invalid=lambda k, p, why: (invalid.append(k), done.set()),
+                    accept=lambda key: keys.robot_of(key) == "mine")
+        time.sleep(0.3)
+        sim.publish_raw(keys.stream("theirs", keys.SIM_FRAME), b"\x00 not a frame")
+        sim.publish_raw(keys.stream("mine", keys.SIM_FRAME), b"\x00 not a frame")
+        assert done.wait(5)
+        time.sleep(0.2)
+    assert invalid == [keys.stream("mine", keys.SIM_FRAME)] and not seen
