@@ -5,6 +5,10 @@ The directory has what a real Qwen2-VL checkpoint has (``config.json``, weights,
 the code path a user's downloaded model takes. The tokenizer is a byte-level BPE trained on a few strings of
 the scorer's prompts; nothing is downloaded. The weights are random: the probabilities it gives are
 meaningless, only their plumbing (candidate tokens, normalisation, batching) is real.
+
+It also has a chat template in the Qwen2-VL format (``chat_template.jinja``, :data:`CHAT_TEMPLATE`: ChatML turns,
+each image as ``<|vision_start|><|image_pad|><|vision_end|>``, a default system turn), so an OpenAI-compatible
+server that renders chats with the checkpoint's own template (``transformers serve``) can serve it (issue 23).
 """
 
 from __future__ import annotations
@@ -22,6 +26,34 @@ SPECIAL_TOKENS = [
     "<|image_pad|>",
     "<|video_pad|>",
 ]
+
+
+# The Qwen2-VL chat format: ChatML turns; an image part (OpenAI "image_url" or HF "image") becomes the vision
+# placeholder the processor expands; a conversation without a system turn gets the default one.
+CHAT_TEMPLATE = (
+    "{% set image_count = namespace(value=0) %}"
+    "{% for message in messages %}"
+    "{% if loop.first and message['role'] != 'system' %}"
+    "<|im_start|>system\nYou are a helpful assistant.<|im_end|>\n"
+    "{% endif %}"
+    "<|im_start|>{{ message['role'] }}\n"
+    "{% if message['content'] is string %}"
+    "{{ message['content'] }}<|im_end|>\n"
+    "{% else %}"
+    "{% for part in message['content'] %}"
+    "{% if part['type'] in ('image', 'image_url') or 'image' in part or 'image_url' in part %}"
+    "{% set image_count.value = image_count.value + 1 %}"
+    "{% if add_vision_id %}Picture {{ image_count.value }}: {% endif %}"
+    "<|vision_start|><|image_pad|><|vision_end|>"
+    "{% elif 'text' in part %}"
+    "{{ part['text'] }}"
+    "{% endif %}"
+    "{% endfor %}"
+    "<|im_end|>\n"
+    "{% endif %}"
+    "{% endfor %}"
+    "{% if add_generation_prompt %}<|im_start|>assistant\n{% endif %}"
+)
 
 
 def _corpus() -> list[str]:
@@ -66,7 +98,9 @@ def build_tiny_qwen2vl(path: str | Path, letters: str | None = None, seed: int =
     tokenizer = PreTrainedTokenizerFast(
         tokenizer_object=tok, eos_token="<|im_end|>", pad_token="<|endoftext|>", padding_side="left"
     )
+    tokenizer.chat_template = CHAT_TEMPLATE
     tokenizer.save_pretrained(out)
+    (out / "chat_template.jinja").write_text(CHAT_TEMPLATE)  # where a processor looks for it
     ids = {t: tokenizer.convert_tokens_to_ids(t) for t in SPECIAL_TOKENS}
 
     image_processor = Qwen2VLImageProcessorPil(
