@@ -1,24 +1,41 @@
 # One image for every service of the fleet; the compose file picks the module to run.
-FROM python:3.11-slim
+# BASE is any Debian-based image with Python 3.11 and its venv module: python:3.11-slim from a registry by
+# default; where no registry is reachable, scripts/containers.sh makes localhost/eqa-base:bookworm (debootstrap
+# of Debian bookworm, whose python3 is 3.11) and builds with --build-arg BASE=localhost/eqa-base:bookworm.
+ARG BASE=python:3.11-slim
+FROM ${BASE}
+
+# Where torch's CPU wheel comes from; empty = the pip configuration in effect (scripts/containers.sh mounts the
+# host's pip settings, wheel directories and CA bundle into the build, so the host's indexes are used).
+ARG TORCH_INDEX=https://download.pytorch.org/whl/cpu
 
 ENV PYTHONUNBUFFERED=1 \
     PIP_NO_CACHE_DIR=1 \
     RERUN_TELEMETRY_ENABLED=false \
     HF_HUB_OFFLINE=1 \
-    EQA_DATA_DIR=/data
+    EQA_DATA_DIR=/data \
+    VIRTUAL_ENV=/opt/venv \
+    PATH=/opt/venv/bin:$PATH
 
 RUN apt-get update \
  && apt-get install -y --no-install-recommends libusb-1.0-0 libgomp1 \
- && rm -rf /var/lib/apt/lists/*
+ && rm -rf /var/lib/apt/lists/* \
+ && python3 -m venv /opt/venv
 
 WORKDIR /app
-COPY pyproject.toml README.md ./
+# Dependencies first (their own layer: a change of code alone does not reinstall them). torch first, pinned
+# to the CPU wheel, so nothing pulls a CUDA build.
+COPY pyproject.toml ./
+RUN pip install ${TORCH_INDEX:+--index-url "$TORCH_INDEX"} torch==2.13.0 \
+ && python -c "import tomllib; print('\n'.join(tomllib.load(open('pyproject.toml', 'rb'))['project']['dependencies']))" \
+      > /tmp/requirements.txt \
+ && pip install -r /tmp/requirements.txt \
+ && rm /tmp/requirements.txt
+COPY README.md ./
 COPY eqa ./eqa
 COPY services ./services
 COPY gateway ./gateway
-# torch first, pinned to the CPU wheel, so nothing pulls a CUDA build.
-RUN pip install --index-url https://download.pytorch.org/whl/cpu torch==2.13.0 \
- && pip install .
+RUN pip install --no-deps . && rm -rf build
 
 VOLUME ["/data"]
 CMD ["python", "-m", "gateway"]

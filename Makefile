@@ -4,7 +4,7 @@ PY := $(VENV)/bin/python
 export RERUN_TELEMETRY_ENABLED := false
 export HF_HUB_OFFLINE := 1
 
-.PHONY: setup demo test lint bench up clean
+.PHONY: setup demo test lint bench up clean compose-smoke
 
 setup:
 	@VENV=$(VENV) bash scripts/setup.sh
@@ -24,6 +24,13 @@ bench: setup
 
 up: setup
 	$(VENV)/bin/eqa up
+
+# The compose fleet in podman containers, one question through them (issue 25; not part of `make test`:
+# about 15-25 min the first time on a loaded 2-core machine, see README "Containers").
+compose-smoke: setup
+	bash scripts/containers.sh setup
+	bash scripts/containers.sh build
+	$(PY) scripts/compose_smoke.py
 
 clean:
 	rm -rf var .pytest_cache .ruff_cache

@@ -71,3 +71,37 @@ def test_health_command_exists_for_the_checks():
     out = subprocess.run([sys.executable, "-m", "eqa", "health", "--help"], capture_output=True, text=True,
                          timeout=60, cwd=REPO)
     assert out.returncode == 0, out.stderr
+
+
+class _Override(yaml.SafeLoader):
+    """Reads podman-compose's ``!override`` / ``!reset`` tags (plain values here)."""
+
+
+_Override.add_constructor("!override", lambda loader, node: (
+    loader.construct_sequence(node) if isinstance(node, yaml.SequenceNode) else loader.construct_mapping(node)))
+_Override.add_constructor("!reset", lambda loader, node: None)
+
+
+def test_podman_override_changes_only_what_cannot_be_pulled_here():
+    """docker-compose.podman.yml (issue 25) swaps the two registry images for local ones and the published
+    ports; the services, replicas, health checks and variables stay docker-compose.yml's."""
+    override = yaml.load((REPO / "docker-compose.podman.yml").read_text(), Loader=_Override)
+    services = override["services"]
+    assert set(services) == {"zenoh", "redis", "gateway"}
+    assert set(services["gateway"]) == {"ports"}
+    assert all(p.startswith("127.0.0.1:") for p in services["gateway"]["ports"])
+    router = services["zenoh"]["command"]
+    assert router[:4] == ["python", "-m", "eqa", "router"] and "tcp/0.0.0.0:7447" in router
+    assert _module_exists("eqa")
+    assert set(services["zenoh"]["environment"]) <= env_names()
+    assert services["redis"]["command"][0] == "redis-server"
+
+
+def test_compose_file_assumes_nothing_of_this_machine():
+    text = (REPO / "docker-compose.yml").read_text()
+    assert "localhost/" not in text and "/opt/" not in text and "podman" not in text.lower()
+    assert COMPOSE["services"]["zenoh"]["image"].startswith("eclipse/zenoh:")
+    assert COMPOSE["services"]["redis"]["image"].startswith("redis:")
+    dockerfile = (REPO / "Dockerfile").read_text()
+    assert re.search(r"^ARG BASE=python:3\.11-slim$", dockerfile, re.M)
+    assert "/opt/" not in dockerfile.replace("/opt/venv", "")
