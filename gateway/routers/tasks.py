@@ -13,7 +13,7 @@ from pydantic import BaseModel, ConfigDict, Field, StrictBool
 
 from eqa.instructions import InstructionError, parse_instruction
 from eqa.messages import SCENE_ID, Ablation, Pose2D, Task, TaskKind, check_text
-from gateway.deps import ManagerDep, SubmitterDep
+from gateway.deps import ManagerDep, SettingsDep, SubmitterDep
 from gateway.errors import InvalidError
 from gateway.routers.episodes import errors
 from gateway.schemas import QuestionRequest, Submitted
@@ -37,7 +37,8 @@ class TaskRequest(BaseModel):
     robot: Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_-]+$")] | None = None
     start_pose: Pose2D | None = None
     ablation: Ablation = "helios"
-    pick_limit: int | None = Field(default=None, ge=1, le=1000, description="pick attempts; none = unlimited")
+    pick_limit: int | None = Field(default=None, ge=1, le=1000,
+                                   description="pick attempts; default EQA_HELIOS_PICK_ATTEMPTS (0 = unlimited)")
     max_steps: int | None = Field(default=None, ge=1, le=10_000)
     seed: int = Field(default=0, ge=0, le=2**31 - 1)
     record: StrictBool = True
@@ -65,9 +66,10 @@ def build_task(req: TaskRequest) -> Task:
     summary="Submit a pick-and-place or find-object task; returns the episode id (running or queued)",
     responses=errors(400, 401, 403, 409, 413, 422, 429, 503),
 )
-def submit_task(body: TaskRequest, manager: ManagerDep, caller: SubmitterDep) -> Submitted:
+def submit_task(body: TaskRequest, manager: ManagerDep, caller: SubmitterDep, settings: SettingsDep) -> Submitted:
     task = build_task(body)
+    limit = body.pick_limit if body.pick_limit is not None else (settings.helios_pick_attempts or None)
     stand_in = QuestionRequest(question=body.instruction.strip(), scene=body.scene, robot=body.robot,
                                start_pose=body.start_pose, stop_rule="max_steps", max_steps=body.max_steps,
                                seed=body.seed, record=body.record)
-    return manager.submit(stand_in, caller, task=task, ablation=body.ablation, pick_limit=body.pick_limit)
+    return manager.submit(stand_in, caller, task=task, ablation=body.ablation, pick_limit=limit)
