@@ -113,11 +113,15 @@ def test_a_killed_service_is_restarted_and_the_fleet_goes_on(fleet: Fleet):
 
 
 def test_a_second_peer_joins_with_client_settings(fleet: Fleet):
+    # A session just opened has not heard of every peer yet (and a loaded machine answers the liveliness query
+    # slowly): gather what each query sees until every service was seen or the deadline passes.
+    seen: set[str] = set()
     with Bus(fleet.client_settings(), "probe", "probe") as bus:
-        deadline = time.monotonic() + 10
-        while time.monotonic() < deadline and len({s for s, _ in bus.alive()}) < len(ALL_SERVICES):
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and not seen >= set(ALL_SERVICES):
+            seen |= {s for s, _ in bus.alive()}
             time.sleep(0.2)
-        assert {s for s, _ in bus.alive()} >= set(ALL_SERVICES)
+    assert seen >= set(ALL_SERVICES)
 
 
 def test_eqa_health_from_another_process(fleet: Fleet):
