@@ -192,3 +192,65 @@ def serve_double(double: OpenAIDouble) -> tuple[str, object]:
     httpd.daemon_threads = True
     threading.Thread(target=httpd.serve_forever, daemon=True).start()
     return f"http://127.0.0.1:{httpd.server_address[1]}/v1", httpd
+
+
+# ---- transformers serve (the real OpenAI-compatible server; its own venv, scripts/setup-serve.sh) ----------
+VENV_SERVE = Path(os.environ.get("VENV_SERVE", REPO / "var" / "venv-serve"))
+
+
+def serve_installed() -> bool:
+    return any(VENV_SERVE.glob(".serve-installed-*")) and (VENV_SERVE / "bin" / "transformers").exists()
+
+
+def install_serve(timeout_s: float = 1500) -> tuple[bool, str]:
+    """Run scripts/setup-serve.sh (guarded, quick when installed): ``(ok, last lines of its output)``."""
+    proc = subprocess.run(
+        ["bash", str(REPO / "scripts" / "setup-serve.sh")],
+        cwd=REPO, env={**os.environ, "VENV_SERVE": str(VENV_SERVE)},
+        capture_output=True, text=True, timeout=timeout_s, check=False,
+    )
+    return proc.returncode == 0 and serve_installed(), (proc.stderr or proc.stdout)[-600:]
+
+
+def start_serve(model_dir: Path, log_path: Path, timeout_s: float = 180.0) -> tuple[subprocess.Popen[bytes], str, str]:
+    """``transformers serve MODEL_DIR`` (the model preloaded and pinned: requests must name it by this path) on
+    a free loopback port, waited for (``GET /health``): ``(process, base_url, model id)``. RuntimeError with the
+    server's log if it does not come up. Its ``GET /v1/models`` lists the Hugging Face cache, not the pinned
+    model: an empty cache directory is given (without one, transformers 5.23 answers that call with a 500)."""
+    import time
+
+    import httpx
+
+    from eqa.launcher import free_port
+
+    port = free_port()
+    cache = log_path.parent / "hf-cache"
+    cache.mkdir(parents=True, exist_ok=True)
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", "TRANSFORMERS_OFFLINE": "1", "OMP_NUM_THREADS": "1",
+           "HF_HUB_CACHE": str(cache)}
+    with log_path.open("wb") as log_file:
+        proc = subprocess.Popen(
+            [str(VENV_SERVE / "bin" / "transformers"), "serve", str(model_dir), "--host", "127.0.0.1",
+             "--port", str(port), "--device", "cpu", "--log-level", "info"],
+            env=env, stdout=log_file, stderr=subprocess.STDOUT,
+        )
+    url = f"http://127.0.0.1:{port}/v1"
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and proc.poll() is None:
+        try:
+            if httpx.get(f"http://127.0.0.1:{port}/health", timeout=2).status_code == 200:
+                return proc, url, str(model_dir)
+        except httpx.HTTPError:
+            pass
+        time.sleep(0.5)
+    stop_process(proc)
+    raise RuntimeError(f"transformers serve did not come up: {log_path.read_text(errors='replace')[-1500:]}")
+
+
+def stop_process(proc: subprocess.Popen[bytes]) -> None:
+    proc.terminate()
+    try:
+        proc.wait(timeout=15)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait(timeout=10)
