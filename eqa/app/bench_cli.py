@@ -361,12 +361,19 @@ def cmd_stop(args: argparse.Namespace) -> int:
     if args.miscalibration or args.cp_guided:  # issue 15: from perceptions recorded in-process
         from eqa.app import stop_sensitivity as sens
 
+        from eqa.settings import Settings
+
+        settings = Settings()
+
+        def loader(seed: int) -> Any:
+            return _benchmark(seed, settings)
+
         if args.cp_guided:
             sens.compare_guided(Path(args.recordings), list(sens.EVALUATION_SEEDS), args.limit, args.size,
-                                args.record_workers, Path(args.out), not args.no_progress)
+                                args.record_workers, Path(args.out), not args.no_progress, loader)
             return 0
         return sens.run(args.miscalibration, args.levels, args.limit, Path(args.out), Path(args.recordings),
-                        args.strategy, args.size, args.record_workers, not args.no_progress)
+                        args.strategy, args.size, args.record_workers, not args.no_progress, loader=loader)
 
     settings = _settings(args)
     setup_logging(settings.log_level, "eqa-bench")

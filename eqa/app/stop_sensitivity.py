@@ -61,11 +61,13 @@ class PerceptionEpisode:
     seconds: float = 0.0
 
 
-def benchmark_questions(seed: int, split: str, limit: int | None, scenes_dir: Any) -> list[Any]:
-    """The ``split`` questions of benchmark ``seed``; ``limit`` keeps the category mix (round-robin)."""
-    from services.sim.questions import benchmark
+def benchmark_questions(seed: int, split: str, limit: int | None, scenes_dir: Any, bench: Any = None) -> list[Any]:
+    """The ``split`` questions of benchmark ``seed`` (``bench``: the benchmark, when already loaded); ``limit``
+    keeps the category mix (round-robin)."""
+    if bench is None:
+        from services.sim.questions import benchmark
 
-    bench = benchmark(seed=seed, scenes_dir=scenes_dir)
+        bench = benchmark(seed=seed, scenes_dir=scenes_dir)
     qs = {"calibration": bench.calibration, "test": bench.test}[split]
     if limit is None or limit >= len(qs):
         return list(qs)
@@ -641,6 +643,9 @@ def print_results(results: dict[str, Any]) -> None:
             ci = f"{pr['mean_diff']:+.3f} [{pr['ci_low']:+.3f}, {pr['ci_high']:+.3f}]"
             print(f"  {r['level']:4.2f} | {cells} | {ci} succ {pr['a_only_right']}/{pr['b_only_right']} "
                   f"p {pr['success_sign_p']:.2g} | {cm:.3f} / {cmo:.3f}")
+            cur = r["curve_steps_at_full_success"]
+            print("         curves, fewest norm. steps at run-to-limit success - tol: " + ", ".join(
+                f"{k} {'never' if v is None else f'{v:.3f}'}" for k, v in cur.items()))
 
 
 def plot_results(results: dict[str, Any], out: Path) -> Path:
@@ -660,10 +665,10 @@ def plot_results(results: dict[str, Any], out: Path) -> Path:
         lv = [r["level"] for r in rows]
         ax0, ax1, ax2 = axes[i]
         for rule in RULES:
-            ax0.plot(lv, [r["pooled"][rule]["steps_saved"] for r in rows], marker="o", color=colors[rule],
+            curve = [r["curve_steps_at_full_success"][rule] for r in rows]
+            ax0.plot(lv, [math.nan if c is None else 1.0 - c for c in curve], marker="o", color=colors[rule],
                      label=names[rule])
-            ax1.plot(lv, [r["pooled"][rule]["success"] for r in rows], marker="o", color=colors[rule])
-        ax1.plot(lv, [r["pooled"]["max_steps"]["success"] for r in rows], ls="--", color="gray", label="run to limit")
+            ax1.plot(lv, [r["pooled"][rule]["steps_saved"] for r in rows], marker="o", color=colors[rule])
         for rule, ls in (("cp", "-"), ("cp_mondrian", ":")):
             ax2.plot(lv, [r["coverage"][f"{rule}_at_eps"]["marginal"] for r in rows], marker="o", ls=ls,
                      color=colors[rule], label=f"{names[rule]} (marginal)")
@@ -672,15 +677,20 @@ def plot_results(results: dict[str, Any], out: Path) -> Path:
             ax2.plot(lv, worst, marker="x", ls=ls, color=colors[rule], alpha=0.5,
                      label=f"{names[rule]} (worst category)")
         ax2.axhline(1 - results["coverage_eps"], color="k", lw=0.8, ls="--", label="1 - eps")
-        ax0.set(ylabel=f"{mode}\nsteps saved (1 - norm. steps)", ylim=(-0.05, 1))
-        ax1.set(ylabel="success", ylim=(0, 1))
+        ax0.set(ylabel=f"{mode}\nsteps saved at equal success", ylim=(-0.05, 1))
+        ax1.set(ylabel="steps saved, tuned points", ylim=(-0.05, 1))
+        if i == 0:
+            ax0.set_title(f"curves of the evaluation seeds: fewest steps reaching run-to-limit success - "
+                          f"{results['success_tol']}", fontsize=8)
+            ax1.set_title(f"operating points chosen on tuning seed {results['tuning_seed']} (success in the JSON)",
+                          fontsize=8)
+            ax2.set_title("coverage of the sequence-level set", fontsize=8)
         ax2.set(ylabel=f"CP coverage, eps {results['coverage_eps']}", ylim=(0, 1.02))
         for ax in (ax0, ax1, ax2):
             ax.grid(alpha=0.3)
             ax.set_xlabel("miscalibration level")
         if i == 0:
             ax0.legend(fontsize=7)
-            ax1.legend(fontsize=7)
             ax2.legend(fontsize=6)
     ns = results["n"]
     n_test = sum(ns[str(s)]["test"] for s in results["evaluation_seeds"])
@@ -695,15 +705,19 @@ def plot_results(results: dict[str, Any], out: Path) -> Path:
 
 
 def load_seeds(out: Path, seeds: list[int], limit: int | None, strategy: str, size: str, workers: int,
-               scenes_dir: Any, progress: bool = True) -> dict[int, SeedData]:
-    """Each seed's recorded calibration and test splits (recorded now when missing)."""
+               scenes_dir: Any, progress: bool = True, loader: Any = None) -> dict[int, SeedData]:
+    """Each seed's recorded calibration and test splits (recorded now when missing). ``loader(seed)``: the
+    benchmark of a seed (``eqa bench`` passes its cached one; building one loads ~170 houses)."""
+    from services.sim.questions import benchmark
+
     w, h = (int(v) for v in size.split("x"))
     data = {}
     for seed in seeds:
         parts = []
+        bench = loader(seed) if loader is not None else benchmark(seed=seed, scenes_dir=scenes_dir)
         for split in ("calibration", "test"):
             lim = limit if split == "calibration" or limit is None else max(1, limit * 2 // 3)
-            qs = benchmark_questions(seed, split, lim, scenes_dir)
+            qs = benchmark_questions(seed, split, lim, scenes_dir, bench)
             parts.append(record(qs, strategy, w, h, workers, recording_path(out, seed, split, strategy, size),
                                 progress))
         data[seed] = SeedData(seed, *parts)
@@ -711,7 +725,8 @@ def load_seeds(out: Path, seeds: list[int], limit: int | None, strategy: str, si
 
 
 def run(modes: list[str], levels: list[float], limit: int | None, out: Path, recordings: Path, strategy: str,
-        size: str, workers: int, progress: bool = True, eval_seeds: list[int] | None = None) -> int:
+        size: str, workers: int, progress: bool = True, eval_seeds: list[int] | None = None,
+        loader: Any = None) -> int:
     """``eqa bench stop --miscalibration``: record what is missing, sweep, print, store JSON and the plot.
     ``eval_seeds``: a subset of :data:`eqa.seeds.EVALUATION_SEEDS` (default all of them)."""
     import json
@@ -730,7 +745,7 @@ def run(modes: list[str], levels: list[float], limit: int | None, out: Path, rec
     levels = sorted(set(levels) | {0.0})
     settings = Settings()
     seeds = [TUNING_SEED, *eval_seeds]
-    data = load_seeds(recordings, seeds, limit, strategy, size, workers, settings.scenes_path, progress)
+    data = load_seeds(recordings, seeds, limit, strategy, size, workers, settings.scenes_path, progress, loader)
     results = sweep(data, TUNING_SEED, eval_seeds, modes, levels, progress)
     results.update({"scorer": f"oracle ({LABEL})", "strategy": strategy, "size": size, "limit_per_seed": limit})
     out.mkdir(parents=True, exist_ok=True)
@@ -747,7 +762,7 @@ GUIDED_EPS = 0.2  # the product's default eps (eqa ask / make demo), fixed in ad
 
 
 def compare_guided(recordings: Path, seeds: list[int], limit: int | None, size: str, workers: int, out: Path,
-                   progress: bool = True) -> dict[str, Any]:
+                   progress: bool = True, loader: Any = None) -> dict[str, Any]:
     """Steps to a single-answer CP set, and success, of ``cp_guided`` against ``semantic`` on each seed's test
     split: both stop by CP at :data:`GUIDED_EPS` with the q_hat calibrated on the seed's ``semantic``
     calibration split (level-0 perception); ``semantic`` is replayed from its full-length recording,
@@ -760,7 +775,7 @@ def compare_guided(recordings: Path, seeds: list[int], limit: int | None, size: 
 
     settings = Settings()
     w, h = (int(v) for v in size.split("x"))
-    data = load_seeds(recordings, seeds, limit, "semantic", size, workers, settings.scenes_path, progress)
+    data = load_seeds(recordings, seeds, limit, "semantic", size, workers, settings.scenes_path, progress, loader)
     res: dict[str, Any] = {"eps": GUIDED_EPS, "seeds": seeds, "per_seed": {}, "label": LABEL}
     pooled_sem: list[Outcome] = []
     pooled_gui: list[Outcome] = []
