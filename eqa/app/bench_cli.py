@@ -360,7 +360,6 @@ def cmd_stop(args: argparse.Namespace) -> int:
 
     if args.miscalibration or args.cp_guided:  # issue 15: from perceptions recorded in-process
         from eqa.app import stop_sensitivity as sens
-
         from eqa.settings import Settings
 
         settings = Settings()
