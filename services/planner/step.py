@@ -5,11 +5,9 @@ Rules, in order:
 1. Frontiers that are malformed (non-finite), outside the map, near a frontier the robot already went to
    (it faced it from up close and it stayed unknown), or excluded for this step (the simulator refused a
    goal at it) are not candidates.
-2. The robot's reachable space is searched at the full clearance (0.3 m) and at the reduced clearances
-   (0.2 m, then 0.1 m: doorways on the map are narrower than the real ones) (:mod:`services.planner.paths`);
-   each frontier is approached at the largest clearance that gets the robot within ``closer_m`` (0.5 m) of
-   the closest approach any clearance allows (before, the reduced clearances were tried only when no
-   frontier at all was reachable at 0.3 m, and rooms behind a narrowed door were never entered).
+2. The robot's reachable space is searched at the full clearance (0.3 m); when no candidate is reachable
+   there, again at the reduced clearances (0.2 m, then 0.1 m: doorways on the map are narrower than the
+   real ones) (:mod:`services.planner.paths`).
 3. A candidate is reachable when a reachable traversable point lies within ``approach_radius_m`` of it:
    its *approach point* (the reachable point nearest the frontier).
 4. The committed far target of earlier steps is kept while a candidate lies within ``commit_radius_m`` of
@@ -50,8 +48,6 @@ class PlannerParams(BaseModel):
     max_blocks: int = Field(default=400_000, ge=100)
     snap_radius_m: float = Field(default=1.0, ge=0)
     approach_radius_m: float = Field(default=1.5, gt=0)
-    # a lower clearance is used for a frontier when it brings the robot this much closer to it (rule 2)
-    closer_m: float = Field(default=0.5, ge=0)
     commit_radius_m: float = Field(default=1.0, ge=0)
     max_commit_steps: int = Field(default=12, ge=1)
     visited_radius_m: float = Field(default=0.75, ge=0)
@@ -230,36 +226,21 @@ def plan_step(
     approach: list[tuple[int, int] | None] = [None] * n
     geo = np.full(n, np.inf)
     reach = np.zeros(n, dtype=bool)
-    gap = np.full(n, np.inf)  # metres between a frontier and its approach point
-    grid_of: list[PlanningGrid | None] = [None] * n
     start_found = False
     for clearance in params.clearances_m:
-        pg_c = planning_grid(grid, free, occupied, clearance, params.coarse_m, params.max_blocks, extra)
-        started = pg_c.search_from(pose.x, pose.y, params.snap_radius_m)
-        for key, v in pg_c.timing_ms.items():
+        pg = planning_grid(grid, free, occupied, clearance, params.coarse_m, params.max_blocks, extra)
+        started = pg.search_from(pose.x, pose.y, params.snap_radius_m)
+        for key, v in pg.timing_ms.items():
             timing[key] = timing.get(key, 0.0) + v
-        if pg is None or started:
-            pg = pg_c
         if not started:
             continue
         start_found = True
         if not ok.any():
             break
-        # Every clearance is searched (rule 2): a frontier takes the largest clearance that brings the robot
-        # to within ``closer_m`` of the best approach any clearance gives. A frontier behind a doorway that
-        # the map narrows is otherwise "reached" from this side of the wall at 0.3 m (its approach point
-        # lies within 1.5 m), marked visited, and the rooms behind the door are never entered.
-        ap_c, geo_c = approach_points(pg_c, frontiers, ok, params.approach_radius_m)
-        for i in np.flatnonzero(np.isfinite(geo_c)):
-            block = ap_c[i]
-            assert block is not None
-            cx, cy = pg_c.block_centre(block[0], block[1])
-            e = math.hypot(float(cx) - frontiers[i].x, float(cy) - frontiers[i].y)
-            if e < gap[i] - params.closer_m:
-                approach[i], geo[i], gap[i], grid_of[i] = block, float(geo_c[i]), e, pg_c
+        approach, geo = approach_points(pg, frontiers, ok, params.approach_radius_m)
         reach = np.isfinite(geo)
-        if reach[ok].all() and float(gap[ok].max()) <= params.closer_m:
-            break  # every frontier is reached already: lower clearances cannot do better
+        if reach.any():
+            break
     timing["search"] = timing.get("traversable", 0.0) + timing.get("dijkstra", 0.0)
     assert pg is not None
 
@@ -325,7 +306,6 @@ def plan_step(
     frontier = frontiers[idx]
     target_block = approach[idx]
     assert target_block is not None
-    pg = grid_of[idx] or pg
     pulled, complete, full = pg.world_path(target_block, params.max_step_m)
     if not pulled:
         return finish(StepPlan("done", "internal: no path to a reachable block", memory=mem))
