@@ -17,8 +17,9 @@ ENV PYTHONUNBUFFERED=1 \
     VIRTUAL_ENV=/opt/venv \
     PATH=/opt/venv/bin:$PATH
 
+# open3d imports libusb, libgomp, libEGL, libGL and libX11 even without a display.
 RUN apt-get update \
- && apt-get install -y --no-install-recommends libusb-1.0-0 libgomp1 \
+ && apt-get install -y --no-install-recommends libusb-1.0-0 libgomp1 libegl1 libgl1 libx11-6 \
  && rm -rf /var/lib/apt/lists/* \
  && python3 -m venv /opt/venv
 

@@ -27,10 +27,10 @@ up: setup
 
 # The compose fleet in podman containers, one question through them (issue 25; not part of `make test`:
 # about 15-25 min the first time on a loaded 2-core machine, see README "Containers").
-compose-smoke: setup
+compose-smoke:
 	bash scripts/containers.sh setup
 	bash scripts/containers.sh build
-	$(PY) scripts/compose_smoke.py
+	python3 scripts/compose_smoke.py
 
 clean:
 	rm -rf var .pytest_cache .ruff_cache

@@ -15,12 +15,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import subprocess
 import sys
 import time
+import urllib.error
+import urllib.request
 from pathlib import Path
-
-import httpx
 
 REPO = Path(__file__).resolve().parents[1]
 SUDO = [] if os.geteuid() == 0 else ["sudo"]
@@ -96,6 +97,19 @@ def main_pid(name: str) -> int:
     return int(inspect(name)["State"]["Pid"])
 
 
+def http(method: str, url: str, body: dict | None = None) -> tuple[int, str]:
+    """One request (standard library only, so the smoke needs no virtualenv): status and text."""
+    data = json.dumps(body).encode() if body is not None else None
+    req = urllib.request.Request(url, data=data, method=method, headers={"Content-Type": "application/json"})
+    try:
+        with urllib.request.urlopen(req, timeout=30) as r:
+            return r.status, r.read().decode()
+    except urllib.error.HTTPError as exc:
+        return exc.code, exc.read().decode(errors="replace")
+    except (urllib.error.URLError, OSError) as exc:
+        return 0, str(exc)
+
+
 def run(args: argparse.Namespace) -> dict:
     figures: dict = {}
     log("clean slate: down -v")
@@ -121,42 +135,45 @@ def run(args: argparse.Namespace) -> dict:
 
     url = f"http://127.0.0.1:{args.port}"
     victim = f"{PROJECT}_{args.kill}_1"
-    with httpx.Client(base_url=url, timeout=30.0) as client:
-        ready_deadline = time.monotonic() + args.health_timeout
-        while True:  # the gateway's readiness: every required service live on the bus
-            r = client.get("/v1/ready")
-            if r.status_code == 200:
-                break
-            if time.monotonic() > ready_deadline:
-                raise SmokeError(f"gateway /v1/ready not ready: {r.status_code} {r.text[:500]}")
-            time.sleep(2)
-        t_ask = time.monotonic()
-        r = client.post("/v1/questions", json=QUESTION)
-        if r.status_code >= 400:
-            raise SmokeError(f"POST /v1/questions answered {r.status_code}: {r.text[:500]}")
-        eid = r.json()["episode_id"]
-        log(f"episode {eid} submitted")
-        killed = None
-        deadline = time.monotonic() + args.episode_timeout
-        while True:
-            status = client.get(f"/v1/episodes/{eid}").json()
-            if killed is None and status.get("step", -1) >= args.kill_after_step:
-                pid = main_pid(victim)
-                restarts = int(inspect(victim).get("RestartCount", 0))
-                log(f"step {status['step']}: killing {victim} (host pid {pid}) with SIGKILL")
-                subprocess.run([*SUDO, "kill", "-9", str(pid)], check=True)
-                killed = (time.monotonic(), restarts, pid)
-            if killed is not None and "restart_s" not in figures:
-                st = inspect(victim)
-                if int(st.get("RestartCount", 0)) > killed[1] and st["State"].get("Running"):
-                    figures["restart_s"] = round(time.monotonic() - killed[0], 1)
-                    log(f"{victim} restarted by its restart policy in {figures['restart_s']} s "
-                        f"(restart count {st['RestartCount']}, new pid {st['State']['Pid']})")
-            if status["state"] in ("stopped", "failed", "cancelled"):
-                break
-            if time.monotonic() > deadline:
-                raise SmokeError(f"episode not finished in {args.episode_timeout} s: {status}")
-            time.sleep(1)
+    ready_deadline = time.monotonic() + args.health_timeout
+    while True:  # the gateway's readiness: store, bus and every required service alive
+        code, text = http("GET", f"{url}/v1/ready")
+        if code == 200:
+            break
+        if time.monotonic() > ready_deadline:
+            raise SmokeError(f"gateway /v1/ready not ready: {code} {text[:500]}")
+        time.sleep(2)
+    log(f"gateway ready, {time.monotonic() - t0:.0f} s after `up`")
+    t_ask = time.monotonic()
+    code, text = http("POST", f"{url}/v1/questions", QUESTION)
+    if code >= 400 or code == 0:
+        raise SmokeError(f"POST /v1/questions answered {code}: {text[:500]}")
+    eid = json.loads(text)["episode_id"]
+    log(f"episode {eid} submitted: {QUESTION['question']}")
+    killed = None
+    deadline = time.monotonic() + args.episode_timeout
+    while True:
+        code, text = http("GET", f"{url}/v1/episodes/{eid}")
+        if code != 200:
+            raise SmokeError(f"GET /v1/episodes/{eid} answered {code}: {text[:500]}")
+        status = json.loads(text)
+        if killed is None and status.get("step", -1) >= args.kill_after_step:
+            pid = main_pid(victim)
+            restarts = int(inspect(victim).get("RestartCount", 0))
+            log(f"step {status['step']}: killing {victim} (host pid {pid}) with SIGKILL")
+            subprocess.run([*SUDO, "kill", "-9", str(pid)], check=True)
+            killed = (time.monotonic(), restarts, pid)
+        if killed is not None and "restart_s" not in figures:
+            st = inspect(victim)
+            if int(st.get("RestartCount", 0)) > killed[1] and st["State"].get("Running"):
+                figures["restart_s"] = round(time.monotonic() - killed[0], 1)
+                log(f"{victim} restarted by its restart policy in {figures['restart_s']} s "
+                    f"(restart count {st['RestartCount']}, new pid {st['State']['Pid']})")
+        if status["state"] in ("stopped", "failed", "cancelled"):
+            break
+        if time.monotonic() > deadline:
+            raise SmokeError(f"episode not finished in {args.episode_timeout} s: {status}")
+        time.sleep(1)
     figures["episode_s"] = round(time.monotonic() - t_ask, 1)
     figures["episode"] = {k: status.get(k) for k in ("state", "steps", "answer", "answer_text", "stop_reason",
                                                       "correct")}
@@ -165,6 +182,9 @@ def run(args: argparse.Namespace) -> dict:
         raise SmokeError(f"the episode ended before step {args.kill_after_step}: nothing was killed")
     if "restart_s" not in figures:
         st = inspect(victim)
+        if int(st.get("RestartCount", 0)) > killed[1] and st["State"].get("Running"):
+            figures["restart_s"] = "before the episode ended"
+    if "restart_s" not in figures:
         raise SmokeError(f"{victim} was not restarted: {st['State']}, restart count {st.get('RestartCount')}")
     if status["state"] != "stopped":
         raise SmokeError(f"the episode did not finish normally: {status['state']} ({status.get('stop_reason')})")
@@ -173,15 +193,15 @@ def run(args: argparse.Namespace) -> dict:
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--port", type=int, default=int(os.environ.get("EQA_COMPOSE_PORT", "18080")),
-                   help="the gateway's published port on 127.0.0.1 (EQA_COMPOSE_PORT, default 18080)")
+    p.add_argument("--port", type=int, default=18080,
+                   help="the gateway's published port on 127.0.0.1 (docker-compose.podman.yml: 18080)")
     p.add_argument("--kill", default="mapper", help="service whose first container is killed mid-episode")
     p.add_argument("--kill-after-step", type=int, default=2, help="kill once the episode reached this step")
     p.add_argument("--health-timeout", type=float, default=900.0, help="seconds for all health checks to pass")
     p.add_argument("--episode-timeout", type=float, default=1200.0, help="seconds for the episode to finish")
     p.add_argument("--keep", action="store_true", help="leave the fleet running (no `down -v`) for a look")
     args = p.parse_args()
-    os.environ["EQA_COMPOSE_PORT"] = str(args.port)
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))  # a killed run still tears the fleet down
     t0 = time.monotonic()
     ok = False
     try:

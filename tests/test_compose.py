@@ -87,7 +87,8 @@ def test_podman_override_changes_only_what_cannot_be_pulled_here():
     ports; the services, replicas, health checks and variables stay docker-compose.yml's."""
     override = yaml.load((REPO / "docker-compose.podman.yml").read_text(), Loader=_Override)
     services = override["services"]
-    assert set(services) == {"zenoh", "redis", "gateway"}
+    assert set(services) == {"zenoh", "redis", "vlm_scorer", "gateway"}
+    assert services["vlm_scorer"] == {"deploy": {"mode": "replicated"}}  # replicas stay the main file's
     assert set(services["gateway"]) == {"ports"}
     assert all(p.startswith("127.0.0.1:") for p in services["gateway"]["ports"])
     router = services["zenoh"]["command"]
