@@ -80,3 +80,17 @@ def test_recorded_perceptions_rescore_exactly_at_every_level() -> None:
             f, rel = ss.rescore(ep, params_at(mode, level)).arrays()
             f2, rel2 = ss.rescore_arrays(ep, params_at(mode, level))
             assert np.array_equal(f, f2) and np.array_equal(rel, rel2), (mode, level)
+
+
+def test_eqa_bench_stop_takes_the_sensitivity_options() -> None:
+    import argparse
+
+    from eqa.app import bench_cli
+
+    p = argparse.ArgumentParser()
+    bench_cli.register(p.add_subparsers(dest="command"))
+    a = p.parse_args(["bench", "stop", "--miscalibration", "category", "all", "--levels", "0", "0.5", "--limit", "6"])
+    assert a.miscalibration == ["category", "all"] and a.levels == [0.0, 0.5] and not a.cp_guided
+    assert p.parse_args(["bench", "stop", "--cp-guided"]).cp_guided
+    with pytest.raises(SystemExit):
+        p.parse_args(["bench", "stop", "--miscalibration", "bogus"])

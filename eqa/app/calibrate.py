@@ -296,7 +296,9 @@ def run_check(args: argparse.Namespace, settings: Settings, store: Store) -> Any
     elif args.from_traces is not None:
         if not args.from_traces.exists():
             raise UsageError(f"--from-traces: {args.from_traces} does not exist")
-        traces = [t for _, t in read_jsonl(args.from_traces) if t.answer is not None and t.steps and t.full_length]
+        # a trace file is calibration data by construction; a trace that says it was cut short by a stop rule is not
+        traces = [t for _, t in read_jsonl(args.from_traces)
+                  if t.answer is not None and t.steps and (t.stop_rule is None or t.full_length)]
     else:
         raise UsageError("--check needs the new labelled episodes: --from-store or --from-traces FILE.jsonl")
     if args.limit is not None:
