@@ -167,7 +167,7 @@ def test_scorer_check_command_and_eqa_up_check(double, capsys, settings):
     remote = settings.model_copy(update={"scorer_backend": "remote", "remote_base_url": url,
                                          "remote_model": "tiny-vlm", "remote_samples": 2})
     cli.check_scorer(remote)  # usable: passes, says the mode
-    assert "mode sampling" in capsys.readouterr().out
+    assert "mode sampling" in capsys.readouterr().err  # stderr: `eqa ask --json` keeps a clean stdout
     with pytest.raises(cli.UsageError, match="returns no logprobs"):
         cli.check_scorer(remote.model_copy(update={"remote_mode": "logprobs"}))
 

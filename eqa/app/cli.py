@@ -74,7 +74,7 @@ def check_remote(settings: Settings) -> None:
         raise UsageError("the remote scorer cannot use this endpoint:\n  " + "\n  ".join(report.lines()))
     latency = f", one step {report.step_latency_s * 1000:.0f} ms" if report.step_latency_s is not None else ""
     print(f"remote scorer: {report.base_url} model {report.model}, mode {report.mode}{latency} "
-          f"({report.calls_per_step} HTTP calls)", flush=True)
+          f"({report.calls_per_step} HTTP calls)", file=sys.stderr, flush=True)
 
 
 def cmd_up(args: argparse.Namespace) -> int:
