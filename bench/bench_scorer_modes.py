@@ -146,7 +146,7 @@ def main() -> int:
         try:
             from services.vlm_scorer.backends.remote import probe_endpoint
 
-            check = probe_endpoint(url, samples=args.cal_samples)
+            check = probe_endpoint(url, model, samples=args.cal_samples)
             result: dict = {"command": " ".join(["bench/bench_scorer_modes.py", *sys.argv[1:]]),
                             "check": check.lines(),
                             "latency": latency(url, model, model_dir, args.steps, args.samples)}
