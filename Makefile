@@ -26,7 +26,7 @@ up: setup
 	$(VENV)/bin/eqa up
 
 # The compose fleet in podman containers, one question through them (issue 25; not part of `make test`:
-# about 15-25 min the first time on a loaded 2-core machine, see README "Containers").
+# 8.5 min on a host without podman, about 1.5 min once set up and built; see README "Containers here").
 compose-smoke:
 	bash scripts/containers.sh setup
 	bash scripts/containers.sh build
