@@ -196,6 +196,6 @@ case "${1:-setup}" in
   setup) cmd_setup ;;
   build) cmd_build ;;
   compose) shift; cmd_compose "$@" ;;
-  -h|--help|help) sed -n '2,15p' "$0" | sed 's/^# \{0,1\}//' ;;
+  -h|--help|help) sed -n '2,/^set /p' "$0" | grep '^#' | sed 's/^# \{0,1\}//' ;;
   *) echo "containers: unknown command '$1' (setup, build, compose ARGS..., --help)" >&2; exit 2 ;;
 esac
