@@ -19,7 +19,7 @@ import logging
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -33,8 +33,19 @@ from eqa.messages import (
     ValueRequest,
     ValueResult,
 )
-from services.mapper.object_map import ObjectMap, ObjectMapConfig, log_rerun, task_classes
 from services.mapper.semantic_map import QUESTION_LAYER, write_values
+
+if TYPE_CHECKING:
+    from services.mapper.object_map import ObjectMap, ObjectMapConfig
+
+
+def _object_map_module() -> Any:
+    """The object layer (torch) is imported on the first task episode, not when the mapper starts: question
+    episodes never need it, and importing torch made every mapper (re)start several seconds slower -- longer than
+    the sim's step resends wait for a restarted mapper."""
+    from services.mapper import object_map
+
+    return object_map
 
 log = logging.getLogger(__name__)
 
@@ -78,11 +89,17 @@ class ObjectLayerShell:
     error: Callable[..., None]
 
     def objects_init(self, detector: Detect | None = None, values: Values | None = None) -> None:
-        self.objects_config = ObjectMapConfig.from_settings(self.settings)
+        self._objects_config: ObjectMapConfig | None = None
         self.objects: dict[str, ObjectMap] = {}
         self.last_objects: dict[str, list] = {}
         self._detect, self._values = detector, values
         self._objects_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mapper-objects")
+
+    @property
+    def objects_config(self) -> ObjectMapConfig:
+        if self._objects_config is None:
+            self._objects_config = _object_map_module().ObjectMapConfig.from_settings(self.settings)
+        return self._objects_config
 
     def objects_close(self) -> None:
         self._objects_pool.shutdown(wait=True)
@@ -102,8 +119,9 @@ class ObjectLayerShell:
         its object map."""
         if start.task is None:
             return None
-        self.objects[start.episode_id] = ObjectMap.for_task(start.task, self.objects_config)
-        classes, _ = task_classes(start.task, self.objects_config)
+        om_mod = _object_map_module()
+        self.objects[start.episode_id] = om_mod.ObjectMap.for_task(start.task, self.objects_config)
+        classes, _ = om_mod.task_classes(start.task, self.objects_config)
         return [QUESTION_LAYER, *(value_layer(c) for c in classes)]
 
     def objects_finish(self, episode_id: str) -> None:
@@ -119,11 +137,11 @@ class ObjectLayerShell:
         ``start_of`` restores the map from its bytes. Returns the map."""
         if isinstance(data, dict):
             em = start_of(data["map"])
-            self.objects[episode_id] = ObjectMap.restore(data["objects"], self.objects_config)
+            self.objects[episode_id] = _object_map_module().ObjectMap.restore(data["objects"], self.objects_config)
             return em
         em = start_of(data)
         if em.start.task is not None:  # a task episode saved before its layer existed: start a fresh one
-            self.objects[episode_id] = ObjectMap.for_task(em.start.task, self.objects_config)
+            self.objects[episode_id] = _object_map_module().ObjectMap.for_task(em.start.task, self.objects_config)
         return em
 
     # ---- per frame --------------------------------------------------------------------------------------
@@ -201,6 +219,6 @@ class ObjectLayerShell:
             return
         try:
             rec.set_step(frame.step)
-            log_rerun(rec, om, self.last_objects.get(em.episode_id, []))
+            _object_map_module().log_rerun(rec, om, self.last_objects.get(em.episode_id, []))
         except Exception:
             log.exception("episode %s: recording the object layer failed; going on", em.episode_id)
