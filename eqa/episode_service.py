@@ -1,4 +1,4 @@
-"""The one pattern of every service that keeps per-episode state (mapper, planner, stopper).
+"""The one pattern of every service that keeps per-episode state (sim, mapper, planner, stopper).
 
 A subclass of :class:`EpisodeService` is its pure core plus a few hooks; the base does what each shell used to
 write its own way:
@@ -34,6 +34,18 @@ write its own way:
   when the service has one (and is logged either way); the service goes on.
 
 The constructor is ``(settings, bus=None, store=None)`` for every service.
+
+**The sim** is on this base too, with what differs about it kept in its own shell (services/sim/service.py):
+it *produces* the steps, so it has no step input to hold or answer again. Its one input, the planner's
+``Goal``, is subscribed with a plain :meth:`eqa.service.Service.on` (a goal never comes before the frame it
+answers; the sim claims the step it will *render*, ``goal.step + 1``, and ignores a goal of any other step
+than the current one), it sends a frame again itself when no goal comes back (``EQA_STEP_RESEND_S``), and it
+owns the robot's pose: a new EpisodeStart of a robot ends the robot's previous episode in the sim
+(:meth:`drop`), and a restarted sim takes the stored episodes up at start (it scans
+``episode_state_key("sim", "")``) instead of waiting for a message. Start/cancel/end, the stored state
+(key and codec), recorders and error answers are this base's. Two small hooks exist for it:
+:meth:`started` (publish step 0 once the state is registered and stored) and :attr:`answer_invalid_start`
+(an EpisodeStart that does not validate is answered with an ErrorReply when its episode id can be read).
 """
 
 from __future__ import annotations
@@ -107,6 +119,7 @@ class EpisodeService(Service, Generic[S]):
     persist_answers: ClassVar[bool] = True
     state_ttl_s: ClassVar[float] = EPISODE_STATE_TTL_S
     error_stream: ClassVar[Pair | None] = None
+    answer_invalid_start: ClassVar[bool] = False
 
     def __init__(self, settings: Settings, bus: Bus | None = None, store: Store | None = None) -> None:
         super().__init__(settings, bus, store)
@@ -130,6 +143,10 @@ class EpisodeService(Service, Generic[S]):
     def start_episode(self, robot: str, start: EpisodeStart) -> S | None:
         """The state of a new episode, or None when it cannot start (the subclass has answered it)."""
         raise NotImplementedError
+
+    def started(self, robot: str, episode_id: str, state: S) -> None:
+        """Right after a new episode's state is registered and stored, before its held messages are handled
+        (the sim publishes step 0 here). Raising answers the episode with an error and drops it."""
 
     def finish_episode(self, robot: str, msg: EpisodeCancel | EpisodeEnd, state: S) -> None:
         """The episode ends (cancel, or an end published by anyone); the base drops its state afterwards."""
@@ -162,7 +179,8 @@ class EpisodeService(Service, Generic[S]):
         self.shard = Shard(self.bus, lambda: self.store, self.name, self.bus.instance,
                            on_moved=lambda gained, lost: self.submit(self._robots_moved, gained, lost),
                            enabled=self.settings.shard).start()
-        self.on(keys.EPISODE_START, self._on_start)
+        self.on(keys.EPISODE_START, self._on_start,
+                on_invalid=self._on_invalid_start if self.answer_invalid_start else None)
         self.on(keys.EPISODE_CANCEL, self._on_finish)
         self.on(keys.EPISODE_END, self._on_finish)
         self.setup_episodes()
@@ -302,12 +320,29 @@ class EpisodeService(Service, Generic[S]):
             self._held.pop(eid, None)
             return
         self._register(eid, state, EpisodeMeta(robot=robot, record=bool(start.record)), self.name)
-        self.save(eid)
+        try:
+            self.save(eid)
+            self.started(robot, eid, state)
+        except Exception as exc:
+            log.exception("%s: episode %s could not start", self.name, eid)
+            self.drop(eid)
+            self.error(robot, eid, 0, f"episode could not start: {type(exc).__name__}: {exc}")
+            return
         held = sorted(self._held.pop(eid, []), key=lambda h: getattr(h.msg, "step", 0))
         for h in held:
             log.info("%s: episode %s: %s of step %s that came before the start handled", self.name, eid,
                      h.msg.kind, getattr(h.msg, "step", None))
             self._dispatch(h.robot, h.msg, h.route)
+
+    def _on_invalid_start(self, robot: str, payload: bytes, reason: str) -> None:
+        """An EpisodeStart that does not validate (a pose out of range, a bad scene id): answer its episode at
+        once when its id can be read, so the gateway fails it and frees the robot (no wait for the watchdog)."""
+        try:
+            raw = unpackb(payload, max_decoded=0)  # an EpisodeStart carries no arrays
+            episode_id = keys.check_id(raw.get("episode_id"), "episode id")
+        except Exception:
+            return
+        self.error(robot, episode_id, 0, f"episode start refused: {reason}")
 
     def _on_finish(self, robot: str, msg: EpisodeCancel | EpisodeEnd) -> None:
         if not self.owns(robot):

@@ -121,8 +121,8 @@ def test_a_restarted_sim_continues_the_episode_at_the_next_goal(hub_settings, se
 def test_a_restarted_sim_sends_stored_steps_again_but_not_ended_episodes(hub_settings, settings) -> None:
     """EQA_STEP_RESEND_S: a sim restarted while a goal was lost takes the stored episode up and sends its frame
     again (at most EQA_STEP_RESENDS_MAX times); an episode the stopper ended meanwhile is dropped."""
-    from eqa.store import episode_end_key, open_store
-    from services.sim.service import state_key
+    from eqa.codec import unpackb
+    from eqa.store import episode_end_key, episode_state_key, open_store
 
     fast = settings.model_copy(update={"step_resend_s": 0.4, "step_resends_max": 2})
     frames: list[Frame] = []
@@ -147,7 +147,8 @@ def test_a_restarted_sim_sends_stored_steps_again_but_not_ended_episodes(hub_set
             assert wait_for(lambda: len(frames) == 2, timeout=15.0)
             time.sleep(1.5)  # no third resend
             assert [(f.episode_id, f.step) for f in frames] == [("ep-up", 0), ("ep-up", 0)]
-            assert second.store.get_json(state_key("r2")) is None
-            assert second.store.get_json(state_key("r1"))["step"] == 0
+            assert second.store.get(episode_state_key("sim", "ep-ended")) is None
+            stored = unpackb(second.store.get(episode_state_key("sim", "ep-up")))
+            assert stored["robot"] == "r1" and stored["state"]["step"] == 0
         finally:
             second.stop()

@@ -6,9 +6,13 @@ on a ``Goal`` of that episode it moves the robot to the goal pose and publishes 
 a pose in collision, off the floor or not finite, or a mesh that does not parse gets an ``ErrorReply`` on
 ``sim/error`` (with episode and step), and the service goes on serving every robot.
 
-After every frame the robot's state (episode start, pose, step, trajectory) is written to the store under
-``eqa:sim:robot:{robot}``, so a sim restarted between two steps continues the episode at the next goal; a
-restarted sim also takes up the recent states it finds there at start.
+The service is an :class:`eqa.episode_service.EpisodeService` (start/cancel/end, stored state, recorders and
+error answers come from there; see its docstring for what the sim keeps in its own shell and why). After every
+frame the episode's state (start, pose, step, trajectory, task) is written to the store under
+``eqa.store.episode_state_key("sim", episode_id)`` (``eqa:sim:episode:{id}``, one :mod:`eqa.codec` envelope
+that names the robot), so a sim restarted between two steps continues the episode at the next goal; a
+restarted sim also takes up the recent states it finds there at start (the newest one per robot). States of
+the older format (JSON under ``eqa:sim:robot:{robot}``, before 2026-12-01 21:00 UTC) are not read.
 
 A message lost while a service restarted would stall an episode: the sim sends the frame of a step again when
 no goal came back within ``EQA_STEP_RESEND_S`` (at most ``EQA_STEP_RESENDS_MAX`` times per step), and the
@@ -29,13 +33,11 @@ import numpy as np
 
 from eqa import keys
 from eqa.bus import Bus
-from eqa.codec import unpackb
-from eqa.messages import EpisodeCancel, EpisodeEnd, EpisodeStart, ErrorReply, Frame, Goal, Pose2D, SkillReport
-from eqa.recording import EpisodeRecorder
-from eqa.service import Service
+from eqa.codec import CodecError, unpackb
+from eqa.episode_service import EpisodeService
+from eqa.messages import EpisodeCancel, EpisodeEnd, EpisodeStart, Frame, Goal, Pose2D, SkillReport
 from eqa.settings import Settings
-from eqa.sharding import Shard
-from eqa.store import EPISODE_STATE_TTL_S, Store, episode_end_key, task_metrics_key
+from eqa.store import EPISODE_STATE_TTL_S, Store, episode_end_key, episode_state_key, task_metrics_key
 from services.sim import hmeqa
 from services.sim.camera import camera_pose, intrinsics
 from services.sim.library import load_or_generate
@@ -48,10 +50,6 @@ log = logging.getLogger(__name__)
 MAX_CACHED_SCENES = 4
 
 
-def state_key(robot: str) -> str:
-    return f"eqa:sim:robot:{robot}"
-
-
 @dataclass
 class _Episode:
     episode_id: str
@@ -62,7 +60,6 @@ class _Episode:
     start: EpisodeStart
     step: int = 0
     trajectory: list[tuple[float, float]] = field(default_factory=list)
-    recorder: EpisodeRecorder | None = None
     emitted_at: float = field(default_factory=time.monotonic)  # when the current step's frame was sent
     resends: int = 0  # of the current step
     task: SimTask | None = None  # a task episode's skills and metrics (issue 17)
@@ -84,38 +81,32 @@ def load_scene(settings: Settings, scene_id: str, floor: int = 0) -> Scene:
     return load_or_generate(scene_id, settings.scenes_path, settings.hm3d_dir)
 
 
-class SimService(Service):
+class SimService(EpisodeService[_Episode]):
     """Simulator: scenes, RGB-D + instance rendering, robot motion."""
 
     name = "sim"
     description = "Simulator: renders RGB, depth and instance ids of generated houses or real meshes."
+    error_stream = keys.SIM_ERROR
+    answer_invalid_start = True
+    persist_answers = False  # the sim answers no step input; it sends its frames again itself
 
     def __init__(self, settings: Settings, bus: Bus | None = None, store: Store | None = None) -> None:
         super().__init__(settings, bus, store)
-        self._episodes: dict[str, _Episode] = {}
         self._scenes: OrderedDict[tuple[str, int], Renderer] = OrderedDict()
         self._K = intrinsics(settings.sim_width, settings.sim_height)
-        self.shard: Shard | None = None
 
-    def setup(self) -> None:
-        # Robots shared among the live sim instances (eqa.sharding; EQA_SHARD): this one drives only its own,
-        # claims each step it renders, and takes a robot that moves here up from the store.
-        self.shard = Shard(self.bus, lambda: self.store, self.name, self.bus.instance,
-                           on_moved=lambda gained, lost: self.submit(self._robots_moved, gained, lost),
-                           enabled=self.settings.shard).start()
-        self.on(keys.EPISODE_START, self.on_start, on_invalid=self.on_invalid_start)
+    def setup_episodes(self) -> None:
+        # Robots are shared among the live sim instances by the base's Shard (EQA_SHARD): this one drives only
+        # its own, claims each step it renders, and takes a robot that moves here up from the store.
         self.on(keys.PLANNER_GOAL, self.on_goal)
-        self.on(keys.EPISODE_CANCEL, self.on_cancel)
-        self.on(keys.EPISODE_END, self.on_end)
         self.submit(self._resume_stored)
         if self.settings.step_resend_s > 0:
             self.every(min(1.0, self.settings.step_resend_s / 4), self._resend_stale)
 
     def teardown(self) -> None:
-        for ep in self._episodes.values():
-            if ep.recorder is not None:
-                ep.recorder.close()
-        self._episodes.clear()
+        super().teardown()
+        self.episodes.clear()
+        self.meta.clear()
 
     # ---- helpers -----------------------------------------------------------------------------------------
     def renderer(self, scene_id: str, floor: int = 0) -> Renderer:
@@ -131,73 +122,88 @@ class SimService(Service):
             self._scenes.move_to_end(key)
         return r
 
-    def _error(self, robot: str, episode_id: str | None, step: int | None, reason: str) -> None:
-        log.warning("robot %s episode %s step %s: %s", robot, episode_id, step, reason)
-        self.publish(robot, keys.SIM_ERROR, ErrorReply(source="sim", episode_id=episode_id, step=step, reason=reason))
+    def episode_of(self, robot: str) -> _Episode | None:
+        """The robot's episode in memory (the sim drives one episode per robot)."""
+        for eid, meta in list(self.meta.items()):
+            if meta.robot == robot and eid in self.episodes:
+                return self.episodes[eid]
+        return None
 
-    def _close(self, robot: str) -> None:
-        ep = self._episodes.pop(robot, None)
-        if ep is not None and ep.recorder is not None:
-            ep.recorder.close()
-        self.store.delete(state_key(robot))
+    def _drop_memory(self, robot: str) -> None:
+        """Forget the robot's episodes in memory (their stored state stays: another instance renders them)."""
+        for eid, meta in list(self.meta.items()):
+            if meta.robot == robot:
+                self._forget(eid)
 
-    def _save(self, robot: str, ep: _Episode) -> None:
-        state = {"start": ep.start.model_dump(mode="json"), "pose": ep.pose.model_dump(), "step": ep.step,
-                 "trajectory": ep.trajectory, "saved_at": time.time()}
-        if ep.task is not None:
-            state["task"] = ep.task.to_json()
-            state["skill"] = ep.skill.model_dump(mode="json") if ep.skill is not None else None
-            self.store.set_json(task_metrics_key(ep.episode_id), ep.task.metrics(), ttl_s=EPISODE_STATE_TTL_S)
-        self.store.set_json(state_key(robot), state, ttl_s=EPISODE_STATE_TTL_S)
+    # ---- state (EpisodeService hooks) ----------------------------------------------------------------------
+    def dump_state(self, state: _Episode, **extra: Any) -> Any:
+        data: dict[str, Any] = {"start": state.start.model_dump(mode="json"), "pose": state.pose.model_dump(),
+                                "step": state.step, "trajectory": [list(p) for p in state.trajectory],
+                                "saved_at": time.time()}
+        if state.task is not None:
+            data["task"] = state.task.to_json()
+            data["skill"] = state.skill.model_dump(mode="json") if state.skill is not None else None
+        return data
 
-    def _restore(self, robot: str, episode_id: str, state: dict[str, Any] | None = None) -> _Episode | None:
-        """The robot's episode from the store (a restarted sim; ``state``: already read), or None."""
-        state = state if state is not None else self.store.get_json(state_key(robot))
-        if not state or state.get("start", {}).get("episode_id") != episode_id:
-            return None
+    def load_state(self, episode_id: str, data: Any) -> _Episode:
         try:
-            start = EpisodeStart.model_validate(state["start"])
+            start = EpisodeStart.model_validate(data["start"])
+            if start.episode_id != episode_id:
+                raise ValueError(f"the stored start is of episode {start.episode_id}")
             renderer = self.renderer(start.question.scene, start.question.floor)
+            ep = _Episode(episode_id, renderer.scene, renderer, Pose2D.model_validate(data["pose"]),
+                          start.max_steps, start, step=int(data["step"]),
+                          trajectory=[(float(p[0]), float(p[1])) for p in data["trajectory"]])
+            if data.get("task"):
+                ep.task = SimTask.from_json(data["task"])
+                ep.skill = SkillReport.model_validate(data["skill"]) if data.get("skill") else None
         except Exception as exc:
-            log.error("robot %s: stored state of %s unusable: %s", robot, episode_id, exc)
-            return None
-        ep = _Episode(episode_id, renderer.scene, renderer, Pose2D.model_validate(state["pose"]), start.max_steps,
-                      start, step=int(state["step"]), trajectory=[tuple(p) for p in state["trajectory"]])
-        if state.get("task"):
-            ep.task = SimTask.from_json(state["task"])
-            ep.skill = SkillReport.model_validate(state["skill"]) if state.get("skill") else None
-        if start.record and self.settings.record:
-            ep.recorder = EpisodeRecorder(self.settings, episode_id, f"sim-resume{ep.step}", enabled=True)
-        self._episodes[robot] = ep
-        log.info("robot %s: episode %s restored at step %d", robot, episode_id, ep.step)
+            raise ValueError(f"{type(exc).__name__}: {exc}") from exc
         return ep
+
+    def answered_step(self, episode_id: str, state: _Episode) -> int:
+        """The goal the current frame answers (the sim's step k answers the planner's goal of step k - 1)."""
+        return state.step - 1
 
     def _resume_stored(self) -> None:
         """At start: take up the robots' episodes stored by a previous process within the watchdog's time
-        (older ones the gateway has failed already); their frames are sent again if no goal comes."""
-        prefix = state_key("")
+        (older ones the gateway has failed already; of several of one robot the newest); their frames are sent
+        again if no goal comes."""
+        prefix = episode_state_key(self.name, "")
+        newest: dict[str, tuple[float, str]] = {}
         for key in self.store.keys(prefix):
-            robot = key[len(prefix):]
-            if robot in self._episodes or not self.owns(robot):
+            episode_id = key[len(prefix):]
+            raw = self.store.get(key)
+            if raw is None or episode_id in self.episodes:
                 continue
-            state = self.store.get_json(key)
-            if not isinstance(state, dict):
+            try:
+                body = unpackb(raw)
+                robot = str(body["robot"])
+                saved_at = float(body["state"].get("saved_at", 0.0))
+            except (CodecError, KeyError, TypeError, ValueError, AttributeError):
+                continue  # restoring it reports and drops it
+            if self.episode_of(robot) is not None or not self.owns(robot):
                 continue
-            age = time.time() - float(state.get("saved_at", 0.0))
-            episode_id = state.get("start", {}).get("episode_id")
-            if not episode_id or age >= self.settings.episode_timeout_s:
+            if time.time() - saved_at >= self.settings.episode_timeout_s:
                 continue
             if self.store.get(episode_end_key(episode_id)) is not None:  # it ended while this sim was down
                 self.store.delete(key)
                 continue
-            self._restore(robot, episode_id, state)
+            if robot not in newest or saved_at > newest[robot][0]:
+                newest[robot] = (saved_at, episode_id)
+        for robot, (_, episode_id) in newest.items():
+            if self.episode(episode_id) is not None:
+                log.info("robot %s: episode %s restored at step %d", robot, episode_id,
+                         self.episodes[episode_id].step)
 
     def _resend_stale(self) -> None:
         """Send the current frame again for every episode whose goal has not come back in time."""
         now = time.monotonic()
-        for robot, ep in list(self._episodes.items()):
-            if now - ep.emitted_at < self.settings.step_resend_s:
+        for eid, ep in list(self.episodes.items()):
+            meta = self.meta.get(eid)
+            if meta is None or now - ep.emitted_at < self.settings.step_resend_s:
                 continue
+            robot = meta.robot
             if not self.owns(robot):  # moved away: its new owner resends
                 continue
             if ep.resends >= self.settings.step_resends_max:
@@ -214,9 +220,6 @@ class SimService(Service):
             self.publish(robot, keys.SIM_FRAME, self.render_frame(ep))
 
     # ---- sharding ----------------------------------------------------------------------------------------
-    def owns(self, robot: str) -> bool:
-        return self.shard is None or self.shard.owns(robot)
-
     def _claim(self, robot: str, episode_id: str, step: int) -> bool:
         """Claim rendering ``step``; when the step before was rendered elsewhere, drop the copy in memory so the
         stored state is read."""
@@ -230,146 +233,91 @@ class SimService(Service):
             self._drop_memory(robot)
         return True
 
-    def _drop_memory(self, robot: str) -> None:
-        ep = self._episodes.pop(robot, None)
-        if ep is not None and ep.recorder is not None:
-            ep.recorder.close()
-
     def _robots_moved(self, gained: set[str], lost: set[str]) -> None:
-        for robot in lost:
-            self._drop_memory(robot)
+        super()._robots_moved(gained, lost)
         if gained:
             self._resume_stored()
-        for robot in gained - set(self._episodes):  # its owner died before it stored the episode's first step
+        for robot in gained:  # its owner died before it stored the episode's first step
+            if self.episode_of(robot) is not None:
+                continue
             start = self.shard.latest_start(robot) if self.shard is not None else None
             if isinstance(start, EpisodeStart) and self.store.get(episode_end_key(start.episode_id)) is None:
                 log.info("robot %s moved here before its episode %s began; starting it", robot, start.episode_id)
-                self.on_start(robot, start)
+                self._on_start(robot, start)
 
     # ---- handlers ----------------------------------------------------------------------------------------
-    def on_start(self, robot: str, msg: EpisodeStart) -> None:
-        """Start an episode. Any failure answers the episode with an ErrorReply at once (the gateway fails it
-        and frees the robot), never silence until the watchdog."""
-        if not self.owns(robot):
-            if self.shard is not None:
-                self.shard.remember_start(msg.episode_id, msg)
-            return
-        if not self._claim(robot, msg.episode_id, 0):
-            return
-        try:
-            self._start_episode(robot, msg)
-        except Exception as exc:
-            log.exception("robot %s: episode %s could not start", robot, msg.episode_id)
-            self._episodes.pop(robot, None)
-            self._error(robot, msg.episode_id, 0, f"episode could not start: {type(exc).__name__}: {exc}"[:1000])
-
-    def on_invalid_start(self, robot: str, payload: bytes, reason: str) -> None:
-        """An EpisodeStart that does not validate (a pose out of range, a bad scene id): answer its episode at
-        once when its id can be read, so the gateway fails it and frees the robot (no wait for the watchdog)."""
-        try:
-            raw = unpackb(payload, max_decoded=0)  # an EpisodeStart carries no arrays
-            episode_id = keys.check_id(raw.get("episode_id"), "episode id")
-        except Exception:
-            return
-        self._error(robot, episode_id, 0, f"episode start refused: {reason}"[:1000])
-
-    def _start_episode(self, robot: str, msg: EpisodeStart) -> None:
-        self._close(robot)
-        q = msg.question
+    def start_episode(self, robot: str, start: EpisodeStart) -> _Episode | None:
+        """Start an episode (the robot's previous one ends here). Any failure answers the episode with an
+        ErrorReply at once (the gateway fails it and frees the robot), never silence until the watchdog."""
+        if not self._claim(robot, start.episode_id, 0):
+            return None
+        for eid, meta in list(self.meta.items()):
+            if meta.robot == robot:
+                self.drop(eid)
+        q = start.question
         try:
             renderer = self.renderer(q.scene, q.floor)
         except (SceneNotFound, SceneLoadError, hmeqa.HMEQAError) as exc:
-            self._error(robot, msg.episode_id, 0, str(exc))
-            return
+            self.error(robot, start.episode_id, 0, str(exc))
+            return None
         scene = renderer.scene
         if q.start_pose is not None:
             pose = q.start_pose
             reason = pose_error(scene, pose)
             if reason is not None:
-                self._error(robot, msg.episode_id, 0, f"start pose refused: {reason}")
-                return
+                self.error(robot, start.episode_id, 0, f"start pose refused: {reason}")
+                return None
         else:
             try:
-                pose = sample_start_pose(scene, np.random.default_rng(msg.seed), START_CLEARANCE)
+                pose = sample_start_pose(scene, np.random.default_rng(start.seed), START_CLEARANCE)
             except ValueError as exc:
-                self._error(robot, msg.episode_id, 0, str(exc))
-                return
-        ep = _Episode(msg.episode_id, scene, renderer, pose, msg.max_steps, msg)
-        ep.task = SimTask.from_start(msg)
-        if msg.record and self.settings.record:
-            ep.recorder = EpisodeRecorder(self.settings, msg.episode_id, "sim", enabled=True)
-            self._log_static(ep)
-        self._episodes[robot] = ep
-        self._emit(robot, ep)
+                self.error(robot, start.episode_id, 0, str(exc))
+                return None
+        ep = _Episode(start.episode_id, scene, renderer, pose, start.max_steps, start)
+        ep.task = SimTask.from_start(start)
+        return ep
+
+    def started(self, robot: str, episode_id: str, state: _Episode) -> None:
+        self._log_static(state)
+        self._emit(robot, state)
 
     def on_goal(self, robot: str, goal: Goal) -> None:
         if goal.done:
             return
         if not self.owns(robot) or not self._claim(robot, goal.episode_id, goal.step + 1):
             return
-        ep = self._episodes.get(robot)
-        if ep is None or ep.episode_id != goal.episode_id:
-            ep = self._restore(robot, goal.episode_id)
+        ep = self.episodes.get(goal.episode_id)
         if ep is None:
-            log.debug("goal for unknown episode %s of robot %s ignored", goal.episode_id, robot)
-            return
-        if goal.done:
-            return
+            ep = self.episode(goal.episode_id)  # from the store (a restarted sim, or the robot moved here)
+            if ep is None:
+                log.debug("goal for unknown episode %s of robot %s ignored", goal.episode_id, robot)
+                return
+            for eid, meta in list(self.meta.items()):  # one episode per robot in memory
+                if meta.robot == robot and eid != goal.episode_id:
+                    self._forget(eid)
         if goal.step != ep.step:
             log.warning("robot %s: goal for step %d while at step %d ignored", robot, goal.step, ep.step)
             return
         if goal.pose is None:
-            self._error(robot, ep.episode_id, goal.step, "goal has no pose and is not done")
+            self.error(robot, ep.episode_id, goal.step, "goal has no pose and is not done")
             return
         if ep.step + 1 >= ep.max_steps:
-            self._error(robot, ep.episode_id, goal.step, f"step limit {ep.max_steps} reached")
+            self.error(robot, ep.episode_id, goal.step, f"step limit {ep.max_steps} reached")
             return
         reason = pose_error(ep.scene, goal.pose)
         if reason is not None:
-            self._error(robot, ep.episode_id, goal.step, f"goal refused: {reason}")
+            self.error(robot, ep.episode_id, goal.step, f"goal refused: {reason}")
             return
         before = ep.pose
         ep.pose = goal.pose
         ep.step += 1
         self._emit(robot, ep, goal, before)
 
-    def on_cancel(self, robot: str, msg: EpisodeCancel) -> None:
-        if not self.owns(robot):
-            self._drop_memory_of(robot, msg.episode_id)
-            return
-        ep = self._episodes.get(robot)
-        if ep is not None and ep.episode_id == msg.episode_id:
+    def finish_episode(self, robot: str, msg: EpisodeCancel | EpisodeEnd, state: _Episode) -> None:
+        if isinstance(msg, EpisodeCancel):
             log.info("robot %s: episode %s cancelled (%s)", robot, msg.episode_id, msg.reason)
-            self._forget_claims(ep)
-            self._close(robot)
-        else:
-            self._forget(robot, msg.episode_id)
-
-    def on_end(self, robot: str, msg: EpisodeEnd) -> None:
-        if not self.owns(robot):
-            self._drop_memory_of(robot, msg.episode_id)
-            return
-        ep = self._episodes.get(robot)
-        if ep is not None and ep.episode_id == msg.episode_id:
-            self._forget_claims(ep)
-            self._close(robot)
-        else:
-            self._forget(robot, msg.episode_id)
-
-    def _forget_claims(self, ep: _Episode) -> None:
         if self.shard is not None and self.shard.claims is not None:  # they would expire; not wait for it
-            self.shard.claims.forget(ep.episode_id, ep.step + 1)
-
-    def _drop_memory_of(self, robot: str, episode_id: str) -> None:
-        ep = self._episodes.get(robot)
-        if ep is not None and ep.episode_id == episode_id:
-            self._drop_memory(robot)
-
-    def _forget(self, robot: str, episode_id: str) -> None:
-        """Drop the stored state of an episode this process does not hold (it ended while we were down)."""
-        state = self.store.get_json(state_key(robot))
-        if state and state.get("start", {}).get("episode_id") == episode_id:
-            self.store.delete(state_key(robot))
+            self.shard.claims.forget(state.episode_id, state.step + 1)
 
     # ---- rendering ---------------------------------------------------------------------------------------
     def render_frame(self, ep: _Episode) -> Frame:
@@ -394,12 +342,14 @@ class SimService(Service):
             ep.task.observe(ep.scene, ep.pose, frame.instances)
         ep.emitted_at, ep.resends = time.monotonic(), 0
         ep.trajectory.append((ep.pose.x, ep.pose.y))
-        self._save(robot, ep)
+        if ep.task is not None:
+            self.store.set_json(task_metrics_key(ep.episode_id), ep.task.metrics(), ttl_s=EPISODE_STATE_TTL_S)
+        self.save(ep.episode_id)
         self.publish(robot, keys.SIM_FRAME, frame)
         self._log_step(ep, frame)
 
     def _log_static(self, ep: _Episode) -> None:
-        rec = ep.recorder
+        rec = self.recorders.get(ep.episode_id)
         if rec is None or not rec.enabled:
             return
         import rerun as rr
@@ -410,7 +360,7 @@ class SimService(Service):
                                              vertex_colors=np.repeat(sc.triangle_colors, 3, axis=0)), static=True)
 
     def _log_step(self, ep: _Episode, frame: Frame) -> None:
-        rec = ep.recorder
+        rec = self.recorders.get(ep.episode_id)
         if rec is None or not rec.enabled:
             return
         import rerun as rr
