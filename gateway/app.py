@@ -231,8 +231,8 @@ def create_app(settings: Settings, scene_area: SceneArea | None = None) -> FastA
     app.include_router(health.router)
     app.include_router(episodes.router)
     app.include_router(labels.router)
-    console.install(app)  # the web console at / and the routes it needs
     app.include_router(tasks.router)
+    console.install(app)  # the web console at / and the routes it needs
     _add_docs(app)
     return app
 
