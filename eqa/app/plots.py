@@ -41,8 +41,8 @@ def plot_explore(results: dict[str, Any], out: Path) -> list[Path]:
             ax.step([0.0, *results["cdf_budgets"]], [0.0, *r["evidence_cdf"]], where="post", label=label(name, r),
                     color=COLORS.get(name), ls="--" if r.get("bound") else "-")
         ax.set(xlabel="normalised step budget (fraction of T)", ylabel="share of episodes that saw the evidence",
-               ylim=(0, 1), xlim=(0, 1), title=f"First evidence (Rel >= 0.3) within the budget\n{sub}")
-        ax.title.set_fontsize(9)
+               ylim=(0, 1), xlim=(0, 1.02), title=f"First evidence (Rel >= 0.3) within the budget\n{sub}")
+        ax.title.set_fontsize(7.5)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
         fig.tight_layout()
@@ -130,7 +130,7 @@ def _success_plot(budgets: list[float], curves: list[tuple[str, list[float], str
         if ci:
             ax.fill_between(budgets, [c[0] for c in ci], [c[1] for c in ci], color=line.get_color(), alpha=0.08)
     ax.set(xlabel="normalised step budget (fraction of T)", ylabel="success rate", ylim=(0, 1), title=title)
-    ax.title.set_fontsize(9)
+    ax.title.set_fontsize(7.5)
     ax.grid(alpha=0.3)
     ax.legend()
     fig.tight_layout()
