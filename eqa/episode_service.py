@@ -231,12 +231,16 @@ class EpisodeService(Service, Generic[S]):
                                "messages": [[*pair, encode(m)] for pair, m in meta.answers.items()]}
         self.store.set(episode_state_key(self.name, episode_id), packb(body), ttl_s=self.state_ttl_s)
 
-    def drop(self, episode_id: str) -> None:
-        """Forget an episode: memory, stored state, recorder, held messages, step claims."""
+    def drop(self, episode_id: str, upto_step: int = 0) -> None:
+        """Forget an episode: memory, stored state, recorder, held messages, step claims (those of steps up to
+        the last one answered here, or ``upto_step`` when larger: an episode restored from the store knows its
+        last answered step only where answers are persisted, and the claims of the steps computed before a
+        restart or by another instance would otherwise be left to expire)."""
         self.episodes.pop(episode_id, None)
         meta = self.meta.pop(episode_id, None)
         if meta is not None and self.shard is not None and self.shard.claims is not None:
-            self.shard.claims.forget(episode_id, meta.answer_step + 1)  # they would expire; not wait for it
+            # they would expire; not wait for it
+            self.shard.claims.forget(episode_id, max(meta.answer_step + 1, upto_step))
         self._held.pop(episode_id, None)
         self.store.delete(episode_state_key(self.name, episode_id))
         rec = self.recorders.pop(episode_id, None)
@@ -353,7 +357,7 @@ class EpisodeService(Service, Generic[S]):
             if state is not None:
                 self.finish_episode(robot, msg, state)
         finally:
-            self.drop(msg.episode_id)
+            self.drop(msg.episode_id, upto_step=getattr(msg, "steps", 0) + 1)  # an EpisodeEnd counts its steps
 
     def _dispatch(self, robot: str, msg: Any, route: _Route) -> None:
         eid = msg.episode_id
