@@ -52,6 +52,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Generic, TypeVar
@@ -130,6 +131,9 @@ class EpisodeService(Service, Generic[S]):
         self._routes: dict[Pair, _Route] = {}
         self.shard: Shard | None = None
         self._lost_at: dict[str, float] = {}  # robots that moved away recently (replaced whole, read on Zenoh threads)
+        # episodes seen ending (bounded): a step message of an ended episode that comes late, or an instance that
+        # gains the robot afterwards, must not start or restore it again (it would claim a step and linger)
+        self._ended: OrderedDict[str, None] = OrderedDict()
 
     # ---- hooks ------------------------------------------------------------------------------------------
     def owns(self, robot: str) -> bool:
@@ -305,8 +309,19 @@ class EpisodeService(Service, Generic[S]):
         log.info("%s: episode %s restored from the store (next step %d)", self.name, episode_id, resumed)
         return state
 
+    ENDED_MAX: ClassVar[int] = 4096
+
+    def _note_ended(self, episode_id: str) -> None:
+        self._ended[episode_id] = None
+        self._ended.move_to_end(episode_id)
+        while len(self._ended) > self.ENDED_MAX:
+            self._ended.popitem(last=False)
+
     def _on_start(self, robot: str, start: EpisodeStart) -> None:
         eid = start.episode_id
+        if eid in self._ended:
+            log.info("%s: episode %s has ended; its EpisodeStart ignored", self.name, eid)
+            return
         if not self.owns(robot):
             if self.shard is not None:  # the robot may move here before this episode's state is stored
                 self.shard.remember_start(eid, start)
@@ -349,6 +364,7 @@ class EpisodeService(Service, Generic[S]):
         self.error(robot, episode_id, 0, f"episode start refused: {reason}")
 
     def _on_finish(self, robot: str, msg: EpisodeCancel | EpisodeEnd) -> None:
+        self._note_ended(msg.episode_id)
         if not self.owns(robot):
             self._forget(msg.episode_id)  # a copy left from when the robot was ours; its owner drops the rest
             return
@@ -363,6 +379,8 @@ class EpisodeService(Service, Generic[S]):
         eid = msg.episode_id
         if eid is None:
             return
+        if eid in self._ended:
+            return  # a late message of an ended episode (its state and claims are gone; do not bring them back)
         step = getattr(msg, "step", None)
         mine = self.owns(robot)
         if not mine and not self._claimed_here(eid, step):

@@ -90,6 +90,9 @@ def test_every_step_once_with_several_instances_through_kills_and_a_join(tmp_pat
             ok = _wait(lambda: ids <= set(watch.ends), 120)
             assert ok, f"ended: {sorted(watch.ends)} of {sorted(ids)}; restarts: " + str(
                 {c.instance: c.history for c in fleet.children if c.history})
+            # the episodes may end before the launcher has restarted the last killed instance (backoff): wait
+            # for it inside the fleet, so the check below sees the restarts and not a race with them
+            _wait(lambda: {c.service for c in fleet.children if c.restarts} >= {"mapper", "stopper", "sim"}, 30)
         finally:
             if joined is not None and joined.poll() is None:
                 os.killpg(joined.pid, signal.SIGTERM)
