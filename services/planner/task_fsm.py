@@ -249,18 +249,30 @@ class TaskMachine:
         return Action("frontier", "searching", ranked[0].ref, reason=reason)
 
     # ---- pick and place ---------------------------------------------------------------------------------
+    def _ruled_out(self) -> set[int]:
+        """Instances whose skill failed too often to try again."""
+        return {i for i, n in self.fails.items() if n >= MAX_FAILS_PER_INSTANCE}
+
+    def _act_or_look(self, skill: str, robot: tuple[float, float, float], objects: Sequence[SeenObject], cls: str,
+                     excluded: set[int], tau: float, cs: float) -> Action | None:
+        """Eq. 11 for the candidates of ``cls``: act (``skill``) on one confident enough, else go and look again
+        at one whose optimistic score could get there; None: neither (back to search)."""
+        d = decide(self._scored(objects, cls, excluded), tau, self.th.tau_inc, cs, trusting=self.ablation == "trusting")
+        if d.instance_id is None:
+            return None
+        target = {o.instance_id: o for o in objects}[d.instance_id]
+        if d.action == "act":
+            return self._act_on(skill, target, robot, d.reason)
+        if d.action == "look":
+            return self._look(target, robot, d.reason)
+        return None
+
     def _search(self, robot: tuple[float, float, float], frontiers: Sequence[FrontierOption],
                 objects: Sequence[SeenObject]) -> Action:
         by_id = {o.instance_id: o for o in objects}
-        ruled_out = {i for i, n in self.fails.items() if n >= MAX_FAILS_PER_INSTANCE}
-        d = decide(self._scored(objects, self.object, ruled_out), self.th.tau_g, self.th.tau_inc, self.th.cs_g,
-                   trusting=self.ablation == "trusting")
-        if d.action == "act" and d.instance_id is not None:
-            return self._act_on("pick", by_id[d.instance_id], robot, d.reason)
-        if d.action == "look" and d.instance_id is not None:
-            a = self._look(by_id[d.instance_id], robot, d.reason)
-            if a is not None:
-                return a
+        a = self._act_or_look("pick", robot, objects, self.object, self._ruled_out(), self.th.tau_g, self.th.cs_g)
+        if a is not None:
+            return a
         # local search in progress: the next gaze point of the start receptacle, nearest first
         while self.queue:
             g = min(self.queue, key=lambda q: math.hypot(q.x - robot[0], q.y - robot[1]))
@@ -293,30 +305,17 @@ class TaskMachine:
     def _goal(self, robot: tuple[float, float, float], frontiers: Sequence[FrontierOption],
               objects: Sequence[SeenObject]) -> Action:
         goal = self.goal_receptacle or ""
-        by_id = {o.instance_id: o for o in objects}
-        d = decide(self._scored(objects, goal, self.bad_goals), self.th.tau_b, self.th.tau_inc, self.th.cs_b,
-                   trusting=self.ablation == "trusting")
-        if d.action == "act" and d.instance_id is not None:
-            return self._act_on("place", by_id[d.instance_id], robot, d.reason)
-        if d.action == "look" and d.instance_id is not None:
-            a = self._look(by_id[d.instance_id], robot, d.reason)
-            if a is not None:
-                return a
+        a = self._act_or_look("place", robot, objects, goal, self.bad_goals, self.th.tau_b, self.th.cs_b)
+        if a is not None:
+            return a
         return self._best_frontier(robot, frontiers, "goal receptacle search: frontier of highest value")
 
     # ---- find an object (section 4.2) --------------------------------------------------------------------
     def _find(self, robot: tuple[float, float, float], frontiers: Sequence[FrontierOption],
               objects: Sequence[SeenObject]) -> Action:
-        by_id = {o.instance_id: o for o in objects}
-        ruled_out = {i for i, n in self.fails.items() if n >= MAX_FAILS_PER_INSTANCE}
-        d = decide(self._scored(objects, self.object, ruled_out), self.th.tau_g, self.th.tau_inc, self.th.cs_g,
-                   trusting=self.ablation == "trusting")
-        if d.action == "act" and d.instance_id is not None:
-            return self._act_on("stop", by_id[d.instance_id], robot, d.reason)
-        if d.action == "look" and d.instance_id is not None:
-            a = self._look(by_id[d.instance_id], robot, d.reason)
-            if a is not None:
-                return a
+        a = self._act_or_look("stop", robot, objects, self.object, self._ruled_out(), self.th.tau_g, self.th.cs_g)
+        if a is not None:
+            return a
         return self._best_frontier(robot, frontiers, "object search: frontier of highest value")
 
     # ---- persistence ------------------------------------------------------------------------------------
