@@ -83,7 +83,8 @@ def configs(knobs: dict[str, Any]) -> tuple[Any, Any]:
 
 def run_episode(args: tuple[Any, str, dict[str, Any], int, int]) -> Episode:
     """One full-length episode with the pure cores in this process (the services' step functions)."""
-    from eqa.messages import EpisodeStart, Frame, ScoreRequest, letters
+    from eqa.app.core_runner import observe_step
+    from eqa.messages import EpisodeStart, letters
     from eqa.settings import Settings
     from services.mapper.episode_map import EpisodeMap
     from services.planner.sampling import step_rng
@@ -115,14 +116,7 @@ def run_episode(args: tuple[Any, str, dict[str, Any], int, int]) -> Episode:
     diag: list[tuple[float, float, float, float, float]] = []
     path = 0.0
     for step in range(question.max_steps):
-        cam = camera.camera_pose(pose)
-        r = renderer.render(cam, K, w, h)
-        frame = Frame(episode_id=start.episode_id, step=step, pose=pose, camera_pose=cam, intrinsics=K,
-                      rgb=r.rgb, depth=r.depth, instances=r.instances, labels=renderer.labels(r.instances))
-        emap.integrate(frame)
-        req = ScoreRequest(episode_id=start.episode_id, step=step, question=blind, rgb=frame.rgb,
-                           prompt_points=emap.prompts, instances=frame.instances, labels=frame.labels,
-                           depth=frame.depth, seed=seed)
+        req = observe_step(renderer, emap, start.episode_id, step, pose, K, w, h, blind, seed)
         seen = oracle.seen_targets(oracle.target_views(req, target))
         ev = {i for i in question.evidence_ids}
         qual.append(max((q for lab, q in seen if not ev or lab.id in ev), default=0.0))

@@ -53,7 +53,8 @@ class EpisodeRecord:
 def run_episode(args: tuple[Any, str, int, int]) -> EpisodeRecord:
     """One full-length episode with the pure cores in this process (the services' step functions)."""
     from eqa.app.benchmark_runner import question_seed
-    from eqa.messages import EpisodeStart, Frame, ScoreRequest
+    from eqa.app.core_runner import observe_step
+    from eqa.messages import EpisodeStart
     from eqa.settings import Settings
     from services.mapper.episode_map import EpisodeMap
     from services.planner.sampling import step_rng
@@ -80,14 +81,7 @@ def run_episode(args: tuple[Any, str, int, int]) -> EpisodeRecord:
     blind = question.model_copy(update={"answer": None, "evidence_ids": []})
     steps: list[StepRecord] = []
     for step in range(question.max_steps):
-        cam = camera.camera_pose(pose)
-        r = renderer.render(cam, K, w, h)
-        frame = Frame(episode_id=start.episode_id, step=step, pose=pose, camera_pose=cam, intrinsics=K,
-                      rgb=r.rgb, depth=r.depth, instances=r.instances, labels=renderer.labels(r.instances))
-        emap.integrate(frame)
-        req = ScoreRequest(episode_id=start.episode_id, step=step, question=blind, rgb=frame.rgb,
-                           prompt_points=emap.prompts, instances=frame.instances, labels=frame.labels,
-                           depth=frame.depth, seed=seed)
+        req = observe_step(renderer, emap, start.episode_id, step, pose, K, w, h, blind, seed)
         steps.append(StepRecord(oracle.target_views(req, target)))
         scores = oracle.score(req)
         emap.apply_scores(scores.lsv, scores.gsv)

@@ -19,11 +19,30 @@ import math
 from typing import Any
 
 
+def observe_step(renderer: Any, emap: Any, episode_id: str, step: int, pose: Any, K: Any, w: int, h: int,
+                 blind: Any, seed: int) -> Any:
+    """One step's perception as the services do it: the sim's frame at ``pose`` (camera, render, labels) is
+    integrated into the mapper's :class:`~services.mapper.episode_map.EpisodeMap`; returns the
+    :class:`~eqa.messages.ScoreRequest` the mapper sends for it (``blind``: the question without its ground
+    truth). Every in-process runner (this module, :mod:`eqa.app.stop_sensitivity`, ``bench/tune_oracle.py``,
+    ``bench/tune_explore.py``) calls it."""
+    from eqa.messages import Frame, ScoreRequest
+    from services.sim import camera
+
+    cam = camera.camera_pose(pose)
+    r = renderer.render(cam, K, w, h)
+    frame = Frame(episode_id=episode_id, step=step, pose=pose, camera_pose=cam, intrinsics=K,
+                  rgb=r.rgb, depth=r.depth, instances=r.instances, labels=renderer.labels(r.instances))
+    emap.integrate(frame)
+    return ScoreRequest(episode_id=episode_id, step=step, question=blind, rgb=frame.rgb, prompt_points=emap.prompts,
+                        instances=frame.instances, labels=frame.labels, depth=frame.depth, seed=seed)
+
+
 def core_episode(args: tuple[Any, str, dict[str, Any]]) -> Any:
     """One full-length episode of ``question`` with ``strategy`` under ``settings`` (a ``model_dump``); returns a
     :class:`services.stopper.calibration.Trace` (its ``end_reason`` says why it ended)."""
     from eqa.app.benchmark_runner import question_seed
-    from eqa.messages import EpisodeStart, Frame, Pose2D, ScoreRequest
+    from eqa.messages import EpisodeStart, Pose2D
     from eqa.settings import Settings
     from services.mapper.episode_map import EpisodeMap, MapperConfig
     from services.planner.sampling import step_rng
@@ -55,14 +74,7 @@ def core_episode(args: tuple[Any, str, dict[str, Any]]) -> Any:
     steps: list[Any] = []
     reason = "step limit"
     for step in range(question.max_steps):
-        cam = camera.camera_pose(pose)
-        r = renderer.render(cam, K, w, h)
-        frame = Frame(episode_id=start.episode_id, step=step, pose=pose, camera_pose=cam, intrinsics=K,
-                      rgb=r.rgb, depth=r.depth, instances=r.instances, labels=renderer.labels(r.instances))
-        emap.integrate(frame)
-        req = ScoreRequest(episode_id=start.episode_id, step=step, question=blind, rgb=frame.rgb,
-                           prompt_points=emap.prompts, instances=frame.instances, labels=frame.labels,
-                           depth=frame.depth, seed=seed)
+        req = observe_step(renderer, emap, start.episode_id, step, pose, K, w, h, blind, seed)
         scores = scorer.score(req)
         steps.append(TraceStep(answer_probs=list(scores.answer_probs), relevance=float(scores.relevance)))
         emap.apply_scores(scores.lsv, scores.gsv)

@@ -88,11 +88,9 @@ def run_episode(args: tuple[Any, ...]) -> PerceptionEpisode:
     ``args`` = (question, strategy, width, height[, q_hat]): with strategy ``cp_guided`` the stopper's decision
     (:func:`services.stopper.state.decide` with ``q_hat``) is taken every step, as the planner service receives
     it, the frontier weights are re-tempered by its prediction set, and the episode ends when CP stops."""
-    try:
-        from eqa.app.benchmark_runner import question_seed
-    except ImportError:  # before the application layer moved (issue 18)
-        from eqa.harness import question_seed  # type: ignore[no-redef]
-    from eqa.messages import EpisodeStart, Frame, ScoreRequest
+    from eqa.app.benchmark_runner import question_seed
+    from eqa.app.core_runner import observe_step
+    from eqa.messages import EpisodeStart
     from eqa.settings import Settings
     from services.mapper.episode_map import EpisodeMap
     from services.planner.sampling import step_rng
@@ -134,14 +132,7 @@ def run_episode(args: tuple[Any, ...]) -> PerceptionEpisode:
     blind = question.model_copy(update={"answer": None, "evidence_ids": []})
     steps: list[PerceptionStep] = []
     for step in range(question.max_steps):
-        cam = camera.camera_pose(pose)
-        r = renderer.render(cam, K, w, h)
-        frame = Frame(episode_id=start.episode_id, step=step, pose=pose, camera_pose=cam, intrinsics=K,
-                      rgb=r.rgb, depth=r.depth, instances=r.instances, labels=renderer.labels(r.instances))
-        emap.integrate(frame)
-        req = ScoreRequest(episode_id=start.episode_id, step=step, question=blind, rgb=frame.rgb,
-                           prompt_points=emap.prompts, instances=frame.instances, labels=frame.labels,
-                           depth=frame.depth, seed=seed)
+        req = observe_step(renderer, emap, start.episode_id, step, pose, K, w, h, blind, seed)
         scores = oracle.score(req)
         steps.append(PerceptionStep(oracle.target_views(req, target), oracle.related_views(req, target),
                                     oracle.clutter(req), list(scores.answer_probs), float(scores.relevance)))
