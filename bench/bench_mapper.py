@@ -1,12 +1,20 @@
-"""Mapper step cost on a 30-step trajectory through a generated house, and our TSDF vs open3d's.
+"""Mapper step cost on a trajectory through a generated house: ours against the starting implementation and
+against open3d's ``VoxelBlockGrid``, on the same frames, interleaved, in one run.
 
-Per frame it times integrate (our vectorised TSDF), 2D projection, prompt points, frontiers (with Eq. A6
-weights), the semantic-value write, the store snapshot, MapUpdate encoding and the Rerun logging; and, on
-the same frames in the same run, open3d's ``t.geometry.VoxelBlockGrid`` integration (voxel 0.1 m, the same
-truncation), printing p50/p95 and the ratio. Memory of the volume is printed against the explored area and
-the step number.
+Per frame, in rotating order so that load drifts hit all alike:
 
-    python bench/bench_mapper.py [--steps 30] [--width 640 --height 480] [--scene gen-00007]
+* ``baseline``: the TSDF of git revision ``--baseline`` (default: the commit before issue 20's work), its
+  source read with ``git show`` into a private module (nothing of it is kept in the tree);
+* ``ours``: :class:`services.mapper.tsdf.TSDFVolume` of this tree;
+* ``open3d``: ``o3d.t.geometry.VoxelBlockGrid`` with the same voxel size and truncation (surface band only:
+  no free-space carving, no unknown, no explored marks).
+
+After each frame the baseline and our volumes (tsdf, weight, explored) and their 2D projections are compared
+bit for bit; the bench fails (exit 1) on the first difference. Then the whole mapper step of this tree
+(integrate, projection, prompt points, frontiers), the store snapshot (full, as before, and the step's
+incremental one when the tree has it) with its bytes, MapUpdate encoding and the Rerun logging are timed.
+
+    python bench/bench_mapper.py [--steps 30] [--width 640 --height 480] [--scene gen-00007] [--baseline REV]
 """
 
 from __future__ import annotations
@@ -14,9 +22,11 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import subprocess
 import sys
 import tempfile
 import time
+import types
 from pathlib import Path
 
 import numpy as np
@@ -92,8 +102,53 @@ class Open3DTSDF:
         return int(n * 8**3 * 8)
 
 
+BASELINE_REV = "5f008c0"  # the tree before issue 20 (TSDF, projection and snapshot as they were)
+ROOT = Path(__file__).resolve().parents[1]
+
+
 def pct(values: list[float], q: float) -> float:
     return float(np.percentile(values, q)) if values else float("nan")
+
+
+def load_baseline(rev: str) -> tuple[types.ModuleType, types.ModuleType]:
+    """``services/mapper/tsdf.py`` and ``projection.py`` of git revision ``rev`` as private modules."""
+    mods = []
+    for name in ("tsdf", "projection"):
+        try:
+            src = subprocess.run(["git", "-C", str(ROOT), "show", f"{rev}:services/mapper/{name}.py"],
+                                 check=True, capture_output=True, text=True).stdout
+        except (OSError, subprocess.CalledProcessError) as exc:
+            raise SystemExit(f"error: cannot read services/mapper/{name}.py at {rev} ({exc}); pass --baseline "
+                             "none to skip the comparison, or a revision of this repository") from exc
+        mod = types.ModuleType(f"_baseline_{name}")
+        mod.__file__ = f"{rev}:services/mapper/{name}.py"
+        sys.modules[mod.__name__] = mod  # dataclasses look their module up
+        exec(compile(src, mod.__file__, "exec"), mod.__dict__)  # our own history, read from git
+        mods.append(mod)
+    return mods[0], mods[1]
+
+
+def same_volume(a, b) -> str | None:
+    """None when two volumes hold the same bits, else what differs."""
+    if (a.origin_x, a.origin_y) != (b.origin_x, b.origin_y):
+        return f"origin {(a.origin_x, a.origin_y)} != {(b.origin_x, b.origin_y)}"
+    for name in ("tsdf", "weight", "explored"):
+        x, y = np.asarray(getattr(a, name)), np.asarray(getattr(b, name))
+        if x.shape != y.shape or x.tobytes() != y.tobytes():
+            return f"{name} differs (shapes {x.shape} / {y.shape})"
+    return None
+
+
+def same_maps(a, b) -> str | None:
+    for name in ("occupied", "free", "free_all", "explored", "observed"):
+        x, y = getattr(a, name), getattr(b, name)
+        if x.shape != y.shape or not np.array_equal(x, y):
+            return f"2D {name} differs"
+    return None if a.robot_cell == b.robot_cell else "robot cell differs"
+
+
+def line(name: str, v: list[float], note: str = "") -> str:
+    return f"  {name:28s} {pct(v, 50):7.2f} {pct(v, 95):7.2f} {max(v) if v else float('nan'):7.2f}  {note}"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -102,13 +157,22 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--width", type=int, default=640)
     ap.add_argument("--height", type=int, default=480)
     ap.add_argument("--scene", default="gen-00007")
+    ap.add_argument("--baseline", default=BASELINE_REV,
+                    help=f"git revision whose TSDF runs side by side (default {BASELINE_REV}); 'none' skips it")
     ap.add_argument("--no-open3d", action="store_true", help="skip the open3d comparison")
     ap.add_argument("--no-record", action="store_true", help="skip the Rerun logging cost")
     args = ap.parse_args(argv)
-    if args.steps < 1 or args.width < 16 or args.height < 12:
-        print("error: steps >= 1, width >= 16, height >= 12", file=sys.stderr)
+    if not (1 <= args.steps <= 1000) or not (16 <= args.width <= 4096) or not (12 <= args.height <= 4096):
+        print("error: 1 <= steps <= 1000, 16 <= width <= 4096, 12 <= height <= 4096", file=sys.stderr)
         return 2
 
+    from tqdm import tqdm
+
+    from services.mapper.tsdf import TSDFVolume
+
+    base_tsdf = base_proj = None
+    if args.baseline != "none":
+        base_tsdf, base_proj = load_baseline(args.baseline)
     tmp = Path(tempfile.mkdtemp(prefix="bench-mapper-"))
     scene = load_or_generate(args.scene, tmp / "scenes")
     renderer = Renderer(scene)
@@ -116,7 +180,7 @@ def main(argv: list[str] | None = None) -> int:
     K = intrinsics(W, H)
     poses = trajectory(scene, args.steps)
     frames = []
-    for i, p in enumerate(poses):
+    for i, p in enumerate(tqdm(poses, desc="rendering", leave=False)):
         T = camera_pose(p)
         r = renderer.render(T, K, W, H)
         frames.append(
@@ -132,20 +196,63 @@ def main(argv: list[str] | None = None) -> int:
 
         recorder = EpisodeRecorder(Settings(data_dir=tmp), "bench", "mapper")
 
+    # the three TSDFs, interleaved (rotating order)
+    ours_vol = TSDFVolume()
+    base_vol = base_tsdf.TSDFVolume() if base_tsdf is not None else None
+    o3 = None
+    if not args.no_open3d:
+        Open3DTSDF().integrate(frames[0].depth, K, frames[0].camera_pose)  # warm-up (allocation, threads)
+        o3 = Open3DTSDF()
+    tsdf_ms: dict[str, list[float]] = {"baseline": [], "ours": [], "open3d": []}
+    runners = {
+        "ours": lambda f: ours_vol.integrate(f.depth, f.intrinsics, f.camera_pose),
+        "baseline": (lambda f: base_vol.integrate(f.depth, f.intrinsics, f.camera_pose)) if base_vol else None,
+        "open3d": (lambda f: o3.integrate(f.depth, K, f.camera_pose)) if o3 else None,
+    }
+    order = [k for k, fn in runners.items() if fn is not None]
+
     core, rows = [], []
-    extra: dict[str, list[float]] = {k: [] for k in ("semantic_values", "snapshot", "encode", "record")}
-    for f in frames:
+    extra: dict[str, list[float]] = {k: [] for k in ("semantic_values", "snapshot full", "snapshot step",
+                                                     "encode", "record")}
+    nbytes: dict[str, list[int]] = {"snapshot full": [], "snapshot step": []}
+    differ = None
+    for i, f in enumerate(tqdm(frames, desc="steps", leave=False)):
+        for name in order[i % len(order):] + order[: i % len(order)]:
+            t0 = time.perf_counter()
+            runners[name](f)
+            tsdf_ms[name].append((time.perf_counter() - t0) * 1000)
+        if base_vol is not None and differ is None:
+            why = same_volume(base_vol, ours_vol)
+            differ = f"step {f.step}: TSDF {why}" if why else None
         timer = Timer()
         t0 = time.perf_counter()
         em.integrate(f, timer)
         em.compute_frontiers(timer=timer)
         core.append((time.perf_counter() - t0) * 1000)
+        if base_proj is not None and differ is None:
+            base_vol.planes["traversed"] = em.volume.planes["traversed"]
+            old = base_proj.project(base_vol, (f.pose.x, f.pose.y), em.config.projection)
+            why = same_volume(base_vol, em.volume) or same_maps(old, em.maps)
+            differ = f"step {f.step}: mapper {why}" if why else None
         t0 = time.perf_counter()
         em.apply_scores([0.5, 0.3, 0.2][: len(em.prompts)], 0.6)
         extra["semantic_values"].append((time.perf_counter() - t0) * 1000)
         t0 = time.perf_counter()
-        store.set("mapper/episode/bench", em.snapshot())
-        extra["snapshot"].append((time.perf_counter() - t0) * 1000)
+        full = em.snapshot()
+        store.set("mapper/episode/bench", full)
+        extra["snapshot full"].append((time.perf_counter() - t0) * 1000)
+        nbytes["snapshot full"].append(len(full))
+        step_snapshot = getattr(em, "snapshot_step", None)
+        if step_snapshot is not None:  # incremental snapshot (issue 20): the step's parts + header
+            t0 = time.perf_counter()
+            header, parts, obsolete = step_snapshot()
+            for part, data in parts.items():
+                store.set(f"mapper/episode/bench:{part}", data)
+            store.set("mapper/episode/bench/step", header)
+            for part in obsolete:
+                store.delete(f"mapper/episode/bench:{part}")
+            extra["snapshot step"].append((time.perf_counter() - t0) * 1000)
+            nbytes["snapshot step"].append(len(header) + sum(len(d) for d in parts.values()))
         t0 = time.perf_counter()
         payload = encode(em.map_update(timer.ms))
         extra["encode"].append((time.perf_counter() - t0) * 1000)
@@ -157,77 +264,65 @@ def main(argv: list[str] | None = None) -> int:
             svc.recorders = {"bench": recorder}
             MapperService._record(svc, em, f)
             extra["record"].append((time.perf_counter() - t0) * 1000)
-        rows.append(
-            (
-                f.step,
-                timer.ms,
-                em.explored_area_m2(),
-                float(em.maps.observed.sum()) * 0.01,
-                em.volume.nbytes(),
-                len(payload),
-            )
-        )
+        rows.append((f.step, timer.ms, em.explored_area_m2(), float(em.maps.observed.sum()) * 0.01,
+                     em.volume.nbytes(), len(payload)))
 
-    print(f"mapper bench: scene {args.scene}, {W}x{H}, {len(frames)} steps, {os.cpu_count()} CPUs")
+    load = os.getloadavg()
+    print(f"mapper bench: scene {args.scene}, {W}x{H}, {len(frames)} steps, {os.cpu_count()} CPUs, "
+          f"load average {load[0]:.1f} {load[1]:.1f} {load[2]:.1f}")
     print("step  integrate  project  prompts  frontiers   explored m2  observed m2  volume MB  msg kB")
-    for step, ms, area, obs, nbytes, size in rows:
+    for step, ms, area, obs, nb, size in rows:
         print(
             f"{step:4d} {ms['integrate']:9.1f} {ms['project']:8.1f} {ms['prompt_points']:8.1f} "
-            f"{ms['frontiers']:10.1f} {area:13.1f} {obs:12.1f} {nbytes / 1e6:10.2f} {size / 1e3:7.1f}"
+            f"{ms['frontiers']:10.1f} {area:13.1f} {obs:12.1f} {nb / 1e6:10.2f} {size / 1e3:7.1f}"
         )
+    print(f"\nTSDF integrate, the same {len(frames)} frames interleaved in one run (ms)    p50     p95     max")
+    notes = {"baseline": f"git {args.baseline}", "ours": "this tree",
+             "open3d": "VoxelBlockGrid: surface band only, no carving/unknown/explored"}
+    for name in order:
+        print(line(f"{name}", tsdf_ms[name], notes[name]))
+    ours = tsdf_ms["ours"]
+    for other in ("baseline", "open3d"):
+        if tsdf_ms[other]:
+            print(f"  ratio ours/{other}: p50 {pct(ours, 50) / pct(tsdf_ms[other], 50):.2f}, "
+                  f"p95 {pct(ours, 95) / pct(tsdf_ms[other], 95):.2f}")
+    print(f"  ours p95/p50 {pct(ours, 95) / pct(ours, 50):.2f}")
+    if base_vol is not None:
+        print(f"  bit-identical to {args.baseline} (3D volume and 2D maps, every step): "
+              f"{'NO: ' + differ if differ else 'yes'}")
+    if o3 is not None:
+        print(f"  (open3d voxel blocks {o3.nbytes() / 1e6:.1f} MB; our volume {ours_vol.nbytes() / 1e6:.1f} MB)")
+
     phase = {k: [r[1][k] for r in rows] for k in ("integrate", "project", "prompt_points", "frontiers")}
-    print("\nper-frame ms            p50      p95")
+    print("\nmapper step of this tree (ms)          p50     p95     max")
     for k, v in phase.items():
-        print(f"  {k:20s} {pct(v, 50):6.1f}   {pct(v, 95):6.1f}")
-    print(
-        f"  {'mapper step (core)':20s} {pct(core, 50):6.1f}   {pct(core, 95):6.1f}"
-        "   <- integrate + projection + prompt points + frontiers; target p50 < 60 ms"
-    )
+        print(line(k, v))
+    print(line("mapper step (core)", core, "integrate + projection + prompt points + frontiers"))
     for k, v in extra.items():
         if v:
-            print(f"  {k:20s} {pct(v, 50):6.1f}   {pct(v, 95):6.1f}")
-    total = [c + sum(extra[k][i] for k in extra if extra[k]) for i, c in enumerate(core)]
-    print(f"  {'whole step (all)':20s} {pct(total, 50):6.1f}   {pct(total, 95):6.1f}")
-
-    if not args.no_open3d:
-        o3 = Open3DTSDF()
-        o3.integrate(frames[0].depth, K, frames[0].camera_pose)  # warm-up (allocation)
-        o3 = Open3DTSDF()
-        t_o3 = []
-        for f in frames:
-            t0 = time.perf_counter()
-            o3.integrate(f.depth, K, f.camera_pose)
-            t_o3.append((time.perf_counter() - t0) * 1000)
-        ours = phase["integrate"]
-        print(
-            "\nTSDF integrate, same frames, same run:"
-            f" ours p50 {pct(ours, 50):.1f} ms / p95 {pct(ours, 95):.1f} ms;"
-            f" open3d VoxelBlockGrid p50 {pct(t_o3, 50):.1f} ms / p95 {pct(t_o3, 95):.1f} ms;"
-            f" ratio ours/open3d (p50) {pct(ours, 50) / pct(t_o3, 50):.2f}"
-        )
-        print(
-            "  (open3d keeps only blocks near surfaces: no free/unknown distinction, no explored marks;"
-            f" {o3.nbytes() / 1e6:.1f} MB of voxel blocks)"
-        )
+            note = ""
+            if nbytes.get(k):
+                note = f"bytes p50 {pct(nbytes[k], 50) / 1e3:.0f} kB, max {max(nbytes[k]) / 1e3:.0f} kB"
+            print(line(k, v, note))
+    snap = "snapshot step" if extra["snapshot step"] else "snapshot full"
+    total = [c + sum(extra[k][i] for k in extra if (extra[k] and k != "snapshot full") or k == snap)
+             for i, c in enumerate(core)]
+    print(line("whole step (all)", total, f"core + values + {snap} + encode + record"))
     first, last = rows[0], rows[-1]
     print(
         f"\nmemory: volume {first[4] / 1e6:.2f} MB at step 0 (observed {first[3]:.0f} m2) -> "
         f"{last[4] / 1e6:.2f} MB at step {last[0]} (observed {last[3]:.0f} m2); "
         f"{last[4] / max(last[3], 1e-9) / 1e3:.1f} kB per observed m2"
     )
-    # same pose again and again: the volume must not grow with the number of steps
     before = em.volume.nbytes()
-    for i in range(10):
-        f = frames[-1].model_copy(update={"step": len(frames) + i})
-        em.integrate(f)
-    print(
-        f"memory after 10 more steps at the last pose: {em.volume.nbytes() / 1e6:.2f} MB "
-        f"(was {before / 1e6:.2f} MB): grows with area, not steps"
-    )
+    for i in range(10):  # same pose again and again: the volume must not grow with the number of steps
+        em.integrate(frames[-1].model_copy(update={"step": len(frames) + i}))
+    print(f"memory after 10 more steps at the last pose: {em.volume.nbytes() / 1e6:.2f} MB "
+          f"(was {before / 1e6:.2f} MB): grows with area, not steps")
     if recorder is not None:
         recorder.close()
     store.close()
-    return 0
+    return 1 if differ else 0
 
 
 if __name__ == "__main__":
