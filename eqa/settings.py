@@ -93,9 +93,21 @@ class Settings(BaseSettings):
     tau_gsv: float = 1.0
     tau_sv: float = 1.0
     tau_sv_normal: float = 1.0
+    # view orientation in the value layers (issue 22 item 3; services/mapper/semantic_map.py). 0 = off
+    view_bins: int = Field(default=0, ge=0, le=16, description="viewing-direction bins per value layer, 0 = off")
+    view_agree: int = Field(default=2, ge=1, le=16, description="bins that must see a cell before a value below "
+                            "neutral (LSV < 1/|P|) is believed")
 
     # --- stopper ---
     calibration_name: str = Field(default="default", description="CP calibration table name (eqa calibrate)")
+    # issue 22: answer from the K most relevant views (services/stopper/answer_memory.py); 0 = the paper's
+    # single-view answer. A CP table must be calibrated with the same rule (eqa calibrate --answer-memory K).
+    answer_memory_k: int = Field(default=0, ge=0, le=16, description="answer memory: views pooled, 0 = off")
+    answer_memory_fusion: Literal["loglinear", "linear"] = Field(
+        default="loglinear", description="answer memory pooling: relevance-weighted log-linear or linear")
+    # issue 22 item 2: question episodes track the target class in the HELIOS object layer and the stopper
+    # combines its evidence with the VLM's answer (services/stopper/object_evidence.py); off by default.
+    object_evidence: bool = Field(default=False, description="object evidence for existence/counting questions")
 
     # --- gateway ---
     gateway_host: str = "127.0.0.1"

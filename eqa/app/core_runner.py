@@ -65,7 +65,8 @@ def core_episode(args: tuple[Any, str, dict[str, Any]]) -> Any:
     start = EpisodeStart(episode_id=f"cores-{question.id}", robot="cores", question=question, strategy=strategy,
                          max_steps=question.max_steps, seed=seed, record=False)
     emap = EpisodeMap(start, MapperConfig(tau_lsv=settings.tau_lsv, tau_gsv=settings.tau_gsv, tau_sv=settings.tau_sv,
-                                          tau_sv_normal=settings.tau_sv_normal))
+                                          tau_sv_normal=settings.tau_sv_normal, view_bins=settings.view_bins,
+                                          view_agree=settings.view_agree))
     params = PlannerParams()
     K = camera.intrinsics(w, h)
     pose = question.start_pose

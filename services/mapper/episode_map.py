@@ -21,10 +21,14 @@ from services.mapper.projection import Maps2D, ProjectionConfig, project
 from services.mapper.prompt_points import PromptConfig, prompt_points
 from services.mapper.semantic_map import (
     QUESTION_LAYER,
+    combine_view_bins,
     ground_truth_scores,
+    neutral_value,
     semantic_value,
     temperatures,
+    view_plane_names,
     write_values,
+    write_values_binned,
 )
 from services.mapper.tsdf import TSDFVolume, VolumeConfig, check_frame
 
@@ -43,6 +47,8 @@ class MapperConfig:
     tau_gsv: float = 1.0
     tau_sv: float = 1.0
     tau_sv_normal: float = 1.0
+    view_bins: int = 0  # issue 22: best value per viewing-direction bin (semantic_map.py); 0 = off
+    view_agree: int = 2  # bins that must have seen a cell before a below-neutral value is believed
 
 
 _arr = packed_array  # one array of a snapshot, encoded by eqa.codec (the wire's array extension) when taken
@@ -72,6 +78,8 @@ class EpisodeMap:
         self.layers = list(layers or [QUESTION_LAYER])
         for name in self.layers:
             self.volume.add_plane(f"value/{name}", 0.0, np.float32)
+            for plane in view_plane_names(name, self.config.view_bins):
+                self.volume.add_plane(plane, 0.0, np.float32)
         self.step = -1  # last integrated step
         self.pose: Pose2D | None = None
         self.maps: Maps2D | None = None
@@ -152,6 +160,13 @@ class EpisodeMap:
             cam = (self.pose.x, self.pose.y) if self.pose is not None else (0.0, 0.0)
             lsv, gsv = ground_truth_scores([(p.x, p.y) for p in pts], list(self.start.question.targets), cam)
         sv = [semantic_value(lv, gsv, temps[0], temps[1]) for lv in lsv]
+        if self.config.view_bins > 0:  # issue 22 item 3: per viewing-direction bin, combined into the layer
+            *bins, neutral = (self.volume.add_plane(n) for n in view_plane_names(layer, self.config.view_bins))
+            cam = (self.pose.x, self.pose.y) if self.pose is not None else (0.0, 0.0)
+            write_values_binned(bins, neutral, self.origin, self.resolution, [(p.x, p.y) for p in pts], sv,
+                                neutral_value(len(pts), gsv, temps[0], temps[1]), cam, self.config.sigma)
+            self.layer(layer)[...] = combine_view_bins(bins, neutral, self.config.view_agree)
+            return sv
         write_values(
             self.layer(layer), self.origin, self.resolution, [(p.x, p.y) for p in pts], sv, self.config.sigma
         )

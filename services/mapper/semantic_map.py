@@ -91,3 +91,89 @@ def write_values(
         g = (value * np.exp(-d2 / (2 * sigma * sigma))).astype(layer.dtype)
         g[d2 > (3 * sigma) ** 2] = 0
         np.maximum(layer[r0:r1, c0:c1], g, out=layer[r0:r1, c0:c1])
+
+
+# ---- view orientation (Explore-EQA appendix C, "Improving semantic exploration by considering view orientation";
+# issue 22 item 3) ----------------------------------------------------------------------------------------------
+#
+# With ``view_bins = B > 0`` a value layer ``V`` keeps, next to itself, the best value per viewing-direction bin
+# ``V_b(x) = max over the steps that saw x from direction bin b of S_t(x)`` (the bin of the bearing from the
+# camera to the cell, B equal sectors of 2 pi starting at +x) and the *neutral* value ``N(x)``: the Gaussian
+# of ``SV_neutral = exp(tau_LSV / |P| + tau_GSV * GSV)`` (Eq. 3 with the uniform LSV 1/|P|, a view that prefers
+# no prompt point) around the same points, max-fused. LSV is a softmax over the points of one view, so a point
+# below 1/|P| was judged *worse than the rest of that view*: what a view from a poor angle (the sofa seen from
+# behind) says. What the consumers (Eq. A6 frontier weights, the map update) read is the combined value
+#
+#     V(x) = max_b V_b(x)                      where at least ``agree`` bins have seen x  (explained)
+#     V(x) = max(max_b V_b(x), N(x))           where fewer have                           (not explained yet)
+#
+# so a value below neutral is believed only once ``agree`` directions agree on it (every seen bin is below N
+# then, else the max would be above it); a value above neutral is kept as without bins (max over bins = the
+# max over all steps). ``agree = 1`` gives exactly the layer without bins. Memory: (B + 1) extra float32
+# planes per value layer, B <= MAX_VIEW_BINS.
+
+MAX_VIEW_BINS = 16
+
+
+def view_plane_names(layer: str, bins: int) -> list[str]:
+    """Names of the volume planes of a layer's direction bins, then its neutral plane (empty when bins = 0)."""
+    if bins <= 0:
+        return []
+    return [f"value/{layer}/view{b}" for b in range(bins)] + [f"value/{layer}/neutral"]
+
+
+def neutral_value(n_points: int, gsv: float, tau_lsv: float, tau_gsv: float) -> float:
+    """Eq. 3 at the uniform LSV ``1 / |P|``: the value of a prompt point the model prefers to none other."""
+    return semantic_value(1.0 / max(n_points, 1), gsv, tau_lsv, tau_gsv)
+
+
+def view_bin(dx: np.ndarray, dy: np.ndarray, bins: int) -> np.ndarray:
+    """Direction bin (0 .. bins - 1) of the bearing ``atan2(dy, dx)`` from the camera to a cell."""
+    a = np.mod(np.arctan2(dy, dx), 2 * math.pi)
+    return np.minimum((a * (bins / (2 * math.pi))).astype(np.int64), bins - 1)
+
+
+def write_values_binned(
+    bin_layers: list[np.ndarray],
+    neutral_layer: np.ndarray,
+    origin: tuple[float, float],
+    resolution: float,
+    points: list[tuple[float, float]],
+    values: list[float],
+    neutral: float,
+    camera_xy: tuple[float, float],
+    sigma: float = 1.0,
+) -> None:
+    """:func:`write_values` per direction bin: each cell of a point's Gaussian goes into the bin of its bearing
+    from ``camera_xy`` only; the neutral value's Gaussian (same points, same sigma) into ``neutral_layer``."""
+    bins = len(bin_layers)
+    ny, nx = neutral_layer.shape
+    radius = math.ceil(3 * sigma / resolution)
+    for (x, y), value in zip(points, values, strict=True):
+        r, c = grid.cell_of_point(x, y, origin, resolution)
+        r0, r1 = max(r - radius, 0), min(r + radius + 1, ny)
+        c0, c1 = max(c - radius, 0), min(c + radius + 1, nx)
+        if r0 >= r1 or c0 >= c1:
+            continue
+        xs, ys = grid.cell_center(np.arange(r0, r1), np.arange(c0, c1), origin, resolution)
+        d2 = (ys[:, None] - y) ** 2 + (xs[None, :] - x) ** 2
+        g = np.exp(-d2 / (2 * sigma * sigma))
+        g[d2 > (3 * sigma) ** 2] = 0
+        b = view_bin(xs[None, :] - camera_xy[0], ys[:, None] - camera_xy[1], bins)
+        gv = (value * g).astype(neutral_layer.dtype)
+        for k in np.unique(b[g > 0]).tolist():
+            win = bin_layers[k][r0:r1, c0:c1]
+            np.maximum(win, np.where(b == k, gv, 0).astype(win.dtype), out=win)
+        win = neutral_layer[r0:r1, c0:c1]
+        np.maximum(win, (neutral * g).astype(win.dtype), out=win)
+
+
+def combine_view_bins(bin_layers: list[np.ndarray], neutral_layer: np.ndarray, agree: int) -> np.ndarray:
+    """The combined value (see above): ``max_b V_b`` where at least ``agree`` bins saw the cell, else
+    ``max(max_b V_b, N)``."""
+    stack = np.stack(bin_layers)
+    best = stack.max(axis=0)
+    seen = (stack > 0).sum(axis=0)
+    return np.where(seen >= min(agree, len(bin_layers)), best, np.maximum(best, neutral_layer)).astype(
+        neutral_layer.dtype
+    )

@@ -78,6 +78,8 @@ class MapperService(ObjectLayerShell, EpisodeService[EpisodeMap]):
             tau_gsv=settings.tau_gsv,
             tau_sv=settings.tau_sv,
             tau_sv_normal=settings.tau_sv_normal,
+            view_bins=settings.view_bins,
+            view_agree=settings.view_agree,
         )
         self.last_timing_ms: dict[str, float] = {}
         # runs the scorer round trip of a step while the handler thread does the score-independent work
