@@ -36,6 +36,7 @@ from typing import Any
 from eqa.messages import Question
 from eqa.settings import Settings
 from eqa.store import Store, StoreError, open_store
+from services.stopper.answer_memory import AnswerRule
 from services.stopper.calibration import (
     DEFAULT_EPS_GRID,
     CalibrationTable,
@@ -114,6 +115,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="do not calibrate: test whether the labelled episodes of --from-store / --from-traces are "
                         "still exchangeable with table --name (rank and coverage tests); exit status 3 if STALE")
     p.add_argument("--alpha", type=float, default=0.05, help="significance level of --check (default 0.05)")
+    p.add_argument("--answer-memory", type=int, default=None, metavar="K",
+                   help="calibrate the scores of the answer-memory rule that pools the K most relevant views "
+                        "(issue 22; default EQA_ANSWER_MEMORY_K, 0 = the single-view rule); the stopper must use "
+                        "the same K and fusion for the coverage guarantee")
+    p.add_argument("--answer-fusion", choices=("loglinear", "linear"), default=None,
+                   help="pooling of the answer memory (default EQA_ANSWER_MEMORY_FUSION)")
     p.add_argument("--out", type=Path, default=None, metavar="FILE.json", help="also write the table here")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_calibrate)
@@ -208,13 +215,15 @@ def run_calibrate(args: argparse.Namespace, settings: Settings, store: Store) ->
         raise UsageError(str(exc)) from exc
     ts = TraceStore(store)
     provenance: dict[str, Any] = {"created_by": "eqa calibrate", "eps_grid": grid}
+    rule = _answer_rule(args, settings)
     if args.from_store:
         traces = _labelled(ts, args)
         if args.limit is not None:
             traces = traces[: args.limit]
         provenance.update(source="labelled episodes", tenant=args.tenant, set_name="labelled episodes",
                           scorer_backend=settings.scorer_backend, scorer_mode=scorer_mode(settings))
-        table = calibrate(traces, grid, name=name, provenance=provenance, by_category=args.by_category)
+        table = calibrate(traces, grid, name=name, provenance=provenance, by_category=args.by_category,
+                          answer_rule=rule)
         return _save(store, table, args)
     if args.from_traces is not None:
         path: Path = args.from_traces
@@ -252,8 +261,20 @@ def run_calibrate(args: argparse.Namespace, settings: Settings, store: Store) ->
             f"{len(absent)} questions have no stored trace in {set_name}: "
             f"{sorted(absent)[:5]}; run the command again to resume"
         )
-    table = calibrate(traces, grid, name=name, provenance=provenance, by_category=args.by_category)
+    table = calibrate(traces, grid, name=name, provenance=provenance, by_category=args.by_category,
+                          answer_rule=rule)
     return _save(store, table, args)
+
+
+def _answer_rule(args: argparse.Namespace, settings: Settings) -> AnswerRule:
+    """The answer rule to calibrate (issue 22): --answer-memory / --answer-fusion, else the settings'."""
+    k = getattr(args, "answer_memory", None)
+    fusion = getattr(args, "answer_fusion", None)
+    try:
+        return AnswerRule(settings.answer_memory_k if k is None else k,
+                          fusion or settings.answer_memory_fusion)
+    except ValueError as exc:
+        raise UsageError(f"--answer-memory: {exc}") from exc
 
 
 def _save(store: Store, table: CalibrationTable, args: argparse.Namespace) -> CalibrationTable:

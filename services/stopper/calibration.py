@@ -40,6 +40,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from eqa.messages import EpisodeLabel, letters
 from eqa.store import LABEL_PREFIX, Store, episode_trace_key
+from services.stopper.answer_memory import AnswerRule, transform
 from services.stopper.conformal import (
     CalibrationError,
     ScoreError,
@@ -144,13 +145,16 @@ class Trace(BaseModel):
         rel = np.array([s.relevance for s in self.steps], dtype=np.float64)
         return f, rel
 
-    def kappa(self) -> float:
-        """Non-conformity score ``1 - min_t rho_{y}^t`` of this episode (section V-B)."""
+    def kappa(self, rule: AnswerRule | None = None) -> float:
+        """Non-conformity score ``1 - min_t rho_{y}^t`` of this episode (section V-B); with an answer ``rule``
+        (issue 22) of its pooled scores ``rho~`` (:func:`services.stopper.answer_memory.transform`)."""
         if self.answer is None:
             raise CalibrationError(f"trace of question {self.question_id!r} has no ground-truth answer")
         if not self.steps:
             raise CalibrationError(f"trace of question {self.question_id!r} has no steps")
         f, rel = self.arrays()
+        if rule is not None:
+            f, rel = transform(f, rel, rule)
         return nonconformity(f, rel, letters(len(self.choices)).index(self.answer))
 
 
@@ -259,9 +263,12 @@ def calibrate(
     name: str = "default",
     provenance: dict[str, Any] | None = None,
     by_category: bool = False,
+    answer_rule: AnswerRule | None = None,
 ) -> CalibrationTable:
     """Compute ``kappa_i`` for every trace and ``q_hat(eps)`` for every eps of the grid (section V-A/B);
-    ``by_category``: also per question category (Mondrian, :func:`mondrian_groups`).
+    ``by_category``: also per question category (Mondrian, :func:`mondrian_groups`). ``answer_rule``: the
+    scores are those of that answer rule (issue 22, answer memory; recorded in ``provenance["answer_rule"]``):
+    an episode using the rule needs a table calibrated with it for Eq. 6 to hold.
 
     Raises :class:`CalibrationError` for an eps outside (0, 1), an empty grid, duplicate questions, a trace
     without ground truth or steps, or an eps whose quantile is undefined for this N (too few episodes).
@@ -275,7 +282,8 @@ def calibrate(
     if len(set(ids)) != len(ids):
         dup = sorted({i for i in ids if ids.count(i) > 1})
         raise CalibrationError(f"duplicate questions in the calibration set: {dup[:5]}")
-    kappas = [t.kappa() for t in items]
+    rule = answer_rule or AnswerRule()
+    kappas = [t.kappa(rule) for t in items]
     n = len(kappas)
     if n == 0:
         raise CalibrationError("no calibration traces: run `eqa calibrate` (or pass --from-traces FILE.jsonl)")
@@ -296,6 +304,7 @@ def calibrate(
         CalibrationEntry(eps=eps, q_hat=conformal_quantile(kappas, eps), k=quantile_rank(n, eps)) for eps in grid
     ]
     prov = dict(provenance or {})
+    prov["answer_rule"] = rule.name
     prov.setdefault("strategies", sorted({t.strategy for t in items}))
     prov.setdefault("mean_steps", float(np.mean([len(t.steps) for t in items])))
     cats = [t.category for t in items]

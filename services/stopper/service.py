@@ -112,6 +112,8 @@ class StopperService(EpisodeService[EpisodeRecord]):
     # ---- handlers -----------------------------------------------------------------------------------------
     def start_episode(self, robot: str, start: EpisodeStart) -> EpisodeRecord | None:
         rec = EpisodeRecord.from_start(start, robot)
+        rec.answer_memory = self.settings.answer_memory_k  # issue 22 (answer_memory.py); fixed for the episode
+        rec.answer_fusion = self.settings.answer_memory_fusion
         try:
             rec.threshold = check_threshold(start)
         except ValueError as exc:

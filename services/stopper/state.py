@@ -29,10 +29,10 @@ from eqa.messages import (
     letters,
 )
 from services.stopper import baselines
+from services.stopper.answer_memory import AnswerRule, memory_answer, rule_mismatch, transform
 from services.stopper.calibration import CalibrationTable, Trace, TraceStep
 from services.stopper.conformal import (
     check_scores,
-    fallback_answer,
     relevance_weighted_confidence,
     step_set,
 )
@@ -53,6 +53,7 @@ class CalibrationChoice(BaseModel):
     backend: str | None = None  # the scorer backend whose scores the table was calibrated on
     mode: str | None = None  # ... and its mode: logprobs / sampling (issue 23)
     category: str | None = None  # Mondrian: the category whose own q_hat this is
+    answer_rule: str | None = None  # the answer rule the table was calibrated with (issue 22; None = single)
 
 
 # q_hat that keeps every label (kappa <= 2 always): a Mondrian group too small to certify the asked eps
@@ -109,8 +110,10 @@ def resolve_calibration(
     )
     backend = table.provenance.get("scorer_backend")
     mode = table.provenance.get("scorer_mode")
+    rule = table.provenance.get("answer_rule")
     choice = CalibrationChoice(q_hat=entry.q_hat, eps=entry.eps, asked_eps=eps, n=table.n, source=where, note=note,
-                               backend=str(backend) if backend else None, mode=str(mode) if mode else None)
+                               backend=str(backend) if backend else None, mode=str(mode) if mode else None,
+                               answer_rule=str(rule) if rule else None)
     return choice, ""
 
 
@@ -150,6 +153,13 @@ class EpisodeRecord(BaseModel):
     running: list[str] | None = None  # CP running intersection; None before the first step
     restarts: int = 0
     last_decision: Decision | None = None  # re-published when the step's scores come again
+    # issue 22: answer memory (services/stopper/answer_memory.py), fixed at the episode's start; 0 = single view
+    answer_memory: int = Field(default=0, ge=0, le=16)
+    answer_fusion: str = "loglinear"
+
+    @property
+    def answer_rule(self) -> AnswerRule:
+        return AnswerRule(self.answer_memory, self.answer_fusion)  # type: ignore[arg-type]
 
     @classmethod
     def from_start(cls, start: EpisodeStart, robot: str) -> EpisodeRecord:
@@ -192,10 +202,11 @@ class EpisodeRecord(BaseModel):
         )
 
     def fallback(self) -> str | None:
-        """``argmax f`` at the step of highest ``Rel`` (None before any step)."""
+        """``argmax f`` at the step of highest ``Rel`` (None before any step); with the answer memory on, the
+        argmax of the pooled distribution of the K most relevant views (issue 22)."""
         if not self.probs:
             return None
-        return self.labels[fallback_answer(self.probs, self.relevance)]
+        return self.labels[memory_answer(np.asarray(self.probs), np.asarray(self.relevance), self.answer_rule)]
 
     def answer_text(self, answer: str | None) -> str | None:
         if answer is None or answer not in self.labels:
@@ -242,13 +253,21 @@ def decide(rec: EpisodeRecord, scores: StepScores) -> Decision | None:
         cal = rec.calibration
         if cal is None:
             raise RuntimeError("cp episode without calibration")  # guarded at EpisodeStart
-        rho = relevance_weighted_confidence(f, rel)
+        rule_now = rec.answer_rule
+        if rule_now.on:  # pooled scores of the K most relevant views so far (calibrated with the same rule)
+            pf, pr = transform(np.asarray(rec.probs), np.asarray(rec.relevance), rule_now)
+            rho = relevance_weighted_confidence(pf[-1], float(pr[-1]))
+        else:
+            rho = relevance_weighted_confidence(f, rel)
         mask = step_set(rho, cal.q_hat)
         cset = [y for y, keep in zip(labels, mask, strict=True) if keep]
         prev = labels if rec.running is None else rec.running
         running = [y for y in prev if y in cset]
         rec.running = running
-        notes = [n for n in (cal.note, backend_mismatch(cal, scores.backend), mode_mismatch(cal, scores.mode)) if n]
+        notes = [n for n in (cal.note, backend_mismatch(cal, scores.backend), mode_mismatch(cal, scores.mode),
+                             rule_mismatch(cal.answer_rule, rule_now)) if n]
+        if rule_now.on:
+            notes.append(f"answer memory {rule_now.name}")
         tag = (f"eps={cal.eps:g}, q_hat={cal.q_hat:.4f}, N={cal.n}" + (f" of {cal.category}" if cal.category else "")
                + "".join(f"; {n}" for n in notes))
         answer = None

@@ -1,0 +1,245 @@
+"""Answer memory (issue 22, item 1) against the paper's single-view answer, on recorded traces (offline).
+
+SIMULATED PERCEPTION MODEL (oracle scorer), not a VLM. The answer rules need only the per-step answer
+distributions f(x^t) and relevances Rel(x^t), which the traces hold, so the episodes are re-scored offline:
+the robot's path does not depend on the answer rule (LSV/GSV drive it), except where CP stops earlier or later,
+which the replay models exactly as :func:`services.stopper.state.decide` does (a test checks they agree).
+
+Data (all ``semantic`` exploration, 320x240, full-length ``max_steps`` runs):
+
+* evaluation seeds 1-3: test splits = ``bench/results/explore-seeds/traces`` (140 per seed, issue 14);
+  calibration splits recorded with ``eqa.app.stop_sensitivity`` (``--recordings DIR``, the first ``--n-cal``
+  of the round-robin category order);
+* tuning seed 11: calibration + test recordings; K and the fusion are chosen there only, by the answer
+  accuracy at the full budget (ties: the smaller K).
+
+Printed and stored (``bench/results/answer_rules.json``): for the chosen rule and the single-view rule,
+(a) the answer at the full budget, pooled and per category, paired exact sign test and bootstrap CI of the
+difference; (b) CP at several eps, each rule calibrated per seed on its own calibration split *with its own
+rule*: coverage of the sequence-level set next to 1 - eps, success, normalised steps, paired tests.
+
+    PYTHONPATH=. .venv/bin/python bench/bench_answer_rules.py --recordings /tmp/h22m-rec
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from eqa.app.evaluation import sign_test_p
+from eqa.app.stop_sensitivity import load_recording, recording_path
+from eqa.messages import letters
+from eqa.seeds import EVALUATION_SEEDS, TUNING_SEED
+from services.stopper.answer_memory import FUSIONS, AnswerRule, memory_answer, transform
+from services.stopper.calibration import read_jsonl
+from services.stopper.conformal import conformal_quantile, in_set, nonconformity, relevance_weighted_confidence
+
+LABEL = "simulated perception model, not a VLM"
+TRACES = Path("bench/results/explore-seeds/traces")
+K_GRID = (1, 2, 3, 4, 6, 8)
+EPS_EVAL = (0.1, 0.2, 0.3)
+
+
+@dataclass
+class Ep:
+    qid: str
+    category: str
+    f: np.ndarray
+    rel: np.ndarray
+    truth: int
+    max_steps: int
+
+
+def from_trace(t: Any) -> Ep:
+    f, rel = t.arrays()
+    return Ep(t.question_id, t.category or "", f, rel, letters(len(t.choices)).index(t.answer), t.max_steps)
+
+
+def from_recording(e: Any) -> Ep:
+    q = e.question
+    return Ep(q.id, q.category or "", np.asarray([s.probs for s in e.steps], dtype=np.float64),
+              np.asarray([s.relevance for s in e.steps], dtype=np.float64),
+              letters(len(q.choices)).index(q.answer), q.max_steps)
+
+
+def kappa(ep: Ep, rule: AnswerRule) -> float:
+    f, r = transform(ep.f, ep.rel, rule)
+    return nonconformity(f, r, ep.truth)
+
+
+@dataclass(frozen=True)
+class Out:
+    correct: bool
+    norm_steps: float
+    covered: bool | None = None
+
+
+def replay(ep: Ep, rule: AnswerRule, q_hat: float | None) -> Out:
+    """What ``decide`` does with the answer rule ``rule``: CP with ``q_hat`` (None = run to the limit)."""
+    n = len(ep.rel)
+    t_end = min(n, ep.max_steps) - 1
+    covered = None
+    if q_hat is not None:
+        f, r = transform(ep.f, ep.rel, rule)
+        running = np.logical_and.accumulate(in_set(relevance_weighted_confidence(f, r), q_hat), axis=0)
+        covered = bool(running[-1, ep.truth])
+        sizes = running.sum(axis=1)
+        hit = np.flatnonzero(sizes[: t_end + 1] <= 1)
+        if hit.size:
+            t = int(hit[0])
+            ans = int(np.flatnonzero(running[t])[0]) if sizes[t] == 1 else memory_answer(
+                ep.f[: t + 1], ep.rel[: t + 1], rule)
+            return Out(ans == ep.truth, (t + 1) / ep.max_steps, covered)
+    ans = memory_answer(ep.f[: t_end + 1], ep.rel[: t_end + 1], rule)
+    return Out(ans == ep.truth, (t_end + 1) / ep.max_steps, covered)
+
+
+def paired(a: list[Out], b: list[Out], seed: int = 0, n_boot: int = 4000) -> dict[str, float]:
+    """a - b: success difference with a paired bootstrap 95 % CI and the exact sign test; steps difference."""
+    ca = np.array([x.correct for x in a], dtype=float)
+    cb = np.array([x.correct for x in b], dtype=float)
+    sa = np.array([x.norm_steps for x in a])
+    sb = np.array([x.norm_steps for x in b])
+    rng = np.random.default_rng(seed)
+    idx = rng.integers(0, ca.size, size=(n_boot, ca.size))
+    d = ca - cb
+    ds = sa - sb
+    a_only = int(((ca == 1) & (cb == 0)).sum())
+    b_only = int(((cb == 1) & (ca == 0)).sum())
+    return {"n": int(ca.size), "success_a": float(ca.mean()), "success_b": float(cb.mean()),
+            "diff": float(d.mean()), "ci_low": float(np.quantile(d[idx].mean(1), 0.025)),
+            "ci_high": float(np.quantile(d[idx].mean(1), 0.975)), "a_only": a_only, "b_only": b_only,
+            "p": sign_test_p(a_only, b_only), "steps_a": float(sa.mean()), "steps_b": float(sb.mean()),
+            "steps_diff": float(ds.mean()), "steps_ci_low": float(np.quantile(ds[idx].mean(1), 0.025)),
+            "steps_ci_high": float(np.quantile(ds[idx].mean(1), 0.975))}
+
+
+def wilson(k: int, n: int) -> tuple[float, float]:
+    if n == 0:
+        return math.nan, math.nan
+    z = 1.959964
+    p = k / n
+    c = (p + z * z / (2 * n)) / (1 + z * z / n)
+    h = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return c - h, c + h
+
+
+def load(recordings: Path, seed: int, split: str, n: int | None) -> list[Ep]:
+    if split == "test" and seed in EVALUATION_SEEDS:
+        path = TRACES / f"bench-semantic-oracle-320x240-seed{seed}-x1-cores.jsonl"
+        eps = [from_trace(t) for _, t in read_jsonl(path)]
+    else:
+        eps = [from_recording(e) for e in load_recording(recording_path(recordings, seed, split, "semantic",
+                                                                            "320x240"))]
+    return eps[:n] if n else eps
+
+
+def tune(eps: list[Ep]) -> tuple[AnswerRule, list[dict[str, Any]]]:
+    """The rule with the best full-budget accuracy on the tuning seed's episodes (ties: smaller K, loglinear)."""
+    rows = []
+    base = np.mean([replay(e, AnswerRule(), None).correct for e in eps])
+    rows.append({"rule": "single", "accuracy": float(base)})
+    best = (base, 0, AnswerRule())
+    for fusion in FUSIONS:
+        for k in K_GRID:
+            rule = AnswerRule(k, fusion)  # type: ignore[arg-type]
+            acc = float(np.mean([replay(e, rule, None).correct for e in eps]))
+            rows.append({"rule": rule.name, "accuracy": acc})
+            if acc > best[0] + 1e-12:
+                best = (acc, k, rule)
+    return best[2], rows
+
+
+def cp_eval(cal: list[Ep], test: list[Ep], rule: AnswerRule, eps: float) -> tuple[float, list[Out]]:
+    q_hat = conformal_quantile([kappa(e, rule) for e in cal], eps)
+    return q_hat, [replay(e, rule, q_hat) for e in test]
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--recordings", type=Path, required=True, help="stop_sensitivity recordings (calibration splits)")
+    p.add_argument("--n-cal", type=int, default=None, help="calibration episodes per evaluation seed (default all)")
+    p.add_argument("--out", type=Path, default=Path("bench/results/answer_rules.json"))
+    p.add_argument("--rule", default=None, help="skip tuning and evaluate this rule (e.g. memory-3-loglinear)")
+    a = p.parse_args(argv)
+
+    tuning = load(a.recordings, TUNING_SEED, "calibration", None) + load(a.recordings, TUNING_SEED, "test", None)
+    chosen, tune_rows = tune(tuning)
+    if a.rule:
+        chosen = AnswerRule.from_name(a.rule)
+    print(f"scorer: oracle ({LABEL}); tuning seed {TUNING_SEED}: n = {len(tuning)} episodes")
+    for r in tune_rows:
+        print(f"  {r['rule']:<22} full-budget accuracy {r['accuracy']:.3f}")
+    print(f"chosen on seed {TUNING_SEED}: {chosen.name}")
+    single = AnswerRule()
+    res: dict[str, Any] = {"scorer": f"oracle ({LABEL})", "tuning_seed": TUNING_SEED, "n_tuning": len(tuning),
+                           "tuning": tune_rows, "chosen": chosen.name, "evaluation_seeds": list(EVALUATION_SEEDS),
+                           "per_seed_n": {}, "full_budget": {}, "cp": {}}
+    data = {s: (load(a.recordings, s, "calibration", a.n_cal), load(a.recordings, s, "test", None))
+            for s in EVALUATION_SEEDS}
+    res["per_seed_n"] = {str(s): {"calibration": len(c), "test": len(t)} for s, (c, t) in data.items()}
+    test_all = [e for _, t in data.values() for e in t]
+    cats = sorted({e.category for e in test_all})
+
+    def by_cat(outs_a: list[Out], outs_b: list[Out]) -> dict[str, Any]:
+        out = {"all": paired(outs_a, outs_b)}
+        for c in cats:
+            ia = [o for o, e in zip(outs_a, test_all, strict=True) if e.category == c]
+            ib = [o for o, e in zip(outs_b, test_all, strict=True) if e.category == c]
+            out[c] = paired(ia, ib)
+        return out
+
+    fa = [replay(e, chosen, None) for e in test_all]
+    fb = [replay(e, single, None) for e in test_all]
+    res["full_budget"] = by_cat(fa, fb)
+    print(f"\n(a) answer at the full budget, seeds {list(EVALUATION_SEEDS)} test splits pooled: {chosen.name} (a) vs "
+          f"single view (b)")
+    for c, r in res["full_budget"].items():
+        print(f"  {c:<15} n={r['n']:>3}  {r['success_a']:.3f} vs {r['success_b']:.3f}  diff {r['diff']:+.3f} "
+              f"[{r['ci_low']:+.3f}, {r['ci_high']:+.3f}]  only a/b right {r['a_only']}/{r['b_only']}  p={r['p']:.3g}")
+    for eps in EPS_EVAL:
+        outs: dict[str, list[Out]] = {"a": [], "b": []}
+        qh: dict[str, dict[str, float]] = {"a": {}, "b": {}}
+        for s, (cal, test) in data.items():
+            for key, rule in (("a", chosen), ("b", single)):
+                q, o = cp_eval(cal, test, rule, eps)
+                qh[key][str(s)] = q
+                outs[key] += o
+        cov = {}
+        for key in ("a", "b"):
+            k = sum(bool(o.covered) for o in outs[key])
+            n = len(outs[key])
+            lo, hi = wilson(k, n)
+            cov[key] = {"coverage": k / n, "ci_low": lo, "ci_high": hi, "n": n}
+        cov_cat = {key: {c: float(np.mean([bool(o.covered) for o, e in zip(outs[key], test_all, strict=True)
+                                           if e.category == c])) for c in cats} for key in ("a", "b")}
+        res["cp"][f"{eps:g}"] = {"q_hat": qh, "coverage": cov, "coverage_by_category": cov_cat,
+                                 "paired": by_cat(outs["a"], outs["b"])}
+        r = res["cp"][f"{eps:g}"]["paired"]["all"]
+        print(f"\n(b) CP eps={eps:g} (1-eps={1 - eps:.2f}), each rule calibrated on its own rule per seed:")
+        for key, name in (("a", chosen.name), ("b", "single")):
+            c = cov[key]
+            print(f"  {name:<22} coverage {c['coverage']:.3f} [{c['ci_low']:.3f}, {c['ci_high']:.3f}] n={c['n']}  "
+                  f"q_hat {', '.join(f'{v:.3f}' for v in qh[key].values())}")
+        print(f"  success {r['success_a']:.3f} vs {r['success_b']:.3f} diff {r['diff']:+.3f} [{r['ci_low']:+.3f}, "
+              f"{r['ci_high']:+.3f}] p={r['p']:.3g}; steps {r['steps_a']:.3f} vs {r['steps_b']:.3f} "
+              f"diff {r['steps_diff']:+.3f} [{r['steps_ci_low']:+.3f}, {r['steps_ci_high']:+.3f}]")
+        for c in cats:
+            rc = res["cp"][f"{eps:g}"]["paired"][c]
+            print(f"    {c:<15} n={rc['n']:>3} success {rc['success_a']:.3f} vs {rc['success_b']:.3f} p={rc['p']:.3g}"
+                  f"  coverage {cov_cat['a'][c]:.3f} vs {cov_cat['b'][c]:.3f}")
+    a.out.parent.mkdir(parents=True, exist_ok=True)
+    a.out.write_text(json.dumps(res, indent=1))
+    print(f"\nresults: {a.out}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
