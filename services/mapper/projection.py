@@ -12,6 +12,10 @@
   computes (``np.sum(explore_vol, axis=-1) > 0``).
 * cells the robot stood on (``traversed``) are free and explored: the camera cannot see its own footprint.
 * the free island: the 4-connected component of free cells that holds the robot.
+
+The per-column reductions over the voxels are kept between calls (:class:`_ColumnCache` in
+``volume.caches``) and recomputed only for the columns an integration changed since (``volume.col_stamp``):
+the same values as reducing the whole grid, at a cost that follows what a frame sees.
 """
 
 from __future__ import annotations
@@ -50,20 +54,68 @@ def band(volume: TSDFVolume, config: ProjectionConfig) -> slice:
     return slice(int(idx[0]), int(idx[-1]) + 1)
 
 
+@dataclass
+class _ColumnCache:
+    """Per-column reductions of the voxels (before the traversed cells are applied), valid at ``stamp``."""
+
+    arrays: tuple[int, int, int]  # ids of the volume's tsdf, weight, explored arrays they were read from
+    stamp: int
+    free: np.ndarray
+    occupied: np.ndarray
+    explored: np.ndarray
+    observed: np.ndarray
+
+
+def _columns(volume: TSDFVolume, sl: slice, occupied_band: float, rows: np.ndarray | slice,
+             cols: np.ndarray | slice) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """free / occupied / explored / observed of the columns ``(rows, cols)`` (the rules of the module docstring,
+    without the traversed cells)."""
+    tsdf = volume.tsdf[rows, cols, sl]
+    seen = volume.weight[rows, cols, sl] > 0
+    free = np.all(seen & (tsdf > 0), axis=-1)
+    occupied = np.any(seen & (tsdf <= 0) & (tsdf >= -occupied_band), axis=-1)
+    explored = np.any(volume.explored[rows, cols], axis=-1)
+    observed = np.any(volume.weight[rows, cols] > 0, axis=-1)
+    return free, occupied, explored, observed
+
+
+def column_maps(volume: TSDFVolume, config: ProjectionConfig) -> _ColumnCache:
+    """The per-column reductions of the whole grid, updated in the columns changed since the last call."""
+    sl = band(volume, config)
+    key = ("project", sl.start, sl.stop, config.occupied_band)
+    ids = (id(volume.tsdf), id(volume.weight), id(volume.explored))
+    cache = volume.caches.get(key)
+    col_stamp = volume.col_stamp
+    if (not isinstance(cache, _ColumnCache) or cache.arrays != ids or cache.free.shape != volume.shape2d
+            or col_stamp.shape != volume.shape2d):
+        free, occupied, explored, observed = _columns(volume, sl, config.occupied_band, slice(None), slice(None))
+        cache = _ColumnCache(ids, volume.stamp, free, occupied, explored, observed)
+        volume.caches[key] = cache
+        return cache
+    if volume.stamp != cache.stamp:
+        rr, cc = np.nonzero(col_stamp > cache.stamp)
+        if rr.size:
+            free, occupied, explored, observed = _columns(volume, sl, config.occupied_band, rr, cc)
+            cache.free[rr, cc] = free
+            cache.occupied[rr, cc] = occupied
+            cache.explored[rr, cc] = explored
+            cache.observed[rr, cc] = observed
+        cache.stamp = volume.stamp
+    return cache
+
+
 def project(
     volume: TSDFVolume, robot_xy: tuple[float, float], config: ProjectionConfig | None = None
 ) -> Maps2D:
     config = config or ProjectionConfig()
-    sl = band(volume, config)
-    tsdf = volume.tsdf[:, :, sl]
-    seen = volume.weight[:, :, sl] > 0
+    cols = column_maps(volume, config)
     traversed = volume.planes.get("traversed")
     if traversed is None:
         traversed = np.zeros(volume.shape2d, dtype=bool)
-    free_all = np.all(seen & (tsdf > 0), axis=2) | traversed
-    occupied = np.any(seen & (tsdf <= 0) & (tsdf >= -config.occupied_band), axis=2) & ~traversed
-    explored = np.any(volume.explored, axis=2) | traversed
-    observed = np.any(volume.weight > 0, axis=2) | traversed
+    free_all = cols.free | traversed
+    occupied = cols.occupied & ~traversed
+    explored = cols.explored | traversed
+    observed = cols.observed | traversed
     row, col = volume.cell_of(robot_xy[0], robot_xy[1])
     rc = (int(row), int(col))
     free = island(free_all, rc)

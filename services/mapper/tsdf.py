@@ -19,6 +19,11 @@ Each voxel keeps
 
 All of it is vectorised numpy; a frame touches only the voxel columns whose (x, y) lies inside the 2D shadow
 of its view frustum (a necessary condition for a voxel to be inside the frustum).
+
+What follows the volume incrementally (the 2D projection's per-column cache, the snapshot's dirty columns)
+reads ``col_stamp``: per column, the number of the last :meth:`TSDFVolume.integrate` that changed one of its
+voxels (``stamp`` counts them). The arrays are changed only by ``integrate`` (in place) and ``ensure`` (new
+arrays when the grid grows); whoever replaces them (a restore) replaces ``col_stamp`` with them.
 """
 
 from __future__ import annotations
@@ -154,6 +159,10 @@ class TSDFVolume:
         self.explored = np.zeros((0, 0, self.nz), dtype=bool)
         # 2D arrays on the same grid that must grow with it (semantic value layers, traversed cells, ...)
         self.planes: dict[str, np.ndarray] = {}
+        self.stamp = 0  # integrations that changed a voxel
+        self.col_stamp = np.zeros((0, 0), dtype=np.int64)  # per column: the stamp of its last change
+        # derived state kept by readers (projection.py), dropped whenever the arrays are replaced
+        self.caches: dict[object, object] = {}
 
     # ---- grid ------------------------------------------------------------------------------------------
     @property
@@ -177,8 +186,15 @@ class TSDFVolume:
             self.planes[name] = np.full(self.shape2d, fill, dtype=dtype)
         return self.planes[name]
 
+    def _sync_stamps(self) -> None:
+        """A ``col_stamp`` that does not fit the arrays (they were replaced, e.g. by a restore) starts over."""
+        if self.col_stamp.shape != self.shape2d:
+            self.col_stamp = np.zeros(self.shape2d, dtype=np.int64)
+            self.caches.clear()
+
     def ensure(self, xmin: float, xmax: float, ymin: float, ymax: float) -> None:
         """Grow the grid (by whole chunks) so it covers the box ``[xmin, xmax] x [ymin, ymax]``."""
+        self._sync_stamps()
         c = self.config
         res, chunk = c.voxel_size, c.chunk
         if self.empty:
@@ -191,6 +207,8 @@ class TSDFVolume:
             self.tsdf = np.zeros((ny, nx, self.nz), dtype=np.float32)
             self.weight = np.zeros((ny, nx, self.nz), dtype=np.float32)
             self.explored = np.zeros((ny, nx, self.nz), dtype=bool)
+            self.col_stamp = np.zeros((ny, nx), dtype=np.int64)
+            self.caches.clear()
             for name, arr in self.planes.items():
                 self.planes[name] = np.zeros((ny, nx), dtype=arr.dtype)
             return
@@ -207,6 +225,8 @@ class TSDFVolume:
         self.tsdf = np.pad(self.tsdf, pad3)
         self.weight = np.pad(self.weight, pad3)
         self.explored = np.pad(self.explored, pad3)
+        self.col_stamp = np.pad(self.col_stamp, pad3[:2])
+        self.caches.clear()
         for name, arr in self.planes.items():
             self.planes[name] = np.pad(arr, pad3[:2])
         self.origin_x -= left * res
@@ -296,6 +316,11 @@ class TSDFVolume:
         w_new = np.minimum(w_old + 1.0, MAX_WEIGHT)
         tsdf_f[flat] = (tsdf_f[flat] * w_old + obs) / w_new
         w_f[flat] = w_new
+        self._sync_stamps()
+        self.stamp += 1
+        first = np.ones(ci.size, dtype=bool)  # ci is sorted: the first candidate of each changed column
+        first[1:] = ci[1:] != ci[:-1]
+        self.col_stamp[rows[ci[first]], cols[ci[first]]] = self.stamp
 
         # explored: the narrow view of appendix B, as angles from the optical axis
         half_h = math.atan((w / 2) / fx) * c.explored_hfov_frac
@@ -340,4 +365,5 @@ class TSDFVolume:
             + self.weight.nbytes
             + self.explored.nbytes
             + sum(a.nbytes for a in self.planes.values())
+            + self.col_stamp.nbytes
         )
