@@ -50,6 +50,11 @@ class Episode:
     # variant, the same under fbe's uniform x distance decay, under the Eq. A6 weights alone, log-weight
     # spread (max - min ln w) over the candidates, distance-decay spread ((max - min geodesic) / decay))
     diag: list[tuple[float, float, float, float, float]] = dataclasses.field(default_factory=list)
+    # per step, for the evidence-ceiling diagnosis (--ceiling): distance (m) from the robot to the nearest
+    # ground-truth target (Question.targets), whether that target lies inside the camera's horizontal field of
+    # view, and the largest pixel count of an asked object in the frame (0: not in the image at all)
+    geo: list[tuple[float, bool, int]] = dataclasses.field(default_factory=list)
+    objects: int = 0  # evidence objects of the question (0: the evidence is a room, e.g. "is there a X? no")
 
 
 def parse_variant(text: str) -> tuple[str, dict[str, Any]]:
@@ -95,8 +100,9 @@ def run_episode(args: tuple[Any, str, dict[str, Any], int, int]) -> Episode:
     from services.sim.render import Renderer
     from services.vlm_scorer.backends.oracle import OracleBackend, parse_target
 
-    question, strategy, knobs, w, h = args
+    question, strategy, knobs, w, h, horizon = args
     mconf, pparams = configs(knobs)
+    budget = math.ceil(horizon * int(question.max_steps))
     settings = Settings()
     scene = load_or_generate(question.scene, settings.scenes_path)
     renderer = Renderer(scene)
@@ -115,18 +121,22 @@ def run_episode(args: tuple[Any, str, dict[str, Any], int, int]) -> Episode:
     f, rel, qual = [], [], []
     diag: list[tuple[float, float, float, float, float]] = []
     path = 0.0
-    for step in range(question.max_steps):
+    geo: list[tuple[float, bool, int]] = []
+    ev = set(question.evidence_ids)
+    half_fov = math.radians(camera.HFOV_DEG) / 2
+    for step in range(budget):
         req = observe_step(renderer, emap, start.episode_id, step, pose, K, w, h, blind, seed)
-        seen = oracle.seen_targets(oracle.target_views(req, target))
-        ev = {i for i in question.evidence_ids}
-        qual.append(max((q for lab, q in seen if not ev or lab.id in ev), default=0.0))
+        views = [v for v in oracle.target_views(req, target) if not ev or v[0].id in ev]
+        seen = oracle.seen_targets(views)
+        qual.append(max((q for _, q in seen), default=0.0))
+        geo.append(_geometry(pose, question.targets, half_fov, max((round(f * w * h) for _, f, _ in views), default=0)))
         scores = oracle.score(req)
         f.append(list(scores.answer_probs))
         rel.append(float(scores.relevance))
         emap.apply_scores(scores.lsv, scores.gsv)
         emap.compute_frontiers()
         mu = emap.map_update()
-        if step + 1 >= question.max_steps:
+        if step + 1 >= budget:
             break
         plan = None
         for attempt in range(4):
@@ -144,7 +154,16 @@ def run_episode(args: tuple[Any, str, dict[str, Any], int, int]) -> Episode:
     assert question.answer is not None
     letters(len(question.choices))
     return Episode(question.id, question.category or "", int(question.max_steps), question.answer, f, rel, qual,
-                   path, diag)
+                   path, diag, geo, len(question.evidence_ids))
+
+
+def _geometry(pose: Any, targets: list[tuple[float, float]], half_fov: float, pixels: int) -> tuple[float, bool, int]:
+    """(distance to the nearest target, whether it is inside the horizontal field of view, asked-object pixels)."""
+    if not targets:
+        return math.inf, False, pixels
+    d, x, y = min((math.hypot(x - pose.x, y - pose.y), x, y) for x, y in targets)
+    bearing = math.atan2(y - pose.y, x - pose.x) - pose.yaw
+    return d, abs(math.atan2(math.sin(bearing), math.cos(bearing))) <= half_fov, pixels
 
 
 def _diag(frontiers: list[Any], plan: Any, targets: list[tuple[float, float]], decay: float | None
@@ -179,6 +198,32 @@ def answer_at(ep: Episode, budget: float) -> bool:
 def first_evidence(ep: Episode) -> float | None:
     k = next((i for i, q in enumerate(ep.quality) if q > 0), None)
     return None if k is None else k / ep.max_steps
+
+
+NEAR_M = 3.0  # "came near the evidence": within 3 m of an evidence object's centre (the planner's step length)
+
+
+def ceiling_reason(ep: Episode, budget: float = 1.0) -> str:
+    """Why an episode did or did not see the evidence within ``budget`` x T (the evidence-ceiling diagnosis):
+    ``seen``; ``room`` (no evidence object: the evidence is a room); ``small`` (an asked object was in the image
+    but under the perception model's pixel threshold or too far); ``near, faced`` (within NEAR_M, inside the
+    horizontal field of view, yet no pixel of it: occluded, or below the camera's 30 deg down-tilted view);
+    ``near, not faced`` (within NEAR_M, never inside the field of view); ``never near`` (never within NEAR_M)."""
+    n = min(len(ep.quality), math.floor(budget * ep.max_steps + 1e-9))
+    if any(q > 0 for q in ep.quality[:n]):
+        return "seen"
+    if not ep.objects:
+        return "room"
+    geo = ep.geo[:n]
+    if any(px > 0 for _, _, px in geo):
+        return "small"
+    near = [infov for d, infov, _ in geo if d <= NEAR_M]
+    if not near:
+        return "never near"
+    return "near, faced" if any(near) else "near, not faced"
+
+
+CEILING_REASONS = ("seen", "small", "near, faced", "near, not faced", "never near", "room")
 
 
 def sign_p(a: int, b: int) -> float:
@@ -251,7 +296,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--size", default="320x240")
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--out", default="var/tune_explore", help="episodes are cached here per variant")
+    p.add_argument("--horizon", type=float, default=1.0,
+                   help="run each episode to HORIZON x T steps (default 1; e.g. 2 to see whether the step budget "
+                        "T is what limits the evidence); success and evidence 'within T' are read from its first T "
+                        "steps, which do not depend on the horizon")
+    p.add_argument("--ceiling", action="store_true",
+                   help="also print the evidence-ceiling diagnosis per variant: why episodes did not see an asked "
+                        "object within T (never near it, near but not facing it, facing it but occluded or out of "
+                        "the tilted view, in the image under the pixel threshold), and the share seen within "
+                        "HORIZON x T")
     args = p.parse_args(argv)
+    if not 1.0 <= args.horizon <= 4.0:
+        p.error("--horizon must be between 1 and 4")
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
         check_tuning_seed(args.seed)
@@ -271,14 +327,15 @@ def main(argv: list[str] | None = None) -> int:
     outdir.mkdir(parents=True, exist_ok=True)
     for v in variants:
         strategy, knobs = parse_variant(v)
-        cache = outdir / f"seed{args.seed}-{args.split}-{args.size}-{v.replace('/', '_')}.pkl"
+        tag = "" if args.horizon == 1.0 else f"-h{args.horizon:g}"
+        cache = outdir / f"seed{args.seed}-{args.split}-{args.size}{tag}-{v.replace('/', '_')}.pkl"
         have: dict[str, Episode] = pickle.loads(cache.read_bytes()) if cache.exists() else {}
         todo = [q for q in qs if q.id not in have]
         t0 = time.monotonic()
         if todo:
             with ProcessPoolExecutor(args.workers) as pool:
-                for ep in tqdm(pool.map(run_episode, [(q, strategy, knobs, w, h) for q in todo]), total=len(todo),
-                               file=sys.stderr, unit="ep", desc=v[:40]):
+                jobs = [(q, strategy, knobs, w, h, args.horizon) for q in todo]
+                for ep in tqdm(pool.map(run_episode, jobs), total=len(todo), file=sys.stderr, unit="ep", desc=v[:40]):
                     have[ep.question_id] = ep
                     cache.write_bytes(pickle.dumps(have))
             log.info("%s: %d episodes in %.1f min", v, len(todo), (time.monotonic() - t0) / 60)
@@ -303,6 +360,11 @@ def main(argv: list[str] | None = None) -> int:
             print(f"    P(frontier nearest the target): this {r['p_best']:.3f}, fbe-with-decay {r['p_best_fbe']:.3f}, "
                   f"weights alone {r['p_best_weights_only']:.3f}; median spread ln w {r['log_w_spread_median']:.2f}, "
                   f"decay {r['decay_spread_median']:.2f}")
+        if args.ceiling:
+            r["ceiling"] = {b: {k: sum(ceiling_reason(e, b) == k for e in results[v]) for k in CEILING_REASONS}
+                            for b in sorted({1.0, args.horizon})}
+            for b, counts in r["ceiling"].items():
+                print(f"    within {b:g} T: " + ", ".join(f"{k} {c}" for k, c in counts.items()))
     (outdir / f"summary-seed{args.seed}.json").write_text(json.dumps(rows, indent=1))
     return 0
 

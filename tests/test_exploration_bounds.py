@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import sys
+from typing import Any
 
 import numpy as np
 import pytest
@@ -70,11 +71,9 @@ def test_the_product_refuses_the_yardsticks() -> None:
     assert QuestionRequest(question="Where is the mug?", scene="gen-00001", strategy="semantic").strategy == "semantic"
 
 
-def test_tuning_tool_refuses_evaluation_seeds(capsys: pytest.CaptureFixture[str]) -> None:
+def _tune_explore() -> Any:  # the module bench/tune_explore.py
     import importlib.util
     from pathlib import Path
-
-    from eqa.seeds import EVALUATION_SEEDS
 
     path = Path(__file__).resolve().parents[1] / "bench" / "tune_explore.py"
     spec = importlib.util.spec_from_file_location("tune_explore", path)
@@ -82,11 +81,44 @@ def test_tuning_tool_refuses_evaluation_seeds(capsys: pytest.CaptureFixture[str]
     mod = importlib.util.module_from_spec(spec)
     sys.modules["tune_explore"] = mod  # dataclasses look their module up
     spec.loader.exec_module(mod)
+    return mod
+
+
+def test_tuning_tool_refuses_evaluation_seeds(capsys: pytest.CaptureFixture[str]) -> None:
+    from eqa.seeds import EVALUATION_SEEDS
+
+    mod = _tune_explore()
     for seed in (*EVALUATION_SEEDS, 0):
         with pytest.raises(SystemExit) as exc:
             mod.main(["--seed", str(seed), "--limit", "1"])
         assert exc.value.code == 2
     assert "tuning seed 11" in capsys.readouterr().err
+
+
+def test_evidence_ceiling_diagnosis() -> None:
+    mod = _tune_explore()
+    half = math.radians(60)
+    # the field of view: a target 2 m ahead is in it, one behind the robot is not, the nearest target counts
+    d, infov, px = mod._geometry(Pose2D(x=0, y=0, yaw=0), [(2.0, 0.0), (9.0, 9.0)], half, 5)
+    assert math.isclose(d, 2.0) and infov and px == 5
+    assert not mod._geometry(Pose2D(x=0, y=0, yaw=math.pi), [(2.0, 0.0)], half, 0)[1]
+    assert mod._geometry(Pose2D(x=0, y=0, yaw=math.radians(55)), [(1.0, 0.0)], half, 0)[1]
+    assert mod._geometry(Pose2D(x=0, y=0, yaw=0), [], half, 0)[0] == math.inf
+
+    def ep(quality: list[float], geo: list[tuple[float, bool, int]], objects: int = 1, T: int = 4) -> Any:
+        return mod.Episode("q", "location", T, "A", [[1.0, 0.0]] * len(quality), [0.1] * len(quality), quality,
+                           geo=geo, objects=objects)
+
+    far = (8.0, True, 0)
+    assert mod.ceiling_reason(ep([0, 0, 0.4, 0], [far] * 4)) == "seen"
+    assert mod.ceiling_reason(ep([0] * 4, [far] * 4, objects=0)) == "room"
+    assert mod.ceiling_reason(ep([0] * 4, [far, (6.0, True, 20), far, far])) == "small"
+    assert mod.ceiling_reason(ep([0] * 4, [far, (2.5, True, 0), far, far])) == "near, faced"
+    assert mod.ceiling_reason(ep([0] * 4, [far, (2.5, False, 0), far, far])) == "near, not faced"
+    assert mod.ceiling_reason(ep([0] * 4, [far, (3.5, True, 0), far, far])) == "never near"
+    # within T only: evidence seen at step 5 of T = 4 counts within 2 T, not within T
+    late = ep([0] * 5 + [0.5, 0, 0], [far] * 8)
+    assert mod.ceiling_reason(late, 1.0) == "never near" and mod.ceiling_reason(late, 2.0) == "seen"
 
 
 def _trace(qid: str, rels: list[float], right_from: int | None, T: int = 10):
