@@ -157,6 +157,21 @@ def test_seed_pooled_statistics() -> None:
     assert pooled[0].ci_low <= pooled[0].diff <= pooled[0].ci_high
 
 
+def test_success_split_by_evidence() -> None:
+    from eqa.app import evaluation as ev
+
+    # 3 episodes see the evidence at step 2 and are right from then; 1 sees it only at step 8 (after 0.5 T) and
+    # is right from then; 2 never see it and stay wrong
+    traces = [_trace(f"s{i}", [0.1, 0.1, 0.5] + [0.1] * 7, 2) for i in range(3)]
+    traces += [_trace("late", [0.1] * 8 + [0.6, 0.1], 8)]
+    traces += [_trace(f"n{i}", [0.1] * 10, None) for i in range(2)]
+    full = ev.success_by_evidence(traces, 1.0)
+    assert (full.n_seen, full.success_seen, full.n_unseen, full.success_unseen) == (4, 1.0, 2, 0.0)
+    assert full.lift == 1.0
+    half = ev.success_by_evidence(traces, 0.5)
+    assert (half.n_seen, half.success_seen, half.n_unseen, half.success_unseen) == (3, 1.0, 3, 0.0)
+
+
 def test_oracle_tuning_tool_refuses_evaluation_seeds(capsys: pytest.CaptureFixture[str]) -> None:
     import importlib.util
     from pathlib import Path

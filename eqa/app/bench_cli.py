@@ -239,6 +239,9 @@ def _summary(traces: list[Any], ev: Any) -> dict[str, Any]:
         "first_evidence_at": ev.first_evidence(traces),
         "median_first_evidence": ev.median_first_evidence(traces),
         "evidence_cdf": ev.evidence_cdf(traces, CDF_BUDGETS),
+        # success among the episodes that saw the evidence within the budget and among those that did not
+        "success_by_evidence": {f"{b:g}": {**vars(s), "lift": s.lift}
+                                for b in (0.5, 1.0) for s in [ev.success_by_evidence(traces, b)]},
     }
 
 
@@ -335,6 +338,12 @@ def _print_explore(results: dict[str, Any]) -> None:
     for name, r in results["strategies"].items():
         print(f"{name:<{width}} {r['n']:<4} " + " ".join(f"{v:5.2f}" for v in r["success"])
               + f"  {r['evidence_share']:.3f} ({r['first_evidence_at']:.2f})")
+    print("success at T among the episodes that saw the evidence within T / that did not (n):")
+    for name, r in results["strategies"].items():
+        s = r.get("success_by_evidence", {}).get("1")
+        if s:
+            print(f"  {name:<{width}} {s['success_seen']:.3f} ({s['n_seen']}) / {s['success_unseen']:.3f} "
+                  f"({s['n_unseen']}); lift {s['lift']:+.3f}")
     for base, what in (("semantic", "semantic against each other run"), ("fbe", "each run against fbe")):
         paired = results.get(f"paired_vs_{base}", {})
         if not paired:

@@ -189,6 +189,37 @@ def evidence_share(traces: Sequence[Trace], threshold: float = 0.3) -> float:
 
 
 @dataclass(frozen=True)
+class EvidenceSplit:
+    """Success at one budget split by whether the evidence was seen within it (Rel >= threshold), and what that
+    split explains of a gap between two strategies: ``n_seen`` episodes saw it (``success_seen`` of them were
+    right), ``n_unseen`` did not (``success_unseen``); ``lift`` = success_seen - success_unseen is what one more
+    episode that sees the evidence is worth on average."""
+
+    budget: float
+    n_seen: int
+    success_seen: float
+    n_unseen: int
+    success_unseen: float
+
+    @property
+    def lift(self) -> float:
+        return self.success_seen - self.success_unseen
+
+
+def success_by_evidence(traces: Sequence[Trace], budget: float = 1.0, threshold: float = 0.3) -> EvidenceSplit:
+    """Success at ``budget`` among the episodes that saw the evidence within it and among those that did not:
+    the answer rule (argmax f at the most relevant step, Fig. 7) guesses from priors when it never saw it, so a
+    strategy that sees the evidence in dE more episodes gains about dE x lift in success."""
+    first = first_evidence_steps(traces, threshold)
+    seen = [correct_at_budget(t, budget) for t, f in zip(traces, first, strict=True) if f is not None and
+            f <= budget + 1e-9]
+    unseen = [correct_at_budget(t, budget) for t, f in zip(traces, first, strict=True) if f is None or
+              f > budget + 1e-9]
+    return EvidenceSplit(budget, len(seen), float(np.mean(seen)) if seen else math.nan, len(unseen),
+                         float(np.mean(unseen)) if unseen else math.nan)
+
+
+@dataclass(frozen=True)
 class Replay:
     answer: str | None
     steps: int  # steps used (the stop step + 1)
