@@ -97,8 +97,9 @@ def write_values(
 # issue 22 item 3) ----------------------------------------------------------------------------------------------
 #
 # With ``view_bins = B > 0`` a value layer ``V`` keeps, next to itself, the best value per viewing-direction bin
-# ``V_b(x) = max over the steps that saw x from direction bin b of S_t(x)`` (the bin of the bearing from the
-# camera to the cell, B equal sectors of 2 pi starting at +x) and the *neutral* value ``N(x)``: the Gaussian
+# ``V_b(x) = max over the steps that judged x from direction bin b of S_t(x)`` (b: the bin of the bearing from
+# the camera to the prompt point whose Gaussian covers x, B equal sectors of 2 pi starting at +x: the direction
+# the VLM looked at that region from) and the *neutral* value ``N(x)``: the Gaussian
 # of ``SV_neutral = exp(tau_LSV / |P| + tau_GSV * GSV)`` (Eq. 3 with the uniform LSV 1/|P|, a view that prefers
 # no prompt point) around the same points, max-fused. LSV is a softmax over the points of one view, so a point
 # below 1/|P| was judged *worse than the rest of that view*: what a view from a poor angle (the sofa seen from
@@ -144,8 +145,8 @@ def write_values_binned(
     camera_xy: tuple[float, float],
     sigma: float = 1.0,
 ) -> None:
-    """:func:`write_values` per direction bin: each cell of a point's Gaussian goes into the bin of its bearing
-    from ``camera_xy`` only; the neutral value's Gaussian (same points, same sigma) into ``neutral_layer``."""
+    """:func:`write_values` per direction bin: a point's Gaussian goes into the bin of the point's bearing from
+    ``camera_xy`` only; the neutral value's Gaussian (same points, same sigma) into ``neutral_layer``."""
     bins = len(bin_layers)
     ny, nx = neutral_layer.shape
     radius = math.ceil(3 * sigma / resolution)
@@ -159,11 +160,9 @@ def write_values_binned(
         d2 = (ys[:, None] - y) ** 2 + (xs[None, :] - x) ** 2
         g = np.exp(-d2 / (2 * sigma * sigma))
         g[d2 > (3 * sigma) ** 2] = 0
-        b = view_bin(xs[None, :] - camera_xy[0], ys[:, None] - camera_xy[1], bins)
-        gv = (value * g).astype(neutral_layer.dtype)
-        for k in np.unique(b[g > 0]).tolist():
-            win = bin_layers[k][r0:r1, c0:c1]
-            np.maximum(win, np.where(b == k, gv, 0).astype(win.dtype), out=win)
+        b = int(view_bin(np.array([x - camera_xy[0]]), np.array([y - camera_xy[1]]), bins)[0])
+        win = bin_layers[b][r0:r1, c0:c1]
+        np.maximum(win, (value * g).astype(win.dtype), out=win)
         win = neutral_layer[r0:r1, c0:c1]
         np.maximum(win, (neutral * g).astype(win.dtype), out=win)
 
