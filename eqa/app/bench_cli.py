@@ -77,6 +77,11 @@ def tau_label(tau: float) -> str:
     return f"semantic_tau{tau:g}"
 
 
+def view_bins_label(bins: int, agree: int) -> str:
+    """Name of semantic exploration with ``bins`` viewing-direction bins per value layer (issue 22 item 3)."""
+    return f"semantic_vbins{bins}a{agree}"
+
+
 def _benchmark(seed: int, settings: Any) -> Any:
     """The benchmark of ``seed``, cached as JSON next to the generated houses under a key of the source of the
     modules that make it (house generator, catalog, questions): building it loads all of its ~170 houses
@@ -271,6 +276,8 @@ def cmd_explore(args: argparse.Namespace) -> int:
     # (label, strategy, settings): the strategies, then semantic exploration at other temperatures (Fig. 7c)
     plan = [(s, s, settings) for s in args.strategies]
     plan += [(tau_label(t), "semantic", settings.model_copy(update={"tau_lsv": t, "tau_gsv": t})) for t in args.tau]
+    plan += [(view_bins_label(b, settings.view_agree), "semantic", settings.model_copy(update={"view_bins": b}))
+             for b in getattr(args, "view_bins", [])]
     for label, strategy, run_settings in plan:
         runs[label] = {s: _collect(questions[s], run_settings, strategy,
                                    set_name(label, run_settings, s) + _runner_suffix(args), args) for s in seeds}
@@ -469,6 +476,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     e.add_argument("--tau", nargs="*", type=float, default=[], metavar="TAU",
                    help="also run semantic exploration with tau_LSV = tau_GSV = TAU (Fig. 7c; the default "
                         "temperatures are EQA_TAU_LSV / EQA_TAU_GSV = 1), e.g. --tau 3 5")
+    e.add_argument("--view-bins", nargs="*", type=int, default=[], choices=range(1, 17), metavar="B",
+                   help="also run semantic exploration keeping the best value per viewing-direction bin, B bins "
+                        "(issue 22; EQA_VIEW_BINS; the agreement EQA_VIEW_AGREE, default 2, from the environment)")
     e.set_defaults(func=cmd_explore)
     s = sub.add_parser("stop", help="CP vs entropy vs relevance stopping (calibrate, then replay the test split)",
                        description="Calibrate CP on the calibration split, then replay the test split with an eps "
