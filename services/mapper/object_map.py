@@ -151,12 +151,10 @@ class ObjectMap:
         c = self.config
         cands = gaze_points(occupancy, heights, grid, tuple(centre), tuple(max(e, 0.0) for e in extent),
                             c.gaze_radius_m, c.gaze_points, c.gaze_obstacle_m, camera_height)
-        out = []
-        for g in cands:
-            pose = camera_from_gaze(g.x, g.y, g.yaw, g.pitch, camera_height)
-            opt = self.layer.optimistic(instance_id, cls, [pose])
-            out.append(GazePoint(x=g.x, y=g.y, yaw=g.yaw, pitch=g.pitch, psi_prime=opt.psi_prime, ig=opt.ig))
-        return out
+        poses = [camera_from_gaze(g.x, g.y, g.yaw, g.pitch, camera_height) for g in cands]
+        opts = self.layer.optimistic_each(instance_id, cls, poses)  # each gaze point alone, one render
+        return [GazePoint(x=g.x, y=g.y, yaw=g.yaw, pitch=g.pitch, psi_prime=o.psi_prime, ig=o.ig)
+                for g, o in zip(cands, opts, strict=True)]
 
     # ---- persistence ------------------------------------------------------------------------------------
     def snapshot(self) -> bytes:

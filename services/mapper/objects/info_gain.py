@@ -41,7 +41,7 @@ class Optimistic:
     psi_prime: float  # Eq. 11
     s_prime: float
     u_prime: float
-    pixels: int  # pixels of Y* showing the instance (0: not visible from these poses)
+    pixels: int  # pixels of Y* showing the class (optimistic_each: inside the instance's box; 0: not visible)
 
 
 def optimistic_views(
@@ -87,3 +87,58 @@ def optimistic_views(
     ig = float(information_gain(g0, g).sum())
     s, u, psi = class_scores(g, config.alpha_cs)
     return Optimistic(ig, float(psi[cls]), float(s[cls]), float(u[cls]), shown)
+
+
+def optimistic_each(
+    means: torch.Tensor,
+    sigma: torch.Tensor,
+    opacity: torch.Tensor,
+    gamma: torch.Tensor,
+    members: torch.Tensor,
+    cls: int,
+    poses: list[torch.Tensor],
+    K: torch.Tensor,
+    height: int,
+    width: int,
+    config: ObjectLayerConfig,
+    pixel_weight: float,
+) -> list[Optimistic]:
+    """:func:`optimistic_views` of each pose *alone* (Eq. 11, 12 of one gaze point each; the local search scores
+    every gaze point this way), all poses in one vectorised render (:func:`splat.render_views`) restricted to the
+    instance's box in each view -- the same numbers as one :func:`optimistic_views` call per pose (tested)."""
+    if not poses:
+        return []
+    n_views = len(poses)
+    n_classes = gamma.shape[1]
+    other = n_classes - 1
+    colors = dirichlet.expectation(gamma).clone()
+    onehot = torch.zeros(n_classes, device=gamma.device)
+    onehot[cls] = 1.0
+    colors[members] = onehot
+    m = int(members.numel())
+    local = torch.full((means.shape[0],), -1, dtype=torch.long, device=gamma.device)
+    local[members] = torch.arange(m, device=gamma.device)
+    r = splat.render_views(
+        means, sigma, opacity, torch.stack([p.to(means.device, torch.float32) for p in poses]), K, height, width,
+        colors=colors, max_radius_px=config.max_splat_radius_px, min_alpha=config.min_alpha,
+        max_alpha=config.max_alpha, min_transmittance=config.min_transmittance, valid_acc=config.valid_acc,
+        roi_of=members,
+    )
+    assert r.channels is not None
+    y = torch.where(r.acc >= config.valid_acc, r.channels.argmax(-1), torch.full_like(r.acc, other).long())
+    y = y.reshape(-1)
+    hw = height * width
+    shown = torch.zeros(n_views, dtype=torch.long, device=gamma.device).index_add_(
+        0, torch.arange(n_views * hw, device=gamma.device) // hw, (y == cls).long())
+    g0 = gamma[members].clone()
+    sel = local[r.gauss] >= 0
+    view = r.pixel[sel] // hw
+    # one copy of the instance's concentrations per view, updated with that view's pairs only
+    g = dirichlet.update(g0.repeat(n_views, 1), view * m + local[r.gauss[sel]], r.kappa[sel], y[r.pixel[sel]],
+                         config.alpha_cpa, pixel_weight).view(n_views, m, n_classes)
+    out = []
+    for v in range(n_views):
+        ig = float(information_gain(g0, g[v]).sum())
+        s, u, psi = class_scores(g[v], config.alpha_cs)
+        out.append(Optimistic(ig, float(psi[cls]), float(s[cls]), float(u[cls]), int(shown[v])))
+    return out

@@ -28,7 +28,7 @@ import torch
 from services.mapper.objects import dirichlet, splat
 from services.mapper.objects.config import OTHER, ObjectLayerConfig
 from services.mapper.objects.gaussians import GaussianStore, create, spawn_pixels
-from services.mapper.objects.info_gain import Optimistic, optimistic_views
+from services.mapper.objects.info_gain import Optimistic, optimistic_each, optimistic_views
 from services.mapper.objects.instances import relabel
 from services.mapper.objects.reobserve import reobservation_mask
 from services.mapper.objects.scores import InstanceScores, summarise
@@ -240,6 +240,24 @@ class ObjectLayer:
         weight = self.config.pixel_weight * (update_scale / s) ** 2
         st = self.store
         return optimistic_views(
+            st.means, st.sigma, st.opacity, st.gamma, self.members(instance_id), cls,
+            [p.to(self.device) for p in poses], scale_intrinsics(K, s), h, w, self.config, weight,
+        )
+
+    def optimistic_each(
+        self, instance_id: int, cls: int, poses: list[torch.Tensor], width: int | None = None
+    ) -> list[Optimistic]:
+        """:meth:`optimistic` of each pose alone (one gaze point each), in one vectorised render."""
+        if self.last_camera is None:
+            raise RuntimeError("the layer has seen no frame yet")
+        _, K, big_h, big_w = self.last_camera
+        w = int(width or self.config.gaze_width)
+        s = w / big_w
+        h = max(1, round(big_h * s))
+        update_scale = round(big_w * self.config.render_scale) / big_w
+        weight = self.config.pixel_weight * (update_scale / s) ** 2
+        st = self.store
+        return optimistic_each(
             st.means, st.sigma, st.opacity, st.gamma, self.members(instance_id), cls,
             [p.to(self.device) for p in poses], scale_intrinsics(K, s), h, w, self.config, weight,
         )

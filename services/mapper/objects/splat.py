@@ -81,26 +81,69 @@ def render(
     valid_acc: float = 0.5,
 ) -> Splats:
     """Render the Gaussians ``means`` (N,3) world, ``sigma`` (N,) m, ``opacity`` (N,) with Eq. 1 (see module)."""
+    return render_views(
+        means, sigma, opacity, camera_pose[None], K, height, width, colors=colors, max_radius_px=max_radius_px,
+        min_alpha=min_alpha, max_alpha=max_alpha, min_transmittance=min_transmittance, valid_acc=valid_acc,
+    )
+
+
+def render_views(
+    means: torch.Tensor,
+    sigma: torch.Tensor,
+    opacity: torch.Tensor,
+    camera_poses: torch.Tensor,
+    K: torch.Tensor,
+    height: int,
+    width: int,
+    colors: torch.Tensor | None = None,
+    max_radius_px: int = 8,
+    min_alpha: float = 1.0 / 255.0,
+    max_alpha: float = 0.99,
+    min_transmittance: float = 1e-4,
+    valid_acc: float = 0.5,
+    roi_of: torch.Tensor | None = None,
+) -> Splats:
+    """Eq. 1 from ``V`` camera poses ``camera_poses`` (V, 4, 4) in one vectorised pass: the views are stacked
+    vertically, so the result is one :class:`Splats` of ``V * height`` x ``width`` (view ``v`` = rows
+    ``v * height`` .. ``(v + 1) * height - 1``; ``gauss`` indexes ``means``). Each view is exactly the
+    single-pose render.
+
+    ``roi_of`` (indices into ``means``): only the pixels inside the bounding box of these Gaussians' splats are
+    rendered in each view (the others are left empty and Gaussians whose splat misses the box are skipped).
+    Inside the box nothing changes -- every splat covering one of its pixels is kept -- so everything a
+    quantity about those Gaussians needs (their kappas, the blended image where they are) is the same as in
+    the full render, at the cost of the box only (the optimistic views of one instance, Eq. 11/12)."""
     dev = means.device
     f32 = torch.float32
+    n_views = int(camera_poses.shape[0])
     hw = height * width
     empty_l = torch.zeros(0, dtype=torch.long, device=dev)
-    acc = torch.zeros(hw, dtype=f32, device=dev)
-    n = means.shape[0]
-    if n == 0:
-        ch = torch.zeros(height, width, colors.shape[1], dtype=f32, device=dev) if colors is not None else None
-        z = torch.zeros(height, width, dtype=f32, device=dev)
-        return Splats(height, width, empty_l, empty_l, torch.zeros(0, dtype=f32, device=dev), z.clone(), z, ch)
-    R, t = world_to_camera(camera_pose.to(dev, f32))
-    xc = means.to(f32) @ R.T + t
+    acc = torch.zeros(n_views * hw, dtype=f32, device=dev)
+    n_src = means.shape[0]
+    if n_src == 0 or n_views == 0:
+        hh = n_views * height
+        ch = torch.zeros(hh, width, colors.shape[1], dtype=f32, device=dev) if colors is not None else None
+        z = torch.zeros(hh, width, dtype=f32, device=dev)
+        return Splats(hh, width, empty_l, empty_l, torch.zeros(0, dtype=f32, device=dev), z.clone(), z, ch)
+    Rs, ts = [], []
+    for v in range(n_views):
+        R, t = world_to_camera(camera_poses[v].to(dev, f32))
+        Rs.append(R)
+        ts.append(t)
+    m32 = means.to(f32)
+    # copies of every Gaussian, one per view (copy k = view k // N, Gaussian k % N)
+    xc = torch.cat([m32 @ R.T + t for R, t in zip(Rs, ts, strict=True)]) if n_views > 1 else m32 @ Rs[0].T + ts[0]
+    view = torch.arange(n_views, device=dev).repeat_interleave(n_src)
+    src = torch.arange(n_src, device=dev).repeat(n_views)
+    n = xc.shape[0]
     z = xc[:, 2]
     fx, fy, cx, cy = (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
     zs = z.clamp(min=NEAR_M)
     u = fx * xc[:, 0] / zs + cx
-    v = fy * xc[:, 1] / zs + cy
+    v_ = fy * xc[:, 1] / zs + cy
     j11, j22 = fx / zs, fy / zs
     j13, j23 = -fx * xc[:, 0] / zs**2, -fy * xc[:, 1] / zs**2
-    s2 = sigma.to(f32) ** 2
+    s2 = sigma.to(f32).repeat(n_views) ** 2
     a = s2 * (j11**2 + j13**2) + EWA_DILATION
     b = s2 * (j13 * j23)
     c = s2 * (j22**2 + j23**2) + EWA_DILATION
@@ -108,18 +151,35 @@ def render(
     ia, ib, ic = c / det, -b / det, a / det
     lam = 0.5 * (a + c) + torch.sqrt((0.25 * (a - c) ** 2 + b * b).clamp(min=0))
     radius = torch.ceil(3.0 * torch.sqrt(lam)).clamp(max=max_radius_px).long()
+    # per view, the pixel box [x0, x1] x [y0, y1] rendered (the whole image unless roi_of)
+    x0 = torch.zeros(n_views, device=dev)
+    y0 = torch.zeros(n_views, device=dev)
+    x1 = torch.full((n_views,), float(width - 1), device=dev)
+    y1 = torch.full((n_views,), float(height - 1), device=dev)
+    ok = (z > NEAR_M) & torch.isfinite(u) & torch.isfinite(v_)
+    if roi_of is not None:
+        mem = torch.zeros(n_src, dtype=torch.bool, device=dev)
+        mem[roi_of.to(dev)] = True
+        mem = mem.repeat(n_views) & ok
+        big = torch.tensor(float("inf"), device=dev)
+        rf = radius.to(f32)
+        for lo, hi, val_lo, val_hi in ((x0, x1, u - rf, u + rf), (y0, y1, v_ - rf, v_ + rf)):
+            lo_v = torch.full((n_views,), big.item(), device=dev).scatter_reduce(
+                0, view[mem], val_lo[mem], "amin", include_self=True)
+            hi_v = torch.full((n_views,), -big.item(), device=dev).scatter_reduce(
+                0, view[mem], val_hi[mem], "amax", include_self=True)
+            lo.copy_(torch.maximum(lo, torch.floor(lo_v)))
+            hi.copy_(torch.minimum(hi, torch.ceil(hi_v)))
     ok = (
-        (z > NEAR_M)
-        & (u + radius >= 0)
-        & (u - radius <= width - 1)
-        & (v + radius >= 0)
-        & (v - radius <= height - 1)
-        & torch.isfinite(u)
-        & torch.isfinite(v)
+        ok
+        & (u + radius >= x0[view])
+        & (u - radius <= x1[view])
+        & (v_ + radius >= y0[view])
+        & (v_ - radius <= y1[view])
     )
     idx = torch.nonzero(ok).squeeze(1)
     gs, ps, als = [], [], []
-    ui, vi = torch.round(u).long(), torch.round(v).long()
+    ui, vi = torch.round(u).long(), torch.round(v_).long()
     for r in torch.unique(radius[idx]).tolist():
         sel = idx[radius[idx] == r]
         off = torch.arange(-r, r + 1, device=dev)
@@ -129,20 +189,21 @@ def render(
         px = ui[sel, None] + dx[None, :]
         py = vi[sel, None] + dy[None, :]
         ddx = px.to(f32) - u[sel, None]
-        ddy = py.to(f32) - v[sel, None]
+        ddy = py.to(f32) - v_[sel, None]
         power = -0.5 * (ia[sel, None] * ddx * ddx + 2 * ib[sel, None] * ddx * ddy + ic[sel, None] * ddy * ddy)
-        alpha = (opacity.to(f32)[sel, None] * torch.exp(power)).clamp(max=max_alpha)
-        keep = (alpha >= min_alpha) & (px >= 0) & (px < width) & (py >= 0) & (py < height)
+        alpha = (opacity.to(f32).repeat(n_views)[sel, None] * torch.exp(power)).clamp(max=max_alpha)
+        vw = view[sel, None]
+        keep = (alpha >= min_alpha) & (px >= x0[vw]) & (px <= x1[vw]) & (py >= y0[vw]) & (py <= y1[vw])
         g = sel[:, None].expand_as(px)[keep]
         gs.append(g)
-        ps.append((py * width + px)[keep])
+        ps.append((vw * hw + py * width + px)[keep])
         als.append(alpha[keep])
     gauss = torch.cat(gs) if gs else empty_l
     pixel = torch.cat(ps) if ps else empty_l
     alpha = torch.cat(als) if als else torch.zeros(0, dtype=f32, device=dev)
     # sort by (pixel, depth): the depth rank of each Gaussian breaks ties inside a pixel
     zrank = torch.empty(n, dtype=torch.long, device=dev)
-    zrank[torch.argsort(z)] = torch.arange(n, device=dev)
+    zrank[torch.argsort(z, stable=True)] = torch.arange(n, device=dev)  # stable: equal depths in index order
     order = torch.argsort(pixel * n + zrank[gauss])
     gauss, pixel, alpha = gauss[order], pixel[order], alpha[order]
     # exclusive product of (1 - alpha) per pixel: exclusive segmented cumsum of log(1 - alpha)
@@ -161,10 +222,11 @@ def render(
     gauss, pixel = gauss[keep], pixel[keep]
     kappa = alpha[keep] * trans[keep]
     acc.index_add_(0, pixel, kappa)
-    dsum = torch.zeros(hw, dtype=f32, device=dev)
+    dsum = torch.zeros(n_views * hw, dtype=f32, device=dev)
     dsum.index_add_(0, pixel, kappa * z[gauss])
     depth = torch.where(acc >= valid_acc, dsum / acc.clamp(min=1e-12), torch.zeros_like(acc))
-    out = Splats(height, width, gauss, pixel, kappa, acc.view(height, width), depth.view(height, width), None)
+    hh = n_views * height
+    out = Splats(hh, width, src[gauss], pixel, kappa, acc.view(hh, width), depth.view(hh, width), None)
     if colors is not None:
         out.channels = out.image(colors.to(dev, f32))
     return out
