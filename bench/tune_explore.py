@@ -77,7 +77,8 @@ def configs(knobs: dict[str, Any]) -> tuple[Any, Any]:
     groups: dict[str, dict[str, Any]] = {"mapper": {}, "planner": {}, "prompt": {}, "frontier": {}}
     for k, v in knobs.items():
         g, name = k.split(".", 1)
-        groups[g][name] = int(v) if name in ("count", "max_commit_steps", "max_cluster_cells", "view_bins", "view_agree") and v else v
+        ints = ("count", "max_commit_steps", "max_cluster_cells", "view_bins", "view_agree")
+        groups[g][name] = int(v) if name in ints and v else v
     mc = MapperConfig(**groups["mapper"])
     if groups["prompt"]:
         mc = dataclasses.replace(mc, prompt=PromptConfig(**groups["prompt"]))
