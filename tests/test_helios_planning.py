@@ -220,3 +220,21 @@ def test_gaze_points_refuse_bad_input() -> None:
         gaze_points(occ, None, GRID, (math.nan, 0, 0), (1, 1, 1), 1.0, 8, 1.0)
     with pytest.raises(ValueError):
         gaze_points(occ, None, GRID, (0, 0, 0), (1, 1, 1), -1.0, 8, 1.0)
+
+
+# ---- the skill pose (issue 17: the gaze contour was the pick reach) ----------------------------------------
+
+
+def test_skill_pose_is_within_reach_of_the_object_facing_it() -> None:
+    from services.planner.task_fsm import SKILL_APPROACH_M, SeenObject, TaskMachine, approach_pose
+
+    x, y, yaw = approach_pose((1.0, 1.0), (1.0, 2.5), 0.6)  # a gaze point 1.5 m north
+    assert (x, y) == pytest.approx((1.0, 1.6)) and yaw == pytest.approx(-math.pi / 2)
+    assert approach_pose((0.0, 0.0), (0.3, 0.4), 0.6) == pytest.approx((0.3, 0.4, math.atan2(-0.4, -0.3)))
+    # a confident object without gaze points (the trusting agent's case): approached from the robot's side
+    m = TaskMachine("pick_place", "mug", "table", "counter", "trusting")
+    mug = SeenObject(7, "mug", {"mug": (0.4, 0.2, 0.2)}, 4.0, 0.0)
+    a = m.step((0.0, 0.0, 0.0), [], [mug])
+    assert a.kind == "pick" and a.ref == 7
+    assert a.pose == pytest.approx((4.0 - SKILL_APPROACH_M, 0.0, 0.0))
+    assert SKILL_APPROACH_M < 0.9  # the oracle pick's reach (services/sim/skills.py REACH_M)

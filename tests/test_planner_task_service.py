@@ -8,6 +8,7 @@ import queue
 import time
 
 import numpy as np
+import pytest
 
 from eqa import keys
 from eqa.bus import Bus
@@ -65,7 +66,8 @@ def test_planner_runs_the_task_machine_and_survives_a_restart(hub_settings, sett
             bus.publish(keys.stream(ROBOT, keys.STOPPER_DECISION), _decision(0))
             g0 = goals.get(timeout=20.0)
             assert (g0.step, g0.skill, g0.target, g0.phase) == (0, "pick", 20, "picking")
-            assert g0.pose is not None and (g0.pose.x, g0.pose.y) == (3.0, 4.2)
+            # the skill pose: SKILL_APPROACH_M (0.6 m) from the mug's centre (3, 5) towards its gaze point (3, 4.2)
+            assert g0.pose is not None and (g0.pose.x, g0.pose.y) == pytest.approx((3.0, 4.4))
         finally:
             svc.stop()
         # a new planner process: the machine (pick attempts, phase) comes back from the store

@@ -19,7 +19,7 @@ import json
 import math
 import zipfile
 from collections import OrderedDict
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -120,10 +120,13 @@ class ObjectMap:
 
     def summaries(
         self, grid: GridSpec | None = None, occupancy: np.ndarray | None = None, heights: np.ndarray | None = None,
-        camera_height: float = 1.5,
+        camera_height: float = 1.5, camera_pitch: float | None = None,
     ) -> list[ObjectInstance]:
         """Every instance (up to ``max_instances``, best task-class score first); gaze points for candidates
-        when the 2D map is given."""
+        when the 2D map is given. ``camera_pitch`` (radians, negative = down): the pitch of a head camera that
+        cannot tilt (the simulated robot's is fixed at -30 deg); the gaze points then carry that pitch and Psi'
+        (Eq. 11) is computed for the view the robot will really get there, not for the paper's pitch towards
+        the object's top (which needs a tilting head). None: the paper's pitch."""
         c = self.config
         names = self.layer.classes
         insts = sorted(self.layer.instances(), key=lambda i: -max(i.S[:-1]))[: c.max_instances]
@@ -136,7 +139,7 @@ class ObjectMap:
             if grid is not None and occupancy is not None and candidate:
                 gazed += 1
                 gaze = self._gaze(inst.instance_id, best, inst.centre, inst.extent, grid, occupancy, heights,
-                                  camera_height)
+                                  camera_height, camera_pitch)
             out.append(ObjectInstance(
                 instance_id=inst.instance_id, cls=names[inst.cls], S=inst.S[inst.cls], U=inst.U[inst.cls],
                 psi=inst.psi[inst.cls],
@@ -147,10 +150,12 @@ class ObjectMap:
         return out
 
     def _gaze(self, instance_id: int, cls: int, centre, extent, grid: GridSpec, occupancy: np.ndarray,
-              heights: np.ndarray | None, camera_height: float) -> list[GazePoint]:
+              heights: np.ndarray | None, camera_height: float, camera_pitch: float | None = None) -> list[GazePoint]:
         c = self.config
         cands = gaze_points(occupancy, heights, grid, tuple(centre), tuple(max(e, 0.0) for e in extent),
                             c.gaze_radius_m, c.gaze_points, c.gaze_obstacle_m, camera_height)
+        if camera_pitch is not None:
+            cands = [replace(g, pitch=round(float(camera_pitch), 6)) for g in cands]
         poses = [camera_from_gaze(g.x, g.y, g.yaw, g.pitch, camera_height) for g in cands]
         opts = self.layer.optimistic_each(instance_id, cls, poses)  # each gaze point alone, one render
         return [GazePoint(x=g.x, y=g.y, yaw=g.yaw, pitch=g.pitch, psi_prime=o.psi_prime, ig=o.ig)

@@ -207,7 +207,10 @@ class ObjectLayerShell:
             return
         t0 = time.perf_counter()
         height = float(frame.camera_pose[2, 3]) if frame is not None else 1.5
-        update.objects = om.summaries(update.grid, update.occupied, obstacle_heights(em), camera_height=height)
+        # the robot's head camera has a fixed tilt: gaze points are scored for the view it really gets there
+        pitch = float(np.arcsin(np.clip(frame.camera_pose[2, 2], -1.0, 1.0))) if frame is not None else None
+        update.objects = om.summaries(update.grid, update.occupied, obstacle_heights(em), camera_height=height,
+                                      camera_pitch=pitch)
         self.last_objects[em.episode_id] = update.objects
         timing["objects_summary"] = (time.perf_counter() - t0) * 1000.0
         update.timing_ms.update(timing)

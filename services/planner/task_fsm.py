@@ -39,6 +39,13 @@ Phase = Literal["searching", "local_search", "looking", "picking", "placing", "f
 MAX_FAILS_PER_INSTANCE = 2
 MAX_LOOKS_PER_INSTANCE = 3  # gaze points visited to look again at one candidate (this implementation's bound)
 ARRIVED_M = 0.3  # a gaze pose counts as reached within this distance
+# The pose of a pick / place / stop: on the line from the object's centre to the chosen gaze point (or to the
+# robot when the object has no gaze point), this far from the centre, facing the object. The gaze contour lies
+# gaze_radius_m (0.9 m) beyond the footprint of the object's Gaussians, the very reach of the oracle pick
+# (0.9 m from the object's true box, services/sim/skills.py): with the planner's arrival tolerance (0.5 m)
+# and a footprint seen from one side, a skill called from a gaze point was out of reach (issue 17, tuning
+# seed 11). 0.6 m leaves 0.3 m for both.
+SKILL_APPROACH_M = 0.6
 
 
 @dataclass(frozen=True)
@@ -78,6 +85,18 @@ def from_instance(inst: Any) -> SeenObject:
     gaze = tuple(Gaze(g.x, g.y, g.yaw, g.pitch, g.psi_prime, g.ig) for g in inst.gaze)
     return SeenObject(int(inst.instance_id), str(inst.cls), scores, float(inst.centre[0]), float(inst.centre[1]),
                       float(inst.ig), gaze)
+
+
+def approach_pose(obj: tuple[float, float], towards: tuple[float, float], dist_m: float) -> tuple[float, float, float]:
+    """The skill pose (see SKILL_APPROACH_M): ``dist_m`` from ``obj`` on the way to ``towards`` (or ``towards``
+    itself when nearer), facing ``obj``."""
+    dx, dy = towards[0] - obj[0], towards[1] - obj[1]
+    d = math.hypot(dx, dy)
+    if d < 1e-6:
+        return (towards[0], towards[1], 0.0)
+    k = min(1.0, dist_m / d)
+    x, y = obj[0] + dx * k, obj[1] + dy * k
+    return (x, y, math.atan2(obj[1] - y, obj[0] - x))
 
 
 @dataclass(frozen=True)
@@ -215,7 +234,7 @@ class TaskMachine:
     def _act_on(self, kind: Literal["pick", "place", "stop"], o: SeenObject, robot: tuple[float, float, float],
                 reason: str) -> Action:
         g = self._approach(o, robot, best=False)
-        pose = (g.x, g.y, g.yaw) if g is not None else robot
+        pose = approach_pose((o.x, o.y), (g.x, g.y) if g is not None else robot[:2], SKILL_APPROACH_M)
         phase: Phase = {"pick": "picking", "place": "placing", "stop": "looking"}[kind]  # type: ignore[assignment]
         self.phase = phase
         self.pending = Action(kind, phase, o.instance_id, pose, g.pitch if g is not None else 0.0, reason)

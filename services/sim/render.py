@@ -10,6 +10,7 @@ depth); 0 where nothing is hit. Instance ids come from the hit triangle (-1 wher
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import open3d as o3d
@@ -63,6 +64,7 @@ class Renderer:
         self._rays: dict[tuple[bytes, int, int], tuple[np.ndarray, np.ndarray]] = {}
         ids = np.array(sorted(scene.instances), np.int64) if scene.instances else np.zeros(0, np.int64)
         self._max_id = int(ids.max()) if ids.size else -1
+        self._hidden_rc: dict[frozenset[int], tuple[Any, np.ndarray]] = {}  # scenes without a held object
 
     def _camera_rays(self, K: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
         """Cached camera-frame directions ``(3, H*W)`` and a reusable ``(H*W, 6)`` ray buffer for one image size."""
@@ -75,8 +77,27 @@ class Renderer:
             cached = self._rays[key] = (np.ascontiguousarray(dirs.T), np.empty((dirs.shape[0], 6), np.float32))
         return cached
 
-    def cast(self, camera_pose: np.ndarray, K: np.ndarray, width: int, height: int) -> dict[str, np.ndarray]:
-        """Raw ray cast of every pixel: ``t_hit`` (= depth), ``primitive_ids``, ``primitive_uvs``."""
+    def _without(self, hidden: frozenset[int]) -> tuple[Any, np.ndarray]:
+        """A ray-casting structure of the scene without the instances ``hidden`` (an object the robot holds,
+        issue 17) and the map from its triangle ids to the scene's; built once per set (a few ms)."""
+        cache = self._hidden_rc
+        got = cache.get(hidden)
+        if got is None:
+            keep = np.flatnonzero(~np.isin(self.scene.triangle_instance, np.array(sorted(hidden), np.int64)))
+            rc = o3d.t.geometry.RaycastingScene()
+            rc.add_triangles(
+                o3d.core.Tensor(np.ascontiguousarray(self.scene.vertices, np.float32)),
+                o3d.core.Tensor(np.ascontiguousarray(self.scene.triangles[keep], np.uint32)),
+            )
+            if len(cache) > 4:
+                cache.clear()
+            got = cache[hidden] = (rc, keep.astype(np.int64))
+        return got
+
+    def cast(self, camera_pose: np.ndarray, K: np.ndarray, width: int, height: int,
+             hidden: frozenset[int] = frozenset()) -> dict[str, np.ndarray]:
+        """Raw ray cast of every pixel: ``t_hit`` (= depth), ``primitive_ids``, ``primitive_uvs``; the instances
+        ``hidden`` are left out (not rendered; a question episode hides nothing and takes the same path)."""
         T = np.asarray(camera_pose, np.float64)
         if T.shape != (4, 4) or not np.isfinite(T).all():
             raise ValueError("camera_pose must be a finite 4x4 matrix")
@@ -92,12 +113,23 @@ class Renderer:
             col += dirs_t[1] * R[j, 1]
             col += dirs_t[2] * R[j, 2]
             rays[:, 3 + j] = col
-        out = self._rc.cast_rays(o3d.core.Tensor.from_numpy(rays))
-        return {k: out[k].numpy() for k in ("t_hit", "primitive_ids", "primitive_uvs")}
+        if not hidden:
+            out = self._rc.cast_rays(o3d.core.Tensor.from_numpy(rays))
+            return {k: out[k].numpy() for k in ("t_hit", "primitive_ids", "primitive_uvs")}
+        rc, keep = self._without(frozenset(hidden))
+        out = rc.cast_rays(o3d.core.Tensor.from_numpy(rays))
+        res = {k: out[k].numpy() for k in ("t_hit", "primitive_ids", "primitive_uvs")}
+        ok = np.isfinite(res["t_hit"])
+        prim = res["primitive_ids"].astype(np.int64)
+        prim[ok] = keep[prim[ok]]
+        res["primitive_ids"] = np.where(ok, prim, 0).astype(np.uint32)
+        return res
 
-    def render(self, camera_pose: np.ndarray, K: np.ndarray, width: int, height: int) -> Rendered:
-        """RGB, depth and instance ids of one ``width x height`` view (see the module doc)."""
-        hit = self.cast(camera_pose, K, width, height)
+    def render(self, camera_pose: np.ndarray, K: np.ndarray, width: int, height: int,
+               hidden: frozenset[int] = frozenset()) -> Rendered:
+        """RGB, depth and instance ids of one ``width x height`` view (see the module doc), without the
+        instances ``hidden`` (the object a task robot holds)."""
+        hit = self.cast(camera_pose, K, width, height, hidden)
         t = hit["t_hit"]
         ok = np.isfinite(t)
         depth = np.where(ok, t, np.float32(0.0)).astype(np.float32).reshape(height, width)

@@ -323,7 +323,8 @@ class SimService(EpisodeService[_Episode]):
     def render_frame(self, ep: _Episode) -> Frame:
         w, h = self.settings.sim_width, self.settings.sim_height
         T = camera_pose(ep.pose)
-        out = ep.renderer.render(T, self._K, w, h)
+        held = ep.task.episode.held_id if ep.task is not None else None  # a held object is not where it was
+        out = ep.renderer.render(T, self._K, w, h, frozenset() if held is None else frozenset({held}))
         return Frame(
             episode_id=ep.episode_id, step=ep.step, pose=ep.pose, camera_pose=T, intrinsics=self._K,
             rgb=out.rgb, depth=out.depth, instances=out.instances, labels=ep.renderer.labels(out.instances),
@@ -335,6 +336,8 @@ class SimService(EpisodeService[_Episode]):
         if ep.task is not None and frame.instances is not None:
             if goal is not None and before is not None:  # the motion's collisions, then the goal's skill
                 ep.skill = ep.task.after_goal(ep.scene, before, goal, frame.instances)
+                if ep.skill is not None and ep.skill.skill == "pick" and ep.skill.success:
+                    frame = self.render_frame(ep)  # the picked object is in the gripper now, not in view
                 frame.skill = ep.skill
                 if ep.skill is not None:
                     log.info("episode %s step %d: %s %s (%s)", ep.episode_id, ep.step, ep.skill.skill,
