@@ -20,6 +20,11 @@ write its own way:
   :meth:`dump_state` and the last step's answers. :meth:`save` writes it (call it before publishing what
   depends on it); a message of an episode not in memory restores it (:meth:`load_state`): a restarted service
   continues where the last one stopped.
+* **State in several keys** (optional): :meth:`dump_state` may return :class:`StateParts`: parts written under
+  :func:`eqa.store.episode_part_key` before the envelope, which lists the live ones, and parts no longer
+  referenced deleted after it (a crash in between leaves the previous envelope valid, or a stray part that
+  expires). :meth:`read_part` reads one in :meth:`load_state`; :meth:`drop` deletes them with the envelope.
+  A service whose :meth:`dump_state` returns plain data stores exactly what it did before.
 * **Recorder bookkeeping**: one :class:`eqa.recording.EpisodeRecorder` per episode in :attr:`recorders`, named
   after the service (``{service}-resume{k}`` after a restart: a file sink cannot be appended to).
 * **Ownership** (sharding, issue 21): :meth:`owns` is asked before any message is handled. With ``EQA_SHARD``
@@ -67,7 +72,7 @@ from eqa.recording import EpisodeRecorder
 from eqa.service import Service
 from eqa.settings import Settings
 from eqa.sharding import Shard
-from eqa.store import EPISODE_STATE_TTL_S, Store, episode_end_key, episode_state_key
+from eqa.store import EPISODE_STATE_TTL_S, Store, episode_end_key, episode_part_key, episode_state_key
 
 log = logging.getLogger(__name__)
 
@@ -90,6 +95,29 @@ class EpisodeMeta:
     record: bool
     answer_step: int = -1
     answers: dict[Pair, Message] = field(default_factory=dict)  # the outputs published for answer_step
+    parts: set[str] = field(default_factory=set)  # live parts of a state kept in several keys (StateParts)
+
+
+MAX_PART_NAME = 64
+
+
+@dataclass
+class StateParts:
+    """A :meth:`EpisodeService.dump_state` result spread over several store keys: ``state`` goes into the
+    envelope as a plain result would; ``write`` (part name -> bytes) is stored under
+    :func:`eqa.store.episode_part_key` before the envelope; ``delete`` names parts no longer needed, removed
+    after it. Names are short ``[A-Za-z0-9._-]`` strings."""
+
+    state: Any
+    write: dict[str, bytes] = field(default_factory=dict)
+    delete: list[str] = field(default_factory=list)
+
+
+def _check_part(name: Any) -> str:
+    if not (isinstance(name, str) and 0 < len(name) <= MAX_PART_NAME
+            and all(ch.isascii() and (ch.isalnum() or ch in "._-") for ch in name)):
+        raise ValueError(f"bad state part name {name!r}")
+    return name
 
 
 @dataclass
@@ -224,16 +252,43 @@ class EpisodeService(Service, Generic[S]):
     def save(self, episode_id: str, **extra: Any) -> None:
         """Write the episode's state (and its last answers) to the store; ``extra`` goes to :meth:`dump_state`."""
         meta = self.meta[episode_id]
+        state = self.dump_state(self.episodes[episode_id], **extra)
+        parts = state if isinstance(state, StateParts) else None
         body: dict[str, Any] = {
             "version": ENVELOPE_VERSION,
             "robot": meta.robot,
             "record": meta.record,
-            "state": self.dump_state(self.episodes[episode_id], **extra),
+            "state": parts.state if parts is not None else state,
         }
         if self.persist_answers and meta.answers:
             body["answers"] = {"step": meta.answer_step,
                                "messages": [[*pair, encode(m)] for pair, m in meta.answers.items()]}
+        if parts is not None:
+            for name, data in parts.write.items():
+                self.store.set(episode_part_key(self.name, episode_id, _check_part(name)), data,
+                               ttl_s=self.state_ttl_s)
+            live = (meta.parts | set(parts.write)) - set(parts.delete)
+            body["parts"] = sorted(live)
         self.store.set(episode_state_key(self.name, episode_id), packb(body), ttl_s=self.state_ttl_s)
+        if parts is not None:
+            gone = [episode_part_key(self.name, episode_id, _check_part(n)) for n in parts.delete
+                    if n not in parts.write]
+            if gone:
+                self.store.delete_many(gone)
+            meta.parts = live
+
+    def read_part(self, episode_id: str, name: str) -> bytes:
+        """A part of the episode's stored state (:class:`StateParts`), for :meth:`load_state`; ``ValueError``
+        when it is missing (the stored state is then unusable)."""
+        data = self.store.get(episode_part_key(self.name, episode_id, _check_part(name)))
+        if data is None:
+            raise ValueError(f"part {name!r} of the stored state of episode {episode_id} is missing")
+        return data
+
+    def _delete_parts(self, episode_id: str, parts: set[str] | list[str]) -> None:
+        keys_ = [episode_part_key(self.name, episode_id, n) for n in parts]
+        if keys_:
+            self.store.delete_many(keys_)
 
     def drop(self, episode_id: str, upto_step: int = 0) -> None:
         """Forget an episode: memory, stored state, recorder, held messages, step claims (those of steps up to
@@ -247,6 +302,8 @@ class EpisodeService(Service, Generic[S]):
             self.shard.claims.forget(episode_id, max(meta.answer_step + 1, upto_step))
         self._held.pop(episode_id, None)
         self.store.delete(episode_state_key(self.name, episode_id))
+        if meta is not None and meta.parts:
+            self._delete_parts(episode_id, meta.parts)
         rec = self.recorders.pop(episode_id, None)
         if rec is not None:
             rec.close()
@@ -286,11 +343,16 @@ class EpisodeService(Service, Generic[S]):
         raw = self.store.get(episode_state_key(self.name, episode_id))
         if raw is None:
             return None
+        parts: set[str] = set()
         try:
             body = unpackb(raw)
             if not isinstance(body, dict) or body.get("version") != ENVELOPE_VERSION:
                 raise ValueError(f"not a {self.name} state of version {ENVELOPE_VERSION}")
-            meta = EpisodeMeta(robot=str(body["robot"]), record=bool(body["record"]))
+            listed = body.get("parts", [])
+            if not isinstance(listed, list) or len(listed) > 10_000:
+                raise ValueError("bad list of state parts")
+            parts = {_check_part(n) for n in listed}
+            meta = EpisodeMeta(robot=str(body["robot"]), record=bool(body["record"]), parts=parts)
             answers = body.get("answers")
             if answers:
                 meta.answer_step = int(answers["step"])
@@ -301,6 +363,7 @@ class EpisodeService(Service, Generic[S]):
         except (CodecError, KeyError, TypeError, ValueError) as exc:
             log.error("%s: stored state of episode %s unusable (%s); dropped", self.name, episode_id, exc)
             self.store.delete(episode_state_key(self.name, episode_id))
+            self._delete_parts(episode_id, parts)
             return None
         self.episodes[episode_id] = state  # answered_step may need it
         self.meta[episode_id] = meta

@@ -43,6 +43,13 @@ def episode_state_key(service: str, episode_id: str) -> str:
     return f"eqa:{service}:episode:{episode_id}"
 
 
+def episode_part_key(service: str, episode_id: str, part: str) -> str:
+    """Where a part of ``service``'s state of an episode lives when the state spans several keys
+    (:class:`eqa.episode_service.StateParts`, e.g. the mapper's incremental snapshots), e.g.
+    ``eqa:mapper:part:ep-1:d3``. Not under :func:`episode_state_key`'s prefix, which lists episodes."""
+    return f"eqa:{service}:part:{episode_id}:{part}"
+
+
 def episode_trace_key(episode_id: str) -> str:
     """Where the stopper keeps the per-step scores (trace) of an episode, rewritten after each step."""
     return f"eqa:trace:episode:{episode_id}"

@@ -30,7 +30,7 @@ import numpy as np
 
 from eqa import grid, keys
 from eqa.bus import Bus
-from eqa.episode_service import EpisodeService
+from eqa.episode_service import EpisodeService, StateParts
 from eqa.messages import (
     EpisodeCancel,
     EpisodeEnd,
@@ -43,6 +43,7 @@ from eqa.messages import (
 )
 from eqa.settings import Settings
 from eqa.store import Store
+from services.mapper import snapshots
 from services.mapper.episode_map import EpisodeMap, MapperConfig, Timer
 from services.mapper.object_shell import Detect, ObjectLayerShell, Values
 from services.mapper.semantic_map import QUESTION_LAYER
@@ -111,11 +112,14 @@ class MapperService(ObjectLayerShell, EpisodeService[EpisodeMap]):
         log.info("episode %s finished (%s); map dropped", msg.episode_id, msg.kind)
 
     def dump_state(self, state: EpisodeMap, **extra: Any) -> Any:
-        # a task episode's object layer rides along: {"map": ..., "objects": ...}; otherwise the map's bytes
-        return self.objects_dump(state.episode_id, state.snapshot(extra.get("volume")))
+        # a task episode's object layer rides along: {"map": ..., "objects": ...}; otherwise the map's bytes.
+        # The map is an incremental snapshot (snapshots.py): its header here, the full part and deltas as parts.
+        header, write, delete = snapshots.snapshot_step(state)
+        return StateParts(self.objects_dump(state.episode_id, header), write, delete)
 
     def load_state(self, episode_id: str, data: Any) -> EpisodeMap:
-        em = self.objects_load(episode_id, data, lambda b: EpisodeMap.restore(b, self.config))
+        em = self.objects_load(episode_id, data, lambda b: snapshots.restore(
+            b, lambda part: self.read_part(episode_id, part), self.config))
         log.info("episode %s: restored from snapshot at step %d", episode_id, em.step)
         return em
 
@@ -144,15 +148,13 @@ class MapperService(ObjectLayerShell, EpisodeService[EpisodeMap]):
             return
 
         # The scorer round trip is mostly waiting (another process, the bus): meanwhile this thread does the
-        # step's work that does not depend on the scores: the frontier candidates and the voxel part of the
-        # snapshot. Same results, same order of effects (snapshot saved before anything is published).
+        # step's work that does not depend on the scores: the frontier candidates. Same results, same order of
+        # effects (snapshot saved before anything is published).
         pending = self._pool.submit(self._timed_score, robot, em, frame)
         pending_objects = self.objects_submit(robot, em, frame)  # detections + value prompts (task episodes)
         t0 = time.perf_counter()
         candidates = em.find_frontier_candidates()
         t0 = timer.lap("frontiers", t0)
-        volume = em.snapshot_volume()
-        timer.lap("snapshot", t0)
         t0 = time.perf_counter()
         result, score_ms = pending.result()
         timer.lap("score_wait", t0)
@@ -168,7 +170,7 @@ class MapperService(ObjectLayerShell, EpisodeService[EpisodeMap]):
         em.compute_frontiers(frontier_layer or QUESTION_LAYER, timer=timer, candidates=candidates)
         # Persist before publishing: whatever a consumer has seen survives a crash of this process.
         t0 = time.perf_counter()
-        self._save(em, volume)
+        self._save(em)
         timer.lap("snapshot", t0)
         timer.ms["step"] = (time.perf_counter() - t_start) * 1000.0
         update = em.map_update(timer.ms)
