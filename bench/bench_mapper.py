@@ -170,6 +170,11 @@ def main(argv: list[str] | None = None) -> int:
 
     from services.mapper.tsdf import TSDFVolume
 
+    try:
+        from services.mapper.snapshots import snapshot_step
+    except ImportError:  # a tree before issue 20: whole-map snapshots only
+        snapshot_step = None
+
     base_tsdf = base_proj = None
     if args.baseline != "none":
         base_tsdf, base_proj = load_baseline(args.baseline)
@@ -242,10 +247,9 @@ def main(argv: list[str] | None = None) -> int:
         store.set("mapper/episode/bench", full)
         extra["snapshot full"].append((time.perf_counter() - t0) * 1000)
         nbytes["snapshot full"].append(len(full))
-        step_snapshot = getattr(em, "snapshot_step", None)
-        if step_snapshot is not None:  # incremental snapshot (issue 20): the step's parts + header
+        if snapshot_step is not None:  # incremental snapshot (issue 20): the step's parts + header
             t0 = time.perf_counter()
-            header, parts, obsolete = step_snapshot()
+            header, parts, obsolete = snapshot_step(em)
             for part, data in parts.items():
                 store.set(f"mapper/episode/bench:{part}", data)
             store.set("mapper/episode/bench/step", header)
