@@ -14,6 +14,13 @@ machine's load drifts over both alike. Per run:
   highest CPU per step saturates first.
 
     python bench/bench_fleet_scale.py [--instances 1,2] [--robots 4] [--episodes 12] [--steps 8] [--rounds 2]
+
+``--trees OLD,NEW`` compares source trees instead (e.g. git worktrees at two commits): each round runs this
+script of each tree in turn (OLD NEW OLD NEW ...; ``--instances`` 1 unless given, the tree's own code in its
+processes, a private Redis each), and prints episodes/min per tree and round, the NEW/OLD ratio of each round
+(both measured back to back under the same load) and its median, and the load average before each run.
+
+    python bench/bench_fleet_scale.py --trees /work/wt-old,/work/wt-new --robots 4 --rounds 3
 """
 
 from __future__ import annotations
@@ -35,6 +42,7 @@ os.environ.setdefault("RERUN_TELEMETRY_ENABLED", "false")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
+import numpy as np
 from exactly_once import StepLedger
 from tqdm import tqdm
 
@@ -129,6 +137,51 @@ def run_config(n: int, args: argparse.Namespace, redis_url: str, root: Path) -> 
     }
 
 
+def compare_trees(trees: list[Path], args: argparse.Namespace) -> int:
+    """Run this benchmark of each tree in turn, ``--rounds`` times; one robot fleet per run (see the docstring)."""
+    for t in trees:
+        if not (t / "bench" / "bench_fleet_scale.py").is_file():
+            print(f"error: {t} has no bench/bench_fleet_scale.py (give source trees, e.g. git worktrees)",
+                  file=sys.stderr)
+            return 2
+    instances = args.instances if args.instances != "1,2" else "1"
+    runs: list[dict[str, Any]] = []
+    with tempfile.TemporaryDirectory(prefix="eqa-trees-") as tmp:
+        for r in range(args.rounds):
+            for t in trees:
+                out = Path(tmp) / f"run-{r}-{t.name}.json"
+                load = os.getloadavg()[0]
+                cmd = [sys.executable, str(t / "bench" / "bench_fleet_scale.py"), "--instances", instances,
+                       "--robots", str(args.robots), "--episodes", str(args.episodes), "--steps", str(args.steps),
+                       "--rounds", "1", "--timeout", str(args.timeout), "--out", str(out)]
+                env = {**os.environ, "PYTHONPATH": str(t)}
+                print(f"round {r}: {t} (load average {load:.1f}) ...", flush=True)
+                subprocess.run(cmd, cwd=t, env=env, check=True, stdout=subprocess.DEVNULL)
+                res = json.loads(out.read_text())["runs"][0]
+                res.update(tree=str(t), round=r, loadavg_before=round(load, 2))
+                runs.append(res)
+                print(f"  {res['episodes_per_min']:.1f} episodes/min, {res['steps_per_s']:.1f} steps/s, "
+                      f"not once {res['n_problems']}, failed {len(res['failed'])}, CPU ms per step: "
+                      + ", ".join(f"{k} {v * 1000:.0f}" for k, v in res["cpu_s_per_step"].items()), flush=True)
+    base = str(trees[0])
+    print(f"\nepisodes/min, {args.robots} robots, {args.episodes} episodes x {args.steps} steps, 320x240, "
+          f"{instances} instance(s) per service")
+    for t in trees:
+        vals = [x["episodes_per_min"] for x in runs if x["tree"] == str(t)]
+        print(f"  {t!s:40s} " + "  ".join(f"{v:6.1f}" for v in vals) + f"   median {np.median(vals):.1f}")
+    for t in trees[1:]:
+        ratios = [n["episodes_per_min"] / o["episodes_per_min"] for o, n in zip(
+            [x for x in runs if x["tree"] == base], [x for x in runs if x["tree"] == str(t)], strict=True)]
+        print(f"  ratio {t.name}/{trees[0].name} per round (back to back): "
+              + ", ".join(f"{q:.2f}" for q in ratios) + f"; median {np.median(ratios):.2f}")
+    summary = {"command": "python bench/bench_fleet_scale.py " + " ".join(sys.argv[1:]), "cores": os.cpu_count(),
+               "loadavg_at_end": [round(x, 2) for x in os.getloadavg()], "runs": runs}
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(summary, indent=2))
+    print(f"written: {args.out}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--instances", default="1,2", help="comma-separated instance counts to compare (default 1,2)")
@@ -138,7 +191,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--rounds", type=int, default=2, help="alternations of the configurations")
     p.add_argument("--timeout", type=float, default=120.0, help="fail when no episode ends for this long")
     p.add_argument("--out", type=Path, default=RESULTS)
+    p.add_argument("--trees", default="", help="comma-separated source trees to compare (see above)")
     args = p.parse_args(argv)
+    if not (1 <= args.robots <= 64 and 1 <= args.episodes <= 10_000 and 1 <= args.steps <= 1000
+            and 1 <= args.rounds <= 100):
+        p.error("1 <= robots <= 64, 1 <= episodes <= 10000, 1 <= steps <= 1000, 1 <= rounds <= 100")
+    if args.trees:
+        if args.out == RESULTS:
+            args.out = RESULTS.with_name("fleet_trees.json")
+        return compare_trees([Path(t) for t in args.trees.split(",") if t], args)
     counts = [int(x) for x in args.instances.split(",")]
     redis = shutil.which("redis-server")
     if redis is None:
