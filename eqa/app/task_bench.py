@@ -55,6 +55,9 @@ OVMM_METRICS = ("FindObj", "Pick", "FindRec", "Place", "SR")
 PICK_LIMITS: tuple[int | None, ...] = (1, 5, None)
 SIMULATED = ("simulated perception model (oracle detector reading ground-truth labels, with documented misses, "
              "confusions and false positives), not a detector")
+GROUND_TRUTH = ("ground-truth detections (HELIOS Table 4 yardstick: the oracle detector with every visible pixel of "
+                "a requested class, score 1, no miss, confusion or false positive; EQA_DETECTOR_GROUND_TRUTH), "
+                "not a detector")
 
 
 def task_seed(task_id: str) -> int:
@@ -227,9 +230,13 @@ def summarise(kind: str, results: list[TaskResult], variants: tuple[str, ...]) -
     return table
 
 
-def format_table(kind: str, table: dict[str, Any], seed: int, max_steps: int | None) -> str:
-    lines = [f"{'Table 1 (OVMM)' if kind == 'pick_place' else 'Table 2 (object search stop decision)'}: seed {seed} "
-             f"({seed_role(seed)}), n = {table['n']} tasks, step budget {max_steps or 'task default'}; {SIMULATED}"]
+def format_table(kind: str, table: dict[str, Any], seed: int | str, max_steps: int | None,
+                 ground_truth: bool = False) -> str:
+    name = ("Table 4 (OVMM, ground-truth detections)" if ground_truth else "Table 1 (OVMM)") if kind == "pick_place" \
+        else "Table 2 (object search stop decision)" + (", ground-truth detections" if ground_truth else "")
+    role = seed_role(seed) if isinstance(seed, int) else "evaluation"
+    lines = [f"{name}: seed {seed} ({role}), n = {table['n']} tasks, step budget {max_steps or 'task default'}; "
+             f"{GROUND_TRUTH if ground_truth else SIMULATED}"]
     if kind == "pick_place":
         lines.append(f"{'picks':<10} {'variant':<10} " + " ".join(f"{k:>13}" for k in OVMM_METRICS))
         for row in table["rows"]:
@@ -246,25 +253,60 @@ def format_table(kind: str, table: dict[str, Any], seed: int, max_steps: int | N
     return "\n".join(lines)
 
 
+def plot(kind: str, table: dict[str, Any], title: str, path: Path) -> None:
+    """Bars with standard errors: OVMM metrics per variant (unlimited / 5 / 1 picks side by side), or SR and SPL
+    per stop rule."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = table["rows"]
+    metrics = OVMM_METRICS if kind == "pick_place" else ("SR", "SPL")
+    groups = [(r["variant"], r.get("picks")) for r in rows]
+    fig, ax = plt.subplots(figsize=(9 if kind == "pick_place" else 5, 3.6))
+    width = 0.8 / len(groups)
+    for k, (r, (v, picks)) in enumerate(zip(rows, groups, strict=True)):
+        xs = [i + (k - (len(groups) - 1) / 2) * width for i in range(len(metrics))]
+        ax.bar(xs, [100 * r[m][0] for m in metrics], width, yerr=[100 * r[m][1] for m in metrics], capsize=2,
+               label=f"{v}" + (f" ({picks} picks)" if picks is not None else ""))
+    ax.set_xticks(range(len(metrics)), metrics)
+    ax.set_ylabel("% of tasks (± SE)")
+    ax.set_ylim(0, 100)
+    ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=7, ncol=3 if kind == "pick_place" else 1)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def cmd(args: argparse.Namespace) -> int:
     from eqa.app.cli import check_scorer, load_settings
     from eqa.service import setup_logging
     from services.sim.tasks import task_benchmark
 
     settings = load_settings()
+    if args.ground_truth_detections:
+        settings = settings.model_copy(update={"detector_ground_truth": True})
     check_scorer(settings)
     setup_logging("WARNING", "eqa-bench")
     kind = "pick_place" if args.bench_command == "ovmm" else "find_object"
     variants = tuple(args.variants or (OVMM_VARIANTS if kind == "pick_place" else OBJECTNAV_VARIANTS))
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
-    report: dict[str, Any] = {"benchmark": args.bench_command, "seeds": {}, "max_steps": args.max_steps}
+    gt = bool(args.ground_truth_detections)
+    tag = args.bench_command + ("-gt" if gt else "")
+    report: dict[str, Any] = {"benchmark": args.bench_command, "seeds": {}, "max_steps": args.max_steps,
+                              "detections": GROUND_TRUTH if gt else SIMULATED}
+    pooled: list[TaskResult] = []
     for seed in args.seeds:
         n_pp, n_fo = (args.tasks, 0) if kind == "pick_place" else (0, args.tasks)
         bench = task_benchmark(seed, pick_place=n_pp, find=n_fo, scenes_dir=settings.scenes_path,
                                progress=not args.no_progress)
         tasks = bench.of_kind(kind)
-        path = out_dir / f"{args.bench_command}-seed{seed}.jsonl"
+        if args.tasks_from and args.tasks_from < len(tasks):
+            tasks = tasks[args.tasks_from:]
+        path = out_dir / f"{tag}-seed{seed}.jsonl"
         done = load_results(path)
         jobs = []
         for t in tasks:
@@ -283,11 +325,22 @@ def cmd(args: argparse.Namespace) -> int:
                   for t in tasks for v in variants}
         results = [r for k, r in done.items() if k in wanted]
         table = summarise(kind, results, variants)
+        secs = [r.seconds for r in results]
         report["seeds"][str(seed)] = {"role": seed_role(seed), "table": table,
-                                      "failed_runs": sum(1 for r in results if r.state == "failed")}
-        print(format_table(kind, table, seed, args.max_steps), flush=True)
-    (out_dir / f"{args.bench_command}.json").write_text(json.dumps(report, indent=1) + "\n")
-    print(f"results: {out_dir / (args.bench_command + '.json')} (runs: {out_dir}/{args.bench_command}-seed*.jsonl)")
+                                      "failed_runs": sum(1 for r in results if r.state == "failed"),
+                                      "seconds_per_episode": (sum(secs) / len(secs)) if secs else None}
+        print(format_table(kind, table, seed, args.max_steps, gt), flush=True)
+        pooled += [TaskResult(**{**r.__dict__, "task_id": f"{seed}:{r.task_id}"}) for r in results]
+    if len(args.seeds) > 1:
+        table = summarise(kind, pooled, variants)
+        report["pooled"] = {"seeds": args.seeds, "table": table}
+        print(format_table(kind, table, "+".join(map(str, args.seeds)), args.max_steps, gt), flush=True)
+    last = report.get("pooled") or report["seeds"][str(args.seeds[-1])]
+    title = (f"{tag}, seeds {'+'.join(map(str, args.seeds))}, n = {last['table']['n']} tasks; "
+             f"{'ground-truth detections' if gt else 'simulated detector, not a detector'}")
+    plot(kind, last["table"], title, out_dir / f"{tag}.png")
+    (out_dir / f"{tag}.json").write_text(json.dumps(report, indent=1) + "\n")
+    print(f"results: {out_dir / (tag + '.json')} (runs: {out_dir}/{tag}-seed*.jsonl)")
     return 0
 
 
@@ -308,5 +361,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         p.add_argument("--robots", type=int, default=2, help="simulated robots run in parallel (default 2)")
         p.add_argument("--scorers", type=int, default=1, help="scorer replicas (default 1)")
         p.add_argument("--out", default="var/bench/tasks", help="results directory (default var/bench/tasks)")
+        p.add_argument("--ground-truth-detections", action="store_true",
+                       help="HELIOS Table 4: the detector reports ground-truth semantics (every visible pixel of a "
+                            "requested class, score 1; EQA_DETECTOR_GROUND_TRUTH); results go to <bench>-gt-*")
+        p.add_argument("--tasks-from", type=int, default=0, metavar="K",
+                       help="skip the first K tasks of each seed (a smaller, disjoint share, e.g. for Table 4)")
         p.add_argument("--no-progress", action="store_true", help="no progress bar")
         p.set_defaults(func=cmd)
