@@ -319,8 +319,9 @@ def cmd(args: argparse.Namespace) -> int:
                 f.write(json.dumps(r.__dict__) + "\n")
             done[r.key()] = r
 
-        run_tasks(settings, jobs, robots=args.robots, scorers=args.scorers, progress=not args.no_progress,
-                  on_result=keep)
+        if not args.summary_only:
+            run_tasks(settings, jobs, robots=args.robots, scorers=args.scorers, progress=not args.no_progress,
+                      on_result=keep)
         wanted = {(t.id, v, min(t.max_steps or 1, args.max_steps) if args.max_steps else (t.max_steps or 1))
                   for t in tasks for v in variants}
         results = [r for k, r in done.items() if k in wanted]
@@ -366,5 +367,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                             "requested class, score 1; EQA_DETECTOR_GROUND_TRUTH); results go to <bench>-gt-*")
         p.add_argument("--tasks-from", type=int, default=0, metavar="K",
                        help="skip the first K tasks of each seed (a smaller, disjoint share, e.g. for Table 4)")
+        p.add_argument("--summary-only", action="store_true",
+                       help="run nothing: the tables of the runs already in --out (tasks not run are left out)")
         p.add_argument("--no-progress", action="store_true", help="no progress bar")
         p.set_defaults(func=cmd)

@@ -267,13 +267,14 @@ class ObjectLayer:
 
     # ---- persistence ------------------------------------------------------------------------------------
     def snapshot(self) -> bytes:
-        """The whole layer as bytes (an ``.npz``), for the mapper's store snapshot."""
+        """The whole layer as bytes (an uncompressed ``.npz``), for the mapper's store snapshot (saved every
+        step: zlib cost ~50 ms per 8 000 Gaussians for a third less bytes; measured, issue 17)."""
         buf = io.BytesIO()
         extra: dict[str, Any] = {}
         if self.last_camera is not None:
             pose, K, hh, ww = self.last_camera
             extra = {"cam_pose": pose, "cam_K": K, "cam_hw": np.array([hh, ww], np.int64)}
-        np.savez_compressed(
+        np.savez(
             buf,
             format=np.array(SNAPSHOT_FORMAT),
             classes=np.array(self.classes),
