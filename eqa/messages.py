@@ -420,6 +420,21 @@ class ErrorReply(Message):
     request_id: str | None = None
 
 
+MAX_EVIDENCE_INSTANCES = 64
+
+
+class ObjectEvidence(BaseModel):
+    """The HELIOS object layer's view of a question's target at one step (issue 22, item 2): the Psi (HELIOS
+    Eq. 7) of the target-class instances in the asked region, best first, and the observed share of that
+    region. Combined with the VLM's answer by :mod:`services.stopper.object_evidence`."""
+
+    model_config = ConfigDict(extra="forbid")
+    category: Literal["counting", "existence"]
+    psi: list[Annotated[float, Field(ge=0.0, le=1.0)]] = Field(default_factory=list,
+                                                               max_length=MAX_EVIDENCE_INSTANCES)
+    explored: float = Field(default=0.0, ge=0.0, le=1.0)
+
+
 class StepScores(Message):
     """What the stopper needs of one step: the answer distribution and the relevance."""
 
@@ -433,6 +448,7 @@ class StepScores(Message):
     backend: str = ""
     choices: list[str] = Field(default_factory=list)
     mode: str = Field(default="", max_length=32)  # the scorer's mode (ScoreResult.mode, issue 23)
+    object_evidence: ObjectEvidence | None = None  # issue 22: the object layer's evidence (question episodes)
 
 
 class Decision(Message):

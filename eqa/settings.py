@@ -108,6 +108,8 @@ class Settings(BaseSettings):
     # issue 22 item 2: question episodes track the target class in the HELIOS object layer and the stopper
     # combines its evidence with the VLM's answer (services/stopper/object_evidence.py); off by default.
     object_evidence: bool = Field(default=False, description="object evidence for existence/counting questions")
+    object_evidence_psi_min: float = Field(default=0.3, ge=0.0, le=1.0, description="Psi from which an instance counts")
+    object_evidence_weight: float = Field(default=0.5, ge=0.0, le=1.0, description="the layer's weight in the pool")
 
     # --- gateway ---
     gateway_host: str = "127.0.0.1"

@@ -110,10 +110,27 @@ def transform(probs: np.ndarray, relevance: np.ndarray, rule: AnswerRule) -> tup
         return f, rel
     out_f = np.empty_like(f)
     out_r = np.empty_like(rel)
+    kept: list[int] = []  # the K most relevant steps so far (same choice as top_k: ties keep the earlier step)
+    logf = np.log(np.maximum(f, _LOG_FLOOR)) if rule.fusion == "loglinear" else f
     for t in range(f.shape[0]):
-        idx = top_k(rel[: t + 1], rule.k)
-        out_f[t] = pool(f[idx], rel[idx], rule.fusion)
-        out_r[t] = rel[idx].max()
+        if len(kept) < rule.k:
+            kept.append(t)
+        else:
+            worst = min(kept, key=lambda i: (rel[i], -i))
+            if rel[t] > rel[worst]:
+                kept.remove(worst)
+                kept.append(t)
+        idx = np.array(kept)
+        r = rel[idx]
+        total = float(r.sum())
+        w = r / total if total > 0 else np.full(r.size, 1.0 / r.size)
+        if rule.fusion == "loglinear":
+            lp = w @ logf[idx]
+            p = np.exp(lp - lp.max())
+        else:
+            p = w @ f[idx]
+        out_f[t] = p / p.sum()
+        out_r[t] = r.max()
     return out_f, out_r
 
 

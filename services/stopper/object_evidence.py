@@ -31,20 +31,14 @@ import re
 from dataclasses import dataclass
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+
+from eqa.messages import MAX_EVIDENCE_INSTANCES, ObjectEvidence
 
 NUMBER_WORDS = ("zero", "one", "two", "three", "four", "five", "six", "seven", "eight", "nine", "ten")
-MAX_TRACKED = 64  # instances reported per step (the layer's own cap is the same)
+MAX_TRACKED = MAX_EVIDENCE_INSTANCES  # instances reported per step
 CATEGORIES = ("counting", "existence")
-
-
-class ObjectEvidence(BaseModel):
-    """What the object layer says about the question's target at one step (validated off the bus)."""
-
-    model_config = ConfigDict(extra="forbid")
-    category: str
-    psi: list[float] = Field(default_factory=list, max_length=MAX_TRACKED)  # target-class instances in region
-    explored: float = Field(default=0.0, ge=0.0, le=1.0)  # explored share of the asked region
+__all__ = ["CATEGORIES", "MAX_TRACKED", "EvidenceParams", "ObjectEvidence", "combine", "combined_steps",
+           "layer_distribution", "poisson_binomial"]
 
 
 @dataclass(frozen=True)

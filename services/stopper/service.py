@@ -114,6 +114,8 @@ class StopperService(EpisodeService[EpisodeRecord]):
         rec = EpisodeRecord.from_start(start, robot)
         rec.answer_memory = self.settings.answer_memory_k  # issue 22 (answer_memory.py); fixed for the episode
         rec.answer_fusion = self.settings.answer_memory_fusion
+        if self.settings.object_evidence:  # issue 22 item 2 (object_evidence.py)
+            rec.object_evidence = (self.settings.object_evidence_psi_min, self.settings.object_evidence_weight)
         try:
             rec.threshold = check_threshold(start)
         except ValueError as exc:

@@ -36,6 +36,7 @@ from services.stopper.conformal import (
     relevance_weighted_confidence,
     step_set,
 )
+from services.stopper.object_evidence import EvidenceParams, combine, layer_distribution
 
 log = logging.getLogger(__name__)
 
@@ -156,6 +157,8 @@ class EpisodeRecord(BaseModel):
     # issue 22: answer memory (services/stopper/answer_memory.py), fixed at the episode's start; 0 = single view
     answer_memory: int = Field(default=0, ge=0, le=16)
     answer_fusion: str = "loglinear"
+    # issue 22 item 2: pool the object layer's evidence (StepScores.object_evidence) into f; None = off
+    object_evidence: tuple[float, float] | None = None  # (psi_min, weight)
 
     @property
     def answer_rule(self) -> AnswerRule:
@@ -238,6 +241,11 @@ def decide(rec: EpisodeRecord, scores: StepScores) -> Decision | None:
         choices = rec.choices
     f = check_scores(scores.answer_probs, scores.relevance, len(choices))
     rel = float(scores.relevance)
+    if rec.object_evidence is not None and scores.object_evidence is not None:
+        # the answer distribution used from here on (and stored in the trace, so a calibration from the
+        # stopper's traces covers the combined score) pools the VLM's with the object layer's
+        params = EvidenceParams(psi_min=rec.object_evidence[0], weight=rec.object_evidence[1])
+        f = combine(f, layer_distribution(scores.object_evidence, choices, params), params.weight)
     if scores.step != rec.last_step + 1:
         log.warning("episode %s: step %d follows step %d (steps missing)", rec.episode_id, scores.step, rec.last_step)
     rec.choices = choices
