@@ -18,8 +18,9 @@ from typing import Any
 
 import numpy as np
 
-from eqa.messages import DetectRequest, DetectResult, Frame, GridSpec, Question
-from services.stopper.object_evidence import CATEGORIES, MAX_TRACKED, ObjectEvidence
+from eqa.messages import MAX_EVIDENCE_INSTANCES, DetectRequest, DetectResult, Frame, GridSpec, ObjectEvidence, Question
+
+CATEGORIES = ("counting", "existence")  # the question categories the class-level layer can answer (not colours)
 
 Rect = tuple[float, float, float, float]  # x0, y0, x1, y1
 
@@ -86,7 +87,7 @@ class QuestionObjects:
             x, y, _ = inst.centre
             if in_rects(float(x), float(y), self.rects):
                 psi.append(float(inst.psi[0]))
-        psi = sorted(psi, reverse=True)[:MAX_TRACKED]
+        psi = sorted(psi, reverse=True)[:MAX_EVIDENCE_INSTANCES]
         share = 0.0
         if explored is not None and grid is not None:
             if self.rects is None and self.floor_area_m2:
