@@ -78,9 +78,14 @@ class Parts:
         self.parts: dict[str, bytes] = {}
         self.header = b""
         self.fulls = 0
+        self.shape: tuple[int, int] | None = None
+        self.grew_in_delta = False
 
     def save(self, em: EpisodeMap, compact_every: int) -> int:
+        before = self.shape
         header, write, delete = snapshots.snapshot_step(em, compact_every)
+        self.shape = em.volume.shape2d
+        self.grew_in_delta |= before not in (None, self.shape) and not any(n.startswith("f") for n in write)
         self.parts.update(write)
         self.header = header
         for name in delete:
@@ -102,6 +107,7 @@ def test_restore_equals_live_every_step_with_compaction(frames: list[Frame]) -> 
         assert_same(store.restore(), em)
         assert len(store.parts) <= 1 + 5  # obsolete parts are deleted: one full part and its deltas
     assert len(shapes) > 1, "the walk should make the grid grow"
+    assert store.grew_in_delta, "a delta should have been taken on a grown grid (replay pads)"
     assert store.fulls >= 24 // 6
     full = len(em.snapshot())
     assert min(sizes) < full / 2  # a delta step writes much less than the whole map
@@ -131,8 +137,8 @@ def test_whole_map_snapshot_still_restores(frames: list[Frame]) -> None:
 
 def test_bad_parts_are_refused(frames: list[Frame]) -> None:
     em, store = make_map(), Parts()
-    for f in [*frames[:2], frames[1].model_copy(update={"step": 2})]:  # the same view again: no growth
-        step(em, f)
+    for k, f in enumerate([*frames[:2], frames[1], frames[1]]):  # the same view again: a small delta
+        step(em, f.model_copy(update={"step": k}))
         store.save(em, compact_every=50)
     delta = next(n for n in store.parts if n.startswith("d"))
     store.parts.pop(delta)

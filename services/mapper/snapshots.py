@@ -10,8 +10,9 @@ writes
 * a small **header** (the service's envelope state): step, pose, frontiers, prompt points, the grid, and the
   names of the full part and of the deltas to replay on it, in order.
 
-Every ``compact_every`` deltas, when the grid grew (the column indices of the deltas would no longer fit), or
-when the deltas together outweigh the full snapshot, the step writes a new **full part** (the usual
+A delta names the grid it was taken on; when the grid grew since the previous part (whole chunks added at its
+sides), the replay pads the arrays the same way first. Every ``compact_every`` deltas, or when the deltas
+together outweigh the full snapshot twice, the step writes a new **full part** (the usual
 :meth:`EpisodeMap.snapshot` bytes) instead and the old parts are deleted after the header that no longer
 names them (:class:`eqa.episode_service.StateParts`). :func:`restore` = full part + deltas in order + header:
 the same arrays, planes, frontiers and prompt points as the live map (tests/test_snapshot_log.py).
@@ -45,8 +46,7 @@ class _Log:
     deltas: list[str] = field(default_factory=list)
     delta_bytes: int = 0
     stamp: int = 0  # volume stamp at the last save
-    grid: tuple[float, float, int, int] = (0.0, 0.0, 0, 0)  # origin and shape at the last full part
-    arrays: tuple[int, int, int] = (0, 0, 0)  # ids of the volume arrays the log follows
+    grid: tuple[float, float, int, int] = (0.0, 0.0, 0, 0)  # origin and shape at the last save
     planes: dict[str, np.ndarray] = field(default_factory=dict)  # copies as last saved
 
 
@@ -56,11 +56,6 @@ _logs: weakref.WeakKeyDictionary[EpisodeMap, _Log] = weakref.WeakKeyDictionary()
 def _grid(em: EpisodeMap) -> tuple[float, float, int, int]:
     v = em.volume
     return (v.origin_x, v.origin_y, *v.shape2d)
-
-
-def _ids(em: EpisodeMap) -> tuple[int, int, int]:
-    v = em.volume
-    return (id(v.tsdf), id(v.weight), id(v.explored))
 
 
 def _header(em: EpisodeMap, log: _Log) -> bytes:
@@ -101,21 +96,23 @@ def snapshot_step(em: EpisodeMap, compact_every: int = COMPACT_EVERY) -> tuple[b
         log is None
         or log.full is None
         or len(log.deltas) >= compact_every
-        or _grid(em) != log.grid
-        or _ids(em) != log.arrays
+        or _padding(log.grid, _grid(em), em.resolution) is None
         or v.col_stamp.shape != v.shape2d
-        or log.delta_bytes > log.full_bytes
-        or any(name not in v.planes or v.planes[name].shape != v.shape2d for name in log.planes)
+        or log.delta_bytes > 2 * log.full_bytes
+        or any(name not in v.planes for name in log.planes)
     )
     if full:
         old = [] if log is None else [n for n in (log.full, *log.deltas) if n]
         gen = 0 if log is None else log.gen + 1
         data = em.snapshot()
-        log = _Log(gen=gen, full=f"f{gen}", full_bytes=len(data), stamp=v.stamp, grid=_grid(em), arrays=_ids(em),
+        log = _Log(gen=gen, full=f"f{gen}", full_bytes=len(data), stamp=v.stamp, grid=_grid(em),
                    planes={k: a.copy() for k, a in v.planes.items()})
         _logs[em] = log
         return _header(em, log), {log.full: data}, old
     assert log is not None
+    pad = _padding(log.grid, _grid(em), em.resolution)
+    if pad and any(pad):  # the grid grew: the saved copies of the planes grow the same way (zeros)
+        log.planes = {k: np.pad(a, pad) for k, a in log.planes.items()}
     changed = np.flatnonzero(v.col_stamp.reshape(-1) > log.stamp) if v.stamp != log.stamp else np.zeros(0, np.int64)
     planes: dict[str, Any] = {}
     for name, arr in v.planes.items():
@@ -129,13 +126,48 @@ def snapshot_step(em: EpisodeMap, compact_every: int = COMPACT_EVERY) -> tuple[b
                                 "values": packed_array(arr.reshape(-1)[cells], compress=False)}
         if name in planes:
             log.planes[name] = arr.copy()
-    body = {"version": LOG_VERSION, "step": em.step, "planes": planes, **_columns(em, changed)}
+    body = {"version": LOG_VERSION, "step": em.step, "grid": list(_grid(em)), "planes": planes,
+            **_columns(em, changed)}
     data = packb(body)
     name = f"d{log.gen}.{len(log.deltas)}"
     log.deltas.append(name)
     log.delta_bytes += len(data)
     log.stamp = v.stamp
+    log.grid = _grid(em)
     return _header(em, log), {name: data}, []
+
+
+def _padding(old: tuple[float, float, int, int], new: tuple[float, float, int, int],
+             res: float) -> tuple[tuple[int, int], tuple[int, int]] | None:
+    """``((top, bottom), (left, right))`` cells that turn grid ``old`` into ``new`` (as TSDFVolume.ensure
+    grows it), or None when ``new`` is not ``old`` grown at its sides."""
+    top, left = round((old[1] - new[1]) / res), round((old[0] - new[0]) / res)
+    bottom, right = new[2] - old[2] - top, new[3] - old[3] - left
+    if min(top, left, bottom, right) < 0 or abs(old[1] - top * res - new[1]) > 1e-6 * max(1.0, abs(new[1])) \
+            or abs(old[0] - left * res - new[0]) > 1e-6 * max(1.0, abs(new[0])):
+        return None
+    return ((top, bottom), (left, right))
+
+
+def _grow(em: EpisodeMap, grid: Any) -> None:
+    """Pad the restored arrays to a delta's grid (the growth the live volume went through)."""
+    if not (isinstance(grid, list) and len(grid) == 4):
+        raise ValueError("snapshot delta without its grid")
+    new = (float(grid[0]), float(grid[1]), int(grid[2]), int(grid[3]))
+    if max(new[2], new[3]) > 100_000:
+        raise ValueError("snapshot delta grid too large")
+    v = em.volume
+    pad = _padding(_grid(em), new, em.resolution)
+    if pad is None:
+        raise ValueError("snapshot delta grid is not the grid grown at its sides")
+    if not any(pad[0] + pad[1]):
+        return
+    pad3 = (*pad, (0, 0))
+    v.tsdf = np.pad(v.tsdf, pad3)
+    v.weight = np.pad(v.weight, pad3)
+    v.explored = np.pad(v.explored, pad3)
+    v.planes = {k: np.pad(a, pad) for k, a in v.planes.items()}
+    v.origin_x, v.origin_y = new[0], new[1]
 
 
 def forget(em: EpisodeMap) -> None:
@@ -153,6 +185,7 @@ def _apply(em: EpisodeMap, data: bytes) -> None:
     body = unpackb(data)
     if not isinstance(body, dict) or body.get("version") != LOG_VERSION:
         raise ValueError(f"not a mapper snapshot delta of version {LOG_VERSION}")
+    _grow(em, body.get("grid"))
     v = em.volume
     nz = v.nz
     ncols = v.shape2d[0] * v.shape2d[1]
@@ -216,5 +249,5 @@ def restore(header: bytes, read_part: Any, config: MapperConfig | None = None) -
     em.maps = project(v, (em.pose.x, em.pose.y), em.config.projection) if em.pose is not None else None
     gen = int(head["full"][1:]) if head["full"][1:].isdigit() else 0
     _logs[em] = _Log(gen=gen, full=head["full"], full_bytes=len(full), deltas=list(deltas), stamp=0,
-                     grid=_grid(em), arrays=_ids(em), planes={k: a.copy() for k, a in v.planes.items()})
+                     grid=_grid(em), planes={k: a.copy() for k, a in v.planes.items()})
     return em
