@@ -60,6 +60,21 @@ def answer_prompt(question: Question, choices: list[str]) -> str:
     return f"Question: {question.text.strip()}\nOptions:\n{opts}\n{ANSWER_INSTRUCTION}"
 
 
+MEMORY_PREAMBLE = (
+    "The {n} images are views of the same scene, taken by a robot while exploring it, most relevant first. "
+    "Use all of them."
+)
+MAX_MEMORY_VIEWS = 16  # images in one answer-memory prompt (issue 22; services/stopper/answer_memory.MAX_K)
+
+
+def memory_answer_prompt(question: Question, choices: list[str], n_views: int) -> str:
+    """The answer prompt over ``n_views`` images at once (issue 22, answer memory): a preamble saying the
+    images are views of one scene, then the usual multiple-choice question."""
+    if not 1 <= n_views <= MAX_MEMORY_VIEWS:
+        raise ValueError(f"an answer-memory prompt takes 1..{MAX_MEMORY_VIEWS} views, got {n_views}")
+    return f"{MEMORY_PREAMBLE.format(n=n_views)}\n{answer_prompt(question, choices)}"
+
+
 def step_queries(question: Question, choices: list[str], n_points: int) -> list[Query]:
     """The queries of one step, in batch order: answer, relevance, GSV, and LSV when there are points."""
     q = question.text.strip().rstrip("?.! ") + "?"

@@ -39,6 +39,17 @@ def qwen_chat(text: str, system: str = prompts.SYSTEM) -> str:
     )
 
 
+def qwen_chat_images(text: str, n_images: int, system: str = prompts.SYSTEM) -> str:
+    """Qwen2-VL chat format with ``n_images`` images ("Picture k:" before each, as Qwen2-VL's template with
+    ``add_vision_id``) before the user text, ending where the answer starts."""
+    vision = "".join(f"Picture {k + 1}: <|vision_start|>{IMAGE_PAD}<|vision_end|>" for k in range(n_images))
+    return (
+        f"<|im_start|>system\n{system}<|im_end|>\n"
+        f"<|im_start|>user\n{vision}{text}<|im_end|>\n"
+        "<|im_start|>assistant\n"
+    )
+
+
 def single_token_id(tokenizer: object, text: str) -> int:
     """The id of ``text`` as one token; a clear error when the tokenizer splits it or cannot encode it."""
     ids = tokenizer.encode(text, add_special_tokens=False)  # type: ignore[attr-defined]
@@ -124,6 +135,43 @@ class HFBackend(ModelBackend):
             "pixel_values": vis["pixel_values"].to(self.device),
             "image_grid_thw": grid.to(self.device),
         }
+
+    def answer_from_views(self, images: list[np.ndarray], question: object, choices: list[str]) -> list[float]:
+        """Issue 22, answer memory: the answer distribution over ``choices`` from one prompt holding every
+        image of ``images`` (the K most relevant views, :class:`services.stopper.answer_memory.ViewMemory`);
+        softmax of the next-token logits over the choice letters, as for one view."""
+        from PIL import Image
+
+        from eqa.messages import Question, letters
+
+        if not isinstance(question, Question):
+            raise BadRequest("answer_from_views needs a Question")
+        if not 1 <= len(images) <= prompts.MAX_MEMORY_VIEWS:
+            raise BadRequest(f"answer_from_views takes 1..{prompts.MAX_MEMORY_VIEWS} images, got {len(images)}")
+        for im in images:
+            if not isinstance(im, np.ndarray) or im.ndim != 3 or im.shape[2] != 3 or im.dtype != np.uint8:
+                raise BadRequest("every view must be an HxWx3 uint8 image")
+        cands = letters(len(choices))
+        ids = [self.token_id(c) for c in cands]
+        vis = self.image_processor(images=[Image.fromarray(i) for i in images], return_tensors="pt")
+        grid = vis["image_grid_thw"]
+        chat = qwen_chat_images(prompts.memory_answer_prompt(question, choices, len(images)), len(images))
+        parts = chat.split(IMAGE_PAD)
+        text = parts[0]
+        for k, rest in enumerate(parts[1:]):  # each placeholder expands to its own image's token count
+            text += IMAGE_PAD * (int(grid[k].prod().item()) // (self.merge**2)) + rest
+        enc = self.tokenizer([text], return_tensors="pt", add_special_tokens=False)
+        ids_t = enc["input_ids"]
+        inputs = {
+            "input_ids": ids_t.to(self.device),
+            "attention_mask": enc["attention_mask"].to(self.device),
+            "mm_token_type_ids": (ids_t == self.image_token_id).to(self.torch.int32).to(self.device),
+            "pixel_values": vis["pixel_values"].to(self.device),
+            "image_grid_thw": grid.to(self.device),
+        }
+        with self._lock, self.torch.inference_mode():
+            logits = self.net(**inputs).logits[0, -1, :].float()
+        return [float(v) for v in self.torch.softmax(logits[ids], dim=-1).cpu().numpy()]
 
     def candidate_probs(
         self, rgb: np.ndarray, annotated: np.ndarray | None, queries: list[prompts.Query]
