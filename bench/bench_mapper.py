@@ -161,6 +161,9 @@ def main(argv: list[str] | None = None) -> int:
                     help=f"git revision whose TSDF runs side by side (default {BASELINE_REV}); 'none' skips it")
     ap.add_argument("--no-open3d", action="store_true", help="skip the open3d comparison")
     ap.add_argument("--no-record", action="store_true", help="skip the Rerun logging cost")
+    ap.add_argument("--store", choices=("redis", "embedded"), default="redis",
+                    help="where snapshots are written: a private redis-server (what the fleet uses; default) or "
+                         "the embedded SQLite store")
     args = ap.parse_args(argv)
     if not (1 <= args.steps <= 1000) or not (16 <= args.width <= 4096) or not (12 <= args.height <= 4096):
         print("error: 1 <= steps <= 1000, 16 <= width <= 4096, 12 <= height <= 4096", file=sys.stderr)
@@ -194,7 +197,25 @@ def main(argv: list[str] | None = None) -> int:
     q = Question(text="Where is the sofa?", choices=["a", "b", "c", "d"], scene=args.scene)
     start = EpisodeStart(episode_id="bench", robot="r0", question=q, max_steps=args.steps)
     em = EpisodeMap(start)
-    store = EmbeddedStore(tmp / "store.sqlite")
+    redis_proc = None
+    if args.store == "redis":
+        import shutil
+
+        from eqa.launcher import free_port
+        from eqa.store import RedisStore
+
+        exe = shutil.which("redis-server")
+        if exe is None:
+            print("error: redis-server not found (apt-get install redis-server), or pass --store embedded",
+                  file=sys.stderr)
+            return 2
+        port = free_port()
+        redis_proc = subprocess.Popen([exe, "--port", str(port), "--bind", "127.0.0.1", "--save", "",
+                                       "--appendonly", "no", "--dir", str(tmp)], stdout=subprocess.DEVNULL)
+        time.sleep(0.5)
+        store = RedisStore(f"redis://127.0.0.1:{port}/0")
+    else:
+        store = EmbeddedStore(tmp / "store.sqlite")
     recorder = None
     if not args.no_record:
         from eqa.recording import EpisodeRecorder
@@ -274,7 +295,8 @@ def main(argv: list[str] | None = None) -> int:
                      em.volume.nbytes(), len(payload)))
 
     load = os.getloadavg()
-    print(f"mapper bench: scene {args.scene}, {W}x{H}, {len(frames)} steps, {os.cpu_count()} CPUs, "
+    print(f"mapper bench: scene {args.scene}, {W}x{H}, {len(frames)} steps, {args.store} store, "
+          f"{os.cpu_count()} CPUs, "
           f"load average {load[0]:.1f} {load[1]:.1f} {load[2]:.1f}")
     print("step  integrate  project  prompts  frontiers   explored m2  observed m2  volume MB  msg kB")
     for step, ms, area, obs, nb, size in rows:
@@ -311,7 +333,7 @@ def main(argv: list[str] | None = None) -> int:
                 note = f"bytes p50 {pct(nbytes[k], 50) / 1e3:.0f} kB, max {max(nbytes[k]) / 1e3:.0f} kB"
             print(line(k, v, note))
     if build_ms:
-        print(line("  of which building parts", build_ms, "(the rest: embedded SQLite store write of the bytes)"))
+        print(line("  of which building parts", build_ms, f"(the rest: the {args.store} store's write of the bytes)"))
     snap = "snapshot step" if extra["snapshot step"] else "snapshot full"
     total = [c + sum(extra[k][i] for k in extra if (extra[k] and k != "snapshot full") or k == snap)
              for i, c in enumerate(core)]
@@ -330,6 +352,9 @@ def main(argv: list[str] | None = None) -> int:
     if recorder is not None:
         recorder.close()
     store.close()
+    if redis_proc is not None:
+        redis_proc.terminate()
+        redis_proc.wait(timeout=10)
     return 1 if differ else 0
 
 

@@ -12,9 +12,10 @@ writes
 
 A delta names the grid it was taken on; when the grid grew since the previous part (whole chunks added at its
 sides), the replay pads the arrays the same way first. Every ``compact_every`` deltas, or when the deltas
-together outweigh the full snapshot twice, the step writes a new **full part** (the usual
-:meth:`EpisodeMap.snapshot` bytes) instead and the old parts are deleted after the header that no longer
-names them (:class:`eqa.episode_service.StateParts`). :func:`restore` = full part + deltas in order + header:
+together outweigh the full part ``compact_bytes`` times, the step writes a new **full part** instead (the
+episode start, the grid, every observed voxel column and every plane, uncompressed: zlib would cost more
+than it saves on float noise) and the old parts are deleted after the header that no longer names them
+(:class:`eqa.episode_service.StateParts`). :func:`restore` = full part + deltas in order + header:
 the same arrays, planes, frontiers and prompt points as the live map (tests/test_snapshot_log.py).
 """
 
@@ -27,12 +28,13 @@ from typing import Any
 import numpy as np
 
 from eqa.codec import packb, packed_array, unpackb
-from eqa.messages import Frontier, Pose2D, PromptPoint
+from eqa.messages import EpisodeStart, Frontier, Pose2D, PromptPoint
 from services.mapper.episode_map import EpisodeMap, MapperConfig
 from services.mapper.projection import project
 
 LOG_VERSION = 1
-COMPACT_EVERY = 20  # deltas between two full parts
+COMPACT_EVERY = 30  # deltas between two full parts (a restore replays at most this many)
+COMPACT_BYTES = 16  # ... or fewer, once the deltas weigh this many times the full part
 MAX_DELTAS = 1000  # a header naming more is refused on restore
 
 
@@ -88,7 +90,43 @@ def _columns(em: EpisodeMap, idx: np.ndarray) -> dict[str, Any]:
     }
 
 
-def snapshot_step(em: EpisodeMap, compact_every: int = COMPACT_EVERY) -> tuple[bytes, dict[str, bytes], list[str]]:
+def _full_part(em: EpisodeMap) -> bytes:
+    """Everything: the episode start and layers, the grid, every observed column, every plane whole."""
+    v = em.volume
+    observed = np.flatnonzero((v.weight > 0).any(axis=2).reshape(-1))
+    return packb({
+        "version": LOG_VERSION,
+        "kind": "full",
+        "start": em.start.model_dump(mode="json"),
+        "layers": em.layers,
+        "grid": list(_grid(em)),
+        "planes": {k: {"all": packed_array(a, compress=False)} for k, a in v.planes.items()},
+        **_columns(em, observed),
+    })
+
+
+def _from_full(data: bytes, config: MapperConfig | None) -> EpisodeMap:
+    body = unpackb(data)
+    if not isinstance(body, dict) or body.get("version") != LOG_VERSION or body.get("kind") != "full":
+        raise ValueError(f"not a full mapper snapshot part of version {LOG_VERSION}")
+    em = EpisodeMap(EpisodeStart.model_validate(body["start"]), config, layers=[str(x) for x in body["layers"]])
+    v = em.volume
+    grid = body["grid"]
+    if not (isinstance(grid, list) and len(grid) == 4) or not (0 <= int(grid[2]) <= 100_000
+                                                               and 0 <= int(grid[3]) <= 100_000):
+        raise ValueError("full snapshot part: bad grid")
+    ny, nx = int(grid[2]), int(grid[3])
+    v.origin_x, v.origin_y = float(grid[0]), float(grid[1])
+    v.tsdf = np.zeros((ny, nx, v.nz), dtype=np.float32)
+    v.weight = np.zeros((ny, nx, v.nz), dtype=np.float32)
+    v.explored = np.zeros((ny, nx, v.nz), dtype=bool)
+    v.planes = {}
+    _apply(em, data)
+    return em
+
+
+def snapshot_step(em: EpisodeMap, compact_every: int = COMPACT_EVERY,
+                  compact_bytes: float = COMPACT_BYTES) -> tuple[bytes, dict[str, bytes], list[str]]:
     """The step's save: ``(header, parts to write, parts to delete)`` (see the module docstring)."""
     log = _logs.get(em)
     v = em.volume
@@ -98,13 +136,13 @@ def snapshot_step(em: EpisodeMap, compact_every: int = COMPACT_EVERY) -> tuple[b
         or len(log.deltas) >= compact_every
         or _padding(log.grid, _grid(em), em.resolution) is None
         or v.col_stamp.shape != v.shape2d
-        or log.delta_bytes > 2 * log.full_bytes
+        or log.delta_bytes > compact_bytes * log.full_bytes
         or any(name not in v.planes for name in log.planes)
     )
     if full:
         old = [] if log is None else [n for n in (log.full, *log.deltas) if n]
         gen = 0 if log is None else log.gen + 1
-        data = em.snapshot()
+        data = _full_part(em)
         log = _Log(gen=gen, full=f"f{gen}", full_bytes=len(data), stamp=v.stamp, grid=_grid(em),
                    planes={k: a.copy() for k, a in v.planes.items()})
         _logs[em] = log
@@ -232,7 +270,7 @@ def restore(header: bytes, read_part: Any, config: MapperConfig | None = None) -
     if not isinstance(deltas, list) or len(deltas) > MAX_DELTAS or not all(isinstance(d, str) for d in deltas):
         raise ValueError("bad list of snapshot deltas")
     full = read_part(head["full"])
-    em = EpisodeMap.restore(full, config)
+    em = _from_full(full, config)
     for name in deltas:
         _apply(em, read_part(name))
     v = em.volume
