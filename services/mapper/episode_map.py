@@ -78,8 +78,6 @@ class EpisodeMap:
         self.layers = list(layers or [QUESTION_LAYER])
         for name in self.layers:
             self.volume.add_plane(f"value/{name}", 0.0, np.float32)
-            for plane in view_plane_names(name, self.config.view_bins):
-                self.volume.add_plane(plane, 0.0, np.float32)
         self.step = -1  # last integrated step
         self.pose: Pose2D | None = None
         self.maps: Maps2D | None = None
@@ -160,7 +158,8 @@ class EpisodeMap:
             cam = (self.pose.x, self.pose.y) if self.pose is not None else (0.0, 0.0)
             lsv, gsv = ground_truth_scores([(p.x, p.y) for p in pts], list(self.start.question.targets), cam)
         sv = [semantic_value(lv, gsv, temps[0], temps[1]) for lv in lsv]
-        if self.config.view_bins > 0:  # issue 22 item 3: per viewing-direction bin, combined into the layer
+        if self.config.view_bins > 0:  # issue 22 item 3: per viewing-direction bin (planes made at the first
+            # write of a layer: the HELIOS task layers, written by object_shell, have none), combined into the layer
             *bins, neutral = (self.volume.add_plane(n) for n in view_plane_names(layer, self.config.view_bins))
             cam = (self.pose.x, self.pose.y) if self.pose is not None else (0.0, 0.0)
             write_values_binned(bins, neutral, self.origin, self.resolution, [(p.x, p.y) for p in pts], sv,
