@@ -39,12 +39,24 @@ if TYPE_CHECKING:
     from services.mapper.object_map import ObjectMap, ObjectMapConfig
 
 
+TORCH_THREADS = 1  # torch intra-op threads of the mapper's object layer (see _object_map_module)
+
+
 def _object_map_module() -> Any:
     """The object layer (torch) is imported on the first task episode, not when the mapper starts: question
     episodes never need it, and importing torch made every mapper (re)start several seconds slower -- longer than
-    the sim's step resends wait for a restarted mapper."""
+    the sim's step resends wait for a restarted mapper.
+
+    Torch then runs on :data:`TORCH_THREADS` thread: the mapper shares the cores with the other services, and
+    torch's default (one thread per core, spinning while waiting) made the object layer 7-10x slower on the
+    loaded 2-core machine (6 updates + 36 optimistic views: 1.3-1.4 s CPU with 1 thread, 10-12 s with 2; issue
+    17), the same numbers either way."""
+    import torch
+
     from services.mapper import object_map
 
+    if torch.get_num_threads() != TORCH_THREADS:
+        torch.set_num_threads(TORCH_THREADS)
     return object_map
 
 log = logging.getLogger(__name__)
