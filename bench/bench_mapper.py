@@ -118,8 +118,7 @@ def load_baseline(rev: str) -> tuple[types.ModuleType, types.ModuleType]:
             src = subprocess.run(["git", "-C", str(ROOT), "show", f"{rev}:services/mapper/{name}.py"],
                                  check=True, capture_output=True, text=True).stdout
         except (OSError, subprocess.CalledProcessError) as exc:
-            raise SystemExit(f"error: cannot read services/mapper/{name}.py at {rev} ({exc}); pass --baseline "
-                             "none to skip the comparison, or a revision of this repository") from exc
+            raise LookupError(f"cannot read services/mapper/{name}.py at git {rev} ({exc})") from exc
         mod = types.ModuleType(f"_baseline_{name}")
         mod.__file__ = f"{rev}:services/mapper/{name}.py"
         sys.modules[mod.__name__] = mod  # dataclasses look their module up
@@ -180,7 +179,11 @@ def main(argv: list[str] | None = None) -> int:
 
     base_tsdf = base_proj = None
     if args.baseline != "none":
-        base_tsdf, base_proj = load_baseline(args.baseline)
+        try:
+            base_tsdf, base_proj = load_baseline(args.baseline)
+        except LookupError as exc:  # no git history here (e.g. a container): the rest still runs
+            print(f"note: {exc}; the baseline comparison is skipped (pass --baseline REV of this repository, "
+                  "or --baseline none)", file=sys.stderr)
     tmp = Path(tempfile.mkdtemp(prefix="bench-mapper-"))
     scene = load_or_generate(args.scene, tmp / "scenes")
     renderer = Renderer(scene)
