@@ -22,8 +22,10 @@ ground truth) run only here, when named in ``--strategies``.
 Traces are exported to ``<--out>/traces/<set>.jsonl`` (one set per strategy, scorer, size and seed) and
 imported from there on the next run, so ``--out bench/results`` replays the published runs in seconds.
 
-    eqa bench explore --seeds 1 2 3 --limit 20 --out /tmp/quick   quick mode: 240 episodes
-    eqa bench explore --seeds 1 2 3 --split test --out bench/results   the README's figures (stored traces)
+    eqa bench explore --seeds 1 2 3 --limit 20 --out /tmp/quick   quick mode: 240 episodes (about 9 min through
+                                    the fleet on an idle 2-core machine; add --runner cores under load)
+    eqa bench explore --runner cores --seeds 1 2 3 --split test --strategies fbe semantic
+        --out bench/results/explore-seeds      the README's evaluation figures (stored traces, replayed in seconds)
     eqa bench stop --out bench/results                 the README's stopping figures
 """
 
