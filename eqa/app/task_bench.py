@@ -154,10 +154,13 @@ def run_tasks(settings: Settings, jobs: list[tuple[Task, str, int]], robots: int
                 robot, task, variant, steps, t0, _ = running[msg.episode_id]
                 running[msg.episode_id] = (robot, task, variant, steps, t0, now)
                 end: EpisodeEnd | None = msg if isinstance(msg, EpisodeEnd) else None
-                if end is None and isinstance(msg, ErrorReply) and msg.step in (None, 0):
+                # a start the sim refuses ends the run; a refused goal (also of step 0) is planned again
+                fatal = (isinstance(msg, ErrorReply) and msg.step in (None, 0)
+                         and not msg.reason.startswith("goal refused"))
+                if end is None and fatal:
                     bus.publish(keys.stream(robot, keys.EPISODE_CANCEL),
                                 EpisodeCancel(episode_id=msg.episode_id, reason=msg.reason))
-                if end is not None or (isinstance(msg, ErrorReply) and msg.step in (None, 0)):
+                if end is not None or fatal:
                     del running[msg.episode_id]
                     free.append(robot)
                     state = end.state if end is not None else "failed"
