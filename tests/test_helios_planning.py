@@ -238,3 +238,23 @@ def test_skill_pose_is_within_reach_of_the_object_facing_it() -> None:
     assert a.kind == "pick" and a.ref == 7
     assert a.pose == pytest.approx((4.0 - SKILL_APPROACH_M, 0.0, 0.0))
     assert SKILL_APPROACH_M < 0.9  # the oracle pick's reach (services/sim/skills.py REACH_M)
+
+
+def test_find_object_looks_from_a_gaze_point_before_stopping() -> None:
+    """Section 4.2: a confident candidate is seen again from a gaze point, then the stop is decided again."""
+    from services.planner.task_fsm import Gaze, SeenObject, TaskMachine
+
+    gaze = (Gaze(2.0, 1.0, math.pi, psi_prime=0.7), Gaze(0.0, 1.0, 0.0, psi_prime=0.6))
+    box = SeenObject(3, "box", {"box": (0.77, 0.19, 0.58)}, 1.0, 1.0, gaze=gaze)  # one view: Psi 0.58 >= 0.5
+    m = TaskMachine("find_object", "box", ablation="helios")
+    a = m.step((5.0, 5.0, 0.0), [], [box])
+    assert (a.kind, a.pose) == ("move", (2.0, 1.0, math.pi))  # the best gaze point first, no stop yet
+    # at the gaze point: the false positive was not seen again, Psi fell below tau -> no stop
+    m2 = TaskMachine.from_json(m.to_json())  # (the state survives a planner restart)
+    fp = SeenObject(3, "box", {"box": (0.55, 0.2, 0.35)}, 1.0, 1.0, gaze=gaze)
+    assert m2.step((2.0, 1.0, math.pi), [], [fp]).kind != "stop"
+    # a real box: still confident after the look -> stop
+    m3 = TaskMachine.from_json(m.to_json())
+    assert m3.step((2.0, 1.0, math.pi), [], [box]).kind == "stop"
+    t = TaskMachine("find_object", "box", ablation="trusting")
+    assert t.step((5.0, 5.0, 0.0), [], [box]).kind == "stop"  # the trusting agent stops at once

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import json
+import math
+
+import pytest
 
 from services.planner.helios import FrontierOption
 from services.planner.task_fsm import Gaze, SeenObject, SkillOutcome, TaskMachine
@@ -77,7 +80,9 @@ def test_after_the_pick_the_goal_receptacle_and_place() -> None:
     a = m.step(ROBOT, FRONTIER, [_counter(0.2)], SkillOutcome("pick", True, 20))
     assert m.holding and (a.kind, a.phase) == ("frontier", "searching")  # counter not confident, no look
     a = m.step(ROBOT, FRONTIER, [_counter(0.7)])
-    assert (a.kind, a.phase, a.ref, a.pose) == ("place", "placing", 30, (-2.0, 0.0, 3.14))
+    # the skill pose: SKILL_APPROACH_M (0.6 m) from the counter's centre towards its gaze point, facing it
+    assert (a.kind, a.phase, a.ref) == ("place", "placing", 30)
+    assert a.pose == pytest.approx((-2.4, 0.0, math.pi))
     done = m.step(ROBOT, FRONTIER, [], SkillOutcome("place", True, 30, "on the counter"))
     assert (done.kind, done.success) == ("done", True)
 
@@ -96,6 +101,8 @@ def test_find_object_stops_when_confident() -> None:
     m = TaskMachine("find_object", "mug")
     assert m.step(ROBOT, FRONTIER, [_mug(0.3, psi_prime=0.6)]).phase == "looking"
     a = m.step(ROBOT, FRONTIER, [_mug(0.6)])
+    assert (a.kind, a.phase, a.pose) == ("move", "looking", (1.5, 1.2, 0.0))  # a view from a gaze point first
+    a = m.step((1.5, 1.2, 0.0), FRONTIER, [_mug(0.6)])
     assert a.kind == "stop" and a.ref == 20
     assert m.step(ROBOT, FRONTIER, [], SkillOutcome("stop", True, 20, "near a mug")).success
 
