@@ -14,8 +14,8 @@
 * the free island: the 4-connected component of free cells that holds the robot.
 
 The per-column reductions over the voxels are kept between calls (:class:`_ColumnCache` in
-``volume.caches``) and recomputed only for the columns an integration changed since (``volume.col_stamp``):
-the same values as reducing the whole grid, at a cost that follows what a frame sees.
+``volume.caches``, grown with the grid) and recomputed only for the columns an integration changed since
+(``volume.col_stamp``): the same values as reducing the whole grid, at a cost that follows what a frame sees.
 """
 
 from __future__ import annotations
@@ -64,6 +64,15 @@ class _ColumnCache:
     occupied: np.ndarray
     explored: np.ndarray
     observed: np.ndarray
+
+    def grow(self, pad: tuple[tuple[int, int], tuple[int, int]], volume: TSDFVolume) -> None:
+        """The grid grew by ``pad`` cells (TSDFVolume.ensure): the new columns were never observed, so each
+        of their reductions is False."""
+        self.free = np.pad(self.free, pad)
+        self.occupied = np.pad(self.occupied, pad)
+        self.explored = np.pad(self.explored, pad)
+        self.observed = np.pad(self.observed, pad)
+        self.arrays = (id(volume.tsdf), id(volume.weight), id(volume.explored))
 
 
 def _columns(volume: TSDFVolume, sl: slice, occupied_band: float, rows: np.ndarray | slice,

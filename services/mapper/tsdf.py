@@ -226,11 +226,17 @@ class TSDFVolume:
         self.weight = np.pad(self.weight, pad3)
         self.explored = np.pad(self.explored, pad3)
         self.col_stamp = np.pad(self.col_stamp, pad3[:2])
-        self.caches.clear()
+        # readers' caches that can grow with the grid (a ``grow(pad, volume)`` method) do; others are dropped
+        for key, cache in list(self.caches.items()):
+            grow = getattr(cache, "grow", None)
+            if grow is None:
+                del self.caches[key]
         for name, arr in self.planes.items():
             self.planes[name] = np.pad(arr, pad3[:2])
         self.origin_x -= left * res
         self.origin_y -= top * res
+        for cache in self.caches.values():
+            cache.grow(pad3[:2], self)  # type: ignore[attr-defined]
 
     # ---- fusion ----------------------------------------------------------------------------------------
     def integrate(self, depth: np.ndarray, intrinsics: np.ndarray, cam_pose: np.ndarray) -> int:
