@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 from test_sim_tasks import _room_scene
 
 from eqa.messages import GridSpec, Pose2D
@@ -59,3 +60,18 @@ def test_gaze_points_carry_the_fixed_camera_tilt() -> None:
     assert all(g.pitch == round(tilt, 6) for g in gf)
     assert any(abs(g.pitch - tilt) > 0.05 for g in gp)  # the paper's pitch towards the top differs
     assert any(abs(a.psi_prime - b.psi_prime) > 1e-6 for a, b in zip(gf, gp, strict=True))  # scored for that view
+
+
+def test_place_ignores_the_held_object_where_it_was_picked() -> None:
+    from services.sim.skills import place
+
+    room = _room_scene()
+    # in front of the robot: the table with the mug (4) on it; the mug's top (0.86 m) is the highest point
+    front = Pose2D(x=2.0, y=2.5, yaw=0.0)
+    r = place(room, front, (0.2, 0.2, 0.1), goal_ids=[2])
+    # as if the mug were still there: dropped above its top, balanced on it, tipped over
+    assert r.drop_xyz is not None and r.drop_xyz[2] == pytest.approx(0.86 + 0.05, abs=0.01) and "tipped" in r.reason
+    held = place(room, front, (0.2, 0.2, 0.1), goal_ids=[2], held_id=4)
+    # the mug is in the gripper: dropped above the table top, resting flat on it
+    assert held.drop_xyz is not None and held.drop_xyz[2] == pytest.approx(0.75 + 0.05, abs=0.01)
+    assert held.success and held.support_id == 2 and held.reason.startswith("placed on")

@@ -41,22 +41,30 @@ STABILITY_MARGIN = 0.25  # share of the half footprint the contacts must extend 
 COLLISION_RADIUS_M = 0.15  # a path closer than this to an obstacle collides (robot body, margin for the arm)
 
 
-def _ray_scene(scene: Scene) -> Any:
+def _ray_scene(scene: Scene, exclude: frozenset[int] = frozenset()) -> tuple[Any, np.ndarray | None]:
+    """The scene's ray-casting structure without the instances ``exclude`` (the held object) and the map from
+    its triangle ids to the scene's (None: every triangle)."""
     import open3d as o3d
 
-    key = ("raycast",)
-    rc = scene.cache.get(key)
-    if rc is None:
+    key = ("raycast", exclude) if exclude else ("raycast",)
+    got = scene.cache.get(key)
+    if got is None:
+        keep = None
+        tris = scene.triangles
+        if exclude:
+            keep = np.flatnonzero(~np.isin(scene.triangle_instance, np.array(sorted(exclude), np.int64)))
+            tris = scene.triangles[keep]
         rc = o3d.t.geometry.RaycastingScene()
         rc.add_triangles(o3d.core.Tensor(np.ascontiguousarray(scene.vertices, np.float32)),
-                         o3d.core.Tensor(np.ascontiguousarray(scene.triangles, np.uint32)))
-        scene.cache[key] = rc
-    return rc
+                         o3d.core.Tensor(np.ascontiguousarray(tris, np.uint32)))
+        got = scene.cache[key] = (rc, keep)
+    return got
 
 
-def cast_down(scene: Scene, xy: np.ndarray, top_z: float = PROBE_TOP_Z) -> tuple[np.ndarray, np.ndarray]:
+def cast_down(scene: Scene, xy: np.ndarray, top_z: float = PROBE_TOP_Z,
+              exclude: frozenset[int] = frozenset()) -> tuple[np.ndarray, np.ndarray]:
     """Heights (``-inf`` where nothing is hit) and instance ids (-1) of the first surface below ``top_z`` at
-    each ``xy`` point (``(N, 2)``)."""
+    each ``xy`` point (``(N, 2)``); the instances ``exclude`` (the object in the gripper) are not there."""
     import open3d as o3d
 
     xy = np.asarray(xy, np.float64).reshape(-1, 2)
@@ -64,11 +72,14 @@ def cast_down(scene: Scene, xy: np.ndarray, top_z: float = PROBE_TOP_Z) -> tuple
     rays[:, :2] = xy
     rays[:, 2] = top_z
     rays[:, 5] = -1.0
-    out = _ray_scene(scene).cast_rays(o3d.core.Tensor(rays))
+    rc, keep = _ray_scene(scene, exclude)
+    out = rc.cast_rays(o3d.core.Tensor(rays))
     t = out["t_hit"].numpy()
     ok = np.isfinite(t)
     z = np.where(ok, top_z - t, -np.inf)
-    prim = out["primitive_ids"].numpy()
+    prim = out["primitive_ids"].numpy().astype(np.int64)
+    if keep is not None:
+        prim[ok] = keep[prim[ok]]
     inst = np.full(len(xy), -1, np.int64)
     inst[ok] = scene.triangle_instance[prim[ok]]
     return z, inst
@@ -179,10 +190,13 @@ def _region_points(pose: Pose2D) -> np.ndarray:
     return np.stack([x.ravel(), y.ravel()], axis=1)
 
 
-def place(scene: Scene, pose: Pose2D, object_size: tuple[float, float, float], goal_ids: list[int]) -> PlaceResult:
-    """The heuristic place with its drop test (module doc)."""
+def place(scene: Scene, pose: Pose2D, object_size: tuple[float, float, float], goal_ids: list[int],
+          held_id: int | None = None) -> PlaceResult:
+    """The heuristic place with its drop test (module doc). ``held_id``: the object in the gripper, which is no
+    longer where it was picked (it must not be landed on)."""
+    ex = frozenset() if held_id is None else frozenset({int(held_id)})
     pts = _region_points(pose)
-    z, inst = cast_down(scene, pts)
+    z, inst = cast_down(scene, pts, exclude=ex)
     structure = np.array([inst[k] >= 0 and scene.instances.get(int(inst[k])) is not None
                           and scene.instances[int(inst[k])].is_structure and scene.instances[int(inst[k])].category
                           != "floor" for k in range(len(inst))], bool)
@@ -202,7 +216,7 @@ def place(scene: Scene, pose: Pose2D, object_size: tuple[float, float, float], g
     v = np.linspace(-d / 2, d / 2, 5)
     U, V = np.meshgrid(u, v)
     foot = np.stack([drop[0] + U.ravel(), drop[1] + V.ravel()], axis=1)
-    fz, finst = cast_down(scene, foot, top_z=drop[2])
+    fz, finst = cast_down(scene, foot, top_z=drop[2], exclude=ex)
     if not np.isfinite(fz).any():
         return PlaceResult(False, "the object fell through (no surface below it)", drop)
     rest = float(np.max(fz[np.isfinite(fz)]))
@@ -224,7 +238,7 @@ def place(scene: Scene, pose: Pose2D, object_size: tuple[float, float, float], g
             away = np.array([math.cos(pose.yaw), math.sin(pose.yaw)])
         away /= np.linalg.norm(away)
         land = np.array(drop[:2]) + away * (max(w, d) / 2 + 0.02)
-        cz, cinst = cast_down(scene, land[None, :], top_z=rest - 1e-3)
+        cz, cinst = cast_down(scene, land[None, :], top_z=rest - 1e-3, exclude=ex)
         support = int(cinst[0])
         rest_xyz = (float(land[0]), float(land[1]), (float(cz[0]) if np.isfinite(cz[0]) else 0.0) + h / 2)
     name = scene.instances[support].category if support in scene.instances else "nothing"
