@@ -204,12 +204,17 @@ def _collect_cores(questions: list[Any], settings: Any, strategy: str, name: str
         if not missing:
             return
         dump = settings.model_dump(mode="json")
-        with ProcessPoolExecutor(workers) as pool:
+        pool = ProcessPoolExecutor(workers)
+        try:
             futures = [pool.submit(core_episode, (q, strategy, dump)) for q in missing]
             for fut in as_completed(futures):
                 trace = fut.result()
                 traces.save(name, trace)
                 yield trace
+        finally:
+            # on Ctrl-C / SIGTERM (KeyboardInterrupt, eqa.app.cli) drop the queued episodes: a plain `with` waited
+            # for every one of them before the command could exit; the stored traces are resumed next time
+            pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _settings(args: argparse.Namespace) -> Any:
