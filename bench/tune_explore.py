@@ -208,7 +208,7 @@ def ceiling_reason(ep: Episode, budget: float = 1.0) -> str:
     """Why an episode did or did not see the evidence within ``budget`` x T (the evidence-ceiling diagnosis):
     ``seen``; ``room`` (no evidence object: the evidence is a room); ``small`` (an asked object was in the image
     but under the perception model's pixel threshold or too far); ``near, faced`` (within NEAR_M, inside the
-    horizontal field of view, yet no pixel of it: occluded, or below the camera's 30 deg down-tilted view);
+    horizontal field of view, yet no pixel of it: occluded, or outside the 30 deg down-tilted camera's vertical view);
     ``near, not faced`` (within NEAR_M, never inside the field of view); ``never near`` (never within NEAR_M)."""
     n = min(len(ep.quality), math.floor(budget * ep.max_steps + 1e-9))
     if any(q > 0 for q in ep.quality[:n]):
