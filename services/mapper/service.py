@@ -7,9 +7,10 @@ A task episode (``EpisodeStart.task``) also keeps the HELIOS object layer and pe
 fed by detections and value prompts from the scorer pool (:mod:`services.mapper.object_shell`).
 
 Per-episode state (:class:`eqa.episode_service.EpisodeService`, ``eqa:mapper:episode:{episode_id}``): the
-episode's map snapshot (:meth:`services.mapper.episode_map.EpisodeMap.snapshot`), written before the step's
-outputs are published; a restarted mapper picks the episode up from there when the next frame arrives. A frame
-that overtakes its ``EpisodeStart`` waits for it (one per episode, bounded in bytes, for ``EARLY_FRAME_TTL_S``).
+episode's map as an incremental snapshot (:mod:`services.mapper.snapshots`: a header there, a full part and the
+deltas since under ``eqa:mapper:part:{episode_id}:*``), written before the step's outputs are published; a
+restarted mapper picks the episode up from there when the next frame arrives. A frame that overtakes its
+``EpisodeStart`` waits for it (one per episode, bounded in bytes, for ``EARLY_FRAME_TTL_S``).
 
 Errors go to ``MAPPER_ERROR`` as :class:`ErrorReply` with the reason: a bad frame (the map is unchanged), an
 unknown episode, a scorer failure (the map update is still published, the stopper gets no scores for that
