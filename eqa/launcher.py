@@ -153,6 +153,7 @@ class Fleet:
                 "EQA_ZENOH_ACL": "false",
                 "EQA_ZENOH_CONNECT": self.endpoint,
                 "EQA_DATA_DIR": str(Path(self.settings.data_dir).resolve()),
+                "EQA_PARENT_PID": str(os.getpid()),  # the child exits if this launcher dies (no orphans)
                 "PYTHONUNBUFFERED": "1",
                 "RERUN_TELEMETRY_ENABLED": "false",
             }

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import queue
 import signal
 import sys
@@ -163,6 +164,9 @@ class Service:
             while not stop.wait(0.5):
                 if self._worker is not None and not self._worker.is_alive():
                     raise RuntimeError(f"{self.name} worker died")
+                if self.settings.parent_pid and os.getppid() != self.settings.parent_pid:
+                    log.warning("%s: launcher (pid %d) is gone; stopping", self.name, self.settings.parent_pid)
+                    break
         finally:
             self.stop()
 

@@ -143,6 +143,11 @@ class Settings(BaseSettings):
         "above the slowest step (a slow VLM), 0 = never",
     )
     step_resends_max: int = Field(default=3, ge=0, description="resends of one step before the sim gives up")
+    parent_pid: int = Field(
+        default=0, ge=0,
+        description="a service exits when this process is no longer its parent (the launcher sets it to its own pid, "
+        "so a killed launcher leaves no orphaned services); 0 = never (containers, systemd, a shell)",
+    )
 
     # --- HELIOS (paper Table 3 defaults; object layer = issue 16, tasks/planning = issue 17) ---
     helios_alpha_cs: float = Field(default=1.0, ge=0.0, description="alpha_cs: uncertainty weight, Eq. 7/11")

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import os
+import signal
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from pathlib import Path
@@ -135,10 +137,19 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
             except Exception:
                 log.exception("watchdog pass failed; going on")
 
+    async def exit_with_launcher() -> None:
+        """Started by a launcher (``EQA_PARENT_PID``): shut down like on SIGTERM once it is gone (no orphans)."""
+        while os.getppid() == settings.parent_pid:
+            await asyncio.sleep(0.5)
+        log.warning("gateway: launcher (pid %d) is gone; stopping", settings.parent_pid)
+        os.kill(os.getpid(), signal.SIGTERM)
+
     tasks = [
         asyncio.create_task(consume(), name="gateway-consume"),
         asyncio.create_task(watchdog(), name="gateway-watchdog"),
     ]
+    if settings.parent_pid:
+        tasks.append(asyncio.create_task(exit_with_launcher(), name="gateway-exit-with-launcher"))
     log.info(
         "gateway %s up: robots %s, store %s",
         settings.instance,
