@@ -108,8 +108,9 @@ class Settings(BaseSettings):
     # issue 22 item 2: question episodes track the target class in the HELIOS object layer and the stopper
     # combines its evidence with the VLM's answer (services/stopper/object_evidence.py); off by default.
     object_evidence: bool = Field(default=False, description="object evidence for existence/counting questions")
-    object_evidence_psi_min: float = Field(default=0.3, ge=0.0, le=1.0, description="Psi from which an instance counts")
-    object_evidence_weight: float = Field(default=0.5, ge=0.0, le=1.0, description="the layer's weight in the pool")
+    # chosen on the tuning seed 11 (bench/bench_object_evidence.py eval; bench/results/answer_rules_objects.json)
+    object_evidence_psi_min: float = Field(default=0.1, ge=0.0, le=1.0, description="Psi from which an instance counts")
+    object_evidence_weight: float = Field(default=0.75, ge=0.0, le=1.0, description="the layer's weight in the pool")
 
     # --- gateway ---
     gateway_host: str = "127.0.0.1"
