@@ -7,7 +7,7 @@ which the replay models exactly as :func:`services.stopper.state.decide` does (a
 
 Data (all ``semantic`` exploration, 320x240, full-length ``max_steps`` runs):
 
-* evaluation seeds 1-3: test splits = ``bench/results/explore-seeds/traces`` (140 per seed, issue 14);
+* evaluation seeds 1-3: test splits = ``bench/results/explore-seeds/traces`` (200 per seed, issue 14);
   calibration splits recorded with ``eqa.app.stop_sensitivity`` (``--recordings DIR``, the first ``--n-cal``
   of the round-robin category order);
 * tuning seed 11: calibration + test recordings; K and the fusion are chosen there only, by the answer
