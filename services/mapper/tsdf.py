@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from eqa import grid
+from services.mapper import tsdf_kernel
 
 MAX_WEIGHT = np.float32(65535.0)  # observation count cap (snapshots store weights as uint16)
 
@@ -146,6 +147,9 @@ def _inside_hull(x: np.ndarray, y: np.ndarray, hull: np.ndarray, margin: float) 
 
 class TSDFVolume:
     """Dense, horizontally growing TSDF + weight + explored volume, plus named 2D planes on the same grid."""
+
+    # the per-voxel fusion loop: compiled; tests swap in tsdf_kernel.integrate_reference (the numpy spec)
+    kernel = staticmethod(tsdf_kernel.integrate_columns)
 
     def __init__(self, config: VolumeConfig | None = None) -> None:
         self.config = config or VolumeConfig()
@@ -292,52 +296,35 @@ class TSDFVolume:
         # camera coordinates: p_c = R^T (p_w - t) = a(col) + z * b
         Rt = R.T
         a = (np.stack([xs - t[0], ys - t[1], np.full_like(xs, -t[2])], axis=1) @ Rt.T).astype(np.float32)
-        b = Rt[:, 2].astype(np.float32)
+        b = np.ascontiguousarray(Rt[:, 2], dtype=np.float32)
         zc = self.z_centers.astype(np.float32)
-        # p_c = a + z * b per (column, layer), one contiguous (ncols, nz) array per axis
-        X = a[:, 0, None] + zc[None, :] * b[0]
-        Y = a[:, 1, None] + zc[None, :] * b[1]
-        Z = a[:, 2, None] + zc[None, :] * b[2]
-        front = c.min_depth < Z
-        Zs = np.where(front, Z, np.float32(1.0))
-        uf = X / Zs * np.float32(fx) + np.float32(cx)
-        vf = Y / Zs * np.float32(fy) + np.float32(cy)
-        u = np.rint(uf).astype(np.int32)
-        v = np.rint(vf).astype(np.int32)
-        inview = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        pix = np.where(inview, v * w + u, 0)  # flat pixel index (0 when out of view; masked below)
-        d = dimg.reshape(-1)[pix]
-        sdf = d - Z
-        upd = inview & (d > 0) & (sdf >= -c.trunc)
-        sel = np.flatnonzero(upd)  # flat (column, layer) index, row-major like np.nonzero
-        if sel.size == 0:
-            return 0
-        ci, ki = np.divmod(sel, self.nz)
-        obs = np.minimum(np.float32(1.0), sdf.reshape(-1)[sel] / np.float32(c.trunc))
-
-        flat = (rows[ci] * nx + cols[ci]) * self.nz + ki
-        tsdf_f = self.tsdf.reshape(-1)
-        w_f = self.weight.reshape(-1)
-        w_old = w_f[flat]
-        w_new = np.minimum(w_old + 1.0, MAX_WEIGHT)
-        tsdf_f[flat] = (tsdf_f[flat] * w_old + obs) / w_new
-        w_f[flat] = w_new
-        self._sync_stamps()
-        self.stamp += 1
-        first = np.ones(ci.size, dtype=bool)  # ci is sorted: the first candidate of each changed column
-        first[1:] = ci[1:] != ci[:-1]
-        self.col_stamp[rows[ci[first]], cols[ci[first]]] = self.stamp
-
         # explored: the narrow view of appendix B, as angles from the optical axis
         half_h = math.atan((w / 2) / fx) * c.explored_hfov_frac
         vfov_lo = -math.atan((cy + 0.5) / fy)  # top edge (negative = up in OpenCV y-down)
         vfov_hi = math.atan((h - cy - 0.5) / fy)
         v_lim = vfov_hi - (vfov_hi - vfov_lo) * c.explored_vfov_frac
-        u_rel = (uf.reshape(-1)[sel] - cx) / fx
-        v_rel = (vf.reshape(-1)[sel] - cy) / fy
-        narrow = (np.abs(u_rel) <= math.tan(half_h)) & (v_rel >= math.tan(v_lim))
-        self.explored.reshape(-1)[flat[narrow]] = True
-        return int(ci.size)
+        self._sync_stamps()
+        self._contiguous()
+        n = self.kernel(
+            np.ascontiguousarray(a), b, zc,
+            np.ascontiguousarray(rows, dtype=np.int64), np.ascontiguousarray(cols, dtype=np.int64),
+            np.ascontiguousarray(dimg),
+            np.float32(fx), np.float32(fy), np.float32(cx), np.float32(cy),
+            float(cx), float(cy), float(fx), float(fy),
+            np.float32(c.min_depth), np.float32(c.trunc), MAX_WEIGHT,
+            math.tan(half_h), math.tan(v_lim),
+            self.tsdf, self.weight, self.explored, self.col_stamp, self.stamp + 1,
+        )
+        if n:
+            self.stamp += 1
+        return int(n)
+
+    def _contiguous(self) -> None:
+        """The kernel's array layout (C order, float32 / bool / int64); restored arrays may differ."""
+        self.tsdf = np.ascontiguousarray(self.tsdf, dtype=np.float32)
+        self.weight = np.ascontiguousarray(self.weight, dtype=np.float32)
+        self.explored = np.ascontiguousarray(self.explored, dtype=bool)
+        self.col_stamp = np.ascontiguousarray(self.col_stamp, dtype=np.int64)
 
     def _pixel_dirs_axis(self, K: np.ndarray, R: np.ndarray, w: int, h: int, axis: int) -> np.ndarray:
         """Row ``axis`` of :meth:`_pixel_dirs` (the same float32 values), computed alone: ``(h, w)``."""
