@@ -18,7 +18,7 @@ Printed and stored (``bench/results/answer_rules.json``): for the chosen rule an
 difference; (b) CP at several eps, each rule calibrated per seed on its own calibration split *with its own
 rule*: coverage of the sequence-level set next to 1 - eps, success, normalised steps, paired tests.
 
-    PYTHONPATH=. .venv/bin/python bench/bench_answer_rules.py --recordings /tmp/h22m-rec
+    PYTHONPATH=. .venv/bin/python bench/bench_answer_rules.py --recordings var/answer-rules --record
 """
 
 from __future__ import annotations
@@ -162,13 +162,37 @@ def cp_eval(cal: list[Ep], test: list[Ep], rule: AnswerRule, eps: float) -> tupl
     return q_hat, [replay(e, rule, q_hat) for e in test]
 
 
+RECORD_PLAN = ((TUNING_SEED, "calibration", 60), (TUNING_SEED, "test", 60),
+               *((s, "calibration", 100) for s in EVALUATION_SEEDS))
+
+
+def record_missing(recordings: Path) -> None:
+    """Record (resumably) what this benchmark reads besides the stored test traces: :data:`RECORD_PLAN`,
+    the first questions of each split in :func:`eqa.app.stop_sensitivity.benchmark_questions`' order."""
+    from eqa.app.stop_sensitivity import benchmark_questions, record
+    from eqa.settings import Settings
+    from services.sim.questions import benchmark
+
+    scenes = Settings().scenes_path
+    benches: dict[int, Any] = {}
+    for seed, split, limit in RECORD_PLAN:
+        if seed not in benches:
+            benches[seed] = benchmark(seed=seed, scenes_dir=scenes)
+        qs = benchmark_questions(seed, split, limit, scenes, benches[seed])
+        record(qs, "semantic", 320, 240, 1, recording_path(recordings, seed, split, "semantic", "320x240"))
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--recordings", type=Path, required=True, help="stop_sensitivity recordings (calibration splits)")
+    p.add_argument("--record", action="store_true", help="first record what is missing (RECORD_PLAN; ~20 min "
+                   "of CPU on an idle core, 2.4 s per episode)")
     p.add_argument("--n-cal", type=int, default=None, help="calibration episodes per evaluation seed (default all)")
     p.add_argument("--out", type=Path, default=Path("bench/results/answer_rules.json"))
     p.add_argument("--rule", default=None, help="skip tuning and evaluate this rule (e.g. memory-3-loglinear)")
     a = p.parse_args(argv)
+    if a.record:
+        record_missing(a.recordings)
 
     tuning = load(a.recordings, TUNING_SEED, "calibration", None) + load(a.recordings, TUNING_SEED, "test", None)
     chosen, tune_rows = tune(tuning)
