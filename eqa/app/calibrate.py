@@ -325,7 +325,8 @@ def run_check(args: argparse.Namespace, settings: Settings, store: Store) -> Any
     if args.limit is not None:
         traces = traces[: args.limit]
     try:
-        report = check_exchangeable(table, [t.kappa() for t in traces], alpha=args.alpha)
+        rule = AnswerRule.from_name(table.provenance.get("answer_rule"))  # the table's own answer rule (issue 22)
+        report = check_exchangeable(table, [t.kappa(rule) for t in traces], alpha=args.alpha)
     except ValueError as exc:
         raise UsageError(str(exc)) from exc
     return table, where, report
