@@ -102,3 +102,29 @@ def test_kernel_equals_reference_on_lattice_frames() -> None:
         assert fast.integrate(depth, K, T) == ref.integrate(depth, K, T)
         for name in ("tsdf", "weight", "explored", "col_stamp"):
             assert getattr(fast, name).tobytes() == getattr(ref, name).tobytes(), f"{name} differs"
+
+
+def test_frame_bounds_equals_numpy() -> None:
+    """The one-pass image scan gives integrate's former numpy values: the usable depth image, its maximum and
+    the extent of the hit points along world x and y (float32, as before)."""
+    rng = np.random.default_rng(5)
+    h, w = 60, 80
+    K = np.array([[40.0, 0, (w - 1) / 2], [0, 40.0, (h - 1) / 2], [0, 0, 1.0]])
+    for i in range(10):
+        depth, T = _depth(rng, h, w), _pose(rng)
+        if i == 9:
+            depth[:] = np.inf  # nothing usable
+        R = T[:3, :3]
+        u = (np.arange(w, dtype=np.float32) - np.float32(K[0, 2])) / np.float32(K[0, 0])
+        v = (np.arange(h, dtype=np.float32) - np.float32(K[1, 2])) / np.float32(K[1, 1])
+        dimg = np.empty_like(depth)
+        n, dmax, lo, hi = tsdf_kernel.frame_bounds(depth, np.float32(0.05), np.float32(10.0), u, v,
+                                                   np.ascontiguousarray(R, dtype=np.float32), dimg)
+        usable = np.isfinite(depth) & (depth >= 0.05) & (depth <= 10.0)
+        ref = np.where(usable, depth, np.float32(0.0))
+        assert n == usable.sum() and dimg.tobytes() == ref.tobytes() and dmax == ref.max()
+        Rf = R.astype(np.float32)
+        for axis in range(2):
+            coord = (Rf[axis, 0] * u[None, :] + Rf[axis, 1] * v[:, None] + Rf[axis, 2]) * ref
+            assert lo[axis] == coord.min(where=ref > 0, initial=np.float32(np.inf))
+            assert hi[axis] == coord.max(where=ref > 0, initial=np.float32(-np.inf))

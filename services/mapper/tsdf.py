@@ -17,8 +17,10 @@ Each voxel keeps
 * ``explored``: seen through the narrow field of view of appendix B (middle 50 % of the HFOV, lower 50 % of
   the VFOV, measured in angles from the optical axis).
 
-All of it is vectorised numpy; a frame touches only the voxel columns whose (x, y) lies inside the 2D shadow
-of its view frustum (a necessary condition for a voxel to be inside the frustum).
+A frame touches only the voxel columns whose (x, y) lies inside the 2D shadow of its view frustum (a
+necessary condition for a voxel to be inside the frustum). The per-pixel scan and the per-voxel fusion loop are
+compiled (numba, :mod:`services.mapper.tsdf_kernel`, bit-identical to the vectorised numpy code they replaced,
+which stays there as the tested specification); the grid bookkeeping around them is numpy.
 
 What follows the volume incrementally (the 2D projection's per-column cache, the snapshot's dirty columns)
 reads ``col_stamp``: per column, the number of the last :meth:`TSDFVolume.integrate` that changed one of its
@@ -248,28 +250,30 @@ class TSDFVolume:
         OpenCV axes). Returns the number of voxels updated. Call :func:`check_frame` first on untrusted
         input; this function assumes a valid frame."""
         c = self.config
-        depth = np.asarray(depth, dtype=np.float32)
+        depth = np.ascontiguousarray(depth, dtype=np.float32)
         K = np.asarray(intrinsics, dtype=np.float64)
         T = np.asarray(cam_pose, dtype=np.float64)
         h, w = depth.shape
-        usable = np.isfinite(depth) & (depth >= c.min_depth) & (depth <= c.max_depth)
-        if not usable.any():
-            return 0
-        dimg = np.where(usable, depth, np.float32(0.0))
-        far = min(float(dimg.max()) + c.trunc, c.max_depth + c.trunc)
-
         fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
         R, t = T[:3, :3], T[:3, 3]
-        # Every updated voxel lies on a ray segment from the camera to a hit point (+ mu behind it), so the
-        # box of the camera and the hit points, grown by mu, bounds the update: the volume grows with what
-        # is seen, not with the frustum.
-        valid_d = dimg > 0
+        # usable readings (finite, within [min_depth, max_depth]; 0 elsewhere) and, per world axis x / y, the
+        # extent of the hit points: every updated voxel lies on a ray segment from the camera to a hit point
+        # (+ mu behind it), so the box of the camera and the hit points, grown by mu, bounds the update: the
+        # volume grows with what is seen, not with the frustum.
+        u_dir = (np.arange(w, dtype=np.float32) - np.float32(cx)) / np.float32(fx)
+        v_dir = (np.arange(h, dtype=np.float32) - np.float32(cy)) / np.float32(fy)
+        dimg = np.empty_like(depth)
+        n_usable, dmax, hit_lo, hit_hi = tsdf_kernel.frame_bounds(
+            depth, np.float32(c.min_depth), np.float32(c.max_depth), u_dir, v_dir,
+            np.ascontiguousarray(R, dtype=np.float32), dimg,
+        )
+        if not n_usable:
+            return 0
+        far = min(float(dmax) + c.trunc, c.max_depth + c.trunc)
         lo, hi = t[:2].copy(), t[:2].copy()
         for axis in range(2):
-            # world offset along ``axis`` of every pixel's hit (0 where there is none, masked out below)
-            coord = self._pixel_dirs_axis(K, R, w, h, axis) * dimg
-            lo[axis] = min(lo[axis], float(coord.min(where=valid_d, initial=np.float32(np.inf))) + t[axis])
-            hi[axis] = max(hi[axis], float(coord.max(where=valid_d, initial=np.float32(-np.inf))) + t[axis])
+            lo[axis] = min(lo[axis], float(hit_lo[axis]) + t[axis])
+            hi[axis] = max(hi[axis], float(hit_hi[axis]) + t[axis])
         margin = c.trunc + c.voxel_size
         self.ensure(lo[0] - margin, hi[0] + margin, lo[1] - margin, hi[1] + margin)
         # 2D shadow of the frustum (camera centre + the four far corners) culls columns inside that box.
@@ -325,31 +329,6 @@ class TSDFVolume:
         self.weight = np.ascontiguousarray(self.weight, dtype=np.float32)
         self.explored = np.ascontiguousarray(self.explored, dtype=bool)
         self.col_stamp = np.ascontiguousarray(self.col_stamp, dtype=np.int64)
-
-    def _pixel_dirs_axis(self, K: np.ndarray, R: np.ndarray, w: int, h: int, axis: int) -> np.ndarray:
-        """Row ``axis`` of :meth:`_pixel_dirs` (the same float32 values), computed alone: ``(h, w)``."""
-        u = (np.arange(w, dtype=np.float32) - np.float32(K[0, 2])) / np.float32(K[0, 0])
-        v = (np.arange(h, dtype=np.float32) - np.float32(K[1, 2])) / np.float32(K[1, 1])
-        Rf = R.astype(np.float32)
-        return Rf[axis, 0] * u[None, :] + Rf[axis, 1] * v[:, None] + Rf[axis, 2]
-
-    _dirs_cache: tuple[bytes, np.ndarray] | None = None
-
-    def _pixel_dirs(self, K: np.ndarray, R: np.ndarray, w: int, h: int) -> np.ndarray:
-        """World-frame direction (scaled so its camera z is 1) of every pixel, cached per (K, R, size)."""
-        key = K.tobytes() + R.tobytes() + bytes(str((w, h)), "ascii")
-        if self._dirs_cache is not None and self._dirs_cache[0] == key:
-            return self._dirs_cache[1]
-        u = (np.arange(w, dtype=np.float32) - np.float32(K[0, 2])) / np.float32(K[0, 0])
-        v = (np.arange(h, dtype=np.float32) - np.float32(K[1, 2])) / np.float32(K[1, 1])
-        Rf = R.astype(np.float32)
-        dirs = (
-            Rf[:, 0, None, None] * u[None, None, :]
-            + Rf[:, 1, None, None] * v[None, :, None]
-            + Rf[:, 2, None, None]
-        )
-        self._dirs_cache = (key, dirs)
-        return dirs
 
     # ---- memory ----------------------------------------------------------------------------------------
     def nbytes(self) -> int:

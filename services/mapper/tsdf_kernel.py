@@ -131,6 +131,50 @@ def integrate_columns(
     return count
 
 
+_BOUNDS_SIG = numba.types.Tuple((numba.int64, numba.float32, numba.float32[:], numba.float32[:]))(
+    numba.float32[:, ::1],  # depth (h, w), float32
+    numba.float32,  # min_depth
+    numba.float32,  # max_depth
+    numba.float32[::1],  # u: (w,) (column - cx) / fx, float32
+    numba.float32[::1],  # v: (h,) (row - cy) / fy, float32
+    numba.float32[:, ::1],  # R (3, 3) float32 (rows 0 and 1 used)
+    numba.float32[:, ::1],  # out: dimg (h, w), depth where usable else 0
+)
+
+
+@numba.njit(_BOUNDS_SIG, cache=True, nogil=True)
+def frame_bounds(depth, min_depth, max_depth, u, v, R, dimg):  # pragma: no cover - compiled
+    """One pass over the image: ``dimg`` (usable depth, 0 elsewhere), its maximum, and per world axis x, y
+    the min / max over hit pixels of ``dir_axis(u, v) * D`` (the hit's offset from the camera), where
+    ``dir_axis = R[axis, 0] * u + R[axis, 1] * v + R[axis, 2]`` in float32 as numpy computes it. No usable
+    pixel: max 0 and the bounds stay +inf / -inf. Returns (usable pixels, max, lo[2], hi[2])."""
+    h, w = depth.shape
+    lo = np.full(2, np.inf, dtype=np.float32)
+    hi = np.full(2, -np.inf, dtype=np.float32)
+    dmax = np.float32(0.0)
+    n = 0
+    for r in range(h):
+        vr = v[r]
+        for c in range(w):
+            d = depth[r, c]
+            if not (np.isfinite(d) and d >= min_depth and d <= max_depth):
+                dimg[r, c] = np.float32(0.0)
+                continue
+            dimg[r, c] = d
+            n += 1
+            if d > dmax:
+                dmax = d
+            if not (d > 0):
+                continue
+            for axis in range(2):
+                x = (R[axis, 0] * u[c] + R[axis, 1] * vr + R[axis, 2]) * d
+                if x < lo[axis]:
+                    lo[axis] = x
+                if x > hi[axis]:
+                    hi[axis] = x
+    return n, dmax, lo, hi
+
+
 def integrate_reference(
     a: np.ndarray, b: np.ndarray, zc: np.ndarray, rows: np.ndarray, cols: np.ndarray, dimg: np.ndarray,
     fx: np.float32, fy: np.float32, cx: np.float32, cy: np.float32,
