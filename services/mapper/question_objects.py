@@ -10,29 +10,137 @@ The region is the rooms of the asked kind (or the whole house) as rectangles in 
 needs a room layout for that; here it is the scene's floor plan (:attr:`services.sim.scene.Scene.rooms`), i.e.
 the robot is assumed to know the floor plan (not the objects). That is a simplification: a real robot would
 segment rooms from its own map, with errors this evaluation does not have.
+
+In the product (the mapper service, :class:`QuestionObjectsShell`): a question typed by a user carries no
+``query``; :func:`parse_question` reads the target from the text ("How many chairs are there in the kitchen?",
+"Is there a mug in the office?", "Are there any towels in the bathroom?"). The detector is open-vocabulary
+(DETIC), so the class is the noun phrase itself (:func:`eqa.instructions.class_name`, singular). The mapper
+has no floor plan (the :class:`~eqa.messages.EpisodeStart` carries none and the mapper must not read the
+simulator's scene): the region is then the whole map (``rects=None``), the explored share is the observed
+share of the mapped area's bounding box, and the existence prior refers to the whole explored map, not to the
+asked room. The room kind is parsed and reported but does not narrow the region.
 """
 
 from __future__ import annotations
 
+import logging
+import re
+import time
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
 
-from eqa.messages import MAX_EVIDENCE_INSTANCES, DetectRequest, DetectResult, Frame, GridSpec, ObjectEvidence, Question
+from eqa.instructions import InstructionError, class_name
+from eqa.messages import (
+    MAX_EVIDENCE_INSTANCES,
+    DetectRequest,
+    DetectResult,
+    EpisodeStart,
+    ErrorReply,
+    Frame,
+    GridSpec,
+    ObjectEvidence,
+    Question,
+)
+
+log = logging.getLogger(__name__)
 
 CATEGORIES = ("counting", "existence")  # the question categories the class-level layer can answer (not colours)
 
 Rect = tuple[float, float, float, float]  # x0, y0, x1, y1
 
 
-def question_target(question: Question) -> tuple[str, str, str | None] | None:
-    """``(question category, target class, room kind or None)`` for a question the layer can help with."""
-    q = {str(k).lower(): v for k, v in question.query.items()}
-    category = question.category or q.get("type")
-    cls = q.get("category")
-    if category not in CATEGORIES or not cls:
+MAX_PARSED_CHARS = 300  # longer texts are not parsed (a question about one object class is short)
+# Nouns after "how many" that are no detectable object class (structure, time, quantities).
+NOT_OBJECTS = frozenset({"room", "floor", "wall", "ceiling", "storey", "story", "level", "time", "minute", "hour",
+                         "second", "day", "year", "step", "meter", "metre", "foot", "feet", "inch", "kind",
+                         "type", "color", "colour", "way", "thing", "object", "item"})
+PLURAL_ONLY = frozenset({"shoes", "glasses", "scissors", "pants", "jeans", "clothes", "stairs"})
+WHOLE_HOUSE = frozenset({"house", "home", "apartment", "flat", "building"})
+_PHRASE = r"(?P<obj>[a-z][a-z -]{0,60}?)"
+_ROOM = r"(?:\s+(?:in|inside)\s+(?:the|this|my|our)\s+(?P<room>[a-z][a-z ]{0,40}?))?"
+_END = r"\s*\??\s*$"
+_COUNT = re.compile(r"^\s*how\s+many\s+" + _PHRASE + r"(?:\s+(?:are|is)(?:\s+there)?|\s+(?:do|does|can)\s+"
+                    r"(?:you|we|it)\s+(?:see|find))?" + _ROOM + _END)
+_EXIST = re.compile(r"^\s*(?:is|are)\s+there\s+(?:(?:any|some|an|a)\s+)?" + _PHRASE + _ROOM + _END)
+# Words that are no part of a class name: a phrase holding one is a sentence the forms above do not cover.
+FUNCTION_WORDS = frozenset({"are", "is", "was", "were", "be", "did", "do", "does", "you", "we", "i", "it", "they",
+                            "the", "a", "an", "on", "of", "in", "at", "here", "there", "have", "has", "live", "can",
+                            "could", "see", "find", "to", "with", "and", "or", "not", "no", "under", "near"})
+
+
+def singular(word: str) -> str:
+    """A simple English singular of a class's last word (``chairs`` -> ``chair``, ``boxes`` -> ``box``,
+    ``shelves`` -> ``shelf``); plural-only words stay (``shoes``)."""
+    if word in PLURAL_ONLY or word.endswith(("ss", "us", "is")) or len(word) <= 3:
+        return word
+    if word.endswith("ies"):
+        return word[:-3] + "y"
+    if word.endswith("ves"):
+        return word[:-3] + "f"
+    if word.endswith(("ses", "xes", "ches", "shes", "zes")):
+        return word[:-2]
+    return word[:-1] if word.endswith("s") else word
+
+
+def parse_question(text: str) -> tuple[str, str, str | None] | None:
+    """``(category, class, room kind or None)`` from a question's words, or None when it is not one of the
+    forms the layer can answer:
+
+    - counting: "How many <class> (are there | do you see | can you find) (in the <room>)?"
+    - existence: "Is there a/an/any <class> (in the <room>)?", "Are there (any) <class> (in the <room>)?"
+
+    ``<class>`` is 1-5 plain words, made singular (last word) and joined with ``_`` (``"coffee tables"`` ->
+    ``coffee_table``): the detector is open-vocabulary. A leading colour word is dropped from the class (the
+    class-level layer does not see colours). ``<room>`` likewise (``"living room"`` -> ``living_room``);
+    "the house" / "home" = no room. Structure and time words ("how many rooms", "how many times") are no
+    object class."""
+    if not isinstance(text, str) or len(text) > MAX_PARSED_CHARS:
         return None
-    return str(category), str(cls), (str(q["room_kind"]) if q.get("room_kind") else None)
+    t = " ".join(text.lower().replace(",", " ").split())
+    for category, rx in (("counting", _COUNT), ("existence", _EXIST)):
+        m = rx.match(t)
+        if m is None:
+            continue
+        try:
+            cls, _ = class_name(m.group("obj"))
+        except InstructionError:
+            return None
+        words = cls.split("_")
+        if any(w in FUNCTION_WORDS for w in words):
+            return None
+        words[-1] = singular(words[-1])
+        if words[-1] in NOT_OBJECTS or words[0] in ("of", "more", "other"):
+            return None
+        room = None
+        if m.group("room"):
+            try:
+                room, _ = class_name(m.group("room"))
+            except InstructionError:
+                return None
+            room = None if room in WHOLE_HOUSE else room
+        return category, "_".join(words), room
+    return None
+
+
+def question_target(question: Question) -> tuple[str, str, str | None] | None:
+    """``(question category, target class, room kind or None)`` for a question the layer can help with: from
+    the benchmark's structured ``query`` when it has one, else parsed from the text (:func:`parse_question`)."""
+    q = {str(k).lower(): v for k, v in question.query.items()}
+    if q:
+        category = question.category or q.get("type")
+        cls = q.get("category")
+        if category not in CATEGORIES or not cls:
+            return None
+        return str(category), str(cls), (str(q["room_kind"]) if q.get("room_kind") else None)
+    if question.category is not None and question.category not in CATEGORIES:
+        return None
+    parsed = parse_question(question.text)
+    if parsed is None or (question.category is not None and parsed[0] != question.category):
+        return None
+    return parsed
 
 
 def region_share(mask: np.ndarray, grid: GridSpec, rects: list[Rect] | None) -> float:
@@ -95,3 +203,138 @@ class QuestionObjects:
             else:
                 share = region_share(explored.astype(bool), grid, self.rects)
         return ObjectEvidence(category=self.category, psi=psi, explored=min(max(share, 0.0), 1.0))
+
+    # ---- persistence (the mapper's episode state) -------------------------------------------------------
+    def snapshot(self) -> bytes:
+        return self.om.snapshot()
+
+    @classmethod
+    def restore(cls, question: Question, data: bytes, rects: list[Rect] | None, config: Any = None) -> QuestionObjects:
+        from services.mapper.object_map import ObjectMap
+
+        qo = cls(question, rects, config=config)
+        qo.om = ObjectMap.restore(data, config)
+        return qo
+
+
+Detect = Callable[[DetectRequest], DetectResult]
+STATE_KEY = "question_objects"  # the layer's part of the mapper's episode state (a dict with "map")
+
+
+class QuestionObjectsShell:
+    """Mixin of :class:`services.mapper.service.MapperService` for question episodes with
+    ``EQA_OBJECT_EVIDENCE`` on: the episode's :class:`QuestionObjects`, a detection per frame through the
+    scorer pool (on its own worker, while the mapper waits for the question's scores), the step's
+    :class:`~eqa.messages.ObjectEvidence`, and the layer in the episode's stored state. Needs
+    ``self.settings``, ``self.objects_config`` and ``self._pool_client()`` of
+    :class:`services.mapper.object_shell.ObjectLayerShell`. A failed detection does not fail the question:
+    logged, and that step carries no evidence (the stopper then uses the VLM's distribution alone)."""
+
+    settings: Any
+    objects_config: Any
+    _pool_client: Callable[[], tuple[Detect, Any]]
+
+    def qobjects_init(self) -> None:
+        self.qobjects: dict[str, QuestionObjects] = {}
+        self._qobjects_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mapper-question-objects")
+        self._qobjects_told: set[str] = set()
+
+    def qobjects_close(self) -> None:
+        self._qobjects_pool.shutdown(wait=True)
+
+    def _qobjects_target(self, start: EpisodeStart) -> bool:
+        if not self.settings.object_evidence or start.task is not None:
+            return False
+        if question_target(start.question) is None:
+            if start.episode_id not in self._qobjects_told:
+                self._qobjects_told.add(start.episode_id)
+                log.info("episode %s: object evidence on, but the question names no class to count or find "
+                         "(forms: 'How many <class> ...', 'Is there a <class> ...'); no evidence", start.episode_id)
+            return False
+        return True
+
+    def qobjects_start(self, start: EpisodeStart) -> None:
+        """A new question episode: its layer when the setting is on and the question has a target. No room
+        layout is known to the mapper: the region is the whole map (module docstring)."""
+        if self._qobjects_target(start):
+            qo = QuestionObjects(start.question, None, config=self.objects_config)
+            self.qobjects[start.episode_id] = qo
+            log.info("episode %s: object evidence for %s '%s' (room %s: not narrowed, no floor plan)",
+                     start.episode_id, qo.category, qo.cls, qo.room_kind)
+
+    def qobjects_finish(self, episode_id: str) -> None:
+        self.qobjects.pop(episode_id, None)
+        self._qobjects_told.discard(episode_id)
+
+    def qobjects_dump(self, episode_id: str, state: Any) -> Any:
+        """``state`` (the map header, or the task episode's dict) with the layer's snapshot added."""
+        qo = self.qobjects.get(episode_id)
+        if qo is None:
+            return state
+        return {"map": state, STATE_KEY: qo.snapshot()} if not isinstance(state, dict) else {**state,
+                                                                                              STATE_KEY: qo.snapshot()}
+
+    @staticmethod
+    def qobjects_split(data: Any) -> tuple[Any, bytes | None]:
+        """Stored state -> (what the map's loader reads, the layer's snapshot or None)."""
+        if isinstance(data, dict) and STATE_KEY in data:
+            rest = {k: v for k, v in data.items() if k != STATE_KEY}
+            return (rest["map"] if set(rest) == {"map"} else rest), data[STATE_KEY]
+        return data, None
+
+    def qobjects_restore(self, em: Any, snapshot: bytes | None) -> None:
+        """After a restart: continue the stored layer; a state saved without one starts a fresh layer."""
+        start = em.start
+        if not self._qobjects_target(start):
+            return
+        if snapshot is None:
+            self.qobjects_start(start)
+            return
+        self.qobjects[start.episode_id] = QuestionObjects.restore(start.question, snapshot, None,
+                                                                 config=self.objects_config)
+
+    def qobjects_submit(self, em: Any, frame: Frame) -> Future | None:
+        qo = self.qobjects.get(em.episode_id)
+        if qo is None:
+            return None
+        return self._qobjects_pool.submit(self._qobjects_detect, qo, em, frame)
+
+    def _qobjects_detect(self, qo: QuestionObjects, em: Any, frame: Frame) -> tuple[Any, float]:
+        detect, _ = self._pool_client()
+        t0 = time.perf_counter()
+        try:
+            det: Any = detect(qo.detect_request(frame, seed=em.start.seed))
+        except Exception as exc:
+            det = exc
+        return det, (time.perf_counter() - t0) * 1000.0
+
+    def qobjects_apply(self, em: Any, frame: Frame, pending: Future | None,
+                       timing: dict[str, float]) -> ObjectEvidence | None:
+        """Fuse the frame's detections; the step's evidence, or None (no layer, or the detection failed)."""
+        qo = self.qobjects.get(em.episode_id)
+        if pending is None or qo is None:
+            return None
+        det, ask_ms = pending.result()
+        timing["question_objects_ask"] = ask_ms
+        if not isinstance(det, DetectResult):
+            reason = det.reason if isinstance(det, ErrorReply) else f"{type(det).__name__}: {det}"
+            log.warning("episode %s step %d: detection failed, no object evidence this step: %s",
+                        em.episode_id, frame.step, reason)
+            return None
+        t0 = time.perf_counter()
+        try:
+            qo.integrate(frame, det)
+        except Exception:
+            log.exception("episode %s step %d: object layer not updated, no object evidence this step",
+                          em.episode_id, frame.step)
+            return None
+        timing["question_objects_fuse"] = (time.perf_counter() - t0) * 1000.0
+        return self.qobjects_evidence(em)
+
+    def qobjects_evidence(self, em: Any) -> ObjectEvidence | None:
+        """The layer's evidence on the episode's current map (also for a step sent again)."""
+        qo = self.qobjects.get(em.episode_id)
+        if qo is None:
+            return None
+        observed = em.maps.observed if em.maps is not None else None
+        return qo.evidence(observed, em.grid() if observed is not None else None)

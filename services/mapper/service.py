@@ -38,6 +38,7 @@ from eqa.messages import (
     EpisodeStart,
     ErrorReply,
     Frame,
+    ObjectEvidence,
     ScoreRequest,
     ScoreResult,
     StepScores,
@@ -47,6 +48,7 @@ from eqa.store import Store
 from services.mapper import snapshots
 from services.mapper.episode_map import EpisodeMap, MapperConfig, Timer
 from services.mapper.object_shell import Detect, ObjectLayerShell, Values
+from services.mapper.question_objects import QuestionObjectsShell
 from services.mapper.semantic_map import QUESTION_LAYER
 from services.mapper.tsdf import FrameError
 
@@ -57,7 +59,7 @@ EARLY_FRAME_TTL_S = 30.0
 Scorer = Callable[[ScoreRequest], ScoreResult]
 
 
-class MapperService(ObjectLayerShell, EpisodeService[EpisodeMap]):
+class MapperService(QuestionObjectsShell, ObjectLayerShell, EpisodeService[EpisodeMap]):
     """TSDF mapping, frontiers, prompt points and the semantic value map (Explore-EQA IV-B..D)."""
 
     name = "mapper"
@@ -75,6 +77,7 @@ class MapperService(ObjectLayerShell, EpisodeService[EpisodeMap]):
         super().__init__(settings, bus, store)
         self._scorer = scorer
         self.objects_init(detector, values)  # HELIOS object layer of task episodes (object_shell.py)
+        self.qobjects_init()  # object evidence of question episodes (question_objects.py, issue 22)
         self.config = MapperConfig(
             tau_lsv=settings.tau_lsv,
             tau_gsv=settings.tau_gsv,
@@ -93,6 +96,7 @@ class MapperService(ObjectLayerShell, EpisodeService[EpisodeMap]):
     def teardown(self) -> None:
         self._pool.shutdown(wait=True)
         self.objects_close()
+        self.qobjects_close()
         super().teardown()
 
     # ---- scorer -----------------------------------------------------------------------------------------
@@ -106,21 +110,26 @@ class MapperService(ObjectLayerShell, EpisodeService[EpisodeMap]):
     # ---- episode state ----------------------------------------------------------------------------------
     def start_episode(self, robot: str, start: EpisodeStart) -> EpisodeMap:
         log.info("episode %s: mapping for robot %s (strategy %s)", start.episode_id, robot, start.strategy)
+        self.qobjects_start(start)
         return EpisodeMap(start, self.config, layers=self.objects_layers(start))
 
     def finish_episode(self, robot: str, msg: EpisodeCancel | EpisodeEnd, state: EpisodeMap) -> None:
         self.objects_finish(msg.episode_id)
+        self.qobjects_finish(msg.episode_id)
         log.info("episode %s finished (%s); map dropped", msg.episode_id, msg.kind)
 
     def dump_state(self, state: EpisodeMap, **extra: Any) -> Any:
         # a task episode's object layer rides along: {"map": ..., "objects": ...}; otherwise the map's bytes.
         # The map is an incremental snapshot (snapshots.py): its header here, the full part and deltas as parts.
         header, write, delete = snapshots.snapshot_step(state)
-        return StateParts(self.objects_dump(state.episode_id, header), write, delete)
+        state_header = self.qobjects_dump(state.episode_id, self.objects_dump(state.episode_id, header))
+        return StateParts(state_header, write, delete)
 
     def load_state(self, episode_id: str, data: Any) -> EpisodeMap:
+        data, question_objects = self.qobjects_split(data)
         em = self.objects_load(episode_id, data, lambda b: snapshots.restore(
             b, lambda part: self.read_part(episode_id, part), self.config))
+        self.qobjects_restore(em, question_objects)
         log.info("episode %s: restored from snapshot at step %d", episode_id, em.step)
         return em
 
@@ -153,6 +162,7 @@ class MapperService(ObjectLayerShell, EpisodeService[EpisodeMap]):
         # effects (snapshot saved before anything is published).
         pending = self._pool.submit(self._timed_score, robot, em, frame)
         pending_objects = self.objects_submit(robot, em, frame)  # detections + value prompts (task episodes)
+        pending_question_objects = self.qobjects_submit(em, frame)  # detections of the question's class
         t0 = time.perf_counter()
         candidates = em.find_frontier_candidates()
         t0 = timer.lap("frontiers", t0)
@@ -168,6 +178,7 @@ class MapperService(ObjectLayerShell, EpisodeService[EpisodeMap]):
                 self._error(robot, em.episode_id, frame.step, f"semantic values not written: {exc}")
         t0 = timer.lap("semantic_values", t0)
         frontier_layer = self.objects_apply(robot, em, frame, pending_objects, timer.ms)
+        evidence = self.qobjects_apply(em, frame, pending_question_objects, timer.ms)
         em.compute_frontiers(frontier_layer or QUESTION_LAYER, timer=timer, candidates=candidates)
         # Persist before publishing: whatever a consumer has seen survives a crash of this process.
         t0 = time.perf_counter()
@@ -181,7 +192,8 @@ class MapperService(ObjectLayerShell, EpisodeService[EpisodeMap]):
             self.publish(robot, keys.MAPPER_MAP, update)
         else:
             self.publish_step(em.episode_id, keys.MAPPER_MAP, update, frame.step)
-            self.publish_step(em.episode_id, keys.MAPPER_SCORES, self._step_scores(em, frame, result), frame.step)
+            self.publish_step(em.episode_id, keys.MAPPER_SCORES, self._step_scores(em, frame, result, evidence),
+                              frame.step)
         t0 = time.perf_counter()
         self._record(em, frame)
         self.objects_record(em, frame)
@@ -198,10 +210,11 @@ class MapperService(ObjectLayerShell, EpisodeService[EpisodeMap]):
         self.publish(robot, keys.MAPPER_MAP, update)
         result = self._score(robot, em, frame)
         if result is not None:
-            self.publish(robot, keys.MAPPER_SCORES, self._step_scores(em, frame, result))
+            self.publish(robot, keys.MAPPER_SCORES, self._step_scores(em, frame, result, self.qobjects_evidence(em)))
 
     @staticmethod
-    def _step_scores(em: EpisodeMap, frame: Frame, result: ScoreResult) -> StepScores:
+    def _step_scores(em: EpisodeMap, frame: Frame, result: ScoreResult,
+                     evidence: ObjectEvidence | None = None) -> StepScores:
         return StepScores(
             episode_id=em.episode_id,
             step=frame.step,
@@ -213,6 +226,7 @@ class MapperService(ObjectLayerShell, EpisodeService[EpisodeMap]):
             mode=result.mode,  # logprobs / sampling (issue 23): the stopper warns on a calibration mismatch
             # a question without choices: the ones the scorer proposed (Explore-EQA section VI-A)
             choices=em.start.question.choices or result.proposed_choices,
+            object_evidence=evidence,  # issue 22: the question's object layer (EQA_OBJECT_EVIDENCE)
         )
 
     def _timed_score(self, robot: str, em: EpisodeMap, frame: Frame) -> tuple[ScoreResult | None, float]:
