@@ -128,3 +128,17 @@ def test_frame_bounds_equals_numpy() -> None:
             coord = (Rf[axis, 0] * u[None, :] + Rf[axis, 1] * v[:, None] + Rf[axis, 2]) * ref
             assert lo[axis] == coord.min(where=ref > 0, initial=np.float32(np.inf))
             assert hi[axis] == coord.max(where=ref > 0, initial=np.float32(-np.inf))
+
+
+def test_read_only_frame() -> None:
+    """A depth image decoded off the bus is a read-only view of the message: integrate takes it as it is."""
+    rng = np.random.default_rng(7)
+    h, w = 30, 40
+    K = np.array([[20.0, 0, (w - 1) / 2], [0, 20.0, (h - 1) / 2], [0, 0, 1.0]])
+    depth, T = _depth(rng, h, w), _pose(rng)
+    frozen = np.frombuffer(depth.tobytes(), dtype=np.float32).reshape(h, w)
+    assert not frozen.flags.writeable
+    fast, ref = TSDFVolume(), TSDFVolume()
+    ref.kernel = tsdf_kernel.integrate_reference  # type: ignore[method-assign]
+    assert fast.integrate(frozen, K, T) == ref.integrate(depth, K, T) > 0
+    assert fast.tsdf.tobytes() == ref.tsdf.tobytes()

@@ -45,13 +45,20 @@ def _cache_dir_fallback() -> None:
 
 _cache_dir_fallback()
 
+
+def _ro(dtype: object, ndim: int) -> object:
+    """A read-only C-contiguous array type: inputs may be read-only (a depth image decoded off the bus is a
+    view of the message bytes); writable arrays are accepted too."""
+    return numba.types.Array(dtype, ndim, "C", readonly=True)
+
+
 _SIG = numba.int64(
-    numba.float32[:, ::1],  # a: (ncols, 3) camera-frame offset of each column's axis (float32)
-    numba.float32[::1],  # b: (3,) camera-frame direction of world z (float32)
-    numba.float32[::1],  # zc: (nz,) layer centres (float32)
-    numba.int64[::1],  # rows
-    numba.int64[::1],  # cols
-    numba.float32[:, ::1],  # dimg: (h, w) depth, 0 where unusable
+    _ro(numba.float32, 2),  # a: (ncols, 3) camera-frame offset of each column's axis (float32)
+    _ro(numba.float32, 1),  # b: (3,) camera-frame direction of world z (float32)
+    _ro(numba.float32, 1),  # zc: (nz,) layer centres (float32)
+    _ro(numba.int64, 1),  # rows
+    _ro(numba.int64, 1),  # cols
+    _ro(numba.float32, 2),  # dimg: (h, w) depth, 0 where unusable
     numba.float32,  # fx
     numba.float32,  # fy
     numba.float32,  # cx
@@ -132,12 +139,12 @@ def integrate_columns(
 
 
 _BOUNDS_SIG = numba.types.Tuple((numba.int64, numba.float32, numba.float32[:], numba.float32[:]))(
-    numba.float32[:, ::1],  # depth (h, w), float32
+    _ro(numba.float32, 2),  # depth (h, w), float32
     numba.float32,  # min_depth
     numba.float32,  # max_depth
-    numba.float32[::1],  # u: (w,) (column - cx) / fx, float32
-    numba.float32[::1],  # v: (h,) (row - cy) / fy, float32
-    numba.float32[:, ::1],  # R (3, 3) float32 (rows 0 and 1 used)
+    _ro(numba.float32, 1),  # u: (w,) (column - cx) / fx, float32
+    _ro(numba.float32, 1),  # v: (h,) (row - cy) / fy, float32
+    _ro(numba.float32, 2),  # R (3, 3) float32 (rows 0 and 1 used)
     numba.float32[:, ::1],  # out: dimg (h, w), depth where usable else 0
 )
 
