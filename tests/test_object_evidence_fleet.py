@@ -181,7 +181,9 @@ def test_counting_question_through_the_services_with_the_setting_on_and_off(
             time.sleep(0.5)
             (third,) = run_steps(bus, scores, renderer, views, "ep-on", range(2, 3))
             assert third.object_evidence is not None
-            assert max(third.object_evidence.psi) >= max(ev.psi)
+            assert max(third.object_evidence.psi) > max(ev.psi)  # a third consistent view raised it
+            restored = mapper.qobjects["ep-on"].om.history  # per instance: (step, Psi) of its updates
+            assert any(step < 2 for hist in restored.values() for step, _ in hist)  # from before the restart
             assert len(third.object_evidence.psi) <= len(ev.psi) + 1  # no duplicate of the restored chair
             assert errors.empty(), errors.get()
             mapper.stop()
@@ -200,4 +202,31 @@ def test_counting_question_through_the_services_with_the_setting_on_and_off(
         finally:
             mapper.stop()
             stopper.stop()
+            scorer.stop()
+
+
+def test_a_detector_failure_does_not_fail_the_question(hub_settings: Settings, settings: Settings, chair_views,
+                                                       caplog: pytest.LogCaptureFixture) -> None:
+    """The pool's detector refuses (EQA_DETECTOR_BACKEND=remote is an error reply): the step's scores are still
+    published, without evidence, and the mapper logs why."""
+    _, renderer, views = chair_views
+    cfg = settings.model_copy(update={"scorer_replica": "qobj-bad", "object_evidence": True,
+                                      "detector_backend": "remote"})
+    scores: queue.Queue[StepScores] = queue.Queue()
+    with Bus(hub_settings, "gateway") as bus:
+        bus.subscribe(keys.stream(ROBOT, keys.MAPPER_SCORES), StepScores, lambda k, m: scores.put(m))
+        scorer = CountingScorer(cfg)
+        scorer.start()
+        mapper = MapperService(cfg)
+        mapper.start()
+        try:
+            time.sleep(0.5)
+            bus.publish(keys.stream(ROBOT, keys.EPISODE_START), start("ep-bad", "kitchen"))
+            with caplog.at_level("WARNING", logger="services.mapper.question_objects"):
+                (s,) = run_steps(bus, scores, renderer, views, "ep-bad", range(1))
+            assert len(scorer.detect_requests) == 1  # it was asked
+            assert s.object_evidence is None and len(s.answer_probs) == len(COUNT)
+            assert "detection failed, no object evidence this step" in caplog.text
+        finally:
+            mapper.stop()
             scorer.stop()
