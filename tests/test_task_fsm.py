@@ -137,3 +137,13 @@ def test_looking_again_visits_each_gaze_point_once_then_gives_up() -> None:
     assert visited == [(1.0, 1.0), (2.0, 1.0), (3.0, 1.0)]  # best Psi' first, each once, at most 3
     assert a.kind == "frontier"  # then back to the global search
     assert TaskMachine.from_json(m.to_json()).looked == m.looked
+
+
+def test_trusting_acts_only_on_instances_believed_to_be_the_class() -> None:
+    """The trusting agent acts on the first *detection* of the object: not on an instance of another class that
+    merely has some score for it (every instance has a score for every task class)."""
+    t = _machine(ablation="trusting")
+    table_with_some_mug_score = SeenObject(10, "table", {"table": (0.8, 0.1, 0.7), "mug": (0.15, 0.1, 0.05)},
+                                           2.0, 1.0, 1.0, ())
+    assert t.step(ROBOT, FRONTIER, [table_with_some_mug_score]).kind == "frontier"
+    assert t.step(ROBOT, FRONTIER, [table_with_some_mug_score, _mug(0.05)]).kind == "pick"

@@ -220,6 +220,8 @@ class TaskMachine:
             s = o.of(c)
             if s is None or o.instance_id in exclude:
                 continue
+            if self.ablation == "trusting" and o.cls != c:  # a detection of c is an instance believed to be c
+                continue
             g = o.best_gaze() if o.cls == c else None
             out.append(Scored(o.instance_id, s[0], s[2], g.psi_prime if g is not None else None))
         return out
