@@ -11,11 +11,11 @@ the voxel explored if it falls inside the narrow view of appendix B.
 The numpy version materialises ~10 (ncols, nz) float32 arrays per frame (~170 k candidates at 640x480) and
 gathers / scatters through flat indices; the kernel visits each candidate once without temporaries.
 
-Compilation: eager (explicit signature) with ``cache=True``, so importing this module either loads the
-machine code from numba's cache (~0.1 s) or compiles it once (~2-4 s) and writes the cache; the first frame
-a mapper integrates after a start or restart never pays for compilation. The cache goes next to this file
-(``__pycache__``); when that directory is not writable (an installed package in a container) and
-``NUMBA_CACHE_DIR`` is not set, it goes to ``<EQA_DATA_DIR or var>/numba-cache``.
+Compilation: eager (explicit signatures) with ``cache=True``, so importing this module either loads the
+machine code from numba's cache (~0.1 s, plus ~0.3 s to import numba) or compiles it once (~1 s) and writes
+the cache; the first frame a mapper integrates after a start or restart never pays for compilation.
+The cache goes next to this file (``__pycache__``); when that directory is not writable (an installed
+package in a container) and ``NUMBA_CACHE_DIR`` is not set, it goes to ``<EQA_DATA_DIR or var>/numba-cache``.
 """
 
 from __future__ import annotations
