@@ -36,7 +36,8 @@ COPY README.md ./
 COPY eqa ./eqa
 COPY services ./services
 COPY gateway ./gateway
-RUN pip install --no-deps . && rm -rf build
+RUN pip install --no-deps . && rm -rf build \
+ && python -c "import services.mapper.tsdf_kernel"  # numba compiles the TSDF kernel into the image (issue 20)
 
 VOLUME ["/data"]
 CMD ["python", "-m", "gateway"]

@@ -15,12 +15,14 @@ Compilation: eager (explicit signatures) with ``cache=True``, so importing this 
 machine code from numba's cache (~0.1 s, plus ~0.3 s to import numba) or compiles it once (~1 s) and writes
 the cache; the first frame a mapper integrates after a start or restart never pays for compilation.
 The cache goes next to this file (``__pycache__``); when that directory is not writable (an installed
-package in a container) and ``NUMBA_CACHE_DIR`` is not set, it goes to ``<EQA_DATA_DIR or var>/numba-cache``.
+package in a container) and ``NUMBA_CACHE_DIR`` is not set, it goes to ``<temp dir>/eqa-numba-cache``; the
+container image compiles it at build time (Dockerfile), so a container's first start does not compile.
 """
 
 from __future__ import annotations
 
 import os
+import tempfile
 from pathlib import Path
 
 import numba
@@ -35,7 +37,7 @@ def _cache_dir_fallback() -> None:
     pyc = here / "__pycache__"
     if os.access(pyc if pyc.is_dir() else here, os.W_OK):
         return
-    target = Path(os.environ.get("EQA_DATA_DIR", "var")) / "numba-cache"
+    target = Path(tempfile.gettempdir()) / "eqa-numba-cache"
     try:
         target.mkdir(parents=True, exist_ok=True)
     except OSError:
