@@ -65,6 +65,7 @@ def evaluate(out: Path, seeds: list[int]) -> dict[str, Any]:
     import bench.bench_object_evidence as bench_obj
     from bench.bench_answer_rules import Out, paired
     from eqa.settings import Settings
+    from services.mapper.question_objects import WHOLE_MAP_CATEGORIES
     from services.stopper.object_evidence import EvidenceParams
 
     s = Settings()
@@ -81,17 +82,25 @@ def evaluate(out: Path, seeds: list[int]) -> dict[str, Any]:
         sel = [x for x in pairs if cat == "all" or x[0].category == cat]
         plan, wm = [x[0] for x in sel], [x[1] for x in sel]
         o_v, o_p, o_w = outs(plan, vlm), outs(plan, params), outs(wm, params)
+        # the product: whole-map evidence for WHOLE_MAP_CATEGORIES only, the VLM alone for the others
+        o_prod = [w if e.category in WHOLE_MAP_CATEGORIES else v for e, w, v in zip(plan, o_w, o_v, strict=True)]
         res[cat] = {"n": len(sel), "vlm_only": float(np.mean([o.correct for o in o_v])),
                     "floor_plan": float(np.mean([o.correct for o in o_p])),
                     "whole_map": float(np.mean([o.correct for o in o_w])),
                     "whole_map_vs_vlm": paired(o_w, o_v), "floor_plan_vs_vlm": paired(o_p, o_v),
-                    "whole_map_vs_floor_plan": paired(o_w, o_p)}
+                    "whole_map_vs_floor_plan": paired(o_w, o_p),
+                    "product": float(np.mean([o.correct for o in o_prod])), "product_vs_vlm": paired(o_prod, o_v)}
         r = res[cat]
         print(f"{cat:10s} n={r['n']:3d}  VLM-only {r['vlm_only']:.3f}  floor plan {r['floor_plan']:.3f}  "
               f"whole map {r['whole_map']:.3f}  | whole-VLM {r['whole_map_vs_vlm']['diff']:+.3f} "
               f"[{r['whole_map_vs_vlm']['ci_low']:+.3f}, {r['whole_map_vs_vlm']['ci_high']:+.3f}] "
               f"p {r['whole_map_vs_vlm']['p']:.3f}  | whole-plan {r['whole_map_vs_floor_plan']['diff']:+.3f} "
               f"p {r['whole_map_vs_floor_plan']['p']:.3f}")
+        pv = r["product_vs_vlm"]
+        print(f"{'':10s} product rule (whole map for {', '.join(WHOLE_MAP_CATEGORIES)}) {r['product']:.3f}: "
+              f"{pv['diff']:+.3f} [{pv['ci_low']:+.3f}, {pv['ci_high']:+.3f}] p {pv['p']:.3f} "
+              f"({pv['a_only']} vs {pv['b_only']} discordant)")
+    res["whole_map_categories"] = list(WHOLE_MAP_CATEGORIES)
     res["seconds_per_episode"] = float(np.mean([x[0].seconds for x in pairs]))
     return res
 

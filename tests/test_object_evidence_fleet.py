@@ -1,9 +1,10 @@
-"""Object evidence in the live services (issue 22, item 2): a counting question typed by a user (no benchmark
-``query``) through the real mapper, scorer replica (oracle VLM + simulated detector) and stopper on Zenoh.
-With EQA_OBJECT_EVIDENCE on, the mapper parses the target from the text, asks the pool for detections, puts
-the layer's evidence into StepScores, keeps the layer over a restart; the stopper's trace holds the combined
-distribution. With the setting off, no DetectRequest is sent and the StepScores carry none. Also the
-question parser on hand-written questions, including ones it must not match."""
+"""Object evidence in the live services (issue 22, item 2): an existence question typed by a user (no
+benchmark ``query``) through the real mapper, scorer replica (oracle VLM + simulated detector) and stopper on
+Zenoh. With EQA_OBJECT_EVIDENCE on, the mapper parses the target from the text, asks the pool for detections,
+puts the layer's evidence into StepScores, keeps the layer over a restart; the stopper's trace holds the
+combined distribution. A counting question gets no evidence without a floor plan (WHOLE_MAP_CATEGORIES). With
+the setting off, no DetectRequest is sent and the StepScores carry none. Also the question parser on
+hand-written questions, including ones it must not match."""
 
 from __future__ import annotations
 
@@ -40,6 +41,7 @@ from services.vlm_scorer.service import ScorerService
 ROBOT = "r0"
 W, H = 160, 120
 COUNT = ["One", "Two", "Three", "Four"]
+YESNO = ["Yes", "No"]
 
 
 @pytest.mark.parametrize(("text", "want"), [
@@ -111,9 +113,11 @@ def frame_of(view, renderer, episode_id: str, step: int) -> Frame:
                  labels=renderer.labels(fr.instances))
 
 
-def start(episode_id: str, room: str) -> EpisodeStart:
+def start(episode_id: str, room: str, counting: bool = False) -> EpisodeStart:
     # typed by a user: text and choices only, no category, no query, no ground truth
-    q = Question(text=f"How many chairs are there in the {room.replace('_', ' ')}?", choices=COUNT, scene="gen-5")
+    where = room.replace("_", " ")
+    text = f"How many chairs are there in the {where}?" if counting else f"Is there a chair in the {where}?"
+    q = Question(text=text, choices=COUNT if counting else YESNO, scene="gen-5")
     return EpisodeStart(episode_id=episode_id, robot=ROBOT, question=q, max_steps=20, record=False, seed=1,
                         stop=StopConfig(rule="max_steps"))
 
@@ -128,7 +132,7 @@ def run_steps(bus: Bus, scores: queue.Queue, renderer, views, episode_id: str, s
     return got
 
 
-def test_counting_question_through_the_services_with_the_setting_on_and_off(
+def test_existence_question_through_the_services_with_the_setting_on_and_off(
         hub_settings: Settings, settings: Settings, chair_views, redis_url: str) -> None:
     scene, renderer, views = chair_views
     chair = scene.instances[25]
@@ -153,7 +157,7 @@ def test_counting_question_through_the_services_with_the_setting_on_and_off(
             assert errors.empty(), errors.get()
             assert len(scorer.detect_requests) == 2 and scorer.detect_requests[0].classes == ["chair"]
             ev = first[-1].object_evidence
-            assert ev is not None and ev.category == "counting" and ev.psi and max(ev.psi) >= 0.3
+            assert ev is not None and ev.category == "existence" and ev.psi and max(ev.psi) >= 0.3
             assert 0.0 < ev.explored <= 1.0
 
             # the stopper's trace holds the pooled distribution, not the VLM's
@@ -169,7 +173,7 @@ def test_counting_question_through_the_services_with_the_setting_on_and_off(
             trace = traces.trace_for_episode("ep-on")
             assert trace is not None and len(trace.steps) == 2
             for s, step in zip(first, trace.steps, strict=True):
-                want = combine(np.array(s.answer_probs), layer_distribution(s.object_evidence, COUNT, params),
+                want = combine(np.array(s.answer_probs), layer_distribution(s.object_evidence, YESNO, params),
                                params.weight)
                 assert step.answer_probs == pytest.approx(want.tolist())
                 assert step.answer_probs != pytest.approx(s.answer_probs)
@@ -186,6 +190,12 @@ def test_counting_question_through_the_services_with_the_setting_on_and_off(
             assert any(step < 2 for hist in restored.values() for step, _ in hist)  # from before the restart
             assert len(third.object_evidence.psi) <= len(ev.psi) + 1  # no duplicate of the restored chair
             assert errors.empty(), errors.get()
+
+            # a counting question: no floor plan, no evidence (the whole map's count is not the room's)
+            n_detect = len(scorer.detect_requests)
+            bus.publish(keys.stream(ROBOT, keys.EPISODE_START), start("ep-count", room.kind, counting=True))
+            counted = run_steps(bus, scores, renderer, views, "ep-count", range(1))
+            assert counted[0].object_evidence is None and len(scorer.detect_requests) == n_detect
             mapper.stop()
 
             # the setting off: the same question, no detection request, no evidence
@@ -225,7 +235,7 @@ def test_a_detector_failure_does_not_fail_the_question(hub_settings: Settings, s
             with caplog.at_level("WARNING", logger="services.mapper.question_objects"):
                 (s,) = run_steps(bus, scores, renderer, views, "ep-bad", range(1))
             assert len(scorer.detect_requests) == 1  # it was asked
-            assert s.object_evidence is None and len(s.answer_probs) == len(COUNT)
+            assert s.object_evidence is None and len(s.answer_probs) == len(YESNO)
             assert "detection failed, no object evidence this step" in caplog.text
         finally:
             mapper.stop()

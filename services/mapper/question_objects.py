@@ -18,7 +18,8 @@ In the product (the mapper service, :class:`QuestionObjectsShell`): a question t
 has no floor plan (the :class:`~eqa.messages.EpisodeStart` carries none and the mapper must not read the
 simulator's scene): the region is then the whole map (``rects=None``), the explored share is the observed
 share of the mapped area's bounding box, and the existence prior refers to the whole explored map, not to the
-asked room. The room kind is parsed and reported but does not narrow the region.
+asked room. The room kind is parsed and reported but does not narrow the region. With the whole map as the
+region only existence questions get evidence (:data:`WHOLE_MAP_CATEGORIES`, measured: counting did not gain).
 """
 
 from __future__ import annotations
@@ -48,6 +49,12 @@ from eqa.messages import (
 log = logging.getLogger(__name__)
 
 CATEGORIES = ("counting", "existence")  # the question categories the class-level layer can answer (not colours)
+# The categories that get evidence when the region is the whole map (no floor plan: the product). Chosen on the
+# tuning seed 11 (bench/bench_object_evidence_region.py, n = 48): whole-map evidence vs VLM-only, existence
+# +16.7 points, counting +0.0 (the count of the class anywhere in the map is not the count in the asked room,
+# and the bounding-box explored share is a poor stand-in for the room's). Seeds 1-3: existence +14.6, counting
+# -8.3 points (bench/results/object_evidence_region.json).
+WHOLE_MAP_CATEGORIES = ("existence",)
 
 Rect = tuple[float, float, float, float]  # x0, y0, x1, y1
 
@@ -250,6 +257,13 @@ class QuestionObjectsShell:
                 self._qobjects_told.add(start.episode_id)
                 log.info("episode %s: object evidence on, but the question names no class to count or find "
                          "(forms: 'How many <class> ...', 'Is there a <class> ...'); no evidence", start.episode_id)
+            return False
+        category = question_target(start.question)[0]  # type: ignore[index]
+        if category not in WHOLE_MAP_CATEGORIES:
+            if start.episode_id not in self._qobjects_told:
+                self._qobjects_told.add(start.episode_id)
+                log.info("episode %s: no object evidence for a %s question without a floor plan (the whole map's "
+                         "count is not the asked room's; WHOLE_MAP_CATEGORIES)", start.episode_id, category)
             return False
         return True
 
