@@ -374,8 +374,25 @@ class MapUpdate(Message):
     objects: list[ObjectInstance] = Field(default_factory=list)  # HELIOS object layer (task episodes only)
 
 
+MAX_MEMORY_VIEWS = 16  # issue 22 joint answer: views in one prompt
+MAX_MEMORY_VIEW_SIDE = 448  # pixels, the longer side of a memory view (the mapper downscales to this)
+
+
+def _check_memory_views(views: list[np.ndarray]) -> list[np.ndarray]:
+    for i, v in enumerate(views):
+        if not isinstance(v, np.ndarray) or v.ndim != 3 or v.shape[2] != 3 or v.dtype != np.uint8:
+            raise ValueError(f"memory view {i} must be an HxWx3 uint8 image")
+        if min(v.shape[:2]) < 1 or max(v.shape[:2]) > MAX_MEMORY_VIEW_SIDE:
+            raise ValueError(f"memory view {i} is {v.shape[1]}x{v.shape[0]} px: each side 1..{MAX_MEMORY_VIEW_SIDE}")
+    return views
+
+
 class ScoreRequest(Message):
-    """The four queries of one step (Explore-EQA Eq. 1, 2, 5 and the answer distribution)."""
+    """The four queries of one step (Explore-EQA Eq. 1, 2, 5 and the answer distribution).
+
+    Issue 22, joint answer memory: with ``memory_views`` (1..16 images, each side <= 448 px) the request asks
+    only for the answer distribution over ALL those views in one prompt (backends that take several images);
+    the reply's ``relevance``/``lsv``/``gsv`` are then empty and ``mode`` is ``"joint"``."""
 
     kind: ClassVar[str] = "score_request"
     request_id: str = Field(default_factory=lambda: new_id("req"))
@@ -389,6 +406,12 @@ class ScoreRequest(Message):
     labels: list[InstanceLabel] = Field(default_factory=list)
     depth: NDArray | None = None
     seed: int = 0
+    memory_views: list[NDArray] = Field(default_factory=list, max_length=MAX_MEMORY_VIEWS)
+
+    @field_validator("memory_views")
+    @classmethod
+    def _memory_views(cls, v: list[np.ndarray]) -> list[np.ndarray]:
+        return _check_memory_views(v)
 
 
 class ScoreResult(Message):

@@ -105,6 +105,13 @@ class Settings(BaseSettings):
     answer_memory_k: int = Field(default=0, ge=0, le=16, description="answer memory: views pooled, 0 = off")
     answer_memory_fusion: Literal["loglinear", "linear"] = Field(
         default="loglinear", description="answer memory pooling: relevance-weighted log-linear or linear")
+    # issue 22 item 1, joint mode (h22j): the MAPPER keeps the answer_memory_views most relevant views and asks
+    # the scorer pool for ONE answer over all of them (several images in one prompt; hf backend only); the
+    # step's StepScores.answer_probs is that joint answer. "fusion" (default) leaves the mapper alone and the
+    # stopper pools per-view distributions (answer_memory_k). Use joint with answer_memory_k = 0.
+    answer_memory_mode: Literal["fusion", "joint"] = Field(
+        default="fusion", description="answer memory: stopper fusion, or one multi-image prompt (mapper, hf only)")
+    answer_memory_views: int = Field(default=4, ge=1, le=16, description="joint mode: views in the prompt (K)")
     # issue 22 item 2: question episodes track the target class in the HELIOS object layer and the stopper
     # combines its evidence with the VLM's answer (services/stopper/object_evidence.py); off by default.
     object_evidence: bool = Field(default=False, description="object evidence for existence/counting questions")

@@ -46,6 +46,7 @@ from eqa.messages import (
 from eqa.settings import Settings
 from eqa.store import Store
 from services.mapper import snapshots
+from services.mapper.answer_views import AnswerViewsShell
 from services.mapper.episode_map import EpisodeMap, MapperConfig, Timer
 from services.mapper.object_shell import Detect, ObjectLayerShell, Values
 from services.mapper.question_objects import QuestionObjectsShell
@@ -59,7 +60,7 @@ EARLY_FRAME_TTL_S = 30.0
 Scorer = Callable[[ScoreRequest], ScoreResult]
 
 
-class MapperService(QuestionObjectsShell, ObjectLayerShell, EpisodeService[EpisodeMap]):
+class MapperService(AnswerViewsShell, QuestionObjectsShell, ObjectLayerShell, EpisodeService[EpisodeMap]):
     """TSDF mapping, frontiers, prompt points and the semantic value map (Explore-EQA IV-B..D)."""
 
     name = "mapper"
@@ -78,6 +79,7 @@ class MapperService(QuestionObjectsShell, ObjectLayerShell, EpisodeService[Episo
         self._scorer = scorer
         self.objects_init(detector, values)  # HELIOS object layer of task episodes (object_shell.py)
         self.qobjects_init()  # object evidence of question episodes (question_objects.py, issue 22)
+        self.views_init()  # joint answer memory (answer_views.py, issue 22, EQA_ANSWER_MEMORY_MODE=joint)
         self.config = MapperConfig(
             tau_lsv=settings.tau_lsv,
             tau_gsv=settings.tau_gsv,
@@ -111,11 +113,13 @@ class MapperService(QuestionObjectsShell, ObjectLayerShell, EpisodeService[Episo
     def start_episode(self, robot: str, start: EpisodeStart) -> EpisodeMap:
         log.info("episode %s: mapping for robot %s (strategy %s)", start.episode_id, robot, start.strategy)
         self.qobjects_start(start)
+        self.views_start(start)
         return EpisodeMap(start, self.config, layers=self.objects_layers(start))
 
     def finish_episode(self, robot: str, msg: EpisodeCancel | EpisodeEnd, state: EpisodeMap) -> None:
         self.objects_finish(msg.episode_id)
         self.qobjects_finish(msg.episode_id)
+        self.views_finish(msg.episode_id)
         log.info("episode %s finished (%s); map dropped", msg.episode_id, msg.kind)
 
     def dump_state(self, state: EpisodeMap, **extra: Any) -> Any:
@@ -123,13 +127,16 @@ class MapperService(QuestionObjectsShell, ObjectLayerShell, EpisodeService[Episo
         # The map is an incremental snapshot (snapshots.py): its header here, the full part and deltas as parts.
         header, write, delete = snapshots.snapshot_step(state)
         state_header = self.qobjects_dump(state.episode_id, self.objects_dump(state.episode_id, header))
+        state_header = self.views_dump(state.episode_id, state_header)
         return StateParts(state_header, write, delete)
 
     def load_state(self, episode_id: str, data: Any) -> EpisodeMap:
+        data, answer_views = self.views_split(data)
         data, question_objects = self.qobjects_split(data)
         em = self.objects_load(episode_id, data, lambda b: snapshots.restore(
             b, lambda part: self.read_part(episode_id, part), self.config))
         self.qobjects_restore(em, question_objects)
+        self.views_restore(em.start, answer_views)
         log.info("episode %s: restored from snapshot at step %d", episode_id, em.step)
         return em
 
@@ -170,6 +177,10 @@ class MapperService(QuestionObjectsShell, ObjectLayerShell, EpisodeService[Episo
         result, score_ms = pending.result()
         timer.lap("score_wait", t0)
         timer.ms["score"] = score_ms
+        if result is not None:  # joint answer memory (issue 22): the answer over the K most relevant views
+            t0 = time.perf_counter()
+            result = self.views_apply(em, frame.step, frame.rgb, result)
+            timer.lap("answer_views", t0)
         t0 = time.perf_counter()
         if result is not None:
             try:
@@ -210,6 +221,7 @@ class MapperService(QuestionObjectsShell, ObjectLayerShell, EpisodeService[Episo
         self.publish(robot, keys.MAPPER_MAP, update)
         result = self._score(robot, em, frame)
         if result is not None:
+            result = self.views_apply(em, frame.step, frame.rgb, result)  # the stored joint answer
             self.publish(robot, keys.MAPPER_SCORES, self._step_scores(em, frame, result, self.qobjects_evidence(em)))
 
     @staticmethod

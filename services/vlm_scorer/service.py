@@ -87,6 +87,11 @@ class ScorerService(Service):
             except Exception as exc:
                 self.backend_error = f"scorer backend {self.settings.scorer_backend!r} is unavailable: {exc}"
                 log.error("%s; replying with this error to every request", self.backend_error)
+        if self.settings.answer_memory_mode == "joint" and self.backend is not None and \
+                not callable(getattr(self.backend, "answer_from_views", None)):
+            log.error("EQA_ANSWER_MEMORY_MODE=joint, but scorer backend %r takes one image per prompt: every joint "
+                      "answer request is refused (the mapper then keeps the single-view answer); use the hf "
+                      "backend, or EQA_ANSWER_MEMORY_MODE=fusion with EQA_ANSWER_MEMORY_K", self.backend.name)
         self._queryable = self.bus.declare_queryable(
             self.key, (ScoreRequest, DetectRequest, ValueRequest), self._route, serial=True
         )
@@ -125,6 +130,8 @@ class ScorerService(Service):
 
         if self.backend_error is not None or self.backend is None:
             return error(self.backend_error or "scorer backend is not loaded")
+        if req.memory_views:
+            return self.handle_joint(req, error)
         t0 = time.perf_counter()
         try:
             scores = self.backend.score(req)
@@ -158,6 +165,31 @@ class ScorerService(Service):
             proposed_choices=scores.proposed_choices,
             mode=scores.mode,
             resolution=scores.resolution,
+        )
+
+    def handle_joint(self, req: ScoreRequest, error: Any) -> Message:
+        """Issue 22, joint answer memory: the answer distribution over the request's ``memory_views`` in ONE
+        prompt (``answer_from_views``: backends that take several images, i.e. hf); others refuse."""
+        assert self.backend is not None
+        joint = getattr(self.backend, "answer_from_views", None)
+        if not callable(joint):
+            return error(f"scorer backend {self.backend.name!r} cannot answer from several views in one prompt "
+                         "(joint answer memory needs the hf backend; use EQA_ANSWER_MEMORY_MODE=fusion)")
+        t0 = time.perf_counter()
+        try:
+            probs = joint(list(req.memory_views), req.question, req.question.choices)
+        except (ValueError, RuntimeError) as exc:
+            log.warning("joint answer request %s (episode %s step %d) refused: %s", req.request_id,
+                        req.episode_id, req.step, exc)
+            return error(str(exc))
+        except Exception as exc:
+            log.exception("joint answer failed on %s", req.request_id)
+            return error(f"{type(exc).__name__}: {exc}")
+        self.served += 1
+        return ScoreResult(
+            request_id=req.request_id, episode_id=req.episode_id, step=req.step, answer_probs=list(probs),
+            relevance=0.0, backend=self.backend.name, model=self.backend.model_name, replica=self.replica,
+            latency_ms=(time.perf_counter() - t0) * 1000.0, mode="joint",
         )
 
     # ---- HELIOS: detections and per-target values ------------------------------------------------------
