@@ -19,6 +19,7 @@ Strategies (``EpisodeStart.strategy``): ``semantic`` uses both terms, ``no_lsv``
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -78,7 +79,23 @@ def write_values(
 ) -> None:
     """Max-fuse one Gaussian per point (peak ``value`` at the point, std ``sigma`` metres) into ``layer``
     in place."""
-    ny, nx = layer.shape
+    for (_, _, value), (r0, r1, c0, c1), g in _gaussian_windows(layer.shape, origin, resolution, points, values,
+                                                                 sigma):
+        win = layer[r0:r1, c0:c1]
+        np.maximum(win, (value * g).astype(layer.dtype), out=win)
+
+
+def _gaussian_windows(
+    shape: tuple[int, ...],
+    origin: tuple[float, float],
+    resolution: float,
+    points: list[tuple[float, float]],
+    values: list[float],
+    sigma: float,
+) -> Iterator[tuple[tuple[float, float, float], tuple[int, int, int, int], np.ndarray]]:
+    """Per point inside the grid: ``((x, y, value), (r0, r1, c0, c1), g)`` with ``g`` the unit Gaussian (std
+    ``sigma`` metres, cut at 3 sigma) over the window ``[r0:r1, c0:c1]`` of a ``shape`` grid."""
+    ny, nx = shape[:2]
     radius = math.ceil(3 * sigma / resolution)
     for (x, y), value in zip(points, values, strict=True):
         r, c = grid.cell_of_point(x, y, origin, resolution)
@@ -88,9 +105,9 @@ def write_values(
             continue
         xs, ys = grid.cell_center(np.arange(r0, r1), np.arange(c0, c1), origin, resolution)
         d2 = (ys[:, None] - y) ** 2 + (xs[None, :] - x) ** 2
-        g = (value * np.exp(-d2 / (2 * sigma * sigma))).astype(layer.dtype)
+        g = np.exp(-d2 / (2 * sigma * sigma))
         g[d2 > (3 * sigma) ** 2] = 0
-        np.maximum(layer[r0:r1, c0:c1], g, out=layer[r0:r1, c0:c1])
+        yield (x, y, value), (r0, r1, c0, c1), g
 
 
 # ---- view orientation (Explore-EQA appendix C, "Improving semantic exploration by considering view orientation";
@@ -148,18 +165,8 @@ def write_values_binned(
     """:func:`write_values` per direction bin: a point's Gaussian goes into the bin of the point's bearing from
     ``camera_xy`` only; the neutral value's Gaussian (same points, same sigma) into ``neutral_layer``."""
     bins = len(bin_layers)
-    ny, nx = neutral_layer.shape
-    radius = math.ceil(3 * sigma / resolution)
-    for (x, y), value in zip(points, values, strict=True):
-        r, c = grid.cell_of_point(x, y, origin, resolution)
-        r0, r1 = max(r - radius, 0), min(r + radius + 1, ny)
-        c0, c1 = max(c - radius, 0), min(c + radius + 1, nx)
-        if r0 >= r1 or c0 >= c1:
-            continue
-        xs, ys = grid.cell_center(np.arange(r0, r1), np.arange(c0, c1), origin, resolution)
-        d2 = (ys[:, None] - y) ** 2 + (xs[None, :] - x) ** 2
-        g = np.exp(-d2 / (2 * sigma * sigma))
-        g[d2 > (3 * sigma) ** 2] = 0
+    for (x, y, value), (r0, r1, c0, c1), g in _gaussian_windows(neutral_layer.shape, origin, resolution, points,
+                                                                 values, sigma):
         b = int(view_bin(np.array([x - camera_xy[0]]), np.array([y - camera_xy[1]]), bins)[0])
         win = bin_layers[b][r0:r1, c0:c1]
         np.maximum(win, (value * g).astype(win.dtype), out=win)
