@@ -392,7 +392,7 @@ class ScoreRequest(Message):
 
     Issue 22, joint answer memory: with ``memory_views`` (1..16 images, each side <= 448 px) the request asks
     only for the answer distribution over ALL those views in one prompt (backends that take several images);
-    the reply's ``relevance``/``lsv``/``gsv`` are then empty and ``mode`` is ``"joint"``."""
+    the reply's ``relevance``/``lsv``/``gsv`` are then empty."""
 
     kind: ClassVar[str] = "score_request"
     request_id: str = Field(default_factory=lambda: new_id("req"))
@@ -472,6 +472,9 @@ class StepScores(Message):
     choices: list[str] = Field(default_factory=list)
     mode: str = Field(default="", max_length=32)  # the scorer's mode (ScoreResult.mode, issue 23)
     object_evidence: ObjectEvidence | None = None  # issue 22: the object layer's evidence (question episodes)
+    # issue 22 joint answer memory: the steps whose views answer_probs was answered from in one prompt
+    # (empty: answer_probs is this step's own view)
+    answer_views: list[Annotated[int, Field(ge=0)]] = Field(default_factory=list, max_length=MAX_MEMORY_VIEWS)
 
 
 class Decision(Message):

@@ -120,8 +120,9 @@ def test_joint_answer_through_mapper_and_scorer(hub_settings: Settings, settings
             for a, b in zip(scorer.joint[-1].memory_views, kept_images, strict=True):
                 assert np.array_equal(a, b)
             want = backend.answer_from_views(kept_images, Q, Q.choices)
-            assert got[-1].mode == "joint" and got[-1].answer_probs == pytest.approx(want, abs=1e-5)
-            assert all(s.mode == "joint" for s in got)
+            assert got[-1].answer_views == sorted(av.steps) and got[-1].answer_probs == pytest.approx(want, abs=1e-5)
+            assert got[0].answer_views == [0] and all(s.answer_views for s in got)
+            assert all(s.mode == "logprobs" for s in got)  # the scorer's mode (issue 23) is kept
             # relevance is the step's own (the scorer's single-view Rel), not touched by the memory
             assert sorted(av.relevance) == sorted(sorted(s.relevance for s in got)[-2:])
 
@@ -147,7 +148,7 @@ def test_joint_answer_through_mapper_and_scorer(hub_settings: Settings, settings
             time.sleep(0.5)
             bus.publish(keys.stream(ROBOT, keys.EPISODE_START), start("ep-f"))
             plain = run_steps(bus, scores, renderer, vs, "ep-f", range(3))
-            assert len(scorer.joint) == n and all(s.mode != "joint" for s in plain)
+            assert len(scorer.joint) == n and all(not s.answer_views for s in plain)
             assert "ep-f" not in mapper.answer_views
         finally:
             mapper.stop()
@@ -171,7 +172,7 @@ def test_one_image_backend_refuses_and_the_episode_keeps_the_per_view_answer(
             bus.publish(keys.stream(ROBOT, keys.EPISODE_START), start("ep-o"))
             got = run_steps(bus, scores, renderer, vs, "ep-o", range(3))
             assert len(scorer.joint) == 1  # refused once, then not asked again in this episode
-            assert "ep-o" not in mapper.answer_views and all(s.mode != "joint" for s in got)
+            assert "ep-o" not in mapper.answer_views and all(not s.answer_views for s in got)
             assert abs(sum(got[-1].answer_probs) - 1) < 1e-6
         finally:
             mapper.stop()

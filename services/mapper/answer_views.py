@@ -167,7 +167,13 @@ class AnswerViewsShell:
                 av.answer = self._views_ask(em, step, av)
         if av.answer is None:
             return result
-        return result.model_copy(update={"answer_probs": list(av.answer), "mode": "joint"})
+        # the scorer's mode (logprobs / sampling, issue 23) stays: the joint prompt is read the same way
+        return result.model_copy(update={"answer_probs": list(av.answer)})
+
+    def views_steps(self, episode_id: str) -> list[int]:
+        """The steps the episode's current joint answer comes from (empty: no joint answer)."""
+        av = self.answer_views.get(episode_id)
+        return sorted(av.steps) if av is not None and av.answer is not None else []
 
     def _views_ask(self, em: Any, step: int, av: AnswerViews) -> list[float] | None:
         request = ScoreRequest(

@@ -203,8 +203,8 @@ class MapperService(AnswerViewsShell, QuestionObjectsShell, ObjectLayerShell, Ep
             self.publish(robot, keys.MAPPER_MAP, update)
         else:
             self.publish_step(em.episode_id, keys.MAPPER_MAP, update, frame.step)
-            self.publish_step(em.episode_id, keys.MAPPER_SCORES, self._step_scores(em, frame, result, evidence),
-                              frame.step)
+            self.publish_step(em.episode_id, keys.MAPPER_SCORES, self._step_scores(
+                em, frame, result, evidence, self.views_steps(em.episode_id)), frame.step)
         t0 = time.perf_counter()
         self._record(em, frame)
         self.objects_record(em, frame)
@@ -222,11 +222,12 @@ class MapperService(AnswerViewsShell, QuestionObjectsShell, ObjectLayerShell, Ep
         result = self._score(robot, em, frame)
         if result is not None:
             result = self.views_apply(em, frame.step, frame.rgb, result)  # the stored joint answer
-            self.publish(robot, keys.MAPPER_SCORES, self._step_scores(em, frame, result, self.qobjects_evidence(em)))
+            self.publish(robot, keys.MAPPER_SCORES, self._step_scores(em, frame, result, self.qobjects_evidence(em),
+                                                                      self.views_steps(em.episode_id)))
 
     @staticmethod
     def _step_scores(em: EpisodeMap, frame: Frame, result: ScoreResult,
-                     evidence: ObjectEvidence | None = None) -> StepScores:
+                     evidence: ObjectEvidence | None = None, answer_views: list[int] | None = None) -> StepScores:
         return StepScores(
             episode_id=em.episode_id,
             step=frame.step,
@@ -239,6 +240,7 @@ class MapperService(AnswerViewsShell, QuestionObjectsShell, ObjectLayerShell, Ep
             # a question without choices: the ones the scorer proposed (Explore-EQA section VI-A)
             choices=em.start.question.choices or result.proposed_choices,
             object_evidence=evidence,  # issue 22: the question's object layer (EQA_OBJECT_EVIDENCE)
+            answer_views=answer_views or [],  # issue 22: steps of the joint answer (EQA_ANSWER_MEMORY_MODE=joint)
         )
 
     def _timed_score(self, robot: str, em: EpisodeMap, frame: Frame) -> tuple[ScoreResult | None, float]:

@@ -189,7 +189,7 @@ class ScorerService(Service):
         return ScoreResult(
             request_id=req.request_id, episode_id=req.episode_id, step=req.step, answer_probs=list(probs),
             relevance=0.0, backend=self.backend.name, model=self.backend.model_name, replica=self.replica,
-            latency_ms=(time.perf_counter() - t0) * 1000.0, mode="joint",
+            latency_ms=(time.perf_counter() - t0) * 1000.0, mode="logprobs",  # softmax over the choice letters
         )
 
     # ---- HELIOS: detections and per-target values ------------------------------------------------------
