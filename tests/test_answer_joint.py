@@ -36,6 +36,8 @@ from services.mapper.answer_views import AnswerViews, shrink
 from services.mapper.service import MapperService
 from services.sim.housegen import generate_house
 from services.sim.render import Renderer
+from services.stopper.calibration import TraceStore
+from services.stopper.service import StopperService
 from services.vlm_scorer.backends.hf import HFBackend
 from services.vlm_scorer.service import ScorerService
 from services.vlm_scorer.tiny import build_tiny_qwen2vl
@@ -104,6 +106,8 @@ def test_joint_answer_through_mapper_and_scorer(hub_settings: Settings, settings
         bus.subscribe(keys.stream(ROBOT, keys.MAPPER_ERROR), ErrorReply, lambda k, m: errors.put(m))
         scorer = CountingScorer(joint, backend=backend)
         scorer.start()
+        stopper = StopperService(joint)
+        stopper.start()
         mapper = MapperService(joint)
         mapper.start()
         try:
@@ -123,6 +127,18 @@ def test_joint_answer_through_mapper_and_scorer(hub_settings: Settings, settings
             assert got[-1].answer_views == sorted(av.steps) and got[-1].answer_probs == pytest.approx(want, abs=1e-5)
             assert got[0].answer_views == [0] and all(s.answer_views for s in got)
             assert all(s.mode == "logprobs" for s in got)  # the scorer's mode (issue 23) is kept
+            # the stopper's trace (what `eqa calibrate` learns CP from) holds the joint answers
+            traces = TraceStore(stopper.store)
+            deadline = time.monotonic() + 15
+            while time.monotonic() < deadline:
+                t = traces.trace_for_episode("ep-j")
+                if t is not None and len(t.steps) == 4:
+                    break
+                time.sleep(0.05)
+            trace = traces.trace_for_episode("ep-j")
+            assert trace is not None and len(trace.steps) == 4
+            for s, st in zip(got, trace.steps, strict=True):
+                assert st.answer_probs == pytest.approx(s.answer_probs)
             # relevance is the step's own (the scorer's single-view Rel), not touched by the memory
             assert sorted(av.relevance) == sorted(sorted(s.relevance for s in got)[-2:])
 
@@ -152,6 +168,7 @@ def test_joint_answer_through_mapper_and_scorer(hub_settings: Settings, settings
             assert "ep-f" not in mapper.answer_views
         finally:
             mapper.stop()
+            stopper.stop()
             scorer.stop()
 
 
