@@ -11,7 +11,7 @@ import socket
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 CsvList = Annotated[list[str], NoDecode]
@@ -206,6 +206,17 @@ class Settings(BaseSettings):
         if isinstance(v, str):
             return [p.strip() for p in v.split(",") if p.strip()]
         return v
+
+    @model_validator(mode="after")
+    def _one_answer_rule(self) -> Settings:
+        """Joint answers already come from the K most relevant views; pooling them again in the stopper would be
+        a rule nobody calibrated."""
+        if self.answer_memory_mode == "joint" and self.answer_memory_k > 0:
+            raise ValueError(
+                "EQA_ANSWER_MEMORY_MODE=joint takes its views from EQA_ANSWER_MEMORY_VIEWS; set EQA_ANSWER_MEMORY_K=0 "
+                "(the stopper's fusion of per-view answers is the other answer-memory mode, not an addition to it)"
+            )
+        return self
 
     @property
     def scenes_path(self) -> Path:

@@ -225,3 +225,15 @@ def test_view_memory_keeps_the_k_most_relevant_bounded() -> None:
         AnswerViews(MAX_MEMORY_VIEWS + 1)
     with pytest.raises(ValueError):
         AnswerViews.restore({**av.snapshot(), "steps": [0, 1, 2], "relevance": [0, 0, 0], "images": [big] * 3})
+
+
+def test_joint_mode_refuses_a_second_pooling_in_the_stopper() -> None:
+    """Joint answers pooled again by the stopper (EQA_ANSWER_MEMORY_K > 0) would be a rule nobody calibrated."""
+    import pydantic
+
+    from eqa.settings import Settings
+
+    assert Settings(answer_memory_mode="joint").answer_memory_k == 0
+    assert Settings(answer_memory_mode="fusion", answer_memory_k=2).answer_memory_k == 2
+    with pytest.raises(pydantic.ValidationError, match="EQA_ANSWER_MEMORY_K=0"):
+        Settings(answer_memory_mode="joint", answer_memory_k=2)
