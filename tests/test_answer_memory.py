@@ -12,7 +12,6 @@ from services.stopper import synthetic
 from services.stopper.answer_memory import (
     MAX_K,
     AnswerRule,
-    ViewMemory,
     memory_answer,
     pool,
     rule_mismatch,
@@ -67,18 +66,22 @@ def test_rule_bounds_and_names() -> None:
 
 
 def test_view_memory_is_bounded_in_views_and_pixels() -> None:
-    mem = ViewMemory(k=3, max_side=64)
+    """The K most relevant views the mapper keeps for a joint answer (services/mapper/answer_views.py)."""
+    from eqa.messages import MAX_MEMORY_VIEW_SIDE, MAX_MEMORY_VIEWS
+    from services.mapper.answer_views import AnswerViews
+
+    mem = AnswerViews(k=3)
     rng = np.random.default_rng(0)
     rels = rng.random(40)
     for t, rel in enumerate(rels):
-        mem.add(t, rel, np.zeros((480, 640, 3), np.uint8))
-        assert len(mem.views) <= 3
-    assert sorted(v.step for v in mem.views) == sorted(np.argsort(-rels)[:3].tolist())
-    assert all(max(v.rgb.shape[:2]) <= 64 for v in mem.views if v.rgb is not None)
-    assert mem.nbytes <= 3 * 64 * 64 * 3
-    assert not mem.add(99, -1.0)  # worse than every kept view
+        mem.offer(t, rel, np.zeros((480, 640, 3), np.uint8))
+        assert len(mem.steps) <= 3
+    assert sorted(mem.steps) == sorted(np.argsort(-rels)[:3].tolist())
+    assert all(max(im.shape[:2]) <= MAX_MEMORY_VIEW_SIDE for im in mem.images)
+    assert mem.nbytes <= 3 * MAX_MEMORY_VIEW_SIDE**2 * 3
+    assert not mem.offer(99, -1.0, np.zeros((4, 4, 3), np.uint8))  # worse than every kept view
     with pytest.raises(ValueError):
-        ViewMemory(k=MAX_K + 1)
+        AnswerViews(k=MAX_MEMORY_VIEWS + 1)
 
 
 @pytest.mark.parametrize("eps", [0.2])
