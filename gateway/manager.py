@@ -176,9 +176,15 @@ def _scene_area(scene_area: SceneArea, scene: str, scenes_path: Path, hm3d_dir: 
     return float(scene_area(scene, scenes_path, hm3d_dir))
 
 
-def step_budget(settings: Settings, req: QuestionRequest, scene_area: SceneArea | None = None) -> int:
-    """``max_steps`` of an episode: the request's budget, else ``int(3*sqrt(floor area))`` (Explore-EQA
-    section VI: T = 3 * sqrt(scene area)), else :data:`DEFAULT_MAX_STEPS`. The scene is checked in every case
+QUESTION_STEPS_PER_SQRT_M2 = 3.0  # Explore-EQA section VI: T = 3 * sqrt(scene area)
+TASK_STEPS_PER_SQRT_M2 = 6.0  # a HELIOS task's budget, the task benchmark's (services.sim.tasks.STEPS_PER_SQRT_M2)
+
+
+def step_budget(settings: Settings, req: QuestionRequest, scene_area: SceneArea | None = None,
+                per_sqrt_m2: float = QUESTION_STEPS_PER_SQRT_M2) -> int:
+    """``max_steps`` of an episode: the request's budget, else ``int(per_sqrt_m2 * sqrt(floor area))`` (a
+    question: Explore-EQA section VI, T = 3 * sqrt(scene area); a task: 6, as the task benchmark), else
+    :data:`DEFAULT_MAX_STEPS`. The scene is checked in every case
     (an explicit budget used to skip the check: unknown scenes were accepted, then failed by the sim). The
     422 says what a scene id looks like and never shows the server's paths or its list of scenes."""
     if req.scene is None or scene_area is None:
@@ -199,7 +205,7 @@ def step_budget(settings: Settings, req: QuestionRequest, scene_area: SceneArea 
         return req.max_steps
     if area is None or not math.isfinite(area) or area <= 0:
         return DEFAULT_MAX_STEPS
-    return max(1, int(3 * math.sqrt(area)))
+    return max(1, int(per_sqrt_m2 * math.sqrt(area)))
 
 
 class EpisodeManager:
@@ -457,7 +463,8 @@ class EpisodeManager:
         if req.robot is not None and req.robot not in self.settings.robots:
             raise InvalidError(f"unknown robot {req.robot!r}; known: {', '.join(self.settings.robots)}", field="robot")
         self._check_new_scene(req.scene, owner)
-        budget = step_budget(self.settings, req, self.scene_area)
+        budget = step_budget(self.settings, req, self.scene_area,
+                             TASK_STEPS_PER_SQRT_M2 if task is not None else QUESTION_STEPS_PER_SQRT_M2)
         episode_id = new_id("ep")
         question = Question(
             text=req.question,

@@ -51,3 +51,20 @@ def test_a_pick_and_place_task_through_the_services(client: httpx.Client, gw_set
     end = stored_end(gw_settings, eid)
     assert end is not None and end.metrics == st["metrics"]
     assert events[-1]["metrics"] == {k: round(v, 4) if isinstance(v, float) else v for k, v in st["metrics"].items()}
+
+
+def test_a_task_without_a_budget_gets_the_task_budget(client: httpx.Client) -> None:
+    """A task's default budget is the task benchmark's 6 sqrt(floor area), not a question's 3 sqrt(area) (a
+    pick-and-place needs the search, the pick and the search for the goal); cancelled at once."""
+    from gateway.manager import TASK_STEPS_PER_SQRT_M2
+    from services.sim.tasks import STEPS_PER_SQRT_M2
+
+    assert TASK_STEPS_PER_SQRT_M2 == STEPS_PER_SQRT_M2  # the gateway cannot import the sim: one value, two homes
+    c = client
+    area = generate_house(HOUSE).floor_area_m2
+    r = c.post("/v1/tasks", json={"instruction": "Find a box", "scene": f"gen-{HOUSE}", "record": False})
+    assert r.status_code == 202, r.text
+    eid = r.json()["episode_id"]
+    assert c.get(f"/v1/episodes/{eid}").json()["max_steps"] == int(6 * area**0.5)
+    c.post(f"/v1/episodes/{eid}/cancel")
+    assert wait_for(lambda: c.get(f"/v1/episodes/{eid}").json()["state"] in ("cancelled", "stopped"), EPISODE_S)
