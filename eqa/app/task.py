@@ -70,7 +70,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    "frontier), trusting (acts on the first detection)")
     p.add_argument("--pick-limit", type=_pick_limit, default=None,
                    help="pick attempts: 1, 5, ... or unlimited (default unlimited)")
-    p.add_argument("--max-steps", type=int, default=None, help="step budget (default 6*sqrt(floor area), the task benchmark's)")
+    p.add_argument("--max-steps", type=int, default=None,
+                   help="step budget (default 6*sqrt(floor area), the task benchmark's)")
     p.add_argument("--seed", type=int, default=0, help="seed of the start pose sampling")
     p.add_argument("--no-record", action="store_true", help="no Rerun recording")
     p.add_argument("--url", default=None, help="use a running gateway (eqa up) instead of starting a fleet")
