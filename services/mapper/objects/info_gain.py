@@ -44,6 +44,27 @@ class Optimistic:
     pixels: int  # pixels of Y* showing the class (optimistic_each: inside the instance's box; 0: not visible)
 
 
+def _seen_as(gamma: torch.Tensor, members: torch.Tensor, cls: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Eq. 11's optimistic assumption: render colours with the instance's Gaussians ``members`` one-hot at class
+    ``cls`` (the others at their expected class probabilities), and each Gaussian's index within the instance
+    (-1 outside it)."""
+    colors = dirichlet.expectation(gamma).clone()
+    onehot = torch.zeros(gamma.shape[1], device=gamma.device)
+    onehot[cls] = 1.0
+    colors[members] = onehot
+    local = torch.full((gamma.shape[0],), -1, dtype=torch.long, device=gamma.device)
+    local[members] = torch.arange(members.numel(), device=gamma.device)
+    return colors, local
+
+
+def _labels(r: splat.Splats, valid_acc: float) -> torch.Tensor:
+    """Per pixel (flattened) the rendered class Y*: the argmax colour where enough opacity accumulated, else
+    ``other`` (the last class)."""
+    assert r.channels is not None
+    other = r.channels.shape[-1] - 1
+    return torch.where(r.acc >= valid_acc, r.channels.argmax(-1), torch.full_like(r.acc, other).long()).reshape(-1)
+
+
 def optimistic_views(
     means: torch.Tensor,
     sigma: torch.Tensor,
@@ -61,14 +82,7 @@ def optimistic_views(
     """Eq. 11 and 12 for the instance made of Gaussians ``members`` (indices) seen as class ``cls`` from the
     camera-to-world ``poses`` (intrinsics ``K`` at ``height x width``). ``pixel_weight``: Eq. 3's w at this
     resolution."""
-    n_classes = gamma.shape[1]
-    other = n_classes - 1
-    colors = dirichlet.expectation(gamma).clone()
-    onehot = torch.zeros(n_classes, device=gamma.device)
-    onehot[cls] = 1.0
-    colors[members] = onehot
-    local = torch.full((means.shape[0],), -1, dtype=torch.long, device=gamma.device)
-    local[members] = torch.arange(members.numel(), device=gamma.device)
+    colors, local = _seen_as(gamma, members, cls)
     g0 = gamma[members].clone()
     g = g0.clone()
     shown = 0
@@ -78,9 +92,7 @@ def optimistic_views(
             max_radius_px=config.max_splat_radius_px, min_alpha=config.min_alpha, max_alpha=config.max_alpha,
             min_transmittance=config.min_transmittance, valid_acc=config.valid_acc,
         )
-        assert r.channels is not None
-        y = torch.where(r.acc >= config.valid_acc, r.channels.argmax(-1), torch.full_like(r.acc, other).long())
-        y = y.reshape(-1)
+        y = _labels(r, config.valid_acc)
         shown += int((y == cls).sum())
         sel = local[r.gauss] >= 0
         g = dirichlet.update(g, local[r.gauss[sel]], r.kappa[sel], y[r.pixel[sel]], config.alpha_cpa, pixel_weight)
@@ -110,23 +122,15 @@ def optimistic_each(
         return []
     n_views = len(poses)
     n_classes = gamma.shape[1]
-    other = n_classes - 1
-    colors = dirichlet.expectation(gamma).clone()
-    onehot = torch.zeros(n_classes, device=gamma.device)
-    onehot[cls] = 1.0
-    colors[members] = onehot
     m = int(members.numel())
-    local = torch.full((means.shape[0],), -1, dtype=torch.long, device=gamma.device)
-    local[members] = torch.arange(m, device=gamma.device)
+    colors, local = _seen_as(gamma, members, cls)
     r = splat.render_views(
         means, sigma, opacity, torch.stack([p.to(means.device, torch.float32) for p in poses]), K, height, width,
         colors=colors, max_radius_px=config.max_splat_radius_px, min_alpha=config.min_alpha,
         max_alpha=config.max_alpha, min_transmittance=config.min_transmittance, valid_acc=config.valid_acc,
         roi_of=members,
     )
-    assert r.channels is not None
-    y = torch.where(r.acc >= config.valid_acc, r.channels.argmax(-1), torch.full_like(r.acc, other).long())
-    y = y.reshape(-1)
+    y = _labels(r, config.valid_acc)
     hw = height * width
     shown = torch.zeros(n_views, dtype=torch.long, device=gamma.device).index_add_(
         0, torch.arange(n_views * hw, device=gamma.device) // hw, (y == cls).long())

@@ -225,11 +225,9 @@ class ObjectLayer:
     def members(self, instance_id: int) -> torch.Tensor:
         return torch.nonzero(self.store.instance == instance_id).squeeze(1)
 
-    def optimistic(
-        self, instance_id: int, cls: int, poses: list[torch.Tensor], width: int | None = None
-    ) -> Optimistic:
-        """Eq. 11/12 for ``instance_id`` seen as class ``cls`` from the camera poses ``poses``, rendered with
-        the last frame's camera model at ``width`` (default ``gaze_width``) pixels across."""
+    def _gaze_camera(self, width: int | None) -> tuple[torch.Tensor, int, int, float]:
+        """The last frame's camera model at ``width`` (default ``gaze_width``) pixels across: intrinsics, height,
+        width, and Eq. 3's pixel weight at that resolution."""
         if self.last_camera is None:
             raise RuntimeError("the layer has seen no frame yet")
         _, K, big_h, big_w = self.last_camera
@@ -238,28 +236,29 @@ class ObjectLayer:
         h = max(1, round(big_h * s))
         update_scale = round(big_w * self.config.render_scale) / big_w
         weight = self.config.pixel_weight * (update_scale / s) ** 2
+        return scale_intrinsics(K, s), h, w, weight
+
+    def optimistic(
+        self, instance_id: int, cls: int, poses: list[torch.Tensor], width: int | None = None
+    ) -> Optimistic:
+        """Eq. 11/12 for ``instance_id`` seen as class ``cls`` from the camera poses ``poses``, rendered with
+        the last frame's camera model at ``width`` (default ``gaze_width``) pixels across."""
+        K, h, w, weight = self._gaze_camera(width)
         st = self.store
         return optimistic_views(
             st.means, st.sigma, st.opacity, st.gamma, self.members(instance_id), cls,
-            [p.to(self.device) for p in poses], scale_intrinsics(K, s), h, w, self.config, weight,
+            [p.to(self.device) for p in poses], K, h, w, self.config, weight,
         )
 
     def optimistic_each(
         self, instance_id: int, cls: int, poses: list[torch.Tensor], width: int | None = None
     ) -> list[Optimistic]:
         """:meth:`optimistic` of each pose alone (one gaze point each), in one vectorised render."""
-        if self.last_camera is None:
-            raise RuntimeError("the layer has seen no frame yet")
-        _, K, big_h, big_w = self.last_camera
-        w = int(width or self.config.gaze_width)
-        s = w / big_w
-        h = max(1, round(big_h * s))
-        update_scale = round(big_w * self.config.render_scale) / big_w
-        weight = self.config.pixel_weight * (update_scale / s) ** 2
+        K, h, w, weight = self._gaze_camera(width)
         st = self.store
         return optimistic_each(
             st.means, st.sigma, st.opacity, st.gamma, self.members(instance_id), cls,
-            [p.to(self.device) for p in poses], scale_intrinsics(K, s), h, w, self.config, weight,
+            [p.to(self.device) for p in poses], K, h, w, self.config, weight,
         )
 
     def nbytes(self) -> int:
