@@ -28,6 +28,7 @@ import numpy as np
 
 from eqa.messages import MAX_MEMORY_VIEW_SIDE, MAX_MEMORY_VIEWS, EpisodeStart, ErrorReply, ScoreRequest, ScoreResult
 from eqa.scorer_client import ScorerError
+from services.mapper import snapshots
 
 log = logging.getLogger(__name__)
 
@@ -130,19 +131,12 @@ class AnswerViewsShell:
 
     def views_dump(self, episode_id: str, state: Any) -> Any:
         av = self.answer_views.get(episode_id)
-        if av is None:
-            return state
-        if isinstance(state, dict):
-            return {**state, STATE_KEY: av.snapshot()}
-        return {"map": state, STATE_KEY: av.snapshot()}
+        return state if av is None else snapshots.with_state_part(state, STATE_KEY, av.snapshot())
 
     @staticmethod
     def views_split(data: Any) -> tuple[Any, Any]:
         """Stored state -> (the rest, as the other loaders read it; this memory's snapshot or None)."""
-        if isinstance(data, dict) and STATE_KEY in data:
-            rest = {k: v for k, v in data.items() if k != STATE_KEY}
-            return (rest["map"] if set(rest) == {"map"} else rest), data[STATE_KEY]
-        return data, None
+        return snapshots.without_state_part(data, STATE_KEY)
 
     def views_restore(self, start: EpisodeStart, snapshot: Any) -> None:
         if not self._views_wanted(start):

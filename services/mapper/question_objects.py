@@ -45,6 +45,7 @@ from eqa.messages import (
     ObjectEvidence,
     Question,
 )
+from services.mapper import snapshots
 
 log = logging.getLogger(__name__)
 
@@ -283,18 +284,12 @@ class QuestionObjectsShell:
     def qobjects_dump(self, episode_id: str, state: Any) -> Any:
         """``state`` (the map header, or the task episode's dict) with the layer's snapshot added."""
         qo = self.qobjects.get(episode_id)
-        if qo is None:
-            return state
-        return {"map": state, STATE_KEY: qo.snapshot()} if not isinstance(state, dict) else {**state,
-                                                                                              STATE_KEY: qo.snapshot()}
+        return state if qo is None else snapshots.with_state_part(state, STATE_KEY, qo.snapshot())
 
     @staticmethod
     def qobjects_split(data: Any) -> tuple[Any, bytes | None]:
         """Stored state -> (what the map's loader reads, the layer's snapshot or None)."""
-        if isinstance(data, dict) and STATE_KEY in data:
-            rest = {k: v for k, v in data.items() if k != STATE_KEY}
-            return (rest["map"] if set(rest) == {"map"} else rest), data[STATE_KEY]
-        return data, None
+        return snapshots.without_state_part(data, STATE_KEY)
 
     def qobjects_restore(self, em: Any, snapshot: bytes | None) -> None:
         """After a restart: continue the stored layer; a state saved without one starts a fresh layer."""

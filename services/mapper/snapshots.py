@@ -289,3 +289,22 @@ def restore(header: bytes, read_part: Any, config: MapperConfig | None = None) -
     _logs[em] = _Log(gen=gen, full=head["full"], full_bytes=len(full), deltas=list(deltas), stamp=0,
                      grid=_grid(em), planes={k: a.copy() for k, a in v.planes.items()})
     return em
+
+
+# ---- what rides along with the map in the stored envelope ------------------------------------------------------
+# The envelope's state is the map's header alone, or a dict {"map": header, <part>: ...} when an episode carries
+# more (the HELIOS task layer "objects", a question's object layer, the joint answer views).
+
+
+def with_state_part(state: Any, key: str, value: Any) -> Any:
+    """``state`` with ``value`` under ``key`` (wrapping a bare map header as ``{"map": header}``)."""
+    return {**state, key: value} if isinstance(state, dict) else {"map": state, key: value}
+
+
+def without_state_part(data: Any, key: str) -> tuple[Any, Any]:
+    """Stored state -> (the rest, as the other loaders read it: a bare map header when only it is left; the value
+    under ``key`` or None)."""
+    if isinstance(data, dict) and key in data:
+        rest = {k: v for k, v in data.items() if k != key}
+        return (rest["map"] if set(rest) == {"map"} else rest), data[key]
+    return data, None
