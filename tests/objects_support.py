@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from eqa import grid as gridm
-from eqa.messages import DetectRequest
+from eqa.messages import DetectRequest, Frame, Pose2D
 from services.mapper.objects.layer import ObjectLayer, camera_from_gaze, pixel_classes
 from services.sim.camera import CAMERA_HEIGHT, intrinsics
 from services.sim.render import Rendered, Renderer
@@ -28,6 +28,14 @@ class View:
     K: np.ndarray
     frame: Rendered
     pixels: int  # of the instance
+
+
+def frame_of(view: View, renderer: Renderer, episode_id: str, step: int) -> Frame:
+    """The sim's Frame message of ``view`` (rendered RGB-D, instances and their labels) at ``step``."""
+    fr = view.frame
+    return Frame(episode_id=episode_id, step=step, pose=Pose2D(x=view.x, y=view.y, yaw=view.yaw),
+                 camera_pose=view.pose, intrinsics=view.K, rgb=fr.rgb, depth=fr.depth, instances=fr.instances,
+                 labels=renderer.labels(fr.instances))
 
 
 def look_at(x: float, y: float, target: tuple[float, float, float]) -> tuple[float, float]:

@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 import pytest
-from objects_support import ring_views
+from objects_support import frame_of, ring_views
 
 from eqa import keys
 from eqa.bus import Bus
@@ -21,9 +21,7 @@ from eqa.messages import (
     MAX_MEMORY_VIEWS,
     EpisodeStart,
     ErrorReply,
-    Frame,
     Message,
-    Pose2D,
     Question,
     ScoreRequest,
     StepScores,
@@ -70,13 +68,6 @@ class CountingScorer(ScorerService):
         if req.memory_views:
             self.joint.append(req)
         return super().handle(req)
-
-
-def frame_of(view, renderer, episode_id: str, step: int) -> Frame:
-    fr = view.frame
-    return Frame(episode_id=episode_id, step=step, pose=Pose2D(x=view.x, y=view.y, yaw=view.yaw),
-                 camera_pose=view.pose, intrinsics=view.K, rgb=fr.rgb, depth=fr.depth, instances=fr.instances,
-                 labels=renderer.labels(fr.instances))
 
 
 def start(episode_id: str) -> EpisodeStart:

@@ -8,11 +8,11 @@ import queue
 import time
 
 import pytest
-from objects_support import ring_views
+from objects_support import frame_of, ring_views
 
 from eqa import keys
 from eqa.bus import Bus
-from eqa.messages import EpisodeStart, ErrorReply, Frame, MapUpdate, Pose2D, Question, Task
+from eqa.messages import EpisodeStart, ErrorReply, MapUpdate, Question, Task
 from eqa.settings import Settings
 from services.mapper.service import MapperService
 from services.sim.housegen import generate_house
@@ -28,13 +28,6 @@ def chair_views():
     scene = generate_house(5)
     renderer = Renderer(scene)
     return scene, renderer, ring_views(scene, renderer, 25, W, H)
-
-
-def frame_of(view, renderer, episode_id: str, step: int) -> Frame:
-    fr = view.frame
-    return Frame(episode_id=episode_id, step=step, pose=Pose2D(x=view.x, y=view.y, yaw=view.yaw),
-                 camera_pose=view.pose, intrinsics=view.K, rgb=fr.rgb, depth=fr.depth, instances=fr.instances,
-                 labels=renderer.labels(fr.instances))
 
 
 def task_start(episode_id: str) -> EpisodeStart:

@@ -13,7 +13,7 @@ import time
 
 import numpy as np
 import pytest
-from objects_support import ring_views
+from objects_support import frame_of, ring_views
 
 from eqa import keys
 from eqa.bus import Bus
@@ -21,9 +21,7 @@ from eqa.messages import (
     DetectRequest,
     EpisodeStart,
     ErrorReply,
-    Frame,
     Message,
-    Pose2D,
     Question,
     StepScores,
     StopConfig,
@@ -104,13 +102,6 @@ def chair_views():
     scene = generate_house(5)
     renderer = Renderer(scene)
     return scene, renderer, ring_views(scene, renderer, 25, W, H)
-
-
-def frame_of(view, renderer, episode_id: str, step: int) -> Frame:
-    fr = view.frame
-    return Frame(episode_id=episode_id, step=step, pose=Pose2D(x=view.x, y=view.y, yaw=view.yaw),
-                 camera_pose=view.pose, intrinsics=view.K, rgb=fr.rgb, depth=fr.depth, instances=fr.instances,
-                 labels=renderer.labels(fr.instances))
 
 
 def start(episode_id: str, room: str, counting: bool = False) -> EpisodeStart:

@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from objects_support import ring_views
+from objects_support import frame_of, ring_views
 
-from eqa.messages import DetectResult, Frame, GridSpec, MapUpdate, Pose2D, Task, decode, encode
+from eqa.messages import DetectResult, GridSpec, MapUpdate, Pose2D, Task, decode, encode
 from services.mapper.object_map import ObjectMap, ObjectMapConfig, task_classes
 from services.mapper.objects.config import ObjectLayerConfig
 from services.sim.housegen import generate_house
@@ -26,13 +26,6 @@ def views():
     return scene, renderer, ring_views(scene, renderer, 25, 160, 120)  # the kitchen chair
 
 
-def frame_of(view, step: int, renderer) -> Frame:
-    fr = view.frame
-    return Frame(episode_id="ep-om", step=step, pose=Pose2D(x=view.x, y=view.y, yaw=view.yaw),
-                 camera_pose=view.pose, intrinsics=view.K, rgb=fr.rgb, depth=fr.depth, instances=fr.instances,
-                 labels=renderer.labels(fr.instances))
-
-
 def test_task_classes_and_thresholds() -> None:
     assert task_classes(TASK, ObjectMapConfig()) == (["chair", "table", "sofa"], [0.25, 0.35, 0.45])
     find = Task(kind="find_object", text="Find a mug", scene="gen-1", object="mug")
@@ -44,7 +37,7 @@ def test_fusion_summaries_gaze_and_restore(views) -> None:
     om = ObjectMap.for_task(TASK, ObjectMapConfig(layer=ObjectLayerConfig(render_scale=1.0)))
     det = OracleDetector(OracleDetectorParams(recall=1.0, background_fp=0.0, confusion=0.0))
     for step, v in enumerate(vs[:2]):
-        f = frame_of(v, step, renderer)
+        f = frame_of(v, renderer, "ep-om", step)
         req = om.detect_request(f, seed=3)
         assert req.classes == ["chair", "table", "sofa"] and req.thresholds == [0.25, 0.35, 0.45]
         res = DetectResult(request_id=req.request_id, episode_id="ep-om", step=step, detections=det.detect(req),
@@ -69,7 +62,7 @@ def test_fusion_summaries_gaze_and_restore(views) -> None:
     back = ObjectMap.restore(om.snapshot(), om.config)
     assert back.thresholds == om.thresholds and back.history == om.history
     assert [o.model_dump() for o in back.summaries()] == [o.model_dump() for o in om.summaries()]
-    f = frame_of(vs[2], 2, renderer)
+    f = frame_of(vs[2], renderer, "ep-om", 2)
     req = om.detect_request(f, seed=3)
     res = DetectResult(request_id="r", episode_id="ep-om", step=2, detections=det.detect(req), backend="oracle")
     a, b = om.integrate(f, res), back.integrate(f, res)
@@ -88,7 +81,7 @@ def test_rerun_shows_gaussians_instances_and_psi(views, tmp_path) -> None:
     det = OracleDetector(OracleDetectorParams(recall=1.0, background_fp=0.0))
     rec = EpisodeRecorder(Settings(data_dir=tmp_path), "ep-om", "mapper")
     for step, v in enumerate(vs[:2]):
-        f = frame_of(v, step, renderer)
+        f = frame_of(v, renderer, "ep-om", step)
         req = om.detect_request(f)
         om.integrate(f, DetectResult(request_id="r", episode_id="ep-om", step=step, detections=det.detect(req),
                                      backend="oracle"))
@@ -110,7 +103,7 @@ def test_obstacle_heights_follow_the_occupancy_map(views) -> None:
     em = EpisodeMap(EpisodeStart(episode_id="ep-h", robot="r0", question=Question(text="q?", scene="gen-5"),
                                  max_steps=3))
     assert obstacle_heights(em) is None  # nothing integrated yet
-    em.integrate(frame_of(vs[0], 0, renderer))
+    em.integrate(frame_of(vs[0], renderer, "ep-om", 0))
     h = obstacle_heights(em)
     assert h is not None and h.shape == em.maps.occupied.shape
     assert bool((h[em.maps.occupied] > 0).all()) and bool((h[~em.maps.occupied] == 0).all())
