@@ -218,6 +218,24 @@ def test_view_memory_keeps_the_k_most_relevant_bounded() -> None:
         AnswerViews.restore({**av.snapshot(), "steps": [0, 1, 2], "relevance": [0, 0, 0], "images": [big] * 3})
 
 
+def test_view_memory_is_bounded_in_views_and_pixels() -> None:
+    """The K most relevant views the mapper keeps for a joint answer (services/mapper/answer_views.py)."""
+    from eqa.messages import MAX_MEMORY_VIEW_SIDE
+
+    mem = AnswerViews(k=3)
+    rng = np.random.default_rng(0)
+    rels = rng.random(40)
+    for t, rel in enumerate(rels):
+        mem.offer(t, rel, np.zeros((480, 640, 3), np.uint8))
+        assert len(mem.steps) <= 3
+    assert sorted(mem.steps) == sorted(np.argsort(-rels)[:3].tolist())
+    assert all(max(im.shape[:2]) <= MAX_MEMORY_VIEW_SIDE for im in mem.images)
+    assert mem.nbytes <= 3 * MAX_MEMORY_VIEW_SIDE**2 * 3
+    assert not mem.offer(99, -1.0, np.zeros((4, 4, 3), np.uint8))  # worse than every kept view
+    with pytest.raises(ValueError):
+        AnswerViews(k=MAX_MEMORY_VIEWS + 1)
+
+
 def test_joint_mode_refuses_a_second_pooling_in_the_stopper() -> None:
     """Joint answers pooled again by the stopper (EQA_ANSWER_MEMORY_K > 0) would be a rule nobody calibrated."""
     import pydantic

@@ -65,25 +65,6 @@ def test_rule_bounds_and_names() -> None:
     assert "eqa calibrate --answer-memory 3" in rule_mismatch("single", AnswerRule(3))
 
 
-def test_view_memory_is_bounded_in_views_and_pixels() -> None:
-    """The K most relevant views the mapper keeps for a joint answer (services/mapper/answer_views.py)."""
-    from eqa.messages import MAX_MEMORY_VIEW_SIDE, MAX_MEMORY_VIEWS
-    from services.mapper.answer_views import AnswerViews
-
-    mem = AnswerViews(k=3)
-    rng = np.random.default_rng(0)
-    rels = rng.random(40)
-    for t, rel in enumerate(rels):
-        mem.offer(t, rel, np.zeros((480, 640, 3), np.uint8))
-        assert len(mem.steps) <= 3
-    assert sorted(mem.steps) == sorted(np.argsort(-rels)[:3].tolist())
-    assert all(max(im.shape[:2]) <= MAX_MEMORY_VIEW_SIDE for im in mem.images)
-    assert mem.nbytes <= 3 * MAX_MEMORY_VIEW_SIDE**2 * 3
-    assert not mem.offer(99, -1.0, np.zeros((4, 4, 3), np.uint8))  # worse than every kept view
-    with pytest.raises(ValueError):
-        AnswerViews(k=MAX_MEMORY_VIEWS + 1)
-
-
 @pytest.mark.parametrize("eps", [0.2])
 def test_calibrating_the_memory_rule_holds_coverage_on_exchangeable_episodes(eps: float) -> None:
     """Eq. 6 for the pooled scores: calibrate on N synthetic episodes with the rule, test on fresh ones;
