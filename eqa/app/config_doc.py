@@ -1,0 +1,227 @@
+"""``docs/configuration.md``, generated from the settings class (:class:`eqa.settings.Settings`).
+
+The settings class is the one home of every ``EQA_*`` variable; this page is derived from it so that it cannot
+drift: ``tests/test_config_doc.py`` regenerates it and compares. Sections follow the class's ``# --- name ---``
+comments; a setting's text is its ``description=``, else the comment on its line or the comment block right
+above it.
+
+    python -m eqa.app.config_doc > docs/configuration.md     # regenerate
+    python -m eqa.app.config_doc --check docs/configuration.md   # exit 1 when the page is stale
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import inspect
+import re
+import sys
+import types
+import typing
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from pydantic.fields import FieldInfo
+from pydantic_core import PydanticUndefined
+
+REGENERATE = "python -m eqa.app.config_doc > docs/configuration.md"
+SECTION = re.compile(r"^\s*#\s*---\s*(.+?)\s*---\s*$")
+# references to the project's tracker are history, not documentation: kept out of the page
+TRACKER_REF = re.compile(r"(?:[\w/ -]+=\s*)?\bissues?\s+#?\d+(?:\s+item\s+\d+)?(?:\s*\(\w+\))?", re.IGNORECASE)
+
+
+@dataclass(frozen=True)
+class Row:
+    section: str
+    note: str  # the comment block above the field: it opens a group of settings within the section
+    env: str
+    type: str
+    default: str
+    text: str
+
+
+def clean(text: str) -> str:
+    """``text`` without tracker references and the punctuation they leave behind."""
+    out = TRACKER_REF.sub("", text)
+    out = re.sub(r"\(\s*[;,]\s*", "(", out)
+    out = re.sub(r"\s*[;,]\s*\)", ")", out)
+    out = re.sub(r"\(\s*\)", "", out)
+    out = re.sub(r"\s+([;,.:])", r"\1", out)
+    out = re.sub(r"([;,])(?=[;,])", "", out)
+    out = re.sub(r"\s{2,}", " ", out).strip()
+    return out.strip(" ;,:")
+
+
+def _type_name(annotation: Any) -> str:
+    if annotation is None or annotation is type(None):
+        return "none"
+    origin = typing.get_origin(annotation)
+    args = typing.get_args(annotation)
+    if origin is typing.Annotated:
+        return _type_name(args[0])
+    if origin is typing.Literal:
+        return " \\| ".join(f"`{a}`" for a in args)
+    if origin in (typing.Union, types.UnionType):
+        names = [_type_name(a) for a in args if a is not type(None)]
+        return " \\| ".join(names) + (", optional" if type(None) in args else "")
+    if origin is list:
+        return "comma-separated list"
+    if isinstance(annotation, type):
+        return {"str": "text", "Path": "path", "float": "number", "int": "integer", "bool": "true/false"}.get(
+            annotation.__name__, annotation.__name__)
+    return str(annotation)
+
+
+def _limits(info: FieldInfo) -> str:
+    parts = []
+    for meta in info.metadata:
+        for attr, sign in (("ge", ">="), ("gt", ">"), ("le", "<="), ("lt", "<")):
+            value = getattr(meta, attr, None)
+            if value is not None:
+                parts.append(f"{sign} {value:_}" if isinstance(value, int) else f"{sign} {value}")
+    return ", ".join(parts)
+
+
+def _default(info: FieldInfo) -> str:
+    factory: Callable[[], Any] | None = info.default_factory  # type: ignore[assignment]
+    if factory is not None:
+        if factory in (list, dict):
+            return "(empty)"
+        if getattr(factory, "__name__", "") != "<lambda>":
+            doc = inspect.getdoc(factory)
+            return clean(doc.splitlines()[0]) if doc else f"computed at start (`{factory.__name__}`)"
+        value = factory()
+    else:
+        value = info.default
+    if value is PydanticUndefined:
+        return "(required)"
+    if value is None:
+        return "(unset)"
+    if isinstance(value, list):
+        return f"`{','.join(map(str, value))}`" if value else "(empty)"
+    if isinstance(value, bool):
+        return f"`{str(value).lower()}`"
+    if isinstance(value, int):
+        return f"`{value}`"
+    return f"`{value}`"
+
+
+def _comments(source: str) -> tuple[dict[int, str], dict[int, str], dict[int, str]]:
+    """For each line: the section it is in, the comment block right above it, the comment at its end."""
+    lines = source.splitlines()
+    sections: dict[int, str] = {}
+    current = ""
+    for i, line in enumerate(lines, start=1):
+        if m := SECTION.match(line):
+            current = clean(m.group(1))
+        sections[i] = current
+    above: dict[int, str] = {}
+    inline: dict[int, str] = {}
+    for i, line in enumerate(lines, start=1):
+        block: list[str] = []
+        j = i - 2
+        while j >= 0 and lines[j].strip().startswith("#") and not SECTION.match(lines[j]):
+            block.insert(0, lines[j].strip().lstrip("#").strip())
+            j -= 1
+        above[i] = clean(" ".join(block))
+        code, _, trailing = line.partition("  # ")
+        inline[i] = clean(trailing) if trailing and "=" in code else ""
+    return sections, above, inline
+
+
+def rows(cls: type | None = None, source: str | None = None) -> list[Row]:
+    """One row per field of ``cls`` (default :class:`eqa.settings.Settings`), in the class's order."""
+    if cls is None:
+        from eqa.settings import Settings
+
+        cls = Settings
+    src = source if source is not None else Path(inspect.getsourcefile(cls) or "").read_text()
+    sections, above, inline = _comments(src)
+    tree = ast.parse(src)
+    lineno: dict[str, int] = {}
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ClassDef) and node.name == cls.__name__:
+            for stmt in node.body:
+                if isinstance(stmt, ast.AnnAssign) and isinstance(stmt.target, ast.Name):
+                    lineno[stmt.target.id] = stmt.lineno
+    prefix = str(getattr(cls, "model_config", {}).get("env_prefix", "")).upper()
+    out = []
+    for name, info in cls.model_fields.items():  # type: ignore[attr-defined]
+        line = lineno.get(name, 0)
+        kind = _type_name(info.annotation)
+        if limits := _limits(info):
+            kind = f"{kind}, {limits}"
+        text = clean(info.description or "") or inline.get(line, "")
+        out.append(Row(section=sections.get(line, "") or "other", note=above.get(line, ""),
+                       env=f"{prefix}{name.upper()}", type=kind, default=_default(info), text=text))
+    return out
+
+
+def _cell(text: str) -> str:
+    return text.replace("|", "\\|").replace("\n", " ") if "\\|" not in text else text.replace("\n", " ")
+
+
+def render(cls: type | None = None, source: str | None = None) -> str:
+    """The whole page, Markdown."""
+    table = rows(cls, source)
+    out = [
+        "# Configuration",
+        "",
+        "Every setting is an `EQA_*` environment variable, read once by `eqa.settings.Settings` and handed to each",
+        "service (nothing deeper reads the environment). Lists are comma-separated. `eqa up` passes its own",
+        "settings to the processes it starts; `docker-compose.yml` sets the same variables.",
+        "",
+        f"This page is generated from `eqa/settings.py`: `{REGENERATE}`",
+        "(`tests/test_config_doc.py` fails when it is stale).",
+        "",
+    ]
+    order: list[str] = []
+    for r in table:
+        if r.section not in order:
+            order.append(r.section)
+    titles = [s.partition(" (")[0] for s in order]
+    out += ["Sections: " + ", ".join(f"[{t}](#{_anchor(t)})" for t in titles) + ".", ""]
+    header = ["| variable | type | default | what |", "|---|---|---|---|"]
+    for section in order:
+        title, _, remark = section.partition(" (")
+        out += [f"## {title}", ""]
+        if remark := clean(remark.rstrip(")")):
+            out += [f"*{remark}*", ""]
+        out += header
+        for r in (r for r in table if r.section == section):
+            if r.note:
+                if out[-1] != header[-1]:
+                    out += ["", r.note, "", *header]
+                else:
+                    out[-3:-2] = [r.note, "", header[0]]
+            out.append(f"| `{r.env}` | {_cell(r.type)} | {_cell(r.default)} | {_cell(r.text)} |")
+        out.append("")
+    return "\n".join(out)
+
+
+def _anchor(title: str) -> str:
+    """GitHub's heading anchor: lower case, punctuation dropped, spaces to hyphens."""
+    return re.sub(r"[^\w\- ]", "", title.lower()).replace(" ", "-")
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(
+        prog="python -m eqa.app.config_doc",
+        description="Print docs/configuration.md, generated from eqa/settings.py; --check FILE compares instead.",
+    )
+    p.add_argument("--check", type=Path, metavar="FILE", help="exit 1 (with the command to run) when FILE is stale")
+    args = p.parse_args(argv)
+    page = render()
+    if args.check is None:
+        sys.stdout.write(page)
+        return 0
+    if not args.check.is_file() or args.check.read_text() != page:
+        print(f"{args.check} is stale: regenerate it with `{REGENERATE}`", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
