@@ -133,7 +133,7 @@ def wilson(k: int, n: int) -> tuple[float, float]:
 
 def load(recordings: Path, seed: int, split: str, n: int | None) -> list[Ep]:
     if split == "test" and seed in EVALUATION_SEEDS:
-        path = TRACES / f"bench-semantic-oracle-320x240-seed{seed}-x1-cores.jsonl"
+        path = TRACES / f"bench-semantic-oracle-320x240-seed{seed}-x1-cores.jsonl.gz"
         eps = [from_trace(t) for _, t in read_jsonl(path)]
     else:
         eps = [from_recording(e) for e in load_recording(recording_path(recordings, seed, split, "semantic",

@@ -19,14 +19,14 @@ rates and, for each pair of strategies, the exact sign test and a 95 % interval 
 ``--limit`` applies per seed. The yardsticks ``target_oracle`` and ``perfect_sv`` (upper bounds that read the
 ground truth) run only here, when named in ``--strategies``.
 
-Traces are exported to ``<--out>/traces/<set>.jsonl`` (one set per strategy, scorer, size and seed) and
+Traces are exported to ``<--out>/traces/<set>.jsonl.gz`` (one set per strategy, scorer, size and seed) and
 imported from there on the next run, so ``--out bench/results`` replays the published runs in seconds.
 
     eqa bench explore --seeds 1 2 3 --limit 20 --out /tmp/quick   quick mode: 240 episodes (about 9 min through
                                     the fleet on an idle 2-core machine; add --runner cores under load)
     eqa bench explore --runner cores --seeds 1 2 3 --split test --strategies fbe semantic
-        --out bench/results/explore-seeds      the README's evaluation figures (stored traces, replayed in seconds)
-    eqa bench stop --out bench/results                 the README's stopping figures
+        --out bench/results/explore-seeds      the evaluation figures (stored traces, replayed in seconds)
+    eqa bench stop --out bench/results                 the seed-0 stopping figures (docs/results/)
 """
 
 from __future__ import annotations
@@ -145,14 +145,20 @@ def _import(path: Path, name: str, settings: Any) -> int:
 
 
 def _export(path: Path, traces: list[Any]) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text("".join(t.model_dump_json() + "\n" for t in sorted(traces, key=lambda t: t.question_id)))
-    tmp.replace(path)
+    from services.stopper.calibration import write_jsonl
+
+    write_jsonl(path, sorted(traces, key=lambda t: t.question_id))
+
+
+def trace_file(directory: Path, name: str) -> Path:
+    """Where the set ``name`` is kept under ``directory``: ``<name>.jsonl.gz``, or an uncompressed
+    ``<name>.jsonl`` already there (kept as it is)."""
+    plain = directory / f"{name}.jsonl"
+    return plain if plain.is_file() else directory / f"{name}.jsonl.gz"
 
 
 def _collect(questions: list[Any], settings: Any, strategy: str, name: str, args: argparse.Namespace) -> list[Any]:
-    """The full-length traces of ``questions``: imported from ``--out/traces/<set>.jsonl``, read from the store,
+    """The full-length traces of ``questions``: imported from ``--out/traces/<set>.jsonl.gz``, read from the store,
     or run (resumable); the set is exported back to that file so a fresh checkout can reuse the runs."""
     from tqdm import tqdm
 
@@ -160,7 +166,7 @@ def _collect(questions: list[Any], settings: Any, strategy: str, name: str, args
     from eqa.store import open_store
     from services.stopper.calibration import TraceStore
 
-    export = Path(args.out) / "traces" / f"{name}.jsonl"
+    export = trace_file(Path(args.out) / "traces", name)
     if (added := _import(export, name, settings)):
         log.info("%s: %d traces imported from %s", name, added, export)
     with open_store(settings) as store:
@@ -451,7 +457,7 @@ def _common(p: argparse.ArgumentParser) -> None:
                    help="simulated robots run at once (default 4: the fastest measured on 2 cores, 27 episodes/min)")
     p.add_argument("--scorers", type=int, default=1, help="scorer replicas (default 1)")
     p.add_argument("--size", default="320x240",
-                   help="camera image size WxH (default 320x240, as the README's figures; the reference is 640x480)")
+                   help="camera image size WxH (default 320x240, as the published figures; the reference is 640x480)")
     p.add_argument("--out", default="var/bench", help="directory for JSON results and PNG plots")
     p.add_argument("--scorer", choices=("oracle", "hf", "remote"), default=None,
                    help="scorer backend (default: EQA_SCORER_BACKEND, normally oracle; hf reads EQA_HF_MODEL_PATH, "

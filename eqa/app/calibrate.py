@@ -103,7 +103,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         type=Path,
         default=None,
         metavar="FILE.jsonl",
-        help="calibrate from recorded traces (one Trace JSON per line) without running episodes",
+        help="calibrate from recorded traces (one Trace JSON per line; FILE.jsonl.gz is read through gzip) "
+        "without running episodes",
     )
     p.add_argument("--from-store", action="store_true",
                    help="use labelled real episodes from the store (POST /v1/episodes/{id}/label; full-length "

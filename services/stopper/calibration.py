@@ -25,6 +25,8 @@ Store keys (all JSON):
 
 from __future__ import annotations
 
+import gzip
+import io
 import json
 import logging
 import math
@@ -426,11 +428,13 @@ class TraceStore:
 
 
 def read_jsonl(path: Path) -> Iterable[tuple[int, Trace]]:
-    """``(line number, Trace)`` for each non-blank line of a JSONL file, streaming (a FIFO works).
+    """``(line number, Trace)`` for each non-blank line of a JSONL file, streaming (a FIFO works); a name
+    ending in ``.gz`` is read through gzip (the stored benchmark traces are kept compressed).
 
     Raises :class:`CalibrationError` naming the line of the first malformed trace.
     """
-    with open(path, encoding="utf-8") as fh:
+    opener = gzip.open if Path(path).suffix == ".gz" else open
+    with opener(path, "rt", encoding="utf-8") as fh:
         for lineno, line in enumerate(fh, start=1):
             if not line.strip():
                 continue
@@ -438,3 +442,18 @@ def read_jsonl(path: Path) -> Iterable[tuple[int, Trace]]:
                 yield lineno, Trace.model_validate(json.loads(line))
             except ValueError as exc:
                 raise CalibrationError(f"{path}:{lineno}: not a valid trace: {exc}") from exc
+
+
+def write_jsonl(path: Path, traces: Iterable[Trace]) -> None:
+    """Write ``traces`` one JSON a line, atomically (a temporary file renamed); gzip when the name ends in
+    ``.gz``, with no time stamp or file name in the header so that the same traces give the same bytes."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    data = "".join(t.model_dump_json() + "\n" for t in traces).encode("utf-8")
+    if path.suffix == ".gz":
+        buf = io.BytesIO()
+        with gzip.GzipFile(filename="", mode="wb", fileobj=buf, compresslevel=9, mtime=0) as gz:
+            gz.write(data)
+        data = buf.getvalue()
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_bytes(data)
+    tmp.replace(path)
