@@ -23,7 +23,7 @@ from gateway_helpers import AUTH, EPISODE_S, SCENE, TOKEN
 
 from eqa.launcher import Fleet
 
-SHOTS = os.environ.get("EQA_SCREENSHOTS")  # a directory: save the views (the README's pictures)
+SHOTS = os.environ.get("EQA_SCREENSHOTS")  # a directory: save the views (docs/usage.md pictures)
 CHOICES = ["garage", "kitchen", "bedroom", "office"]
 
 

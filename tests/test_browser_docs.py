@@ -20,7 +20,7 @@ from gateway_helpers import TOKEN
 
 from eqa.settings import Settings
 
-SHOTS = os.environ.get("EQA_SCREENSHOTS")  # a directory: save what the browser showed (README's pictures)
+SHOTS = os.environ.get("EQA_SCREENSHOTS")  # a directory: save what the browser showed (docs/usage.md pictures)
 
 
 @pytest.fixture(scope="module")

@@ -1,5 +1,5 @@
 """The data-flow graph (eqa/dataflow.py) is the one declaration: the message types, the service lists, the ACL's
-stream owners, the compose file and the README are checked against it, and so is the code: which streams each
+stream owners, the compose file and docs/architecture.md are checked against it, and so is the code: which streams each
 service subscribes to and publishes on is read from its source (AST, nothing imported or run)."""
 
 from __future__ import annotations
@@ -108,6 +108,8 @@ def test_compose_file_runs_each_service_of_the_graph() -> None:
         assert compose[service]["healthcheck"]["test"] == ["CMD", "eqa", "health", service], service
 
 
-def test_readme_holds_the_stream_table() -> None:
-    readme = (REPO / "README.md").read_text()
-    assert dataflow.stream_table() in readme, "README: paste eqa.dataflow.stream_table() into the map section"
+def test_architecture_doc_holds_the_stream_table() -> None:
+    page = (REPO / "docs" / "architecture.md").read_text()
+    assert dataflow.stream_table() in page, (
+        "docs/architecture.md: paste the output of `python -c 'from eqa import dataflow; "
+        "print(dataflow.stream_table())'` into its Streams section")
