@@ -1,5 +1,5 @@
 """Scaling out on one machine: episodes/min with 1 and with 2 instances of every service, exactly-once checked,
-and the CPU each service spends per step (the per-host throughput model of README "Scaling out").
+and the CPU each service spends per step (the per-host throughput model of docs/deployment.md, "Sizing a fleet").
 
 For each configuration (``--instances 1,2``: processes of sim, mapper, planner, stopper; scorer replicas = the
 same number) the real fleet runs as separate processes over Zenoh with a private Redis, and ``--robots``

@@ -106,7 +106,7 @@ class Bus:
             except zenoh.ZError as exc:
                 s = self.settings
                 hint = (" (a secured fleet also needs this node's EQA_ZENOH_TLS_CA/CERT/KEY and "
-                        "EQA_ZENOH_USER/PASSWORD: README 'Scaling out')")
+                        "EQA_ZENOH_USER/PASSWORD: docs/deployment.md, Scaling out)")
                 raise BusError(
                     f"could not open a Zenoh {s.zenoh_mode} session connecting to "
                     f"{', '.join(s.zenoh_connect) or 'nothing'}: {exc}; check EQA_ZENOH_CONNECT{hint}"

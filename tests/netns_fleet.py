@@ -37,7 +37,7 @@ def why_not() -> str | None:
         return "needs Linux and iproute2 (`ip`)"
     if os.geteuid() != 0:
         return ("needs root (CAP_NET_ADMIN) to make network namespaces: run "
-                "`sudo -E .venv/bin/python -m pytest tests/test_fleet_netns.py` (README 'Scaling out')")
+                "`sudo -E .venv/bin/python -m pytest tests/test_fleet_netns.py` (docs/deployment.md, Scaling out)")
     probe = f"e21probe{os.getpid() % 100000}"
     try:
         made = _ip("netns", "add", probe, check=False)

@@ -189,7 +189,7 @@ def test_oracle_tuning_tool_refuses_evaluation_seeds(capsys: pytest.CaptureFixtu
     assert "evaluation seed" in capsys.readouterr().err
 
 
-@pytest.mark.xfail(strict=True, reason="known limitation (issue 14, README): a frontier just behind a doorway the map "
+@pytest.mark.xfail(strict=True, reason="known limitation (docs/status.md): a frontier just behind a doorway the map "
                    "narrows is 'reached' from this side at 0.3 m clearance; the trial fix (every clearance searched "
                    "per frontier) lowered fbe's coverage in tests/test_planner_explore.py (0.93 -> 0.88) and was "
                    "withdrawn")

@@ -5,7 +5,7 @@ own host h3; each host's share started by `eqa up --join`. 8 robots run at once;
 (h1) are killed with SIGKILL and restarted by their host's launcher, and the scorer host is cut off (link down)
 and comes back. Every episode runs to its end with all its steps, none is lost.
 
-Skipped, with the reason, only where namespaces cannot be made (not root, no iproute2); README "Scaling out"
+Skipped, with the reason, only where namespaces cannot be made (not root, no iproute2); docs/deployment.md (Scaling out)
 says how to run it there."""
 
 from __future__ import annotations

@@ -159,7 +159,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="comma-separated services to run on this host (default: all; e.g. mapper,planner)")
     up.add_argument("--join", action="append", default=None, metavar="ENDPOINT",
                     help="join an existing fleet: this host's router connects to ENDPOINT (e.g. "
-                    "tls/10.0.0.1:7447; repeatable) and runs only --services (README 'Scaling out')")
+                    "tls/10.0.0.1:7447; repeatable) and runs only --services (docs/deployment.md, Scaling out)")
     up.set_defaults(func=cmd_up)
 
     health = sub.add_parser("health", help="check that services hold a liveliness token (compose health checks)")

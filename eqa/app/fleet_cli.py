@@ -1,4 +1,4 @@
-"""``eqa router`` and ``eqa certs``: the parts of a fleet across machines (README "Scaling out", issue 21).
+"""``eqa router`` and ``eqa certs``: the parts of a fleet across machines (docs/deployment.md, "Scaling out").
 
     eqa certs DIR --host 10.0.0.1 --host zenoh   a private CA, one certificate per role, a users file
     eqa router                                   a Zenoh router configured by EQA_* (TLS, users, ACL)
