@@ -43,8 +43,8 @@ class Row:
 
 
 def clean(text: str) -> str:
-    """``text`` without tracker references and the punctuation they leave behind."""
-    out = TRACKER_REF.sub("", text)
+    """``text`` without tracker references (and session tags such as ``(h12a)``) and the punctuation they leave."""
+    out = re.sub(r"\s*\(h\d+[a-z]?\)", "", TRACKER_REF.sub("", text))
     out = re.sub(r"\(\s*[;,]\s*", "(", out)
     out = re.sub(r"\s*[;,]\s*\)", ")", out)
     out = re.sub(r"\(\s*\)", "", out)
