@@ -249,9 +249,9 @@ class HFBackend(ModelBackend):
         longest = 0
         for im, q in rows:
             h, w = im.shape[:2]
-            n = self._image_tokens(h, w)
-            text = qwen_chat(q.text).replace(IMAGE_PAD, IMAGE_PAD * n)
-            longest = max(longest, len(self.tokenizer(text, add_special_tokens=False)["input_ids"]))
+            # <|image_pad|> is one special token: the chat with one of them, plus the image's other n - 1
+            n = len(self.tokenizer(qwen_chat(q.text), add_special_tokens=False)["input_ids"])
+            longest = max(longest, n + self._image_tokens(h, w) - 1)
         return -(-longest // PAD_MULTIPLE) * PAD_MULTIPLE
 
     def _image_tokens(self, h: int, w: int) -> int:
