@@ -14,6 +14,7 @@ ENV PYTHONUNBUFFERED=1 \
     RERUN_TELEMETRY_ENABLED=false \
     HF_HUB_OFFLINE=1 \
     EQA_DATA_DIR=/data \
+    NUMBA_CACHE_DIR=/opt/numba-cache \
     VIRTUAL_ENV=/opt/venv \
     PATH=/opt/venv/bin:$PATH
 
@@ -37,7 +38,8 @@ COPY eqa ./eqa
 COPY services ./services
 COPY gateway ./gateway
 RUN pip install --no-deps . && rm -rf build \
- && python -c "import services.mapper.tsdf_kernel"  # numba compiles the TSDF kernel into the image (issue 20)
+ && mkdir -p /opt/numba-cache && chmod 1777 /opt/numba-cache \
+ && python -c "import services.mapper.tsdf_kernel"  # numba compiles the TSDF kernel into the image
 
 VOLUME ["/data"]
 CMD ["python", "-m", "gateway"]

@@ -17,6 +17,7 @@ import json
 import logging
 import queue
 import threading
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -51,30 +52,59 @@ def zenoh_config(settings: Settings) -> zenoh.Config:
 
 
 class _SerialQueryable:
-    """A queryable whose queries one worker thread answers in order (``Bus.declare_queryable(serial=True)``)."""
+    """A queryable whose queries one worker thread answers in order (``Bus.declare_queryable(serial=True)``).
+
+    With ``batch_max > 1`` the worker answers them in batches: it takes the first waiting query, then every
+    query already queued, then (``window_s > 0``) waits up to ``window_s`` after the first for more, up to
+    ``batch_max`` in all, and hands the batch to ``answer`` as one list. With ``window_s = 0`` a batch holds what
+    queued while the previous one was served, so a lone request never waits for batch mates."""
 
     _STOP = object()
 
-    def __init__(self, key: str, answer: Callable[[Any], None]) -> None:
+    def __init__(self, key: str, answer: Callable[[Any], None], batch_max: int = 1, window_s: float = 0.0) -> None:
         self.jobs: queue.Queue[Any] = queue.Queue()
         self.queryable: Any = None
         self._answer = answer
+        self.batch_max = max(1, int(batch_max))
+        self.window_s = max(0.0, float(window_s))
         self._thread = threading.Thread(target=self._serve, name=f"queryable {key}", daemon=True)
         self._thread.start()
+
+    def _batch(self, first: Any) -> tuple[list[Any], bool]:
+        """``first`` and the queries that join it; True when the stop marker was met."""
+        batch = [first]
+        deadline = time.monotonic() + self.window_s
+        while len(batch) < self.batch_max:
+            try:
+                wait = deadline - time.monotonic()
+                query = self.jobs.get(timeout=wait) if wait > 0 else self.jobs.get_nowait()
+            except queue.Empty:
+                break
+            if query is self._STOP:
+                return batch, True
+            batch.append(query)
+        return batch, False
 
     def _serve(self) -> None:
         while True:
             query = self.jobs.get()
             if query is self._STOP:
                 return
+            if self.batch_max == 1:
+                batch, stop = [query], False
+            else:
+                batch, stop = self._batch(query)
             try:
-                self._answer(query)
+                self._answer(batch if self.batch_max > 1 else query)
             except Exception:
                 log.exception("could not answer a query; going on")
             finally:
                 # finalise now (sends the end-of-replies marker) rather than whenever the object is collected: a
                 # logged exception's traceback may keep it alive, and the client would wait for its timeout
-                query.drop()
+                for q in batch:
+                    q.drop()
+            if stop:
+                return
 
     def undeclare(self) -> None:
         if self.queryable is not None:
@@ -185,40 +215,79 @@ class Bus:
     # ---- queries --------------------------------------------------------------------------------------
     def declare_queryable(
         self, key: str, expected: type[M] | tuple[type[M], ...], handler: Callable[[M], Message],
-        serial: bool = False,
+        serial: bool = False, *, batch_handler: Callable[[list[M]], list[Message]] | None = None,
+        batch_max: int = 1, batch_window_s: float = 0.0,
     ) -> Any:
         """Answer each query on ``key`` with ``handler(request)``; malformed requests and handler errors are
         answered with :class:`ErrorReply` carrying the reason, and the queryable keeps serving.
 
         ``serial``: the Zenoh callback only queues the query and one worker thread of this queryable answers
         them in arrival order (a slow handler, e.g. a VLM, never holds a Zenoh thread). The returned object's
-        ``undeclare()`` stops serving (the query in hand is answered first); :meth:`close` does it too."""
+        ``undeclare()`` stops serving (the query in hand is answered first); :meth:`close` does it too.
 
-        def on_query(query: zenoh.Query) -> None:
+        ``batch_handler`` with ``batch_max > 1`` (serial only): the worker hands the well-formed requests of a
+        batch (see :class:`_SerialQueryable`) to ``batch_handler``, which answers each, in order; a malformed
+        query of the batch is answered with its error alone, and a ``batch_handler`` that raises answers
+        every request of the batch with the error."""
+
+        def source() -> str:
+            return f"{self.service}/{self.instance}"
+
+        def decoded(query: zenoh.Query) -> tuple[Any, Message | None]:
             payload = query.payload.to_bytes() if query.payload is not None else b""
             try:
-                request = decode(payload, expected)
+                return decode(payload, expected), None
             except CodecError as exc:
                 log.warning("malformed query on %s: %s", query.key_expr, exc)
-                reply: Message = ErrorReply(source=f"{self.service}/{self.instance}", reason=str(exc))
-            else:
-                try:
-                    reply = handler(request)
-                except Exception as exc:
-                    log.exception("query handler on %s failed", query.key_expr)
-                    reply = ErrorReply(
-                        source=f"{self.service}/{self.instance}",
-                        reason=f"{type(exc).__name__}: {exc}",
-                        request_id=getattr(request, "request_id", None),
-                    )
+                return None, ErrorReply(source=source(), reason=str(exc))
+
+        def failed(request: Any, exc: Exception) -> ErrorReply:
+            return ErrorReply(source=source(), reason=f"{type(exc).__name__}: {exc}",
+                              request_id=getattr(request, "request_id", None))
+
+        def send(query: zenoh.Query, reply: Message) -> None:
             try:
                 query.reply(key, encode(reply))
             except Exception:
                 log.exception("could not reply on %s", query.key_expr)
 
+        def on_query(query: zenoh.Query) -> None:
+            request, reply = decoded(query)
+            if reply is None:
+                try:
+                    reply = handler(request)
+                except Exception as exc:
+                    log.exception("query handler on %s failed", query.key_expr)
+                    reply = failed(request, exc)
+            send(query, reply)
+
+        def on_batch(queries: list[zenoh.Query]) -> None:
+            good: list[tuple[zenoh.Query, Any]] = []
+            for query in queries:
+                request, error = decoded(query)
+                if error is not None:
+                    send(query, error)
+                else:
+                    good.append((query, request))
+            if not good:
+                return
+            assert batch_handler is not None
+            try:
+                replies = batch_handler([r for _, r in good])
+                if len(replies) != len(good):
+                    raise RuntimeError(f"batch handler answered {len(replies)} of {len(good)} requests")
+            except Exception as exc:
+                log.exception("batch handler on %s failed", key)
+                replies = [failed(r, exc) for _, r in good]
+            for (query, _), reply in zip(good, replies, strict=True):
+                send(query, reply)
+
         if not serial:
             return self._keep(self.session.declare_queryable(key, on_query))
-        server = _SerialQueryable(key, on_query)
+        if batch_handler is not None and batch_max > 1:
+            server = _SerialQueryable(key, on_batch, batch_max=batch_max, window_s=batch_window_s)
+        else:
+            server = _SerialQueryable(key, on_query)
         server.queryable = self.session.declare_queryable(key, server.jobs.put)
         return self._keep(server)
 

@@ -14,9 +14,11 @@ gathers / scatters through flat indices; the kernel visits each candidate once w
 Compilation: eager (explicit signatures) with ``cache=True``, so importing this module either loads the
 machine code from numba's cache (~0.1 s, plus ~0.3 s to import numba) or compiles it once (~1 s) and writes
 the cache; the first frame a mapper integrates after a start or restart never pays for compilation.
-The cache goes next to this file (``__pycache__``); when that directory is not writable (an installed
-package in a container) and ``NUMBA_CACHE_DIR`` is not set, it goes to ``<temp dir>/eqa-numba-cache``; the
-container image compiles it at build time (Dockerfile), so a container's first start does not compile.
+The cache never goes into the source tree (a read-only install cannot write there, a checkout would get
+dirty): ``NUMBA_CACHE_DIR`` when set, else ``$XDG_CACHE_HOME/eqa/numba`` (``~/.cache/eqa/numba``), else
+``<temp dir>/eqa-numba-cache-<uid>`` (with none of them writable, numba's own fallbacks apply). The
+container image sets ``NUMBA_CACHE_DIR`` and compiles at build time (Dockerfile), so a container's first
+start does not compile.
 """
 
 from __future__ import annotations
@@ -29,23 +31,31 @@ import numba
 import numpy as np
 
 
-def _cache_dir_fallback() -> None:
-    """Point numba's cache at the data dir when the in-tree ``__pycache__`` cannot be written."""
+def cache_dir_candidates() -> list[Path]:
+    """Where numba's cache may go, in order of preference (never next to this file)."""
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    uid = os.getuid() if hasattr(os, "getuid") else 0
+    return [Path(base) / "eqa" / "numba", Path(tempfile.gettempdir()) / f"eqa-numba-cache-{uid}"]
+
+
+def _choose_cache_dir() -> None:
+    """Point numba's cache at the first writable candidate, unless ``NUMBA_CACHE_DIR`` already says where.
+
+    numba looks for a user-provided directory first and then falls back to ``__pycache__`` beside the source;
+    setting ``numba.config.CACHE_DIR`` before the eager ``njit`` calls below keeps it out of the tree."""
     if os.environ.get("NUMBA_CACHE_DIR"):
         return
-    here = Path(__file__).resolve().parent
-    pyc = here / "__pycache__"
-    if os.access(pyc if pyc.is_dir() else here, os.W_OK):
-        return
-    target = Path(tempfile.gettempdir()) / "eqa-numba-cache"
-    try:
-        target.mkdir(parents=True, exist_ok=True)
-    except OSError:
-        return  # numba then uses its own fallbacks (user cache dir) or compiles without caching
-    numba.config.CACHE_DIR = str(target.resolve())
+    for target in cache_dir_candidates():
+        try:
+            target.mkdir(parents=True, exist_ok=True)
+        except OSError:
+            continue
+        if os.access(target, os.W_OK):
+            numba.config.CACHE_DIR = str(target.resolve())
+            return
 
 
-_cache_dir_fallback()
+_choose_cache_dir()
 
 
 def _ro(dtype: object, ndim: int) -> object:

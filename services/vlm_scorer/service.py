@@ -9,6 +9,11 @@ thread decodes, scores and replies, so a replica serves one request at a time (a
 between threads, and on CPU a second concurrent forward pass only competes for the same cores) and queues the
 rest. Scale with replicas.
 
+Dynamic batching (``EQA_SCORER_BATCH_MAX`` > 1, ``EQA_SCORER_BATCH_WINDOW_MS``): the worker takes the requests
+that queued while it was busy (and, with a window, those that arrive within it) as one batch, and the steps of
+several robots go through the model in one forward pass (:meth:`handle_many`); each request still gets its own
+reply or error. On the hf backend the values are the same per request as unbatched (tests/test_scorer_batching.py).
+
 Errors are replies, never crashes: a malformed request, a bad image, an empty question, too many choices or
 a backend that could not load (missing model directory, not a vision-language model) give an
 :class:`eqa.messages.ErrorReply` with the reason, and the replica keeps serving.
@@ -93,9 +98,12 @@ class ScorerService(Service):
                       "answer request is refused (the mapper then keeps the single-view answer); use the hf "
                       "backend, or EQA_ANSWER_MEMORY_MODE=fusion with EQA_ANSWER_MEMORY_K", self.backend.name)
         self._queryable = self.bus.declare_queryable(
-            self.key, (ScoreRequest, DetectRequest, ValueRequest), self._route, serial=True
+            self.key, (ScoreRequest, DetectRequest, ValueRequest), self._route, serial=True,
+            batch_handler=self.handle_many, batch_max=self.settings.scorer_batch_max,
+            batch_window_s=self.settings.scorer_batch_window_ms / 1000.0,
         )
-        log.info("scorer replica %s on %s (backend %s)", self.replica, self.key, self.settings.scorer_backend)
+        log.info("scorer replica %s on %s (backend %s, batches of up to %d, window %.0f ms)", self.replica, self.key,
+                 self.settings.scorer_backend, self.settings.scorer_batch_max, self.settings.scorer_batch_window_ms)
 
     def teardown(self) -> None:
         if self._queryable is not None:
@@ -135,19 +143,41 @@ class ScorerService(Service):
         t0 = time.perf_counter()
         try:
             scores = self.backend.score(req)
-        except (ValueError, RuntimeError) as exc:  # BadRequest, BackendUnavailable, RemoteError
-            log.warning(
-                "score request %s (episode %s step %d) refused: %s",
-                req.request_id,
-                req.episode_id,
-                req.step,
-                exc,
-            )
-            return error(str(exc))
         except Exception as exc:
-            log.exception("scorer backend failed on %s", req.request_id)
-            return error(f"{type(exc).__name__}: {exc}")
-        latency = (time.perf_counter() - t0) * 1000.0
+            return self._scored(req, exc, 0.0)
+        return self._scored(req, scores, (time.perf_counter() - t0) * 1000.0)
+
+    def handle_many(self, requests: list[ScoreRequest | DetectRequest | ValueRequest]) -> list[Message]:
+        """A batch of queued requests (``EQA_SCORER_BATCH_MAX`` > 1): the single-view score requests go to the
+        backend together (:meth:`Backend.score_many`: one merged forward pass on hf, results split back per
+        request; a request that fails gets its own error), the others one by one, every reply in order."""
+        out: list[Message | None] = [None] * len(requests)
+        plain = [(i, r) for i, r in enumerate(requests) if isinstance(r, ScoreRequest) and not r.memory_views]
+        if len(plain) > 1 and self.backend is not None and self.backend_error is None:
+            t0 = time.perf_counter()
+            try:
+                results: list[Scores | Exception] = self.backend.score_many([r for _, r in plain])
+            except Exception as exc:  # a backend's own score_many must not raise; if it does, each is told
+                results = [exc] * len(plain)
+            latency = (time.perf_counter() - t0) * 1000.0  # the batch's time, which each of its requests waited
+            for (i, req), res in zip(plain, results, strict=True):
+                out[i] = self._scored(req, res, latency)
+        return [o if o is not None else self._route(r) for o, r in zip(out, requests, strict=True)]
+
+    def _scored(self, req: ScoreRequest, scores: Scores | Exception, latency: float) -> Message:
+        """The reply to one score request: its result, or the error its scoring raised."""
+        assert self.backend is not None
+        if isinstance(scores, Exception):
+            exc = scores
+            if isinstance(exc, (ValueError, RuntimeError)):  # BadRequest, BackendUnavailable, RemoteError
+                log.warning("score request %s (episode %s step %d) refused: %s", req.request_id, req.episode_id,
+                            req.step, exc)
+                reason = str(exc)
+            else:
+                log.error("scorer backend failed on %s", req.request_id, exc_info=exc)
+                reason = f"{type(exc).__name__}: {exc}"
+            return ErrorReply(source=f"vlm_scorer/{self.replica}", reason=reason, episode_id=req.episode_id,
+                              step=req.step, request_id=req.request_id)
         self.served += 1
         self._record(req, scores)
         return ScoreResult(

@@ -48,6 +48,15 @@ class Scores:
     resolution: float = 0.0
 
 
+@dataclass
+class ProbeItem:
+    """The queries of one image: what :meth:`ModelBackend.candidate_probs` takes."""
+
+    rgb: np.ndarray
+    annotated: np.ndarray | None
+    queries: list[prompts.Query]
+
+
 def validate_request(req: ScoreRequest) -> None:
     """Raise :class:`BadRequest` with the reason for a request no backend can score."""
     rgb = req.rgb
@@ -93,6 +102,18 @@ class Backend(abc.ABC):
     def score(self, req: ScoreRequest) -> Scores:
         """The four numbers of one step. Raise :class:`BadRequest` for bad input."""
 
+    def score_many(self, reqs: list[ScoreRequest]) -> list[Scores | Exception]:
+        """Several steps (of several robots) at once: per request its :class:`Scores`, or the exception
+        scoring it raised, so a bad request never fails its batch mates. This default scores them one by one;
+        a backend that can merge them into one model call overrides it."""
+        out: list[Scores | Exception] = []
+        for req in reqs:
+            try:
+                out.append(self.score(req))
+            except Exception as exc:
+                out.append(exc)
+        return out
+
     def close(self) -> None:  # noqa: B027 - optional hook
         """Release resources."""
 
@@ -118,7 +139,13 @@ class ModelBackend(Backend):
             log.warning("model proposed no parsable answer for %r (got %r)", req.question.text, text[:200])
         return [*proposals, NOT_LISTED_CHOICE]
 
-    def score(self, req: ScoreRequest) -> Scores:
+    def candidate_probs_many(self, items: list[ProbeItem]) -> list[list[dict[str, float]]]:
+        """:meth:`candidate_probs` of several images' queries; per item its list. A backend that can put all
+        of them into one forward pass overrides this (hf); the default asks item by item."""
+        return [self.candidate_probs(it.rgb, it.annotated, it.queries) for it in items]
+
+    def prepare(self, req: ScoreRequest) -> tuple[ProbeItem, list[str]]:
+        """The step's queries on its image (and the proposed choices when the question has none)."""
         validate_request(req)
         proposed: list[str] = []
         choices = list(req.question.choices)
@@ -127,9 +154,13 @@ class ModelBackend(Backend):
             choices = proposed
         points = req.prompt_points
         annotated = annotate(req.rgb, points) if len(points) >= 2 else None
-        queries = prompts.step_queries(req.question, choices, len(points))
-        raw = self.candidate_probs(req.rgb, annotated, queries)
-        by_name = {q.name: normalise(r, q.candidates) for q, r in zip(queries, raw, strict=True)}
+        return ProbeItem(req.rgb, annotated, prompts.step_queries(req.question, choices, len(points))), proposed
+
+    @staticmethod
+    def finish(req: ScoreRequest, item: ProbeItem, proposed: list[str], raw: list[dict[str, float]]) -> Scores:
+        """Scores from the candidates' next-token probabilities, each query normalised over its candidates."""
+        by_name = {q.name: normalise(r, q.candidates) for q, r in zip(item.queries, raw, strict=True)}
+        points = req.prompt_points
         lsv = by_name.get("lsv", [1.0] * len(points))  # one point: nothing to compare, LSV = 1
         return Scores(
             answer_probs=by_name["answer"],
@@ -137,5 +168,40 @@ class ModelBackend(Backend):
             lsv=lsv if points else [],
             gsv=by_name["gsv"][0],
             proposed_choices=proposed,
-            annotated=annotated,
+            annotated=item.annotated,
         )
+
+    def score(self, req: ScoreRequest) -> Scores:
+        item, proposed = self.prepare(req)
+        return self.finish(req, item, proposed, self.candidate_probs(item.rgb, item.annotated, item.queries))
+
+    def score_many(self, reqs: list[ScoreRequest]) -> list[Scores | Exception]:
+        """Every request's queries in one :meth:`candidate_probs_many` call. A request that cannot be
+        prepared gets its exception; when the merged call fails, each request is scored alone, so only the
+        one that fails gets an error. A subclass that overrides :meth:`score` (extra bookkeeping per step)
+        keeps it: its requests are scored one by one."""
+        if type(self).score is not ModelBackend.score:
+            return super().score_many(reqs)
+        out: list[Scores | Exception | None] = [None] * len(reqs)
+        ready: list[tuple[int, ProbeItem, list[str]]] = []
+        for i, req in enumerate(reqs):
+            try:
+                item, proposed = self.prepare(req)
+            except Exception as exc:
+                out[i] = exc
+                continue
+            ready.append((i, item, proposed))
+        if ready:
+            try:
+                raws = self.candidate_probs_many([item for _, item, _ in ready])
+            except Exception:
+                log.warning("a merged batch of %d steps failed; scoring them one by one", len(ready), exc_info=True)
+                for i, _, _ in ready:
+                    try:
+                        out[i] = self.score(reqs[i])
+                    except Exception as exc:
+                        out[i] = exc
+            else:
+                for (i, item, proposed), raw in zip(ready, raws, strict=True):
+                    out[i] = self.finish(reqs[i], item, proposed, raw)
+        return [o if o is not None else RuntimeError("not scored") for o in out]

@@ -3,7 +3,8 @@
 Supported families (by ``config.model_type``): ``qwen2_vl`` and ``qwen2_5_vl`` (Qwen2-VL chat format).
 The probabilities are read from the next-token logits at the end of the assistant prompt and normalised
 over the candidate tokens (letters or Yes/No), i.e. a softmax restricted to the candidate logits. The
-four prompts of a step run as one left-padded batch (:meth:`HFBackend.candidate_probs`).
+four prompts of a step run as one left-padded batch (:meth:`HFBackend.candidate_probs`); the steps of several
+robots that a replica batches share forward passes (:meth:`HFBackend.candidate_probs_many`).
 
 Inputs are built from the directory's tokenizer and image processor (``AutoTokenizer``,
 ``AutoImageProcessor``) rather than ``Qwen2VLProcessor``: the processor insists on a video processor that
@@ -22,12 +23,15 @@ from pathlib import Path
 import numpy as np
 
 from services.vlm_scorer import prompts
-from services.vlm_scorer.backends.base import BackendUnavailable, BadRequest, ModelBackend
+from services.vlm_scorer.backends.base import BackendUnavailable, BadRequest, ModelBackend, ProbeItem
 
 log = logging.getLogger(__name__)
 
 QWEN_FAMILIES = {"qwen2_vl", "qwen2_5_vl"}
 IMAGE_PAD = "<|image_pad|>"
+# queries are left-padded to a multiple of this many tokens, alone or batched with other robots' steps (see
+# HFBackend.candidate_probs_many): the padding a row carries changes its logits in the last bits
+PAD_MULTIPLE = 32
 
 
 def qwen_chat(text: str, system: str = prompts.SYSTEM) -> str:
@@ -109,6 +113,7 @@ class HFBackend(ModelBackend):
         self.model_name = f"{model_type}:{self.path.name}"
         self._lock = threading.Lock()
         self._token_cache: dict[str, int] = {}
+        self._grid_cache: dict[tuple[int, int], int] = {}
         log.info("hf backend: %s (%s) on %s", self.path, model_type, self.device)
 
     def token_id(self, text: str) -> int:
@@ -117,23 +122,46 @@ class HFBackend(ModelBackend):
         return self._token_cache[text]
 
     # ---- inputs ---------------------------------------------------------------------------------------
-    def _inputs(self, images: list[np.ndarray], texts: list[str]) -> dict[str, object]:
+    def _pixels(self, images: list[np.ndarray]) -> tuple[object, object]:
+        """``pixel_values`` and ``image_grid_thw`` of ``images``, each distinct array processed once: a step's
+        plain image serves three of its four prompts (and a merged batch holds several steps), and the image
+        processor works image by image, so repeating an image's patches is the same as processing it again."""
         from PIL import Image
 
-        vis = self.image_processor(images=[Image.fromarray(i) for i in images], return_tensors="pt")
-        grid = vis["image_grid_thw"]
-        chats = []
+        slot: dict[int, int] = {}
+        distinct: list[np.ndarray] = []
+        for im in images:
+            if id(im) not in slot:
+                slot[id(im)] = len(distinct)
+                distinct.append(im)
+        vis = self.image_processor(images=[Image.fromarray(i) for i in distinct], return_tensors="pt")
+        grid, pixels = vis["image_grid_thw"], vis["pixel_values"]
+        if len(distinct) == len(images):
+            return pixels, grid
+        per_image = self.torch.split(pixels, [int(g.prod().item()) for g in grid])
+        order = [slot[id(im)] for im in images]
+        return self.torch.cat([per_image[k] for k in order]), grid[order]
+
+    def _chats(self, grid: object, texts: list[str]) -> list[str]:
+        out = []
         for k, text in enumerate(texts):
-            n = int(grid[k].prod().item()) // (self.merge**2)
-            chats.append(qwen_chat(text).replace(IMAGE_PAD, IMAGE_PAD * n))
-        enc = self.tokenizer(chats, padding=True, return_tensors="pt", add_special_tokens=False)
+            n = int(grid[k].prod().item()) // (self.merge**2)  # type: ignore[index]
+            out.append(qwen_chat(text).replace(IMAGE_PAD, IMAGE_PAD * n))
+        return out
+
+    def _inputs(self, images: list[np.ndarray], texts: list[str], pad_multiple: int | None = None
+                ) -> dict[str, object]:
+        pixel_values, grid = self._pixels(images)
+        chats = self._chats(grid, texts)
+        enc = self.tokenizer(chats, padding=True, pad_to_multiple_of=pad_multiple, return_tensors="pt",
+                             add_special_tokens=False)
         ids = enc["input_ids"]
         return {
             "input_ids": ids.to(self.device),
             "attention_mask": enc["attention_mask"].to(self.device),
             "mm_token_type_ids": (ids == self.image_token_id).to(self.torch.int32).to(self.device),
-            "pixel_values": vis["pixel_values"].to(self.device),
-            "image_grid_thw": grid.to(self.device),
+            "pixel_values": pixel_values.to(self.device),  # type: ignore[attr-defined]
+            "image_grid_thw": grid.to(self.device),  # type: ignore[attr-defined]
         }
 
     def answer_from_views(self, images: list[np.ndarray], question: object, choices: list[str]) -> list[float]:
@@ -177,16 +205,64 @@ class HFBackend(ModelBackend):
         self, rgb: np.ndarray, annotated: np.ndarray | None, queries: list[prompts.Query]
     ) -> list[dict[str, float]]:
         """One forward pass over the batch; softmax of the last logits over each query's candidates."""
-        cand_ids = [[self.token_id(c) for c in q.candidates] for q in queries]
-        images = [annotated if (q.annotated and annotated is not None) else rgb for q in queries]
-        inputs = self._inputs(images, [q.text for q in queries])
+        return self.candidate_probs_many([ProbeItem(rgb, annotated, queries)])[0]
+
+    def _forward(self, flat: list[tuple[np.ndarray, prompts.Query]]) -> list[dict[str, float]]:
+        """One left-padded forward pass over ``(image, query)`` rows, padded to a multiple of
+        :data:`PAD_MULTIPLE` tokens; softmax of the last logits over each query's candidates."""
+        cand_ids = [[self.token_id(c) for c in q.candidates] for _, q in flat]
+        inputs = self._inputs([im for im, _ in flat], [q.text for _, q in flat], pad_multiple=PAD_MULTIPLE)
         with self._lock, self.torch.inference_mode():
             logits = self.net(**inputs).logits[:, -1, :].float()
         out = []
-        for row, q, ids in zip(logits, queries, cand_ids, strict=True):
+        for row, (_, q), ids in zip(logits, flat, cand_ids, strict=True):
             p = self.torch.softmax(row[ids], dim=-1).cpu().numpy()
             out.append({c: float(v) for c, v in zip(q.candidates, p, strict=True)})
         return out
+
+    def candidate_probs_many(self, items: list[ProbeItem]) -> list[list[dict[str, float]]]:
+        """The queries of several items (the steps of several robots) in as few forward passes as keep every
+        item's values exactly what it gets alone.
+
+        A row's logits do not depend on the other rows of its batch, but they do depend on how much left
+        padding it carries (the padded positions still enter the attention's reductions). So each item is
+        padded as it would be alone -- its longest query, rounded up to a multiple of :data:`PAD_MULTIPLE`
+        tokens -- and the items that share that length run as one batch: the rounding is what lets steps with
+        questions of different lengths share a forward pass."""
+        rows = [[(it.annotated if (q.annotated and it.annotated is not None) else it.rgb, q) for q in it.queries]
+                for it in items]
+        groups: dict[int, list[int]] = {}
+        for i, item_rows in enumerate(rows):
+            if item_rows:
+                groups.setdefault(self._padded_length(item_rows), []).append(i)
+        out: list[list[dict[str, float]]] = [[] for _ in items]
+        for members in groups.values():
+            probs = self._forward([r for i in members for r in rows[i]])
+            k = 0
+            for i in members:
+                out[i] = probs[k : k + len(rows[i])]
+                k += len(rows[i])
+        return out
+
+    def _padded_length(self, rows: list[tuple[np.ndarray, prompts.Query]]) -> int:
+        """The token length an item's queries are padded to when they run alone (see _forward)."""
+        longest = 0
+        for im, q in rows:
+            h, w = im.shape[:2]
+            # <|image_pad|> is one special token: the chat with one of them, plus the image's other n - 1
+            n = len(self.tokenizer(qwen_chat(q.text), add_special_tokens=False)["input_ids"])
+            longest = max(longest, n + self._image_tokens(h, w) - 1)
+        return -(-longest // PAD_MULTIPLE) * PAD_MULTIPLE
+
+    def _image_tokens(self, h: int, w: int) -> int:
+        """How many ``<|image_pad|>`` tokens an ``h`` x ``w`` image takes (the image processor's grid)."""
+        key = (h, w)
+        if key not in self._grid_cache:
+            from PIL import Image
+
+            grid = self.image_processor(images=[Image.new("RGB", (w, h))], return_tensors="pt")["image_grid_thw"]
+            self._grid_cache[key] = int(grid[0].prod().item()) // (self.merge**2)
+        return self._grid_cache[key]
 
     def generate(self, rgb: np.ndarray, text: str, max_new_tokens: int = 48) -> str:
         inputs = self._inputs([rgb], [text])
