@@ -60,10 +60,11 @@ class Settings(BaseSettings):
     scorer_backend: Literal["oracle", "hf", "remote"] = "oracle"
     scorer_timeout_s: float = Field(default=20.0, gt=0)
     scorer_replica: str | None = None  # replica id; default = instance
-    # dynamic batching in a replica: up to this many queued requests (of any robots) in one backend call; 1 = off
-    scorer_batch_max: int = Field(default=1, ge=1, le=64)
-    # how long a batch's first request waits for batch mates (ms); 0 = only those already queued (no added wait)
-    scorer_batch_window_ms: float = Field(default=0.0, ge=0.0, le=1000.0)
+    scorer_batch_max: int = Field(default=1, ge=1, le=64, description=(
+        "dynamic batching in a replica: up to this many queued requests (of any robots) in one backend call; "
+        "1 = off"))
+    scorer_batch_window_ms: float = Field(default=0.0, ge=0.0, le=1000.0, description=(
+        "how long a batch's first request waits for batch mates (ms); 0 = only those already queued"))
     hf_model_path: Path | None = None
     hf_device: str = "cpu"
     remote_base_url: str | None = None
