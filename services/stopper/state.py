@@ -321,28 +321,24 @@ def _baseline(step: RuleStep, hit: bool, reason: str, stat_scores: dict[str, flo
                     reason=reason, scores=stat_scores, answer=answer)
 
 
+def _threshold(episode: EpisodeRecord, rule: str) -> float:
+    return episode.threshold if episode.threshold is not None else baselines.threshold_for(rule, None)
+
+
 def entropy_rule(step: RuleStep) -> Decision:
     """Stop when the answer entropy falls under the threshold (Explore-EQA Eq. 4)."""
-    episode = step.episode
-    thr = episode.threshold if episode.threshold is not None else baselines.threshold_for("entropy", None)
+    thr = _threshold(step.episode, "entropy")
     hit, h = baselines.entropy_stops(step.f, thr)
-    if hit:
-        reason = f"answer entropy {h:.4f} nats < threshold {thr:g} (Eq. 4); answering {step.argmax}"
-    else:
-        reason = f"answer entropy {h:.4f} nats >= threshold {thr:g}"
-    return _baseline(step, hit, reason, {"entropy": h, "relevance": step.relevance})
+    said = f"< threshold {thr:g} (Eq. 4); answering {step.argmax}" if hit else f">= threshold {thr:g}"
+    return _baseline(step, hit, f"answer entropy {h:.4f} nats {said}", {"entropy": h, "relevance": step.relevance})
 
 
 def relevance_rule(step: RuleStep) -> Decision:
     """Stop when the step's relevance exceeds the threshold (Explore-EQA Eq. 5)."""
-    episode = step.episode
-    thr = episode.threshold if episode.threshold is not None else baselines.threshold_for("relevance", None)
+    thr = _threshold(step.episode, "relevance")
     hit, r = baselines.relevance_stops(step.relevance, thr)
-    if hit:
-        reason = f"relevance {r:.4f} > threshold {thr:g} (Eq. 5); answering {step.argmax}"
-    else:
-        reason = f"relevance {r:.4f} <= threshold {thr:g}"
-    return _baseline(step, hit, reason, {"relevance": r, "entropy": baselines.entropy(step.f)})
+    said = f"> threshold {thr:g} (Eq. 5); answering {step.argmax}" if hit else f"<= threshold {thr:g}"
+    return _baseline(step, hit, f"relevance {r:.4f} {said}", {"relevance": r, "entropy": baselines.entropy(step.f)})
 
 
 def max_steps_rule(step: RuleStep) -> Decision:
@@ -396,23 +392,23 @@ def decide(episode: EpisodeRecord, scores: StepScores) -> Decision | None:
 
 
 def end_message(
-    rec: EpisodeRecord, state: EpisodeState, reason: str, answer: str | None, recording: str | None = None
+    episode: EpisodeRecord, state: EpisodeState, reason: str, answer: str | None, recording: str | None = None
 ) -> EpisodeEnd:
     """The :class:`EpisodeEnd` of an episode. ``correct`` compares with the ground truth only now, after
     the answer was decided, and only when the question carries one."""
-    truth = rec.question.answer
+    truth = episode.question.answer
     correct = None if (truth is None or answer is None or state != "stopped") else (answer == truth)
-    prediction = list(rec.running) if (rec.stop.rule == "cp" and rec.running is not None) else []
+    prediction = list(episode.running) if (episode.stop.rule == "cp" and episode.running is not None) else []
     return EpisodeEnd(
-        episode_id=rec.episode_id,
-        robot=rec.robot,
+        episode_id=episode.episode_id,
+        robot=episode.robot,
         state=state,
         reason=reason,
         answer=answer,
-        answer_text=rec.answer_text(answer),
+        answer_text=episode.answer_text(answer),
         prediction_set=prediction,
-        steps=rec.last_step + 1,
-        max_steps=rec.max_steps,
+        steps=episode.last_step + 1,
+        max_steps=episode.max_steps,
         correct=correct,
         recording=recording,
     )
