@@ -219,29 +219,29 @@ class PlannerService(EpisodeService[_Episode]):
 
     # ---- monitoring ----------------------------------------------------------------------------------------
     def _record(self, ep: _Episode, step: int, step_map: MapUpdate, plan: StepPlan) -> None:
-        rec = self.recorders.get(ep.episode_id)
-        if rec is None or not rec.enabled:
+        recorder = self.recorders.get(ep.episode_id)
+        if recorder is None or not recorder.enabled:
             return
         import rerun as rr
 
-        rec.set_step(step)
+        recorder.set_step(step)
         z = 0.05
         if plan.path:
-            rec.log(
+            recorder.log(
                 "world/plan/path",
                 rr.LineStrips3D([[(x, y, z) for x, y in plan.path]], colors=[(255, 140, 0)], radii=[0.03]),
             )
         if plan.full_path:
-            rec.log(
+            recorder.log(
                 "world/plan/full_path",
                 rr.LineStrips3D([[(x, y, z) for x, y in plan.full_path]], colors=[(255, 200, 120)], radii=[0.015]),
             )
             tx, ty = plan.full_path[-1]
-            rec.log("world/plan/target", rr.Points3D([(tx, ty, z)], colors=[(255, 0, 0)], radii=[0.12]))
+            recorder.log("world/plan/target", rr.Points3D([(tx, ty, z)], colors=[(255, 0, 0)], radii=[0.12]))
         if plan.pose is not None:
             p = plan.pose
             heading = (0.5 * math.cos(p.yaw), 0.5 * math.sin(p.yaw), 0.0)
-            rec.log(
+            recorder.log(
                 "world/plan/goal",
                 rr.Arrows3D(origins=[(p.x, p.y, z)], vectors=[heading], colors=[(255, 140, 0)]),
             )
@@ -252,6 +252,6 @@ class PlannerService(EpisodeService[_Episode]):
             radii = [0.05 + 0.2 * float(v) / top for v in probs]
             colors = [(int(255 * float(v) / top), 80, int(255 * (1 - float(v) / top))) for v in probs]
             labels = [f"w={f.weight:.3g} p={float(v):.2f}" for f, v in zip(step_map.frontiers, probs, strict=False)]
-            rec.log("world/frontiers", rr.Points3D(pts, radii=radii, colors=colors, labels=labels))
+            recorder.log("world/frontiers", rr.Points3D(pts, radii=radii, colors=colors, labels=labels))
         if plan.done:
-            rec.log("world/plan/status", rr.TextLog(f"done: {plan.reason}"))
+            recorder.log("world/plan/status", rr.TextLog(f"done: {plan.reason}"))
