@@ -12,8 +12,9 @@ import json
 from pathlib import Path
 
 import pytest
+from support.factories import episode_start, question
 
-from eqa.messages import EpisodeStart, Question, StepScores, StopConfig
+from eqa.messages import StepScores, StopConfig
 from services.stopper.state import CalibrationChoice, EpisodeRecord, decide
 
 FIXTURE = json.loads((Path(__file__).parent / "data" / "stop_rules_golden.json").read_text())
@@ -21,10 +22,10 @@ SEQUENCES = {s["question_id"]: s for s in FIXTURE["sequences"]}
 
 
 def _episode(seq: dict, config: dict) -> EpisodeRecord:
-    q = Question(id=seq["question_id"], scene="gen-1", text="q?", choices=seq["choices"], answer=seq["answer"],
+    q = question(id=seq["question_id"], scene="gen-1", text="q?", choices=seq["choices"], answer=seq["answer"],
                  category=seq["category"])
-    start = EpisodeStart(episode_id="e", robot="r", question=q, max_steps=seq["max_steps"],
-                         stop=StopConfig(rule=config["rule"], eps=0.2, threshold=config.get("threshold")))
+    start = episode_start(q, max_steps=seq["max_steps"],
+                          stop=StopConfig(rule=config["rule"], eps=0.2, threshold=config.get("threshold")))
     episode = EpisodeRecord.from_start(start, "r")
     if config["rule"] == "cp":
         episode.calibration = CalibrationChoice(q_hat=config["q_hat"], eps=0.2, asked_eps=0.2, n=100,
