@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from eqa.app.evaluation import sign_test_p
+from eqa.app.evaluation import bootstrap_indices, bootstrap_mean_ci, sign_test_p, wilson_ci
 from eqa.app.stop_sensitivity import load_recording, recording_path
 from eqa.messages import letters
 from eqa.seeds import EVALUATION_SEEDS, TUNING_SEED
@@ -107,28 +106,17 @@ def paired(a: list[Out], b: list[Out], seed: int = 0, n_boot: int = 4000) -> dic
     cb = np.array([x.correct for x in b], dtype=float)
     sa = np.array([x.norm_steps for x in a])
     sb = np.array([x.norm_steps for x in b])
-    rng = np.random.default_rng(seed)
-    idx = rng.integers(0, ca.size, size=(n_boot, ca.size))
+    idx = bootstrap_indices(ca.size, n_boot, seed)
     d = ca - cb
     ds = sa - sb
+    ci_low, ci_high = bootstrap_mean_ci(d, idx)
+    steps_ci_low, steps_ci_high = bootstrap_mean_ci(ds, idx)
     a_only = int(((ca == 1) & (cb == 0)).sum())
     b_only = int(((cb == 1) & (ca == 0)).sum())
     return {"n": int(ca.size), "success_a": float(ca.mean()), "success_b": float(cb.mean()),
-            "diff": float(d.mean()), "ci_low": float(np.quantile(d[idx].mean(1), 0.025)),
-            "ci_high": float(np.quantile(d[idx].mean(1), 0.975)), "a_only": a_only, "b_only": b_only,
+            "diff": float(d.mean()), "ci_low": ci_low, "ci_high": ci_high, "a_only": a_only, "b_only": b_only,
             "p": sign_test_p(a_only, b_only), "steps_a": float(sa.mean()), "steps_b": float(sb.mean()),
-            "steps_diff": float(ds.mean()), "steps_ci_low": float(np.quantile(ds[idx].mean(1), 0.025)),
-            "steps_ci_high": float(np.quantile(ds[idx].mean(1), 0.975))}
-
-
-def wilson(k: int, n: int) -> tuple[float, float]:
-    if n == 0:
-        return math.nan, math.nan
-    z = 1.959964
-    p = k / n
-    c = (p + z * z / (2 * n)) / (1 + z * z / n)
-    h = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return c - h, c + h
+            "steps_diff": float(ds.mean()), "steps_ci_low": steps_ci_low, "steps_ci_high": steps_ci_high}
 
 
 def load(recordings: Path, seed: int, split: str, n: int | None) -> list[Ep]:
@@ -240,7 +228,7 @@ def main(argv: list[str] | None = None) -> int:
         for key in ("a", "b"):
             k = sum(bool(o.covered) for o in outs[key])
             n = len(outs[key])
-            lo, hi = wilson(k, n)
+            lo, hi = wilson_ci(k, n)
             cov[key] = {"coverage": k / n, "ci_low": lo, "ci_high": hi, "n": n}
         cov_cat = {key: {c: float(np.mean([bool(o.covered) for o, e in zip(outs[key], test_all, strict=True)
                                            if e.category == c])) for c in cats} for key in ("a", "b")}

@@ -48,15 +48,15 @@ class ObjEpisode:
 
 
 def run_episode(question: Any) -> ObjEpisode:
+    """One full-length semantic episode with the pure cores in this process
+    (:func:`eqa.app.core_runner.run_episode_loop`), the mapper's question-object layer fed by the detector."""
     from eqa.app.benchmark_runner import question_seed
-    from eqa.messages import DetectResult, EpisodeStart, Frame, ScoreRequest, letters
+    from eqa.app.core_runner import EpisodeCores, StepHooks, run_episode_loop
+    from eqa.messages import DetectResult, EpisodeStart, letters
     from eqa.settings import Settings
     from services.mapper.episode_map import EpisodeMap
     from services.mapper.question_objects import QuestionObjects
-    from services.planner.sampling import step_rng
-    from services.planner.step import Memory, plan_step
-    from services.sim import camera
-    from services.sim.motion import pose_error
+    from services.planner.step import PlannerParams
     from services.sim.render import Renderer
     from services.sim.service import load_scene
     from services.vlm_scorer.backends.oracle import OracleBackend
@@ -64,54 +64,34 @@ def run_episode(question: Any) -> ObjEpisode:
 
     t0 = time.monotonic()
     settings = Settings()
-    w, h = 320, 240
     scene = load_scene(settings, question.scene)
-    renderer = Renderer(scene)
     oracle = OracleBackend.from_settings(settings)
     detector = make_detector(settings)
     seed = question_seed(question.id)
     start = EpisodeStart(episode_id=f"sens-{question.id}", robot="r0", question=question, strategy="semantic",
                          max_steps=question.max_steps, seed=seed)
-    emap = EpisodeMap(start)
-    qo_target = question.query.get("room_kind")
-    rects = [r.rect for r in scene.rooms if r.kind == qo_target] if qo_target else None
-    qo = QuestionObjects(question, rects, scene.floor_area_m2)
-    K = camera.intrinsics(w, h)
-    pose = question.start_pose
-    memory = Memory()
-    blind = question.model_copy(update={"answer": None, "evidence_ids": []})
-    probs, rels, evs = [], [], []
-    for step in range(question.max_steps):
-        cam = camera.camera_pose(pose)
-        r = renderer.render(cam, K, w, h)
-        frame = Frame(episode_id=start.episode_id, step=step, pose=pose, camera_pose=cam, intrinsics=K,
-                      rgb=r.rgb, depth=r.depth, instances=r.instances, labels=renderer.labels(r.instances))
-        emap.integrate(frame)
-        req = ScoreRequest(episode_id=start.episode_id, step=step, question=blind, rgb=frame.rgb,
-                           prompt_points=emap.prompts, instances=frame.instances, labels=frame.labels,
-                           depth=frame.depth, seed=seed)
-        scores = oracle.score(req)
-        dreq = qo.detect_request(frame, seed)
-        qo.integrate(frame, DetectResult(request_id=dreq.request_id, episode_id=start.episode_id, step=step,
-                                         detections=detector.detect(dreq), backend=settings.detector_backend))
-        probs.append(list(scores.answer_probs))
-        rels.append(float(scores.relevance))
-        emap.apply_scores(scores.lsv, scores.gsv)
-        emap.compute_frontiers()
-        mu = emap.map_update()
-        evs.append(qo.evidence(emap.maps.observed if emap.maps is not None else None, emap.grid()).model_dump())
-        if step + 1 >= question.max_steps:
-            break
-        plan = None
-        for attempt in range(4):
-            plan = plan_step(mu.grid, mu.free, mu.occupied, mu.pose, mu.frontiers, "semantic", memory,
-                             step_rng(seed, step, attempt))
-            if plan.done or plan.pose is None or pose_error(scene, plan.pose) is None:
-                break
-            memory.refused.append((plan.pose.x, plan.pose.y))
-        if plan is None or plan.done or plan.pose is None:
-            break
-        memory, pose = plan.memory, plan.pose
+    room_kind = question.query.get("room_kind")
+    rects = [r.rect for r in scene.rooms if r.kind == room_kind] if room_kind else None
+    objects = QuestionObjects(question, rects, scene.floor_area_m2)
+    probs: list[list[float]] = []
+    rels: list[float] = []
+    evs: list[dict[str, Any]] = []
+
+    class Evidence(StepHooks):
+        def scored(self, step: int, frame: Any, request: Any, scores: Any) -> None:
+            dreq = objects.detect_request(frame, seed)
+            objects.integrate(frame, DetectResult(request_id=dreq.request_id, episode_id=start.episode_id, step=step,
+                                                  detections=detector.detect(dreq),
+                                                  backend=settings.detector_backend))
+            probs.append(list(scores.answer_probs))
+            rels.append(float(scores.relevance))
+
+        def mapped(self, step: int, emap: Any, step_map: Any) -> None:
+            observed = emap.maps.observed if emap.maps is not None else None
+            evs.append(objects.evidence(observed, emap.grid()).model_dump())
+
+    cores = EpisodeCores(scene, Renderer(scene), oracle, EpisodeMap(start), PlannerParams(), 320, 240)
+    run_episode_loop(question, "semantic", cores, episode_id=start.episode_id, seed=seed, hooks=Evidence())
     return ObjEpisode(question.id, question.category or "", list(question.choices),
                       letters(len(question.choices)).index(question.answer), question.max_steps, probs, rels, evs,
                       time.monotonic() - t0)

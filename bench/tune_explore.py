@@ -88,16 +88,14 @@ def configs(knobs: dict[str, Any]) -> tuple[Any, Any]:
 
 
 def run_episode(args: tuple[Any, str, dict[str, Any], int, int]) -> Episode:
-    """One full-length episode with the pure cores in this process (the services' step functions)."""
-    from eqa.app.core_runner import observe_step
-    from eqa.messages import EpisodeStart, letters
+    """One full-length episode with the pure cores in this process (:func:`eqa.app.core_runner.run_episode_loop`)."""
+    from eqa.app.benchmark_runner import question_seed
+    from eqa.app.core_runner import EpisodeCores, StepHooks, run_episode_loop
+    from eqa.messages import EpisodeStart
     from eqa.settings import Settings
     from services.mapper.episode_map import EpisodeMap
-    from services.planner.sampling import step_rng
-    from services.planner.step import Memory, plan_step
     from services.sim import camera
     from services.sim.library import load_or_generate
-    from services.sim.motion import pose_error
     from services.sim.render import Renderer
     from services.vlm_scorer.backends.oracle import OracleBackend, parse_target
 
@@ -106,56 +104,41 @@ def run_episode(args: tuple[Any, str, dict[str, Any], int, int]) -> Episode:
     budget = math.ceil(horizon * int(question.max_steps))
     settings = Settings()
     scene = load_or_generate(question.scene, settings.scenes_path)
-    renderer = Renderer(scene)
     oracle = OracleBackend.from_settings(settings)
-    from eqa.app.benchmark_runner import question_seed
-
     seed = question_seed(question.id)
     start = EpisodeStart(episode_id=f"tune-{question.id}", robot="r0", question=question, strategy=strategy,
                          max_steps=question.max_steps, seed=seed)
-    emap = EpisodeMap(start, mconf)
-    K = camera.intrinsics(w, h)
-    pose = question.start_pose
-    memory = Memory()
     target = parse_target(question)
-    blind = question.model_copy(update={"answer": None, "evidence_ids": [], "targets": []})
-    f, rel, qual = [], [], []
+    f: list[list[float]] = []
+    rel: list[float] = []
+    qual: list[float] = []
     diag: list[tuple[float, float, float, float, float]] = []
-    path = 0.0
     geo: list[tuple[float, bool, int]] = []
+    path = [0.0]
     ev = set(question.evidence_ids)
     half_fov = math.radians(camera.HFOV_DEG) / 2
-    for step in range(budget):
-        req = observe_step(renderer, emap, start.episode_id, step, pose, K, w, h, blind, seed)
-        views = [v for v in oracle.target_views(req, target) if not ev or v[0].id in ev]
-        seen = oracle.seen_targets(views)
-        qual.append(max((q for _, q in seen), default=0.0))
-        geo.append(_geometry(pose, question.targets, half_fov, max((round(f * w * h) for _, f, _ in views), default=0)))
-        scores = oracle.score(req)
-        f.append(list(scores.answer_probs))
-        rel.append(float(scores.relevance))
-        emap.apply_scores(scores.lsv, scores.gsv)
-        emap.compute_frontiers()
-        mu = emap.map_update()
-        if step + 1 >= budget:
-            break
-        plan = None
-        for attempt in range(4):
-            plan = plan_step(mu.grid, mu.free, mu.occupied, mu.pose, mu.frontiers, strategy, memory,
-                             step_rng(seed, step, attempt), pparams)
-            if plan.done or plan.pose is None or pose_error(scene, plan.pose) is None:
-                break
-            memory.refused.append((plan.pose.x, plan.pose.y))
-        if plan is None or plan.done or plan.pose is None:
-            break
-        if plan.sampled and plan.geodesic_m and question.targets:
-            diag.append(_diag(mu.frontiers, plan, question.targets, pparams.distance_decay_m))
-        path += math.hypot(plan.pose.x - pose.x, plan.pose.y - pose.y)
-        memory, pose = plan.memory, plan.pose
+
+    class Diagnosis(StepHooks):
+        def scored(self, step: int, frame: Any, request: Any, scores: Any) -> None:
+            views = [v for v in oracle.target_views(request, target) if not ev or v[0].id in ev]
+            seen = oracle.seen_targets(views)
+            qual.append(max((q for _, q in seen), default=0.0))
+            pixels = max((round(share * w * h) for _, share, _ in views), default=0)
+            geo.append(_geometry(frame.pose, question.targets, half_fov, pixels))
+            f.append(list(scores.answer_probs))
+            rel.append(float(scores.relevance))
+
+        def moved(self, step: int, step_map: Any, plan: Any, before: Any) -> None:
+            if plan.sampled and plan.geodesic_m and question.targets:
+                diag.append(_diag(step_map.frontiers, plan, question.targets, pparams.distance_decay_m))
+            path[0] += math.hypot(plan.pose.x - before.x, plan.pose.y - before.y)
+
+    cores = EpisodeCores(scene, Renderer(scene), oracle, EpisodeMap(start, mconf), pparams, w, h)
+    run_episode_loop(question, strategy, cores, episode_id=start.episode_id, seed=seed, steps=budget,
+                     hooks=Diagnosis())
     assert question.answer is not None
-    letters(len(question.choices))
     return Episode(question.id, question.category or "", int(question.max_steps), question.answer, f, rel, qual,
-                   path, diag, geo, len(question.evidence_ids))
+                   path[0], diag, geo, len(question.evidence_ids))
 
 
 def _geometry(pose: Any, targets: list[tuple[float, float]], half_fov: float, pixels: int) -> tuple[float, bool, int]:

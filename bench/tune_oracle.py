@@ -51,16 +51,13 @@ class EpisodeRecord:
 
 
 def run_episode(args: tuple[Any, str, int, int]) -> EpisodeRecord:
-    """One full-length episode with the pure cores in this process (the services' step functions)."""
+    """One full-length episode with the pure cores in this process (:func:`eqa.app.core_runner.run_episode_loop`)."""
     from eqa.app.benchmark_runner import question_seed
-    from eqa.app.core_runner import observe_step
+    from eqa.app.core_runner import EpisodeCores, StepHooks, run_episode_loop
     from eqa.messages import EpisodeStart
     from eqa.settings import Settings
     from services.mapper.episode_map import EpisodeMap
-    from services.planner.sampling import step_rng
-    from services.planner.step import Memory, plan_step
-    from services.sim import camera
-    from services.sim.motion import pose_error
+    from services.planner.step import PlannerParams
     from services.sim.render import Renderer
     from services.sim.service import load_scene
     from services.vlm_scorer.backends.oracle import OracleBackend, parse_target
@@ -68,37 +65,19 @@ def run_episode(args: tuple[Any, str, int, int]) -> EpisodeRecord:
     question, strategy, w, h = args
     settings = Settings()
     scene = load_scene(settings, question.scene)
-    renderer = Renderer(scene)
     oracle = OracleBackend.from_settings(settings)
     seed = question_seed(question.id)
     start = EpisodeStart(episode_id=f"tune-{question.id}", robot="r0", question=question, strategy=strategy,
                          max_steps=question.max_steps, seed=seed)
-    emap = EpisodeMap(start)
-    K = camera.intrinsics(w, h)
-    pose = question.start_pose
-    memory = Memory()
     target = parse_target(question)
-    blind = question.model_copy(update={"answer": None, "evidence_ids": []})
     steps: list[StepRecord] = []
-    for step in range(question.max_steps):
-        req = observe_step(renderer, emap, start.episode_id, step, pose, K, w, h, blind, seed)
-        steps.append(StepRecord(oracle.target_views(req, target)))
-        scores = oracle.score(req)
-        emap.apply_scores(scores.lsv, scores.gsv)
-        emap.compute_frontiers()
-        mu = emap.map_update()
-        if step + 1 >= question.max_steps:
-            break
-        plan = None
-        for attempt in range(4):
-            plan = plan_step(mu.grid, mu.free, mu.occupied, mu.pose, mu.frontiers, strategy, memory,
-                             step_rng(seed, step, attempt))
-            if plan.done or plan.pose is None or pose_error(scene, plan.pose) is None:
-                break
-            memory.refused.append((plan.pose.x, plan.pose.y))
-        if plan is None or plan.done or plan.pose is None:
-            break
-        memory, pose = plan.memory, plan.pose
+
+    class Views(StepHooks):
+        def scored(self, step: int, frame: Any, request: Any, scores: Any) -> None:
+            steps.append(StepRecord(oracle.target_views(request, target)))
+
+    cores = EpisodeCores(scene, Renderer(scene), oracle, EpisodeMap(start), PlannerParams(), w, h)
+    run_episode_loop(question, strategy, cores, episode_id=start.episode_id, seed=seed, hooks=Views())
     return EpisodeRecord(question, seed, steps)
 
 
@@ -112,9 +91,9 @@ def rescore(ep: EpisodeRecord, oracle: Any) -> tuple[np.ndarray, np.ndarray, boo
     t = parse_target(q)
     meta = dataclasses.make_dataclass("Meta", ["seed", "question"])(ep.seed, q)
     f, rel, any_ev = [], [], False
-    for step, rec in enumerate(ep.steps):
+    for step, step_record in enumerate(ep.steps):
         rng = np.random.default_rng([ep.seed, _h(q.id), step])
-        seen = oracle.seen_targets(rec.views)
+        seen = oracle.seen_targets(step_record.views)
         probs, quality, right = oracle._answer(rng, meta, list(q.choices), t, seen)
         any_ev |= quality > 0
         f.append(probs)

@@ -162,6 +162,10 @@ class Question(BaseModel):
     start_pose: Pose2D | None = None
     max_steps: int | None = Field(default=None, ge=1, le=10_000)
 
+    def without_ground_truth(self) -> Question:
+        """The question as a scorer sees it: no answer, evidence ids or target positions (ground truth)."""
+        return self.model_copy(update={"answer": None, "evidence_ids": [], "targets": []})
+
     @field_validator("text")
     @classmethod
     def _text_not_blank(cls, v: str) -> str:

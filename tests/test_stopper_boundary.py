@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from support.factories import episode_start
 
-from eqa.messages import EpisodeStart, Question, StepScores, StopConfig
+from eqa.messages import StepScores, StopConfig
 from services.stopper import conformal
 from services.stopper.calibration import Trace, TraceStep, calibrate
 from services.stopper.state import CalibrationChoice, EpisodeRecord, decide
@@ -31,8 +32,7 @@ def test_ten_identical_calibration_episodes_then_the_same_episode_keeps_its_true
     table = calibrate([_trace(i) for i in range(10)], [eps], name="tie")
     entry = table.entries[0]
     assert entry.q_hat == table.kappas[0]
-    q = Question(text="Is it?", choices=["yes", "no"], scene="s", answer="A")
-    start = EpisodeStart(episode_id="e", robot="r", question=q, max_steps=1, stop=StopConfig(rule="cp", eps=eps))
+    start = episode_start(max_steps=1, stop=StopConfig(rule="cp", eps=eps))
     rec = EpisodeRecord.from_start(start, "r")
     rec.calibration = CalibrationChoice(q_hat=entry.q_hat, eps=eps, asked_eps=eps, n=table.n, source="test")
     d = decide(rec, StepScores(episode_id="e", step=0, answer_probs=F, relevance=REL))

@@ -112,19 +112,10 @@ def _benchmark(seed: int, settings: Any) -> Any:
 
 def _questions(split: str, limit: int | None, settings: Any, seed: int = 0) -> list[Any]:
     bench = _benchmark(seed, settings)
+    from services.sim.questions import category_round_robin
+
     qs = {"calibration": bench.calibration, "test": bench.test, "all": bench.calibration + bench.test}[split]
-    if limit is not None:
-        # Keep the category mix of the split: take questions round-robin over categories.
-        by_cat: dict[str, list[Any]] = {}
-        for q in qs:
-            by_cat.setdefault(q.category or "", []).append(q)
-        mixed: list[Any] = []
-        while len(mixed) < min(limit, len(qs)):
-            for cat in sorted(by_cat):
-                if by_cat[cat] and len(mixed) < limit:
-                    mixed.append(by_cat[cat].pop(0))
-        qs = mixed
-    return qs
+    return qs if limit is None else category_round_robin(qs, limit)
 
 
 def _import(path: Path, name: str, settings: Any) -> int:

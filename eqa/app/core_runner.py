@@ -1,32 +1,39 @@
-"""Full-length benchmark episodes with the services' pure cores in one process (``eqa bench --runner cores``).
+"""Full-length episodes with the services' pure cores in one process (``eqa bench --runner cores``).
 
 The fleet (:mod:`eqa.app.benchmark_runner`) runs every service as its own process over Zenoh; on a shared
 2-core machine that costs several times the CPU of the work itself (bus, per-step map snapshots in the
-store, five processes). This runner calls the same step functions the services call, in the services' order,
-in one process per worker: the simulator's renderer and goal check (:func:`services.sim.motion.pose_error`),
+store, five processes). :func:`run_episode_loop` calls the same step functions the services call, in the
+services' order, in one process: the simulator's renderer and goal check (:func:`services.sim.motion.pose_error`),
 the mapper's :class:`services.mapper.episode_map.EpisodeMap` (integrate, Eq. 3 values, Eq. A6 frontiers), the
 scorer backend's ``score`` (the question without its ground truth, as the mapper sends it) and the planner's
-:func:`services.planner.step.plan_step` with the planner service's handling of a refused goal (the frontier
-excluded for the step, the pose remembered as refused, a turn in place after ``MAX_REFUSALS``). Seeds are the
-fleet's (:func:`eqa.app.benchmark_runner.question_seed`, per-step planner generators), so a question gives the
-same trace either way up to float32 rounding (checked on 30 evaluation-seed questions, fbe and semantic: 30 of 30
-traces equal within 1e-6, ``bench/results/explore-seeds/fleet-check/``).
-It is not a replacement for the fleet's end-to-end test, and figures say which runner made them.
+step with the planner service's refusal policy (:mod:`services.planner.refusals`). Seeds are the fleet's
+(:func:`eqa.app.benchmark_runner.question_seed`, per-step planner generators), so a question gives the same
+trace either way up to float32 rounding (``tests/test_core_runner_golden.py`` runs tuning-seed questions
+through both). Every in-process runner (:func:`core_episode`, :mod:`eqa.app.stop_sensitivity`,
+``bench/tune_oracle.py``, ``bench/tune_explore.py``, ``bench/bench_object_evidence.py``) is this loop with its
+own :class:`StepHooks`. It is not a replacement for the fleet's end-to-end test, and figures say which runner
+made them.
 """
 
 from __future__ import annotations
 
-import math
-from typing import Any
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from eqa.messages import Frame, MapUpdate, Pose2D, Question, ScoreRequest, Strategy
+    from services.mapper.episode_map import EpisodeMap
+    from services.planner.step import PlannerParams, StepPlan
+    from services.sim.render import Renderer
+    from services.sim.scene import Scene
 
 
-def observe_step(renderer: Any, emap: Any, episode_id: str, step: int, pose: Any, K: Any, w: int, h: int,
-                 blind: Any, seed: int) -> Any:
+def observe_step(renderer: Renderer, emap: EpisodeMap, episode_id: str, step: int, pose: Pose2D, K: Any,
+                 w: int, h: int, blind: Question, seed: int) -> tuple[Frame, ScoreRequest]:
     """One step's perception as the services do it: the sim's frame at ``pose`` (camera, render, labels) is
-    integrated into the mapper's :class:`~services.mapper.episode_map.EpisodeMap`; returns the
+    integrated into the mapper's :class:`~services.mapper.episode_map.EpisodeMap`; returns the frame and the
     :class:`~eqa.messages.ScoreRequest` the mapper sends for it (``blind``: the question without its ground
-    truth). Every in-process runner (this module, :mod:`eqa.app.stop_sensitivity`, ``bench/tune_oracle.py``,
-    ``bench/tune_explore.py``) calls it."""
+    truth)."""
     from eqa.messages import Frame, ScoreRequest
     from services.sim import camera
 
@@ -35,85 +42,136 @@ def observe_step(renderer: Any, emap: Any, episode_id: str, step: int, pose: Any
     frame = Frame(episode_id=episode_id, step=step, pose=pose, camera_pose=cam, intrinsics=K,
                   rgb=r.rgb, depth=r.depth, instances=r.instances, labels=renderer.labels(r.instances))
     emap.integrate(frame)
-    return ScoreRequest(episode_id=episode_id, step=step, question=blind, rgb=frame.rgb, prompt_points=emap.prompts,
-                        instances=frame.instances, labels=frame.labels, depth=frame.depth, seed=seed)
+    return frame, ScoreRequest(episode_id=episode_id, step=step, question=blind, rgb=frame.rgb,
+                               prompt_points=emap.prompts, instances=frame.instances, labels=frame.labels,
+                               depth=frame.depth, seed=seed)
+
+
+class StepHooks:
+    """What one in-process runner records (or changes) at each step of :func:`run_episode_loop`; the loop
+    itself is the services'. The defaults record nothing and change nothing."""
+
+    def scored(self, step: int, frame: Frame, request: ScoreRequest, scores: Any) -> None:
+        """The scorer's reply of the step, before the mapper applies its values."""
+
+    def mapped(self, step: int, emap: EpisodeMap, step_map: MapUpdate) -> None:
+        """The mapper's update of the step (every step, the last one too)."""
+
+    def steer(self, step: int, step_map: MapUpdate, scores: Any) -> MapUpdate | None:
+        """The map the planner plans this step on (the stopper's decision reaches the planner first: a
+        ``cp_guided`` runner re-weights it, and None ends the episode as a stop)."""
+        return step_map
+
+    def moved(self, step: int, step_map: MapUpdate, plan: StepPlan, before: Pose2D) -> None:
+        """The goal the simulator took at ``step`` (from ``before`` to ``plan.pose``)."""
+
+
+@dataclass
+class EpisodeCores:
+    """The parts one in-process episode runs on: the scene and its renderer, the scorer backend, the
+    mapper's episode map, the planner's constants, the image size."""
+
+    scene: Scene
+    renderer: Renderer
+    scorer: Any
+    emap: EpisodeMap
+    params: PlannerParams
+    width: int
+    height: int
+
+
+def goal_refusal(scene: Scene, plan: StepPlan) -> str | None:
+    """The simulator service's reply to a goal (``services.sim.service`` ``on_goal``): its reason to refuse
+    it, or None when it takes it."""
+    from services.sim.motion import pose_error
+
+    if plan.pose is None:
+        return "goal has no pose and is not done"
+    reason = pose_error(scene, plan.pose)
+    return None if reason is None else f"goal refused: {reason}"
+
+
+def run_episode_loop(question: Question, strategy: Strategy, cores: EpisodeCores, *, episode_id: str, seed: int,
+                     steps: int | None = None, hooks: StepHooks | None = None) -> str:
+    """Run one episode of ``question`` for at most ``steps`` steps (default ``question.max_steps``); returns
+    why it ended: ``"step limit"``, ``"stopped"`` (``hooks.steer`` returned None) or ``"planner done: ..."``."""
+    from services.planner.refusals import Refusals, plan_attempt, plan_until_accepted
+    from services.planner.sampling import step_rng
+    from services.planner.step import Memory
+    from services.sim import camera
+
+    hooks = hooks or StepHooks()
+    budget = int(question.max_steps if steps is None else steps)
+    K = camera.intrinsics(cores.width, cores.height)
+    pose = question.start_pose
+    if pose is None:
+        raise ValueError(f"question {question.id} has no start pose")
+    memory = Memory()
+    blind = question.without_ground_truth()
+    for step in range(budget):
+        frame, req = observe_step(cores.renderer, cores.emap, episode_id, step, pose, K, cores.width, cores.height,
+                                  blind, seed)
+        scores = cores.scorer.score(req)
+        hooks.scored(step, frame, req, scores)
+        cores.emap.apply_scores(scores.lsv, scores.gsv)
+        cores.emap.compute_frontiers()
+        step_map = cores.emap.map_update()
+        hooks.mapped(step, cores.emap, step_map)
+        if step + 1 >= budget:
+            break
+        steered = hooks.steer(step, step_map, scores)
+        if steered is None:
+            return "stopped"
+        refusals = Refusals(step, steered.pose, len(steered.frontiers), memory, cores.params.turn_deg)
+        plan = plan_until_accepted(
+            refusals,
+            lambda r, m=steered, s=step: plan_attempt(m, strategy, r, step_rng(seed, s, r.attempt), cores.params),
+            lambda p: goal_refusal(cores.scene, p),
+        )
+        if plan.done or plan.pose is None:
+            return f"planner done: {plan.reason}"
+        hooks.moved(step, steered, plan, pose)
+        memory, pose = plan.memory, plan.pose
+    return "step limit"
+
+
+class _TraceSteps(StepHooks):
+    def __init__(self) -> None:
+        from services.stopper.calibration import TraceStep
+
+        self.step_type = TraceStep
+        self.steps: list[Any] = []
+
+    def scored(self, step: int, frame: Frame, request: ScoreRequest, scores: Any) -> None:
+        self.steps.append(self.step_type(answer_probs=list(scores.answer_probs), relevance=float(scores.relevance)))
 
 
 def core_episode(args: tuple[Any, str, dict[str, Any]]) -> Any:
     """One full-length episode of ``question`` with ``strategy`` under ``settings`` (a ``model_dump``); returns a
     :class:`services.stopper.calibration.Trace` (its ``end_reason`` says why it ended)."""
     from eqa.app.benchmark_runner import question_seed
-    from eqa.messages import EpisodeStart, Pose2D
+    from eqa.messages import EpisodeStart
     from eqa.settings import Settings
     from services.mapper.episode_map import EpisodeMap, MapperConfig
-    from services.planner.sampling import step_rng
-    from services.planner.service import MAX_REFUSALS
-    from services.planner.step import Memory, PlannerParams, StepPlan, plan_step
-    from services.sim import camera
+    from services.planner.step import PlannerParams
     from services.sim.library import load_or_generate
-    from services.sim.motion import pose_error
     from services.sim.render import Renderer
-    from services.stopper.calibration import Trace, TraceStep
+    from services.stopper.calibration import Trace
     from services.vlm_scorer.backends import make_backend
 
     question, strategy, settings_dump = args
     settings = Settings.model_validate(settings_dump)
-    w, h = settings.sim_width, settings.sim_height
     scene = load_or_generate(question.scene, settings.scenes_path)
-    renderer = Renderer(scene)
-    scorer = make_backend(settings)
     seed = question_seed(question.id)
     start = EpisodeStart(episode_id=f"cores-{question.id}", robot="cores", question=question, strategy=strategy,
                          max_steps=question.max_steps, seed=seed, record=False)
     emap = EpisodeMap(start, MapperConfig(tau_lsv=settings.tau_lsv, tau_gsv=settings.tau_gsv, tau_sv=settings.tau_sv,
                                           tau_sv_normal=settings.tau_sv_normal, view_bins=settings.view_bins,
                                           view_agree=settings.view_agree))
-    params = PlannerParams()
-    K = camera.intrinsics(w, h)
-    pose = question.start_pose
-    memory = Memory()
-    blind = question.model_copy(update={"answer": None, "evidence_ids": [], "targets": []})
-    steps: list[Any] = []
-    reason = "step limit"
-    for step in range(question.max_steps):
-        req = observe_step(renderer, emap, start.episode_id, step, pose, K, w, h, blind, seed)
-        scores = scorer.score(req)
-        steps.append(TraceStep(answer_probs=list(scores.answer_probs), relevance=float(scores.relevance)))
-        emap.apply_scores(scores.lsv, scores.gsv)
-        emap.compute_frontiers()
-        mu = emap.map_update()
-        if step + 1 >= question.max_steps:
-            break
-        before = memory.copy()
-        excluded: list[tuple[float, float]] = []
-        refused: list[tuple[float, float]] = []
-        plan: StepPlan | None = None
-        for attempt in range(MAX_REFUSALS + 2):
-            mem = before.copy()
-            mem.refused.extend(refused)
-            if attempt > MAX_REFUSALS:  # the planner service turns in place after MAX_REFUSALS refusals
-                mem.target = None
-                yaw = mu.pose.yaw + math.radians(params.turn_deg)
-                plan = StepPlan("turn", "refused goals: turning in place",
-                                pose=Pose2D(x=mu.pose.x, y=mu.pose.y, yaw=math.atan2(math.sin(yaw), math.cos(yaw))),
-                                memory=mem)
-            else:
-                plan = plan_step(mu.grid, mu.free, mu.occupied, mu.pose, mu.frontiers, strategy, mem,
-                                 step_rng(seed, step, attempt), params, exclude=excluded)
-            if plan.done or plan.pose is None or pose_error(scene, plan.pose) is None:
-                break
-            if plan.kind == "turn":
-                plan = StepPlan("done", "the simulator refused a turn in place", memory=before)
-                break
-            if plan.frontier is not None:
-                excluded.append((plan.frontier.x, plan.frontier.y))
-            if math.hypot(plan.pose.x - mu.pose.x, plan.pose.y - mu.pose.y) > 0.05:
-                refused.append((plan.pose.x, plan.pose.y))
-        assert plan is not None
-        if plan.done or plan.pose is None:
-            reason = f"planner done: {plan.reason}"
-            break
-        memory, pose = plan.memory, plan.pose
+    cores = EpisodeCores(scene, Renderer(scene), make_backend(settings), emap, PlannerParams(),
+                         settings.sim_width, settings.sim_height)
+    trace = _TraceSteps()
+    reason = run_episode_loop(question, strategy, cores, episode_id=start.episode_id, seed=seed, hooks=trace)
     return Trace(question_id=question.id, scene=question.scene, category=question.category,
                  choices=question.choices, answer=question.answer, max_steps=question.max_steps, strategy=strategy,
-                 steps=steps, episode_id=start.episode_id, end_reason=reason)
+                 steps=trace.steps, episode_id=start.episode_id, end_reason=reason)

@@ -93,6 +93,22 @@ def sign_test_p(a_only: int, b_only: int) -> float:
     return min(1.0, 2.0 * tail)
 
 
+def bootstrap_indices(n: int, n_boot: int, seed: int = 0) -> np.ndarray:
+    """``n_boot`` resamples (rows) of ``n`` paired items, drawn with replacement from the generator of ``seed``."""
+    if n == 0:
+        return np.zeros((n_boot, 0), dtype=np.int64)
+    return np.random.default_rng(seed).integers(0, n, size=(n_boot, n))
+
+
+def bootstrap_mean_ci(values: np.ndarray, idx: np.ndarray) -> tuple[float, float]:
+    """Percentile 95 % bootstrap interval of the mean of ``values`` (per-item paired differences) over the
+    resamples ``idx`` (:func:`bootstrap_indices`); (nan, nan) without items."""
+    if values.size == 0:
+        return math.nan, math.nan
+    means = values[idx].mean(axis=1)
+    return float(np.quantile(means, 0.025)), float(np.quantile(means, 0.975))
+
+
 def paired_comparison(a: Sequence[Trace], b: Sequence[Trace], budgets: Sequence[float]) -> list[Paired]:
     """Paired comparison of two strategies' runs of the same questions (matched by question id). With the
     oracle's draws seeded per (question, step), two runs of a question differ only where the robots went, so

@@ -36,6 +36,8 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
+from eqa.app.core_runner import StepHooks
+from eqa.app.evaluation import bootstrap_indices, bootstrap_mean_ci, sign_test_p, wilson_ci
 from eqa.seeds import EVALUATION_SEEDS
 
 log = logging.getLogger("stop_sensitivity")
@@ -68,96 +70,81 @@ def benchmark_questions(seed: int, split: str, limit: int | None, scenes_dir: An
         from services.sim.questions import benchmark
 
         bench = benchmark(seed=seed, scenes_dir=scenes_dir)
+    from services.sim.questions import category_round_robin
+
     qs = {"calibration": bench.calibration, "test": bench.test}[split]
-    if limit is None or limit >= len(qs):
-        return list(qs)
-    by_cat: dict[str, list[Any]] = {}
-    for q in qs:
-        by_cat.setdefault(q.category or "", []).append(q)
-    out: list[Any] = []
-    while len(out) < limit:
-        for cat in sorted(by_cat):
-            if by_cat[cat] and len(out) < limit:
-                out.append(by_cat[cat].pop(0))
-    return out
+    return list(qs) if limit is None or limit >= len(qs) else category_round_robin(qs, limit)
+
+
+class _Perceptions(StepHooks):
+    """The per-step record of :func:`run_episode` (a :class:`eqa.app.core_runner.StepHooks`): what the oracle
+    perceived, and with strategy ``cp_guided`` the stopper's decision steering the planner."""
+
+    def __init__(self, oracle: Any, target: Any, stopper: Any = None) -> None:
+        self.oracle, self.target, self.stopper = oracle, target, stopper
+        self.steps: list[PerceptionStep] = []
+
+    def scored(self, step: int, frame: Any, request: Any, scores: Any) -> None:
+        oracle, target = self.oracle, self.target
+        self.steps.append(PerceptionStep(oracle.target_views(request, target), oracle.related_views(request, target),
+                                         oracle.clutter(request), list(scores.answer_probs), float(scores.relevance)))
+
+    def steer(self, step: int, step_map: Any, scores: Any) -> Any:
+        if self.stopper is None:
+            return step_map
+        from eqa.messages import StepScores
+        from services.planner.cp_guided import guided_map
+        from services.stopper.state import decide
+
+        episode = self.stopper
+        decision = decide(episode, StepScores(episode_id=episode.episode_id, step=step,
+                                              answer_probs=scores.answer_probs, relevance=scores.relevance))
+        if decision is None or decision.stop:
+            return None
+        return guided_map(step_map, decision)
 
 
 def run_episode(args: tuple[Any, ...]) -> PerceptionEpisode:
-    """One full-length episode with the pure cores in this process (the services' step functions).
+    """One full-length episode with the pure cores in this process (:func:`eqa.app.core_runner.run_episode_loop`).
 
     ``args`` = (question, strategy, width, height[, q_hat]): with strategy ``cp_guided`` the stopper's decision
     (:func:`services.stopper.state.decide` with ``q_hat``) is taken every step, as the planner service receives
     it, the frontier weights are re-tempered by its prediction set, and the episode ends when CP stops."""
     from eqa.app.benchmark_runner import question_seed
-    from eqa.app.core_runner import observe_step
+    from eqa.app.core_runner import EpisodeCores, run_episode_loop
     from eqa.messages import EpisodeStart
     from eqa.settings import Settings
     from services.mapper.episode_map import EpisodeMap
-    from services.planner.sampling import step_rng
-    from services.planner.step import Memory, plan_step
-    from services.sim import camera
-    from services.sim.motion import pose_error
+    from services.planner.step import PlannerParams
     from services.sim.render import Renderer
     from services.sim.service import load_scene
     from services.vlm_scorer.backends.oracle import OracleBackend, parse_target
 
     question, strategy, w, h = args[:4]
     q_hat = args[4] if len(args) > 4 else None
-    rec = None
+    stopper = None
     if strategy == "cp_guided":
-        from eqa.messages import StepScores, StopConfig
-        from services.planner.cp_guided import guided_map
-        from services.stopper.state import CalibrationChoice, EpisodeRecord, decide
+        from eqa.messages import StopConfig
+        from services.stopper.state import CalibrationChoice, EpisodeRecord
 
         if q_hat is None:
             raise ValueError("cp_guided needs the q_hat of the stopping rule")
     t0 = time.monotonic()
     settings = Settings()
     scene = load_scene(settings, question.scene)
-    renderer = Renderer(scene)
     oracle = OracleBackend.from_settings(settings)
     if oracle.p.miscalibrated:
         raise RuntimeError("record with the oracle at miscalibration level 0 (unset EQA_ORACLE_MISCAL_*)")
     seed = question_seed(question.id)
     start = EpisodeStart(episode_id=f"sens-{question.id}", robot="r0", question=question, strategy=strategy,
                          max_steps=question.max_steps, seed=seed)
-    emap = EpisodeMap(start)
     if strategy == "cp_guided":
-        rec = EpisodeRecord.from_start(start.model_copy(update={"stop": StopConfig(rule="cp", eps=0.2)}), "r0")
-        rec.calibration = CalibrationChoice(q_hat=q_hat, eps=0.2, asked_eps=0.2, n=1, source="in-process")
-    K = camera.intrinsics(w, h)
-    pose = question.start_pose
-    memory = Memory()
-    target = parse_target(question)
-    blind = question.model_copy(update={"answer": None, "evidence_ids": []})
-    steps: list[PerceptionStep] = []
-    for step in range(question.max_steps):
-        req = observe_step(renderer, emap, start.episode_id, step, pose, K, w, h, blind, seed)
-        scores = oracle.score(req)
-        steps.append(PerceptionStep(oracle.target_views(req, target), oracle.related_views(req, target),
-                                    oracle.clutter(req), list(scores.answer_probs), float(scores.relevance)))
-        emap.apply_scores(scores.lsv, scores.gsv)
-        emap.compute_frontiers()
-        mu = emap.map_update()
-        if step + 1 >= question.max_steps:
-            break
-        if rec is not None:  # the stopper's decision of this step reaches the planner before it plans
-            d = decide(rec, StepScores(episode_id=start.episode_id, step=step, answer_probs=scores.answer_probs,
-                                       relevance=scores.relevance))
-            if d is None or d.stop:
-                break
-            mu = guided_map(mu, d)
-        plan = None
-        for attempt in range(4):
-            plan = plan_step(mu.grid, mu.free, mu.occupied, mu.pose, mu.frontiers, strategy, memory,
-                             step_rng(seed, step, attempt))
-            if plan.done or plan.pose is None or pose_error(scene, plan.pose) is None:
-                break
-            memory.refused.append((plan.pose.x, plan.pose.y))
-        if plan is None or plan.done or plan.pose is None:
-            break
-        memory, pose = plan.memory, plan.pose
-    return PerceptionEpisode(question, seed, strategy, steps, time.monotonic() - t0)
+        stopper = EpisodeRecord.from_start(start.model_copy(update={"stop": StopConfig(rule="cp", eps=0.2)}), "r0")
+        stopper.calibration = CalibrationChoice(q_hat=q_hat, eps=0.2, asked_eps=0.2, n=1, source="in-process")
+    cores = EpisodeCores(scene, Renderer(scene), oracle, EpisodeMap(start), PlannerParams(), w, h)
+    perceptions = _Perceptions(oracle, parse_target(question), stopper)
+    run_episode_loop(question, strategy, cores, episode_id=start.episode_id, seed=seed, hooks=perceptions)
+    return PerceptionEpisode(question, seed, strategy, perceptions.steps, time.monotonic() - t0)
 
 
 def recording_path(out: Path, seed: int, split: str, strategy: str, size: str) -> Path:
@@ -223,7 +210,7 @@ def rescore(ep: PerceptionEpisode, params: Any, check_level0: bool = False) -> A
     q: Question = ep.question
     oracle = OracleBackend(params)
     t = parse_target(q)
-    blind = q.model_copy(update={"answer": None, "evidence_ids": []})
+    blind = q.without_ground_truth()
     choices = list(q.choices)
     steps = []
     for step, s in enumerate(ep.steps):
@@ -265,7 +252,7 @@ def _level0(ep: PerceptionEpisode) -> _Level0:
     key = (ep.question.id, ep.seed)
     if key not in _LEVEL0:
         oracle = OracleBackend()
-        q = ep.question.model_copy(update={"answer": None, "evidence_ids": []})
+        q = ep.question.without_ground_truth()
         t = parse_target(q)
         probs, rel, qual = [], [], []
         for step, s in enumerate(ep.steps):
@@ -289,7 +276,7 @@ def rescore_arrays(ep: PerceptionEpisode, params: Any) -> tuple[Any, Any]:
 
     base = _level0(ep)
     oracle = OracleBackend(params)
-    q = ep.question.model_copy(update={"answer": None, "evidence_ids": []})
+    q = ep.question.without_ground_truth()
     t = parse_target(q)
     choices = list(q.choices)
     f, rel = [], []
@@ -504,28 +491,15 @@ def paired_steps(a: list[Outcome], b: list[Outcome], seed: int = 0, n_boot: int 
     sign test of the success discordance (only a right / only b right)."""
     import numpy as np
 
-    from eqa.app.evaluation import sign_test_p
-
     d = np.array([x.norm_steps - y.norm_steps for x, y in zip(a, b, strict=True)])
-    rng = np.random.default_rng(seed)
-    boots = d[rng.integers(0, d.size, size=(n_boot, d.size))].mean(axis=1) if d.size else np.array([math.nan])
+    ci_low, ci_high = bootstrap_mean_ci(d, bootstrap_indices(d.size, n_boot, seed))
     a_only = sum(x.correct and not y.correct for x, y in zip(a, b, strict=True))
     b_only = sum(y.correct and not x.correct for x, y in zip(a, b, strict=True))
     nz = d[d != 0]
     pos = int((nz > 0).sum())
-    return {"mean_diff": float(d.mean()) if d.size else math.nan, "ci_low": float(np.quantile(boots, 0.025)),
-            "ci_high": float(np.quantile(boots, 0.975)), "steps_sign_p": sign_test_p(pos, int(nz.size) - pos),
+    return {"mean_diff": float(d.mean()) if d.size else math.nan, "ci_low": ci_low,
+            "ci_high": ci_high, "steps_sign_p": sign_test_p(pos, int(nz.size) - pos),
             "a_only_right": a_only, "b_only_right": b_only, "success_sign_p": sign_test_p(a_only, b_only)}
-
-
-def _wilson(k: int, n: int) -> tuple[float, float]:
-    if n == 0:
-        return math.nan, math.nan
-    z = 1.959964
-    p = k / n
-    c = (p + z * z / (2 * n)) / (1 + z * z / n)
-    h = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return c - h, c + h
 
 
 def sweep(seeds: dict[int, SeedData], tuning_seed: int, eval_seeds: list[int], modes: list[str],
@@ -574,7 +548,7 @@ def _summarise(per_seed: dict[int, Any], tuning_seed: int, eval_seeds: list[int]
     outcomes["max_steps"] = pooled("max_steps", 1.0)
     for rule, outs in outcomes.items():
         k = sum(o.correct for o in outs)
-        row["pooled"][rule] = {"n": len(outs), "success": k / max(len(outs), 1), "success_ci": _wilson(k, len(outs)),
+        row["pooled"][rule] = {"n": len(outs), "success": k / max(len(outs), 1), "success_ci": wilson_ci(k, len(outs)),
                                "mean_norm_steps": _mean([o.norm_steps for o in outs]),
                                "steps_saved": 1.0 - _mean([o.norm_steps for o in outs])}
     for s in eval_seeds:

@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from eqa import keys
+from eqa.app.evaluation import sign_test_p as sign_test
 from eqa.messages import (
     EpisodeCancel,
     EpisodeEnd,
@@ -95,16 +96,6 @@ def mean_se(values: list[float], binary: bool = True) -> tuple[float, float]:
         return mu, math.sqrt(max(mu * (1 - mu), 0.0) / n)
     var = sum((v - mu) ** 2 for v in values) / max(n - 1, 1)
     return mu, math.sqrt(var / n)
-
-
-def sign_test(wins: int, losses: int) -> float:
-    """Exact two-sided sign test p-value of ``wins`` against ``losses`` (ties dropped)."""
-    n = wins + losses
-    if n == 0:
-        return 1.0
-    k = min(wins, losses)
-    p = sum(math.comb(n, i) for i in range(k + 1)) / 2**n
-    return min(1.0, 2 * p)
 
 
 def run_tasks(settings: Settings, jobs: list[tuple[Task, str, int]], robots: int = 2, scorers: int = 1,

@@ -172,7 +172,7 @@ class AnswerViewsShell:
     def _views_ask(self, em: Any, step: int, av: AnswerViews) -> list[float] | None:
         request = ScoreRequest(
             episode_id=em.episode_id, step=step,
-            question=em.start.question.model_copy(update={"answer": None, "evidence_ids": [], "targets": []}),
+            question=em.start.question.without_ground_truth(),
             rgb=av.images[-1], memory_views=list(av.images), seed=em.start.seed,
         )
         try:

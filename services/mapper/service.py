@@ -253,7 +253,7 @@ class MapperService(AnswerViewsShell, QuestionObjectsShell, ObjectLayerShell, Ep
             episode_id=em.episode_id,
             step=frame.step,
             # Ground truth never leaves for the scorer: it cannot read what it is not sent.
-            question=em.start.question.model_copy(update={"answer": None, "evidence_ids": [], "targets": []}),
+            question=em.start.question.without_ground_truth(),
             rgb=frame.rgb,
             prompt_points=em.prompts,
             instances=frame.instances,

@@ -41,7 +41,10 @@ class Scored:
 
 
 @dataclass(frozen=True)
-class Decision:
+class TaskChoice:
+    """What a task episode does about one object class (not the stopper's bus ``Decision``): the action, the
+    candidate it is about, and why."""
+
     action: Action
     instance_id: int | None = None
     reason: str = ""
@@ -57,26 +60,26 @@ def decide_one(psi: float, psi_prime: float | None, tau: float, tau_inc: float) 
 
 
 def decide(candidates: Iterable[Scored], tau: float, tau_inc: float, cs: float,
-           trusting: bool = False, exclude: set[int] | frozenset[int] = frozenset()) -> Decision:
+           trusting: bool = False, exclude: set[int] | frozenset[int] = frozenset()) -> TaskChoice:
     """The decision over every candidate of one class (module doc). ``cs`` = cs_g or cs_b (Table 3);
     ``exclude``: candidates ruled out (a failed pick there, a place that failed)."""
     pool = [c for c in candidates if c.instance_id not in exclude and math.isfinite(c.psi)]
     if trusting:
         if not pool:
-            return Decision("global", None, "trusting: no detection yet")
+            return TaskChoice("global", None, "trusting: no detection yet")
         first = max(pool, key=lambda c: (c.S, -c.instance_id))
-        return Decision("act", first.instance_id, "trusting: acts on a detection")
+        return TaskChoice("act", first.instance_id, "trusting: acts on a detection")
     pool = [c for c in pool if cs <= c.S]
     acts = [c for c in pool if decide_one(c.psi, c.psi_prime, tau, tau_inc) == "act"]
     if acts:
         best = max(acts, key=lambda c: (c.psi, -c.instance_id))
-        return Decision("act", best.instance_id, f"Psi {best.psi:.3f} >= tau {tau:.3f}")
+        return TaskChoice("act", best.instance_id, f"Psi {best.psi:.3f} >= tau {tau:.3f}")
     looks = [c for c in pool if decide_one(c.psi, c.psi_prime, tau, tau_inc) == "look"]
     if looks:
         best = max(looks, key=lambda c: (c.psi_prime or -math.inf, -c.instance_id))
-        return Decision("look", best.instance_id,
+        return TaskChoice("look", best.instance_id,
                         f"Psi' {best.psi_prime:.3f} >= min(tau {tau:.3f}, Psi {best.psi:.3f} + tau_inc {tau_inc:.3f})")
-    return Decision("global", None, "no candidate confident enough or worth another look" if pool else "no candidate")
+    return TaskChoice("global", None, "no candidate confident enough or worth another look" if pool else "no candidate")
 
 
 @dataclass

@@ -6,8 +6,8 @@ otherwise it plans with :func:`services.planner.step.plan_step` and publishes a 
 with the path to it, the chosen frontier, and the sampling probability of every frontier of the map in
 ``Goal.weights`` (0 for frontiers that were not candidates), or ``done=True`` with the reason when nothing
 is left to explore. When the simulator refuses the goal (``ErrorReply`` on ``sim/error`` for that episode
-and step) the planner avoids that pose and that frontier and plans again for the same step; after
-``MAX_REFUSALS`` refusals it turns in place, and if even that is refused it ends with the reason.
+and step) the planner plans the step again as :class:`services.planner.refusals.Refusals` says (the policy the
+in-process runners share): another frontier, then a turn in place, then done with the reason.
 
 Monitoring (Rerun, per episode): ``world/plan/path`` (line strip to the goal), ``world/plan/full_path``,
 ``world/plan/target`` (approach point of the chosen frontier), ``world/plan/goal`` (goal pose and heading),
@@ -33,20 +33,19 @@ from eqa.messages import (
     Frontier,
     Goal,
     MapUpdate,
-    Pose2D,
     Strategy,
 )
 from eqa.settings import Settings
 from eqa.store import Store
 from services.planner import cp_guided
+from services.planner.refusals import Refusals, plan_attempt
 from services.planner.sampling import step_rng
-from services.planner.step import Memory, PlannerParams, StepPlan, plan_step
+from services.planner.step import Memory, PlannerParams, StepPlan
 from services.planner.task_fsm import Thresholds
 from services.planner.task_runner import PlannerTask
 
 log = logging.getLogger(__name__)
 
-MAX_REFUSALS = 4
 _KEEP_STEPS = 3
 
 
@@ -54,13 +53,13 @@ _KEEP_STEPS = 3
 class _Pending:
     """The goal published for one step, kept to plan again if the simulator refuses it."""
 
-    step: int
     map: MapUpdate
-    memory_before: Memory
     plan: StepPlan
-    attempt: int = 0
-    excluded: list[tuple[float, float]] = field(default_factory=list)
-    refused: list[tuple[float, float]] = field(default_factory=list)
+    refusals: Refusals
+
+    @property
+    def step(self) -> int:
+        return self.refusals.step
 
 
 @dataclass
@@ -158,39 +157,27 @@ class PlannerService(EpisodeService[_Episode]):
         if decision.stop:
             log.debug("episode %s step %d: stopper stops (%s); no goal", ep.episode_id, step, decision.reason)
             return
-        mu = ep.maps[step] if ep.strategy != "cp_guided" else cp_guided.guided_map(ep.maps[step], decision)
-        pending = _Pending(step=step, map=mu, memory_before=ep.memory.copy(), plan=StepPlan("done", ""))
+        step_map = ep.maps[step] if ep.strategy != "cp_guided" else cp_guided.guided_map(ep.maps[step], decision)
+        refusals = Refusals(step, step_map.pose, len(step_map.frontiers), ep.memory.copy(), self.params.turn_deg)
+        pending = _Pending(map=step_map, plan=StepPlan("done", ""), refusals=refusals)
         ep.pending = pending
         self._plan_and_publish(ep, pending)
 
     def _plan_and_publish(self, ep: _Episode, pending: _Pending, forced: StepPlan | None = None) -> None:
-        mu = pending.map
+        step_map = pending.map
+        refusals = pending.refusals
         task_fields: dict[str, Any] = {}
+        rng = step_rng(ep.seed, refusals.step, refusals.attempt)
         if forced is not None:
             plan = forced
         elif ep.task is not None:  # a task episode: the state machine chooses (services/planner/task_runner.py)
-            memory = pending.memory_before.copy()
-            memory.refused.extend(pending.refused)
-            if pending.attempt == 0:
+            if refusals.attempt == 0:
                 ep.task_before = ep.task.to_json()
-            tgoal, plan = ep.task.goal(ep.episode_id, mu, memory, step_rng(ep.seed, pending.step, pending.attempt),
-                                       self.params, before=ep.task_before if pending.attempt else None)
+            tgoal, plan = ep.task.goal(ep.episode_id, step_map, refusals.memory(), rng, self.params,
+                                       before=ep.task_before if refusals.attempt else None)
             task_fields = {"skill": tgoal.skill, "target": tgoal.target, "phase": tgoal.phase}
         else:
-            memory = pending.memory_before.copy()
-            memory.refused.extend(pending.refused)
-            plan = plan_step(
-                mu.grid,
-                mu.free,
-                mu.occupied,
-                mu.pose,
-                mu.frontiers,
-                ep.strategy,
-                memory,
-                step_rng(ep.seed, pending.step, pending.attempt),
-                self.params,
-                exclude=pending.excluded,
-            )
+            plan = plan_attempt(step_map, ep.strategy, refusals, rng, self.params)
         pending.plan = plan
         ep.memory = plan.memory
         goal = Goal(
@@ -215,84 +202,56 @@ class PlannerService(EpisodeService[_Episode]):
             plan.timing_ms.get("step", 0.0),
         )
         self.publish_step(ep.episode_id, keys.PLANNER_GOAL, goal, pending.step, save=True)
-        self._record(ep, pending.step, mu, plan)
+        self._record(ep, pending.step, step_map, plan)
 
     def _replan_after_refusal(self, ep: _Episode, err: ErrorReply) -> None:
         pending = ep.pending
         assert pending is not None
-        plan = pending.plan
-        pending.attempt += 1
+        forced = pending.refusals.refuse(pending.plan, err.reason)
         log.info(
             "episode %s step %d: simulator refused the goal (%s); attempt %d",
             ep.episode_id,
             pending.step,
             err.reason,
-            pending.attempt,
+            pending.refusals.attempt,
         )
-        mu = pending.map
-        if plan.kind == "turn" or plan.pose is None:
-            why = f"the simulator refused {pending.attempt} goal(s) at step {pending.step}, the last: {err.reason}"
-            self._plan_and_publish(
-                ep,
-                pending,
-                StepPlan("done", why, memory=pending.memory_before.copy(), probabilities=[0.0] * len(mu.frontiers)),
-            )
-            return
-        if plan.frontier is not None:
-            pending.excluded.append((plan.frontier.x, plan.frontier.y))
-        if math.hypot(plan.pose.x - mu.pose.x, plan.pose.y - mu.pose.y) > 0.05:
-            pending.refused.append((plan.pose.x, plan.pose.y))
-        if pending.attempt > MAX_REFUSALS:
-            mem = pending.memory_before.copy()
-            mem.target = None
-            yaw = mu.pose.yaw + math.radians(self.params.turn_deg)
-            turn = StepPlan(
-                "turn",
-                f"the simulator refused {pending.attempt} goal(s) ({err.reason}): turning in place",
-                pose=Pose2D(x=mu.pose.x, y=mu.pose.y, yaw=math.atan2(math.sin(yaw), math.cos(yaw))),
-                path=[(mu.pose.x, mu.pose.y)],
-                probabilities=[0.0] * len(mu.frontiers),
-                memory=mem,
-            )
-            self._plan_and_publish(ep, pending, turn)
-            return
-        self._plan_and_publish(ep, pending)
+        self._plan_and_publish(ep, pending, forced)
 
     # ---- monitoring ----------------------------------------------------------------------------------------
-    def _record(self, ep: _Episode, step: int, mu: MapUpdate, plan: StepPlan) -> None:
-        rec = self.recorders.get(ep.episode_id)
-        if rec is None or not rec.enabled:
+    def _record(self, ep: _Episode, step: int, step_map: MapUpdate, plan: StepPlan) -> None:
+        recorder = self.recorders.get(ep.episode_id)
+        if recorder is None or not recorder.enabled:
             return
         import rerun as rr
 
-        rec.set_step(step)
+        recorder.set_step(step)
         z = 0.05
         if plan.path:
-            rec.log(
+            recorder.log(
                 "world/plan/path",
                 rr.LineStrips3D([[(x, y, z) for x, y in plan.path]], colors=[(255, 140, 0)], radii=[0.03]),
             )
         if plan.full_path:
-            rec.log(
+            recorder.log(
                 "world/plan/full_path",
                 rr.LineStrips3D([[(x, y, z) for x, y in plan.full_path]], colors=[(255, 200, 120)], radii=[0.015]),
             )
             tx, ty = plan.full_path[-1]
-            rec.log("world/plan/target", rr.Points3D([(tx, ty, z)], colors=[(255, 0, 0)], radii=[0.12]))
+            recorder.log("world/plan/target", rr.Points3D([(tx, ty, z)], colors=[(255, 0, 0)], radii=[0.12]))
         if plan.pose is not None:
             p = plan.pose
             heading = (0.5 * math.cos(p.yaw), 0.5 * math.sin(p.yaw), 0.0)
-            rec.log(
+            recorder.log(
                 "world/plan/goal",
                 rr.Arrows3D(origins=[(p.x, p.y, z)], vectors=[heading], colors=[(255, 140, 0)]),
             )
-        if mu.frontiers:
-            probs = np.asarray(plan.probabilities or [0.0] * len(mu.frontiers), dtype=np.float64)
-            pts = [(f.x, f.y, z) for f in mu.frontiers]
+        if step_map.frontiers:
+            probs = np.asarray(plan.probabilities or [0.0] * len(step_map.frontiers), dtype=np.float64)
+            pts = [(f.x, f.y, z) for f in step_map.frontiers]
             top = float(probs.max()) if probs.size and probs.max() > 0 else 1.0
             radii = [0.05 + 0.2 * float(v) / top for v in probs]
             colors = [(int(255 * float(v) / top), 80, int(255 * (1 - float(v) / top))) for v in probs]
-            labels = [f"w={f.weight:.3g} p={float(v):.2f}" for f, v in zip(mu.frontiers, probs, strict=False)]
-            rec.log("world/frontiers", rr.Points3D(pts, radii=radii, colors=colors, labels=labels))
+            labels = [f"w={f.weight:.3g} p={float(v):.2f}" for f, v in zip(step_map.frontiers, probs, strict=False)]
+            recorder.log("world/frontiers", rr.Points3D(pts, radii=radii, colors=colors, labels=labels))
         if plan.done:
-            rec.log("world/plan/status", rr.TextLog(f"done: {plan.reason}"))
+            recorder.log("world/plan/status", rr.TextLog(f"done: {plan.reason}"))

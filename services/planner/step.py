@@ -167,6 +167,120 @@ def approach_points(
     return out, geo
 
 
+def _candidates(frontiers: list[Frontier], grid: GridSpec, mem: Memory, params: PlannerParams,
+                exclude: list[tuple[float, float]] | None) -> tuple[np.ndarray, str]:
+    """Rule 1: which frontiers are candidates, and a note counting the others by why they are not."""
+    dropped: dict[str, int] = {}
+    ok = np.zeros(len(frontiers), dtype=bool)
+    for i, f in enumerate(frontiers):
+        why = _valid_frontier(f, grid)
+        if why is None and _near(mem.visited, f.x, f.y, params.visited_radius_m):
+            why = "visited already"
+        if why is None and exclude and _near(exclude, f.x, f.y, 0.5):
+            why = "refused by the simulator this step"
+        if why is None:
+            ok[i] = True
+        else:
+            dropped[why] = dropped.get(why, 0) + 1
+    return ok, "; ".join(f"{v} frontier(s) {k}" for k, v in dropped.items())
+
+
+@dataclass
+class _Reach:
+    """Rules 2-3: the planning grid searched from the robot, and each frontier's approach point and geodesic
+    distance (inf when unreachable)."""
+
+    grid: PlanningGrid
+    approach: list[tuple[int, int] | None]
+    geodesic: np.ndarray
+    reachable: np.ndarray
+    start_found: bool
+
+
+def _reach(grid: GridSpec, free: np.ndarray, occupied: np.ndarray, pose: Pose2D, frontiers: list[Frontier],
+           ok: np.ndarray, mem: Memory, params: PlannerParams, timing: dict[str, float]) -> _Reach:
+    """Search the reachable space at each clearance in turn until a candidate is reachable (rules 2-3)."""
+    n = len(frontiers)
+    extra = _disk_mask(grid, mem.refused, params.refused_radius_m)
+    pg: PlanningGrid | None = None
+    approach: list[tuple[int, int] | None] = [None] * n
+    geo = np.full(n, np.inf)
+    reach = np.zeros(n, dtype=bool)
+    start_found = False
+    for clearance in params.clearances_m:
+        pg = planning_grid(grid, free, occupied, clearance, params.coarse_m, params.max_blocks, extra)
+        started = pg.search_from(pose.x, pose.y, params.snap_radius_m)
+        for key, v in pg.timing_ms.items():
+            timing[key] = timing.get(key, 0.0) + v
+        if not started:
+            continue
+        start_found = True
+        if not ok.any():
+            break
+        approach, geo = approach_points(pg, frontiers, ok, params.approach_radius_m)
+        reach = np.isfinite(geo)
+        if reach.any():
+            break
+    timing["search"] = timing.get("traversable", 0.0) + timing.get("dijkstra", 0.0)
+    assert pg is not None
+    return _Reach(pg, approach, geo, reach, start_found)
+
+
+def _unreachable_reason(reached: _Reach, n: int, ok: np.ndarray, dropped_note: str, params: PlannerParams) -> str:
+    if not reached.start_found:
+        return (
+            f"no free cell with {min(params.clearances_m):.2f} m clearance within "
+            f"{params.snap_radius_m:.1f} m of the robot"
+        )
+    if n == 0:
+        return "no frontier left: the map is fully explored"
+    if not ok.any():
+        return f"no usable frontier ({dropped_note})"
+    return f"none of {int(ok.sum())} frontier(s) is reachable with clearance"
+
+
+def _look_around(why: str, pose: Pose2D, n: int, mem: Memory, params: PlannerParams) -> StepPlan:
+    """Rule 6: turn in place to look around, or done after a full turn without any candidate."""
+    full_turn = math.ceil(360.0 / params.turn_deg)
+    if mem.turns >= full_turn:
+        return StepPlan("done", f"{why}, even after turning in place a full circle", memory=mem,
+                        probabilities=[0.0] * n)
+    mem.turns += 1
+    mem.target = None
+    mem.committed_steps = 0
+    yaw = wrap(pose.yaw + math.radians(params.turn_deg))
+    return StepPlan(
+        "turn",
+        f"{why}: turning in place to look around ({mem.turns}/{full_turn})",
+        pose=Pose2D(x=pose.x, y=pose.y, yaw=yaw),
+        path=[(pose.x, pose.y)],
+        probabilities=[0.0] * n,
+        memory=mem,
+    )
+
+
+def _choose(frontiers: list[Frontier], reached: _Reach, strategy: Strategy, mem: Memory, rng: np.random.Generator,
+            params: PlannerParams) -> tuple[int, np.ndarray, str, bool]:
+    """Rule 4: the committed target if a candidate is still near it, else the strategy's pick; returns the
+    frontier's index, the per-frontier probabilities, a note and whether the strategy sampled it."""
+    n = len(frontiers)
+    probs = np.zeros(n)
+    if mem.target is not None and mem.committed_steps < params.max_commit_steps:
+        target = mem.target
+        d = np.array([math.hypot(f.x - target.x, f.y - target.y) if reached.reachable[i] else np.inf
+                      for i, f in enumerate(frontiers)])
+        if d.size and float(d.min()) <= params.commit_radius_m:
+            idx = int(np.argmin(d))
+            probs[idx] = 1.0
+            return idx, probs, f"kept the committed target (step {mem.committed_steps + 1} towards it)", False
+    mem.committed_steps = 0
+    idx, probs, note = sampling.choose(
+        strategy, [f.weight for f in frontiers], reached.reachable, reached.geodesic, rng, params.distance_decay_m
+    )
+    assert idx is not None
+    return idx, probs, note, True
+
+
 def plan_step(
     grid: GridSpec,
     free: np.ndarray,
@@ -207,104 +321,15 @@ def plan_step(
         )
 
     n = len(frontiers)
-    dropped: dict[str, int] = {}
-    ok = np.zeros(n, dtype=bool)
-    for i, f in enumerate(frontiers):
-        why = _valid_frontier(f, grid)
-        if why is None and _near(mem.visited, f.x, f.y, params.visited_radius_m):
-            why = "visited already"
-        if why is None and exclude and _near(exclude, f.x, f.y, 0.5):
-            why = "refused by the simulator this step"
-        if why is None:
-            ok[i] = True
-        else:
-            dropped[why] = dropped.get(why, 0) + 1
-    dropped_note = "; ".join(f"{v} frontier(s) {k}" for k, v in dropped.items())
+    ok, dropped_note = _candidates(frontiers, grid, mem, params, exclude)
+    reached = _reach(grid, free, occupied, pose, frontiers, ok, mem, params, timing)
+    if not reached.reachable.any():
+        return finish(_look_around(_unreachable_reason(reached, n, ok, dropped_note, params), pose, n, mem, params))
 
-    extra = _disk_mask(grid, mem.refused, params.refused_radius_m)
-    pg: PlanningGrid | None = None
-    approach: list[tuple[int, int] | None] = [None] * n
-    geo = np.full(n, np.inf)
-    reach = np.zeros(n, dtype=bool)
-    start_found = False
-    for clearance in params.clearances_m:
-        pg = planning_grid(grid, free, occupied, clearance, params.coarse_m, params.max_blocks, extra)
-        started = pg.search_from(pose.x, pose.y, params.snap_radius_m)
-        for key, v in pg.timing_ms.items():
-            timing[key] = timing.get(key, 0.0) + v
-        if not started:
-            continue
-        start_found = True
-        if not ok.any():
-            break
-        approach, geo = approach_points(pg, frontiers, ok, params.approach_radius_m)
-        reach = np.isfinite(geo)
-        if reach.any():
-            break
-    timing["search"] = timing.get("traversable", 0.0) + timing.get("dijkstra", 0.0)
-    assert pg is not None
-
-    if not reach.any():
-        if not start_found:
-            why = (
-                f"no free cell with {min(params.clearances_m):.2f} m clearance within "
-                f"{params.snap_radius_m:.1f} m of the robot"
-            )
-        elif n == 0:
-            why = "no frontier left: the map is fully explored"
-        elif not ok.any():
-            why = f"no usable frontier ({dropped_note})"
-        else:
-            why = f"none of {int(ok.sum())} frontier(s) is reachable with clearance"
-        full_turn = math.ceil(360.0 / params.turn_deg)
-        if mem.turns >= full_turn:
-            return finish(
-                StepPlan(
-                    "done",
-                    f"{why}, even after turning in place a full circle",
-                    memory=mem,
-                    probabilities=[0.0] * n,
-                )
-            )
-        mem.turns += 1
-        mem.target = None
-        mem.committed_steps = 0
-        yaw = wrap(pose.yaw + math.radians(params.turn_deg))
-        return finish(
-            StepPlan(
-                "turn",
-                f"{why}: turning in place to look around ({mem.turns}/{full_turn})",
-                pose=Pose2D(x=pose.x, y=pose.y, yaw=yaw),
-                path=[(pose.x, pose.y)],
-                probabilities=[0.0] * n,
-                memory=mem,
-            )
-        )
-
-    # ---- choose the frontier: the committed target if still there, else the strategy's pick ----------
-    idx: int | None = None
-    probs = np.zeros(n)
-    note = ""
-    if mem.target is not None and mem.committed_steps < params.max_commit_steps:
-        d = np.array(
-            [
-                math.hypot(f.x - mem.target.x, f.y - mem.target.y) if reach[i] else np.inf
-                for i, f in enumerate(frontiers)
-            ]
-        )
-        if d.size and float(d.min()) <= params.commit_radius_m:
-            idx = int(np.argmin(d))
-            probs[idx] = 1.0
-            note = f"kept the committed target (step {mem.committed_steps + 1} towards it)"
-    sampled = idx is None
-    if idx is None:
-        mem.committed_steps = 0
-        idx, probs, note = sampling.choose(
-            strategy, [f.weight for f in frontiers], reach, geo, rng, params.distance_decay_m
-        )
-        assert idx is not None
+    idx, probs, note, sampled = _choose(frontiers, reached, strategy, mem, rng, params)
     frontier = frontiers[idx]
-    target_block = approach[idx]
+    pg, geo = reached.grid, reached.geodesic
+    target_block = reached.approach[idx]
     assert target_block is not None
     pulled, complete, full = pg.world_path(target_block, params.max_step_m)
     if not pulled:

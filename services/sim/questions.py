@@ -25,11 +25,12 @@ import numpy as np
 
 from eqa.messages import PADDING_CHOICE, Pose2D, Question
 from services.sim import catalog
+from services.sim.benchfile import load_json, save_json
 from services.sim.camera import CAMERA_HEIGHT, HFOV_DEG, TILT_DEG, vfov_deg
 from services.sim.catalog import OPPOSITE_STATE, PLURAL_ONLY, display_name, plural
 from services.sim.library import load_or_generate
 from services.sim.motion import START_CLEARANCE, reachable_map, sample_start_pose
-from services.sim.scene import Scene
+from services.sim.scene import InstanceInfo, Scene
 
 log = logging.getLogger(__name__)
 
@@ -144,31 +145,48 @@ def _pick(rng: np.random.Generator, items: list) -> object:
     return items[int(rng.integers(0, len(items)))]
 
 
-def generate_questions(scene: Scene, rng: np.random.Generator, per_category: int = 2) -> list[Question]:
-    """Up to ``per_category`` questions of each of the five categories about ``scene`` (fewer when the
-    house offers no fitting object); every answer is ground truth from the scene graph and every evidence
-    object is visible from a reachable pose."""
-    start = sample_start_pose(scene, rng, START_CLEARANCE)
-    visible = witness_poses(scene, start)
-    objs = scene.objects()
-    kinds_in_house = Counter(r.kind for r in scene.rooms)
-    unique_kinds = {k for k, n in kinds_in_house.items() if n == 1}
-    by_cat_kind: dict[tuple[str, str], list[int]] = defaultdict(list)
-    by_cat: dict[str, list[int]] = defaultdict(list)
-    by_cat_color: dict[tuple[str, str], list[int]] = defaultdict(list)
-    for o in objs:
-        by_cat_kind[(o.category, o.room_kind or "")].append(o.id)
-        by_cat[o.category].append(o.id)
-        by_cat_color[(o.category, o.attributes.get("color", ""))].append(o.id)
-    small = [o for o in objs if o.category in catalog.SMALL_OBJECTS and o.id in visible]
-    # an object "the X in the Y" is unambiguous when it is the only X in the only room of kind Y
-    singles = [o for o in small if o.room_kind in unique_kinds and len(by_cat_kind[(o.category, o.room_kind)]) == 1]
-    max_steps = max_steps_for(scene.floor_area_m2)
-    out: dict[str, list[tuple[str, list[str], str, list[int], dict[str, str]]]] = defaultdict(list)
+# one generated question before it becomes a Question: text, choices, answer letter, evidence ids, parsed query
+_Draft = tuple[str, list[str], str, list[int], dict[str, str]]
 
-    # identification: the colour of a unique object in a unique room
-    for o in rng.permutation(len(singles))[: per_category * 2]:
-        ob = singles[int(o)]
+
+@dataclass
+class _Inventory:
+    """What the question makers read of a house: its objects by category, room kind and colour, and which
+    of them are visible from a reachable pose."""
+
+    objects: list[InstanceInfo]
+    visible: dict[int, Pose2D]  # object id -> a reachable pose it is visible from
+    kinds_in_house: Counter[str]
+    unique_kinds: set[str]
+    by_cat_kind: dict[tuple[str, str], list[int]]
+    by_cat: dict[str, list[int]]
+    by_cat_color: dict[tuple[str, str], list[int]]
+    small: list[InstanceInfo]  # visible small objects
+    singles: list[InstanceInfo]  # "the X in the Y": the only X in the only room of kind Y
+
+    @classmethod
+    def of(cls, scene: Scene, visible: dict[int, Pose2D]) -> _Inventory:
+        objs = scene.objects()
+        kinds_in_house = Counter(r.kind for r in scene.rooms)
+        unique_kinds = {k for k, n in kinds_in_house.items() if n == 1}
+        by_cat_kind: dict[tuple[str, str], list[int]] = defaultdict(list)
+        by_cat: dict[str, list[int]] = defaultdict(list)
+        by_cat_color: dict[tuple[str, str], list[int]] = defaultdict(list)
+        for o in objs:
+            by_cat_kind[(o.category, o.room_kind or "")].append(o.id)
+            by_cat[o.category].append(o.id)
+            by_cat_color[(o.category, o.attributes.get("color", ""))].append(o.id)
+        small = [o for o in objs if o.category in catalog.SMALL_OBJECTS and o.id in visible]
+        singles = [o for o in small
+                   if o.room_kind in unique_kinds and len(by_cat_kind[(o.category, o.room_kind)]) == 1]
+        return cls(objs, visible, kinds_in_house, unique_kinds, by_cat_kind, by_cat, by_cat_color, small, singles)
+
+
+def _identification(inv: _Inventory, rng: np.random.Generator, per_category: int) -> list[_Draft]:
+    """The colour of a unique object in a unique room."""
+    out: list[_Draft] = []
+    for o in rng.permutation(len(inv.singles))[: per_category * 2]:
+        ob = inv.singles[int(o)]
         color = ob.attributes["color"]
         others = [c for c in catalog.SMALL_OBJECTS[ob.category].colors if c != color]
         others += [c for c in catalog.COLORS if c != color and c not in others]
@@ -181,16 +199,20 @@ def generate_questions(scene: Scene, rng: np.random.Generator, per_category: int
         choices, answer = _shuffled(rng, color.capitalize(), [d.capitalize() for d in distract])
         q = {"type": "identification", "category": ob.category, "room_kind": ob.room_kind or "",
              "attribute": "color"}
-        out["identification"].append((text, choices, answer, [ob.id], q))
+        out.append((text, choices, answer, [ob.id], q))
+    return out
 
-    # counting: how many of a category in a unique room, or in the whole house (all of them visible)
+
+def _counting(inv: _Inventory, rng: np.random.Generator, per_category: int) -> list[_Draft]:
+    """How many of a category in a unique room, or in the whole house (all of them visible)."""
     count_cands = []
-    for (cat, kind), ids in by_cat_kind.items():
-        if kind in unique_kinds and 1 <= len(ids) <= 5 and all(i in visible for i in ids):
+    for (cat, kind), ids in inv.by_cat_kind.items():
+        if kind in inv.unique_kinds and 1 <= len(ids) <= 5 and all(i in inv.visible for i in ids):
             count_cands.append((cat, kind, ids))
-    for cat, ids in by_cat.items():
-        if 2 <= len(ids) <= 6 and all(i in visible for i in ids):
+    for cat, ids in inv.by_cat.items():
+        if 2 <= len(ids) <= 6 and all(i in inv.visible for i in ids):
             count_cands.append((cat, "", ids))
+    out: list[_Draft] = []
     for k in rng.permutation(len(count_cands))[:per_category]:
         cat, kind, ids = count_cands[int(k)]
         n = len(ids)
@@ -202,20 +224,24 @@ def generate_questions(scene: Scene, rng: np.random.Generator, per_category: int
         q = {"type": "counting", "category": cat}
         if kind:
             q["room_kind"] = kind
-        out["counting"].append((text, choices, answer, sorted(ids), q))
+        out.append((text, choices, answer, sorted(ids), q))
+    return out
 
-    # existence: is there an X in the Y (yes: a visible X there; no: none anywhere in that room kind)
+
+def _existence(inv: _Inventory, rng: np.random.Generator, per_category: int) -> list[_Draft]:
+    """Is there an X in the Y (yes: a visible X there; no: none anywhere in that room kind)."""
+    out: list[_Draft] = []
     for _ in range(per_category):
         yes = bool(rng.random() < 0.5)
-        if yes and singles:
-            ob = singles[int(rng.integers(0, len(singles)))]
+        if yes and inv.singles:
+            ob = inv.singles[int(rng.integers(0, len(inv.singles)))]
             cat, kind, ev = ob.category, ob.room_kind or "", [ob.id]
         else:
-            kinds = sorted(unique_kinds)
+            kinds = sorted(inv.unique_kinds)
             if not kinds:
                 continue
             kind = str(_pick(rng, kinds))
-            absent = [c for c in catalog.SMALL_OBJECTS if not by_cat_kind.get((c, kind))]
+            absent = [c for c in catalog.SMALL_OBJECTS if not inv.by_cat_kind.get((c, kind))]
             if not absent:
                 continue
             cat, ev, yes = str(_pick(rng, absent)), [], False
@@ -224,10 +250,14 @@ def generate_questions(scene: Scene, rng: np.random.Generator, per_category: int
         else:
             text = f"Is there {_article(display_name(cat))} in the {display_name(kind)}?"
         choices, answer = _yes_no(rng, yes)
-        out["existence"].append((text, choices, answer, ev, {"type": "existence", "category": cat, "room_kind": kind}))
+        out.append((text, choices, answer, ev, {"type": "existence", "category": cat, "room_kind": kind}))
+    return out
 
-    # state: is the X in the Y <state>?
-    stateful = [o for o in singles if "state" in o.attributes]
+
+def _state(inv: _Inventory, rng: np.random.Generator, per_category: int) -> list[_Draft]:
+    """Is the X in the Y <state>?"""
+    stateful = [o for o in inv.singles if "state" in o.attributes]
+    out: list[_Draft] = []
     for k in rng.permutation(len(stateful))[:per_category]:
         ob = stateful[int(k)]
         actual = ob.attributes["state"]
@@ -237,15 +267,19 @@ def generate_questions(scene: Scene, rng: np.random.Generator, per_category: int
         choices, answer = _yes_no(rng, yes)
         q = {"type": "state", "category": ob.category, "room_kind": ob.room_kind or "", "attribute": "state",
              "value": asked}
-        out["state"].append((text, choices, answer, [ob.id], q))
+        out.append((text, choices, answer, [ob.id], q))
+    return out
 
-    # location: where is the <colour> X (the only one of that colour in the house)
-    located = [o for o in small if len(by_cat_color[(o.category, o.attributes.get("color", ""))]) == 1]
+
+def _location(inv: _Inventory, rng: np.random.Generator, per_category: int) -> list[_Draft]:
+    """Where is the <colour> X (the only one of that colour in the house)."""
+    located = [o for o in inv.small if len(inv.by_cat_color[(o.category, o.attributes.get("color", ""))]) == 1]
+    out: list[_Draft] = []
     for k in rng.permutation(len(located))[:per_category]:
         ob = located[int(k)]
         kind = ob.room_kind or ""
         color = ob.attributes["color"]
-        others = [r for r in dict.fromkeys(sorted(kinds_in_house)) if r != kind]
+        others = [r for r in dict.fromkeys(sorted(inv.kinds_in_house)) if r != kind]
         others += [r for r in catalog.ROOM_KINDS if r != kind and r not in others]
         distract = [others[int(j)] for j in rng.permutation(min(len(others), 5))[:3]]
         verb = "are" if ob.category in PLURAL_ONLY else "is"
@@ -254,11 +288,26 @@ def generate_questions(scene: Scene, rng: np.random.Generator, per_category: int
         wrong = [f"In the {display_name(r)}" for r in distract]
         choices, answer = _shuffled(rng, f"In the {display_name(kind)}", wrong)
         q = {"type": "location", "category": ob.category, "color": color}
-        out["location"].append((text, choices, answer, [ob.id], q))
+        out.append((text, choices, answer, [ob.id], q))
+    return out
 
+
+# the question makers in the order they draw from the generator (the order fixes every benchmark)
+_MAKERS = {"identification": _identification, "counting": _counting, "existence": _existence, "state": _state,
+           "location": _location}
+
+
+def generate_questions(scene: Scene, rng: np.random.Generator, per_category: int = 2) -> list[Question]:
+    """Up to ``per_category`` questions of each of the five categories about ``scene`` (fewer when the
+    house offers no fitting object); every answer is ground truth from the scene graph and every evidence
+    object is visible from a reachable pose."""
+    start = sample_start_pose(scene, rng, START_CLEARANCE)
+    inv = _Inventory.of(scene, witness_poses(scene, start))
+    max_steps = max_steps_for(scene.floor_area_m2)
+    drafts = {category: make(inv, rng, per_category) for category, make in _MAKERS.items()}
     questions = []
     for cat in CATEGORIES:
-        for k, (text, choices, answer, ev, q) in enumerate(out[cat][:per_category]):
+        for k, (text, choices, answer, ev, q) in enumerate(drafts[cat][:per_category]):
             questions.append(Question(
                 id=f"{scene.id}-{cat[:3]}{k}", text=text, choices=choices, scene=scene.id, category=cat,
                 query=q, answer=answer, evidence_ids=ev, start_pose=start, max_steps=max_steps,
@@ -305,20 +354,28 @@ class Benchmark:
         }
 
     def save(self, path: Path) -> Path:
-        import json
-
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(self.to_json(), indent=1, sort_keys=True) + "\n")
-        return path
+        return save_json(self.to_json(), path)
 
     @classmethod
     def load(cls, path: Path) -> Benchmark:
-        import json
-
-        data = json.loads(Path(path).read_text())
+        data = load_json(path)
         return cls(seed=int(data["seed"]), calibration=[Question.model_validate(q) for q in data["calibration"]],
                    test=[Question.model_validate(q) for q in data["test"]])
+
+
+def category_round_robin(questions: list[Question], limit: int | None) -> list[Question]:
+    """At most ``limit`` of ``questions`` (all when None) keeping the category mix: one of each category in turn
+    (categories in sorted order, each in its own order)."""
+    limit = len(questions) if limit is None else min(limit, len(questions))
+    by_category: dict[str, list[Question]] = {}
+    for q in questions:
+        by_category.setdefault(q.category or "", []).append(q)
+    out: list[Question] = []
+    while len(out) < limit:
+        for category in sorted(by_category):
+            if by_category[category] and len(out) < limit:
+                out.append(by_category[category].pop(0))
+    return out
 
 
 def benchmark_scene_id(seed: int, index: int) -> str:

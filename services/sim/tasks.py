@@ -21,7 +21,6 @@ sets.
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 from dataclasses import dataclass, field
@@ -35,6 +34,7 @@ from eqa import grid as gridm
 from eqa.messages import Pose2D, Task
 from eqa.seeds import seed_role
 from services.sim import catalog
+from services.sim.benchfile import load_json, save_json
 from services.sim.catalog import display_name
 from services.sim.library import load_or_generate
 from services.sim.motion import GRID_RES, START_CLEARANCE, reachable_map, sample_start_pose
@@ -217,14 +217,11 @@ class TaskBenchmark:
         return {"seed": self.seed, "role": self.role, "tasks": [t.model_dump(mode="json") for t in self.tasks]}
 
     def save(self, path: Path) -> Path:
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(self.to_json(), indent=1, sort_keys=True) + "\n")
-        return path
+        return save_json(self.to_json(), path)
 
     @classmethod
     def load(cls, path: Path) -> TaskBenchmark:
-        data = json.loads(Path(path).read_text())
+        data = load_json(path)
         return cls(seed=int(data["seed"]), tasks=[Task.model_validate(t) for t in data["tasks"]])
 
 

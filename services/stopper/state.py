@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -226,141 +228,187 @@ def fallback_reason(why: str, answer: str, tag: str = "") -> str:
     return f"{why}; answering {answer}, the most likely answer of the most relevant step" + (f" ({tag})" if tag else "")
 
 
-def decide(rec: EpisodeRecord, scores: StepScores) -> Decision | None:
-    """Apply the scores of step ``scores.step`` to ``rec`` and return the decision of that step.
+@dataclass(frozen=True)
+class RuleStep:
+    """What a stop rule decides on: the episode (this step already recorded in it), the step's scores, its
+    answer distribution ``f`` (the object layer's evidence pooled in when on) and relevance ``Rel``."""
 
-    Returns None (and leaves ``rec`` unchanged) for a step already seen (a duplicate). Raises
-    :class:`services.stopper.conformal.ScoreError` for invalid scores, leaving ``rec`` unchanged.
-    """
-    if scores.step <= rec.last_step:
-        return None
-    if not rec.choices:  # a question without choices: the scorer proposed them (Explore-EQA section VI-A)
-        n = len(scores.choices) or len(scores.answer_probs)
-        choices = list(scores.choices) or [f"option {c}" for c in letters(max(2, n))]
+    episode: EpisodeRecord
+    scores: StepScores
+    f: np.ndarray
+    relevance: float
+
+    @property
+    def labels(self) -> list[str]:
+        return self.episode.labels
+
+    @property
+    def at_limit(self) -> bool:
+        return self.scores.step >= self.episode.max_steps - 1
+
+    @property
+    def argmax(self) -> str:
+        return self.labels[int(np.argmax(self.f))]
+
+
+StopRuleFn = Callable[[RuleStep], Decision]
+
+
+def _cp_tag(episode: EpisodeRecord, cal: CalibrationChoice, scores: StepScores, rule_now: AnswerRule) -> str:
+    notes = [n for n in (cal.note, backend_mismatch(cal, scores.backend), mode_mismatch(cal, scores.mode),
+                         rule_mismatch(cal.answer_rule, rule_now)) if n]
+    if rule_now.on:
+        notes.append(f"answer memory {rule_now.name}")
+    return (f"eps={cal.eps:g}, q_hat={cal.q_hat:.4f}, N={cal.n}" + (f" of {cal.category}" if cal.category else "")
+            + "".join(f"; {n}" for n in notes))
+
+
+def cp_rule(step: RuleStep) -> Decision:
+    """Conformal stopping (Explore-EQA Eq. 7-9): the step's prediction set of calibrated relevance-weighted
+    confidences, intersected with the running set; stop when one answer is left (or none, or at the limit)."""
+    episode, scores, labels = step.episode, step.scores, step.labels
+    cal = episode.calibration
+    if cal is None:
+        raise RuntimeError("cp episode without calibration")  # guarded at EpisodeStart
+    rule_now = episode.answer_rule
+    if rule_now.on:  # pooled scores of the K most relevant views so far (calibrated with the same rule)
+        pf, pr = transform(np.asarray(episode.probs), np.asarray(episode.relevance), rule_now)
+        rho = relevance_weighted_confidence(pf[-1], float(pr[-1]))
     else:
-        choices = rec.choices
-    f = check_scores(scores.answer_probs, scores.relevance, len(choices))
-    rel = float(scores.relevance)
-    if rec.object_evidence is not None and scores.object_evidence is not None:
-        # the answer distribution used from here on (and stored in the trace, so a calibration from the
-        # stopper's traces covers the combined score) pools the VLM's with the object layer's
-        params = EvidenceParams(psi_min=rec.object_evidence[0], weight=rec.object_evidence[1])
-        f = combine(f, layer_distribution(scores.object_evidence, choices, params), params.weight)
-    if scores.step != rec.last_step + 1:
-        log.warning("episode %s: step %d follows step %d (steps missing)", rec.episode_id, scores.step, rec.last_step)
-    rec.choices = choices
-    rec.steps.append(scores.step)
-    rec.probs.append([float(v) for v in f])
-    rec.relevance.append(rel)
-    labels = rec.labels
-    at_limit = scores.step >= rec.max_steps - 1
-    rule = rec.stop.rule
-    argmax_now = labels[int(np.argmax(f))]
-
-    if rule == "cp":
-        cal = rec.calibration
-        if cal is None:
-            raise RuntimeError("cp episode without calibration")  # guarded at EpisodeStart
-        rule_now = rec.answer_rule
-        if rule_now.on:  # pooled scores of the K most relevant views so far (calibrated with the same rule)
-            pf, pr = transform(np.asarray(rec.probs), np.asarray(rec.relevance), rule_now)
-            rho = relevance_weighted_confidence(pf[-1], float(pr[-1]))
-        else:
-            rho = relevance_weighted_confidence(f, rel)
-        mask = step_set(rho, cal.q_hat)
-        cset = [y for y, keep in zip(labels, mask, strict=True) if keep]
-        prev = labels if rec.running is None else rec.running
-        running = [y for y in prev if y in cset]
-        rec.running = running
-        notes = [n for n in (cal.note, backend_mismatch(cal, scores.backend), mode_mismatch(cal, scores.mode),
-                             rule_mismatch(cal.answer_rule, rule_now)) if n]
-        if rule_now.on:
-            notes.append(f"answer memory {rule_now.name}")
-        tag = (f"eps={cal.eps:g}, q_hat={cal.q_hat:.4f}, N={cal.n}" + (f" of {cal.category}" if cal.category else "")
-               + "".join(f"; {n}" for n in notes))
-        answer = None
-        if len(running) == 1:
-            stop, answer = True, running[0]
-            reason = f"one answer left in the prediction set: {answer} (CP {tag})"
-        elif not running:
-            stop, answer = True, rec.fallback()
-            reason = fallback_reason("the prediction set is empty", answer, f"CP {tag}")
-        elif at_limit:
-            stop, answer = True, rec.fallback()
-            why = f"step limit reached with {len(running)} answers left {_fmt_set(running)}"
-            reason = fallback_reason(why, answer, f"CP {tag}")
-        else:
-            stop = False
-            reason = f"{len(running)} answers left {_fmt_set(running)} (CP {tag})"
-        return Decision(
-            episode_id=rec.episode_id,
-            step=scores.step,
-            rule=rule,
-            stop=stop,
-            reason=reason,
-            prediction_set=list(running),
-            step_set=cset,
-            scores={y: float(r) for y, r in zip(labels, rho, strict=True)},
-            answer=answer,
-            q_hat=cal.q_hat,
-        )
-
-    stat_scores: dict[str, float] = {}
-    stop = False
+        rho = relevance_weighted_confidence(step.f, step.relevance)
+    mask = step_set(rho, cal.q_hat)
+    cset = [y for y, keep in zip(labels, mask, strict=True) if keep]
+    prev = labels if episode.running is None else episode.running
+    running = [y for y in prev if y in cset]
+    episode.running = running
+    tag = _cp_tag(episode, cal, scores, rule_now)
     answer = None
-    if rule == "entropy":
-        thr = rec.threshold if rec.threshold is not None else baselines.threshold_for("entropy", None)
-        hit, h = baselines.entropy_stops(f, thr)
-        stat_scores = {"entropy": h, "relevance": rel}
-        if hit:
-            stop, answer = True, argmax_now
-            reason = f"answer entropy {h:.4f} nats < threshold {thr:g} (Eq. 4); answering {answer}"
-        else:
-            reason = f"answer entropy {h:.4f} nats >= threshold {thr:g}"
-    elif rule == "relevance":
-        thr = rec.threshold if rec.threshold is not None else baselines.threshold_for("relevance", None)
-        hit, r = baselines.relevance_stops(rel, thr)
-        stat_scores = {"relevance": r, "entropy": baselines.entropy(f)}
-        if hit:
-            stop, answer = True, argmax_now
-            reason = f"relevance {r:.4f} > threshold {thr:g} (Eq. 5); answering {answer}"
-        else:
-            reason = f"relevance {r:.4f} <= threshold {thr:g}"
-    else:  # max_steps
-        stat_scores = {"relevance": rel, "entropy": baselines.entropy(f)}
-        reason = f"running to the step limit ({scores.step + 1}/{rec.max_steps})"
-    if not stop and at_limit:
-        stop, answer = True, rec.fallback()
-        reason = fallback_reason(f"step limit reached ({rec.max_steps} steps)", answer)
+    if len(running) == 1:
+        stop, answer = True, running[0]
+        reason = f"one answer left in the prediction set: {answer} (CP {tag})"
+    elif not running:
+        stop, answer = True, episode.fallback()
+        reason = fallback_reason("the prediction set is empty", answer, f"CP {tag}")
+    elif step.at_limit:
+        stop, answer = True, episode.fallback()
+        why = f"step limit reached with {len(running)} answers left {_fmt_set(running)}"
+        reason = fallback_reason(why, answer, f"CP {tag}")
+    else:
+        stop = False
+        reason = f"{len(running)} answers left {_fmt_set(running)} (CP {tag})"
     return Decision(
-        episode_id=rec.episode_id,
+        episode_id=episode.episode_id,
         step=scores.step,
-        rule=rule,
+        rule=episode.stop.rule,
         stop=stop,
         reason=reason,
-        scores=stat_scores,
+        prediction_set=list(running),
+        step_set=cset,
+        scores={y: float(r) for y, r in zip(labels, rho, strict=True)},
         answer=answer,
+        q_hat=cal.q_hat,
     )
 
 
+def _baseline(step: RuleStep, hit: bool, reason: str, stat_scores: dict[str, float]) -> Decision:
+    """A baseline rule's decision: answer argmax f when it fires, else at the step limit the fallback answer."""
+    episode = step.episode
+    stop, answer = hit, step.argmax if hit else None
+    if not stop and step.at_limit:
+        stop, answer = True, episode.fallback()
+        reason = fallback_reason(f"step limit reached ({episode.max_steps} steps)", answer)
+    return Decision(episode_id=episode.episode_id, step=step.scores.step, rule=episode.stop.rule, stop=stop,
+                    reason=reason, scores=stat_scores, answer=answer)
+
+
+def _threshold(episode: EpisodeRecord, rule: str) -> float:
+    return episode.threshold if episode.threshold is not None else baselines.threshold_for(rule, None)
+
+
+def entropy_rule(step: RuleStep) -> Decision:
+    """Stop when the answer entropy falls under the threshold (Explore-EQA Eq. 4)."""
+    thr = _threshold(step.episode, "entropy")
+    hit, h = baselines.entropy_stops(step.f, thr)
+    said = f"< threshold {thr:g} (Eq. 4); answering {step.argmax}" if hit else f">= threshold {thr:g}"
+    return _baseline(step, hit, f"answer entropy {h:.4f} nats {said}", {"entropy": h, "relevance": step.relevance})
+
+
+def relevance_rule(step: RuleStep) -> Decision:
+    """Stop when the step's relevance exceeds the threshold (Explore-EQA Eq. 5)."""
+    thr = _threshold(step.episode, "relevance")
+    hit, r = baselines.relevance_stops(step.relevance, thr)
+    said = f"> threshold {thr:g} (Eq. 5); answering {step.argmax}" if hit else f"<= threshold {thr:g}"
+    return _baseline(step, hit, f"relevance {r:.4f} {said}", {"relevance": r, "entropy": baselines.entropy(step.f)})
+
+
+def max_steps_rule(step: RuleStep) -> Decision:
+    """Run to the step limit and answer there (Explore-EQA's answer at a budget)."""
+    reason = f"running to the step limit ({step.scores.step + 1}/{step.episode.max_steps})"
+    return _baseline(step, False, reason, {"relevance": step.relevance, "entropy": baselines.entropy(step.f)})
+
+
+STOP_RULES: dict[str, StopRuleFn] = {
+    "cp": cp_rule,
+    "entropy": entropy_rule,
+    "relevance": relevance_rule,
+    "max_steps": max_steps_rule,
+}
+
+
+def _record_step(episode: EpisodeRecord, scores: StepScores) -> RuleStep:
+    """Check the step's scores and record them in ``episode`` (unchanged when they are invalid)."""
+    if not episode.choices:  # a question without choices: the scorer proposed them (Explore-EQA section VI-A)
+        n = len(scores.choices) or len(scores.answer_probs)
+        choices = list(scores.choices) or [f"option {c}" for c in letters(max(2, n))]
+    else:
+        choices = episode.choices
+    f = check_scores(scores.answer_probs, scores.relevance, len(choices))
+    rel = float(scores.relevance)
+    if episode.object_evidence is not None and scores.object_evidence is not None:
+        # the answer distribution used from here on (and stored in the trace, so a calibration from the
+        # stopper's traces covers the combined score) pools the VLM's with the object layer's
+        params = EvidenceParams(psi_min=episode.object_evidence[0], weight=episode.object_evidence[1])
+        f = combine(f, layer_distribution(scores.object_evidence, choices, params), params.weight)
+    if scores.step != episode.last_step + 1:
+        log.warning("episode %s: step %d follows step %d (steps missing)", episode.episode_id, scores.step,
+                    episode.last_step)
+    episode.choices = choices
+    episode.steps.append(scores.step)
+    episode.probs.append([float(v) for v in f])
+    episode.relevance.append(rel)
+    return RuleStep(episode, scores, f, rel)
+
+
+def decide(episode: EpisodeRecord, scores: StepScores) -> Decision | None:
+    """Apply the scores of step ``scores.step`` to ``episode`` and return the decision of that step, by the
+    episode's stop rule (:data:`STOP_RULES`).
+
+    Returns None (and leaves ``episode`` unchanged) for a step already seen (a duplicate). Raises
+    :class:`services.stopper.conformal.ScoreError` for invalid scores, leaving ``episode`` unchanged.
+    """
+    if scores.step <= episode.last_step:
+        return None
+    return STOP_RULES[episode.stop.rule](_record_step(episode, scores))
+
+
 def end_message(
-    rec: EpisodeRecord, state: EpisodeState, reason: str, answer: str | None, recording: str | None = None
+    episode: EpisodeRecord, state: EpisodeState, reason: str, answer: str | None, recording: str | None = None
 ) -> EpisodeEnd:
     """The :class:`EpisodeEnd` of an episode. ``correct`` compares with the ground truth only now, after
     the answer was decided, and only when the question carries one."""
-    truth = rec.question.answer
+    truth = episode.question.answer
     correct = None if (truth is None or answer is None or state != "stopped") else (answer == truth)
-    prediction = list(rec.running) if (rec.stop.rule == "cp" and rec.running is not None) else []
+    prediction = list(episode.running) if (episode.stop.rule == "cp" and episode.running is not None) else []
     return EpisodeEnd(
-        episode_id=rec.episode_id,
-        robot=rec.robot,
+        episode_id=episode.episode_id,
+        robot=episode.robot,
         state=state,
         reason=reason,
         answer=answer,
-        answer_text=rec.answer_text(answer),
+        answer_text=episode.answer_text(answer),
         prediction_set=prediction,
-        steps=rec.last_step + 1,
-        max_steps=rec.max_steps,
+        steps=episode.last_step + 1,
+        max_steps=episode.max_steps,
         correct=correct,
         recording=recording,
     )
