@@ -7,10 +7,13 @@ integrates and the question's scores are computed, one worker asks the scorer po
 (:class:`~eqa.messages.DetectRequest`) and for the per-target value prompt "Seems like there is a (class)
 ahead" (:class:`~eqa.messages.ValueRequest`); then the detections are fused, the values written at the frame's
 prompt points (max-fused Gaussians, as the question layer), and the map update carries the instances
-(:attr:`~eqa.messages.MapUpdate.objects`). A detection that fails is reported on the mapper's error stream and
-the frame is not fused (no detection is not "nothing detected"). The object layer goes into the episode's
-stored state with the map, so a restarted mapper continues it. Question episodes are untouched: no request,
-no layer, the same state bytes as before.
+(:attr:`~eqa.messages.MapUpdate.objects`). The phase follows the simulator's skill reports on the frames: once a
+pick succeeded, the frontiers take their values from the goal receptacle's layer and the goal receptacle's
+candidates get the gaze points (:func:`services.mapper.object_map.phase_classes`). The trusting agent
+(``EpisodeStart.ablation``) has no 3D layer: its object map holds each frame's detections alone. A detection
+that fails is reported on the mapper's error stream and the frame is not fused (no detection is not "nothing
+detected"). The object layer goes into the episode's stored state with the map, so a restarted mapper
+continues it. Question episodes are untouched: no request, no layer, the same state bytes as before.
 """
 
 from __future__ import annotations
@@ -68,6 +71,15 @@ LAYER_PREFIX = "helios:"
 
 def value_layer(cls: str) -> str:
     return f"{LAYER_PREFIX}{cls}"
+
+
+def frontier_class(task: Any, holding: bool) -> str:
+    """The class whose value layer (paper 3.1.2: "one map layer for the pick location and one for the place
+    location") values the frontiers: the pick location (start receptacle, else the object) until the object is
+    held, then the place location (goal receptacle)."""
+    if holding and task.goal_receptacle:
+        return str(task.goal_receptacle)
+    return str(task.start_receptacle or task.object)
 
 
 def obstacle_heights(em: Any) -> np.ndarray | None:
@@ -132,7 +144,8 @@ class ObjectLayerShell:
         if start.task is None:
             return None
         om_mod = _object_map_module()
-        self.objects[start.episode_id] = om_mod.ObjectMap.for_task(start.task, self.objects_config)
+        self.objects[start.episode_id] = om_mod.ObjectMap.for_task(start.task, self.objects_config,
+                                                                   single_frame=start.ablation == "trusting")
         classes, _ = om_mod.task_classes(start.task, self.objects_config)
         return [QUESTION_LAYER, *(value_layer(c) for c in classes)]
 
@@ -153,7 +166,8 @@ class ObjectLayerShell:
             return em
         em = start_of(data)
         if em.start.task is not None:  # a task episode saved before its layer existed: start a fresh one
-            self.objects[episode_id] = _object_map_module().ObjectMap.for_task(em.start.task, self.objects_config)
+            self.objects[episode_id] = _object_map_module().ObjectMap.for_task(
+                em.start.task, self.objects_config, single_frame=em.start.ablation == "trusting")
         return em
 
     # ---- per frame --------------------------------------------------------------------------------------
@@ -182,10 +196,13 @@ class ObjectLayerShell:
     def objects_apply(self, robot: str, em: Any, frame: Frame, pending: Future | None,
                       timing: dict[str, float]) -> str | None:
         """Fuse the frame's detections and write its values; returns the layer the frontiers take their
-        values from in a task episode (the pick location: start receptacle, else the object), or None."""
+        values from in a task episode, or None: the current phase's search target (:func:`frontier_class`)."""
         om = self.objects.get(em.episode_id)
         if pending is None or om is None:
             return None
+        skill = getattr(frame, "skill", None)
+        if skill is not None and skill.skill == "pick" and skill.success:
+            om.holding = True
         det, val, ask_ms = pending.result()
         timing["objects_ask"] = ask_ms
         t0 = time.perf_counter()
@@ -209,8 +226,7 @@ class ObjectLayerShell:
             reason = val.reason if isinstance(val, ErrorReply) else f"{type(val).__name__}: {val}"
             self.error(robot, em.episode_id, frame.step, f"value prompt failed: {reason}")
         timing["objects_fuse"] = (time.perf_counter() - t0) * 1000.0
-        task = em.start.task
-        return value_layer(task.start_receptacle or task.object)
+        return value_layer(frontier_class(em.start.task, om.holding))
 
     def objects_attach(self, em: Any, update: MapUpdate, frame: Frame | None, timing: dict[str, float]) -> None:
         """Put the episode's instances (with gaze points on this update's map) into ``update``."""
@@ -221,8 +237,9 @@ class ObjectLayerShell:
         height = float(frame.camera_pose[2, 3]) if frame is not None else 1.5
         # the robot's head camera has a fixed tilt: gaze points are scored for the view it really gets there
         pitch = float(np.arcsin(np.clip(frame.camera_pose[2, 2], -1.0, 1.0))) if frame is not None else None
+        targets = _object_map_module().phase_classes(em.start.task, om.holding) if em.start.task else None
         update.objects = om.summaries(update.grid, update.occupied, obstacle_heights(em), camera_height=height,
-                                      camera_pitch=pitch)
+                                      camera_pitch=pitch, targets=targets)
         self.last_objects[em.episode_id] = update.objects
         timing["objects_summary"] = (time.perf_counter() - t0) * 1000.0
         update.timing_ms.update(timing)
