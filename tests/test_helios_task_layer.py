@@ -115,3 +115,31 @@ def test_gaze_points_keep_the_robots_clearance_from_obstacles() -> None:
     kept = gz.gaze_points(occ, None, g, (2.0, 2.0, 0.5), (0.0, 0.0, 0.5), 0.9, 4, 1.0, clearance_m=0.2)
     assert sorted((round(p.x, 2), round(p.y, 2)) for p in kept) == [(1.1, 2.0), (2.0, 1.1), (2.0, 2.9)]
     assert len(gz.gaze_points(occ, None, g, (2.0, 2.0, 0.5), (0.0, 0.0, 0.5), 0.9, 4, 1.0, clearance_m=0.05)) == 4
+
+
+def test_values_are_fused_by_field_of_view_confidence() -> None:
+    from eqa.messages import Pose2D
+    from services.mapper import fov_values
+    from services.sim.camera import camera_pose, intrinsics
+
+    K = intrinsics(64, 48)
+    cam = camera_pose(Pose2D(x=0.0, y=0.0, yaw=0.0), height=1.0, tilt_deg=0.0)  # looking along +x, level
+    depth = np.full((48, 64), 2.0)  # a wall 2 m ahead
+    rows, cols, conf = fov_values.fov_cells(depth, K, cam, (-5.0, -5.0), 0.1, (100, 100))
+    at = {(int(r), int(c)): float(w) for r, c, w in zip(rows, cols, conf, strict=True)}
+    ahead = (50, 60)  # (x, y) = (1.05, 0.05): on the optical axis
+    assert at[ahead] == pytest.approx(1.0, abs=0.01)
+    assert (50, 75) not in at  # (2.55, 0.05): behind the wall, not seen
+    assert (50, 40) not in at  # behind the camera
+    # a cell seen at half the half field of view (cos^2(pi / 4) = 0.5)
+    half = np.arctan(32 / K[0][0])
+    x, y = 1.5, -1.5 * np.tan(half / 2)  # right of the axis (image x grows to the right = -y)
+    cell = (int(np.floor((y + 5.0) / 0.1)), int(np.floor((x + 5.0) / 0.1)))
+    assert at[cell] == pytest.approx(0.5, abs=0.08)
+    values, confidence = np.zeros((100, 100), np.float32), np.zeros((100, 100), np.float32)
+    r, c = np.array([50, 51]), np.array([60, 60])
+    fov_values.fuse(values, confidence, r, c, np.array([0.5, 0.0]), 0.2)  # the second cell not seen
+    fov_values.fuse(values, confidence, r, c, np.array([1.0, 0.0]), 0.8)
+    # v = (0.5 * 0.2 + 1 * 0.8) / 1.5 = 0.6, c = (0.25 + 1) / 1.5 = 0.8333; not max-fused (0.8)
+    assert values[50, 60] == pytest.approx(0.6) and confidence[50, 60] == pytest.approx(1.25 / 1.5)
+    assert values[51, 60] == 0.0 and confidence[51, 60] == 0.0

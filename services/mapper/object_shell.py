@@ -5,8 +5,9 @@ Per task episode (``EpisodeStart.task`` set): an :class:`~services.mapper.object
 classes, and one value layer per task class, ``helios:<class>`` (paper 3.1.2). Per frame, while the mapper
 integrates and the question's scores are computed, one worker asks the scorer pool for the frame's detections
 (:class:`~eqa.messages.DetectRequest`) and for the per-target value prompt "Seems like there is a (class)
-ahead" (:class:`~eqa.messages.ValueRequest`); then the detections are fused, the values written at the frame's
-prompt points (max-fused Gaussians, as the question layer), and the map update carries the instances
+ahead" (:class:`~eqa.messages.ValueRequest`); then the detections are fused, each value fused into its layer
+over the frame's field-of-view cone by confidence (paper 3.1.2, as VLFM: :mod:`services.mapper.fov_values`;
+the question layer keeps Explore-EQA's max-fused prompt points), and the map update carries the instances
 (:attr:`~eqa.messages.MapUpdate.objects`). The phase follows the simulator's skill reports on the frames: once a
 pick succeeded, the frontiers take their values from the goal receptacle's layer and the goal receptacle's
 candidates get the gaze points (:func:`services.mapper.object_map.phase_classes`). The trusting agent
@@ -36,7 +37,8 @@ from eqa.messages import (
     ValueRequest,
     ValueResult,
 )
-from services.mapper.semantic_map import QUESTION_LAYER, write_values
+from services.mapper import fov_values
+from services.mapper.semantic_map import QUESTION_LAYER
 
 if TYPE_CHECKING:
     from services.mapper.object_map import ObjectMap, ObjectMapConfig
@@ -67,6 +69,7 @@ log = logging.getLogger(__name__)
 Detect = Callable[[DetectRequest], DetectResult]
 Values = Callable[[ValueRequest], ValueResult]
 LAYER_PREFIX = "helios:"
+CONFIDENCE_PREFIX = "confidence/"  # the map plane with a task value layer's field-of-view confidence
 
 
 def value_layer(cls: str) -> str:
@@ -217,11 +220,12 @@ class ObjectLayerShell:
             reason = det.reason if isinstance(det, ErrorReply) else f"{type(det).__name__}: {det}"
             self.error(robot, em.episode_id, frame.step, f"detector failed, frame not fused: {reason}")
         if isinstance(val, ValueResult) and len(val.values) == len(om.task_classes):
-            pts = [(p.x, p.y) for p in em.prompts]
+            rows, cols, conf = fov_values.fov_cells(frame.depth, frame.intrinsics, frame.camera_pose, em.origin,
+                                                    em.resolution, em.layer(value_layer(om.task_classes[0])).shape)
             for cls, v in zip(om.task_classes, val.values, strict=True):
-                if pts:
-                    write_values(em.layer(value_layer(cls)), em.origin, em.resolution, pts, [float(v)] * len(pts),
-                                 em.config.sigma)
+                name = value_layer(cls)
+                fov_values.fuse(em.layer(name), em.volume.add_plane(f"{CONFIDENCE_PREFIX}{name}", 0.0, np.float32),
+                                rows, cols, conf, float(v))
         elif not isinstance(val, ValueResult):
             reason = val.reason if isinstance(val, ErrorReply) else f"{type(val).__name__}: {val}"
             self.error(robot, em.episode_id, frame.step, f"value prompt failed: {reason}")
