@@ -16,8 +16,12 @@ with ``tau_b``; with no candidate or none worth a look: the frontier of highest 
 target decision (Eq. 11 with ``tau_g``), then the local search in progress, then the global search objective
 (Eq. 10, :mod:`services.planner.helios`). A pick that fails (the oracle pick: target not in frame or not within
 reach) counts against the pick limit (:class:`~services.planner.decisions.PickBudget`); the instance is ruled out
-after :data:`MAX_FAILS_PER_INSTANCE` failures. Ablations: ``trusting`` acts on the first detection (no gaze
-choice, no objective), ``no_global`` always prefers a candidate over a frontier.
+after :data:`MAX_FAILS_PER_INSTANCE` failures. A candidate is looked at from at most
+:data:`MAX_LOOKS_PER_INSTANCE` gaze points; then the look rule passes to the next candidate. With no frontier
+left but candidates of the phase's class known, the machine acts on the best of them rather than end the
+episode with steps left. Ablations: ``trusting`` has no 3D layer (the mapper gives it each frame's detections
+alone) and acts on the first detection, going to it until the skill was tried (no gaze choice, no objective);
+``no_global`` always prefers a candidate over a frontier.
 
 The state is plain data (:meth:`TaskMachine.to_json` / :meth:`TaskMachine.from_json`) so a restarted planner
 continues the task where it was.
