@@ -143,3 +143,41 @@ def test_values_are_fused_by_field_of_view_confidence() -> None:
     # v = (0.5 * 0.2 + 1 * 0.8) / 1.5 = 0.6, c = (0.25 + 1) / 1.5 = 0.8333; not max-fused (0.8)
     assert values[50, 60] == pytest.approx(0.6) and confidence[50, 60] == pytest.approx(1.25 / 1.5)
     assert values[51, 60] == 0.0 and confidence[51, 60] == 0.0
+
+
+def test_the_mapper_values_frontiers_with_the_goal_layer_after_a_successful_pick(fused) -> None:
+    from eqa.messages import EpisodeStart, Question, SkillReport, ValueRequest, ValueResult
+    from eqa.settings import Settings
+    from services.mapper.episode_map import EpisodeMap
+    from services.mapper.object_shell import ObjectLayerShell
+
+    _scene, renderer, vs, det, _om, _grid, _occ = fused
+
+    def detect(req):  # the simulated detector, as the scorer pool answers
+        return DetectResult(request_id=req.request_id, episode_id=req.episode_id, step=req.step,
+                            detections=det.detect(req), backend="oracle")
+
+    def values(req: ValueRequest) -> ValueResult:  # a constant score per target (0.2, 0.5, 0.9)
+        return ValueResult(request_id=req.request_id, episode_id=req.episode_id, step=req.step,
+                           values=[0.2, 0.5, 0.9][: len(req.targets)], backend="constant")
+
+    shell = ObjectLayerShell()
+    shell.settings, shell.recorders, errors = Settings(), {}, []
+    shell.error = lambda *a: errors.append(a)
+    shell.objects_init(detect, values)
+    try:
+        start = EpisodeStart(episode_id="ep-shell", robot="r", question=Question(
+            id="q", scene="gen-5", text=TASK.text, max_steps=10), max_steps=10, task=TASK)
+        em = EpisodeMap(start, layers=shell.objects_layers(start))
+        frames = [frame_of(vs[0], renderer, "ep-shell", 0),
+                  frame_of(vs[1], renderer, "ep-shell", 1).model_copy(
+                      update={"skill": SkillReport(skill="pick", success=True, target=25)})]
+        got = []
+        for f in frames:
+            em.integrate(f)
+            got.append(shell.objects_apply("r", em, f, shell.objects_submit("r", em, f), {}))
+        assert got == ["helios:table", "helios:sofa"] and not errors
+        sofa = em.layer("helios:sofa")
+        assert sofa.max() == pytest.approx(0.9, abs=1e-6) and 0 < (sofa > 0).mean() < 1  # the cone, not everywhere
+    finally:
+        shell.objects_close()
