@@ -4,7 +4,9 @@ Around a candidate object (its 3D box: ``centre_xyz``, ``extent_xyz``, from the 
 gaze point positions lie on a contour around the object's 2D ground projection: the footprint rectangle grown
 by ``radius_m`` (a rounded rectangle), ``n`` points evenly spaced along it. Then, as in the paper:
 
-1. gaze points in occupied cells of the 2D map are discarded (and those off the map);
+1. gaze points in occupied cells of the 2D map are discarded (and those off the map), and those closer than
+   ``clearance_m`` to an occupied cell (the robot standing there would touch it: the task layer passes the
+   robot's mapped clearance, :func:`eqa.robot.mapped_clearance_m`);
 2. gaze points with "an occupied region over a certain height in the way between the gaze point and the pick
    location" are discarded: the 2D segment from the gaze point towards the object's centre, up to where it
    enters the object's footprint (the object and its own receptacle are not in the way of themselves), must
@@ -121,11 +123,28 @@ def occluded(occupancy: np.ndarray, heights: np.ndarray | None, grid: GridSpec, 
     return False
 
 
+def _too_close(occ: np.ndarray, grid: GridSpec, cell: tuple[int, int], clearance_m: float) -> bool:
+    """Whether an occupied cell lies within ``clearance_m`` of ``cell`` (centre to centre)."""
+    if clearance_m <= 0:
+        return False
+    r = math.ceil(clearance_m / grid.resolution)
+    i, j = cell
+    i0, j0 = max(0, i - r), max(0, j - r)
+    win = occ[i0 : i + r + 1, j0 : j + r + 1]
+    ii, jj = np.nonzero(win)
+    if ii.size == 0:
+        return False
+    d2 = ((ii + i0 - i) ** 2 + (jj + j0 - j) ** 2) * grid.resolution**2
+    return bool((d2 < clearance_m**2 - 1e-12).any())
+
+
 def gaze_points(occupancy: np.ndarray, heights: np.ndarray | None, grid: GridSpec,
                 centre_xyz: tuple[float, float, float], extent_xyz: tuple[float, float, float], radius_m: float,
-                n: int, max_obstacle_height_m: float, camera_height_m: float = CAMERA_HEIGHT_M) -> list[GazeCandidate]:
+                n: int, max_obstacle_height_m: float, camera_height_m: float = CAMERA_HEIGHT_M,
+                clearance_m: float = 0.0) -> list[GazeCandidate]:
     """Gaze points around one object (module doc). ``occupancy`` (rows x cols bool) and ``heights`` (the
-    obstacle height of each cell in metres, or None) are on ``grid``. Raises ``ValueError`` on bad sizes."""
+    obstacle height of each cell in metres, or None) are on ``grid``; ``clearance_m``: the distance a gaze
+    point keeps from occupied cells (cell centre to cell centre). Raises ``ValueError`` on bad sizes."""
     occ = np.asarray(occupancy, bool)
     if occ.shape != (grid.rows, grid.cols):
         raise ValueError(f"occupancy is {occ.shape}, the grid is {(grid.rows, grid.cols)}")
@@ -133,7 +152,7 @@ def gaze_points(occupancy: np.ndarray, heights: np.ndarray | None, grid: GridSpe
         raise ValueError(f"heights is {np.shape(heights)}, the grid is {occ.shape}")
     if not 1 <= int(n) <= MAX_GAZE_POINTS:
         raise ValueError(f"n must be 1..{MAX_GAZE_POINTS}, got {n}")
-    vals = [*centre_xyz, *extent_xyz, radius_m, max_obstacle_height_m, camera_height_m]
+    vals = [*centre_xyz, *extent_xyz, radius_m, max_obstacle_height_m, camera_height_m, clearance_m]
     if not all(math.isfinite(float(v)) for v in vals) or radius_m <= 0 or min(extent_xyz) < 0:
         raise ValueError("centre, extent, radius and heights must be finite; radius > 0, extent >= 0")
     centre = np.array(centre_xyz[:2], np.float64)
@@ -143,7 +162,7 @@ def gaze_points(occupancy: np.ndarray, heights: np.ndarray | None, grid: GridSpe
     for x, y in contour_points((float(centre[0]), float(centre[1])), (float(half[0]), float(half[1])),
                                radius_m, int(n)):
         cell = _cell(grid, x, y)
-        if cell is None or occ[cell]:
+        if cell is None or occ[cell] or _too_close(occ, grid, cell, clearance_m):
             continue
         p = np.array([x, y])
         if occluded(occ, heights, grid, p, centre, half, max_obstacle_height_m):

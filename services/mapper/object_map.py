@@ -6,8 +6,17 @@ od_g, start receptacle od_a, goal receptacle od_b; Table 3), fuses the :class:`~
 and summarises every instance as an :class:`~eqa.messages.ObjectInstance` (class, S, U, Psi of Eq. 7 per task
 class, centre, extent). Candidate instances (a task class with S >= ``cs_min``, at most ``max_gaze_instances``
 of them, best first) also get gaze points (:func:`services.mapper.gaze.gaze_points`) scored with Psi' (Eq. 11)
-and the optimistic IG (Eq. 12) of their believed task class; ``ig`` is the best IG over them. The mapper
-passes the obstacle height of each cell, so only obstacles taller than ``gaze_obstacle_m`` occlude.
+and the optimistic IG (Eq. 12) of their believed task class. The mapper passes the obstacle height of each
+cell, so only obstacles taller than ``gaze_obstacle_m`` occlude, and the gaze points keep the robot's mapped
+clearance (:func:`eqa.robot.mapped_clearance_m`) from occupied cells.
+
+A task episode's layer (:meth:`ObjectMap.for_task`) reads it per phase (:func:`phase_classes`): the candidates
+that get gaze points are those believed to be a class the current phase looks for -- the object and the start
+receptacle before the pick, the goal receptacle after it, the object in an object search -- so instances of a
+finished phase do not crowd out the ones searched now. ``ig`` is Eq. 10's ``IG_a``: the information gain of
+the whole pose set ``P`` of the local search (all gaze points, Eq. 12), not that of one gaze point. A miss is
+evidence only within :attr:`ObjectMapConfig.miss_range_m`. The trusting agent (Table 1: no 3D layer) gets a
+single-frame layer: each frame's detections alone, nothing fused over views.
 
 A history of each instance's Psi over the steps is kept for monitoring (bounded).
 """
@@ -23,6 +32,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from eqa import robot as body
 from eqa.messages import DetectRequest, DetectResult, Frame, GazePoint, GridSpec, ObjectInstance, Task
 from services.mapper.gaze import gaze_points
 from services.mapper.objects.config import OTHER, ObjectLayerConfig
@@ -45,6 +55,12 @@ class ObjectMapConfig:
     gaze_obstacle_m: float = 1.0
     max_gaze_instances: int = 4
     max_instances: int = 64
+    # Task layers: a pixel no detection covers is evidence against the objects behind it only up to this depth.
+    # The detector's documented recall (services/vlm_scorer/detector/oracle.py: recall 0.9 x a range factor, 1 up
+    # to 2.5 m, linear to 0 at 7 m) is below one half past 2.5 + 4.5 x (1 - 0.5 / 0.9) = 4.5 m: beyond it an
+    # object in view is more often missed than detected, so "not detected" there says little about it. DETIC's
+    # recall (Zhou et al. 2022) likewise drops for small, far objects. Detections themselves count at any range.
+    miss_range_m: float = 4.5
 
     @classmethod
     def from_settings(cls, s: object) -> ObjectMapConfig:
@@ -83,12 +99,18 @@ class ObjectMap:
         self.layer = ObjectLayer(classes, self.config.layer, self.config.device)
         self.history: OrderedDict[int, list[tuple[int, float]]] = OrderedDict()
         self.last_stats: UpdateStats | None = None
+        self.single_frame = False  # the layer holds the last frame's detections only (trusting agent)
+        self.holding = False  # a task's object was picked: the goal receptacle's phase (phase_classes)
 
     @classmethod
-    def for_task(cls, task: Task, config: ObjectMapConfig | None = None) -> ObjectMap:
+    def for_task(cls, task: Task, config: ObjectMapConfig | None = None, single_frame: bool = False) -> ObjectMap:
+        """A task episode's layer (module doc); ``single_frame``: the trusting agent's (no fusion over views)."""
         config = config or ObjectMapConfig()
+        config = replace(config, layer=replace(config.layer, other_max_depth_m=config.miss_range_m))
         classes, th = task_classes(task, config)
-        return cls(classes, th, config)
+        om = cls(classes, th, config)
+        om.single_frame = single_frame
+        return om
 
     @property
     def task_classes(self) -> list[str]:
@@ -106,6 +128,8 @@ class ObjectMap:
         h, w = frame.depth.shape
         dets = [(d.cls, d.score, d.full_mask(h, w)) for d in result.detections]
         pc = pixel_classes(dets, self.layer.classes, (h, w))
+        if self.single_frame:  # instance labels go on counting: a new frame's detection is a new instance
+            self.layer.store = type(self.layer.store).empty(len(self.layer.classes), self.layer.device)
         self.last_stats = self.layer.update(frame.depth, pc, frame.camera_pose, frame.intrinsics, frame.step)
         for inst in self.layer.instances():
             if inst.cls == self.layer.other and inst.instance_id not in self.history:
@@ -120,46 +144,57 @@ class ObjectMap:
 
     def summaries(
         self, grid: GridSpec | None = None, occupancy: np.ndarray | None = None, heights: np.ndarray | None = None,
-        camera_height: float = 1.5, camera_pitch: float | None = None,
+        camera_height: float = 1.5, camera_pitch: float | None = None, targets: list[str] | None = None,
     ) -> list[ObjectInstance]:
         """Every instance (up to ``max_instances``, best task-class score first); gaze points for candidates
         when the 2D map is given. ``camera_pitch`` (radians, negative = down): the pitch of a head camera that
         cannot tilt (the simulated robot's is fixed at -30 deg); the gaze points then carry that pitch and Psi'
         (Eq. 11) is computed for the view the robot will really get there, not for the paper's pitch towards
-        the object's top (which needs a tilting head). None: the paper's pitch."""
+        the object's top (which needs a tilting head). None: the paper's pitch. ``targets``: the classes whose
+        candidates get gaze points (the phase's, :func:`phase_classes`; None: every task class). ``ig``: Eq. 12
+        over all of an instance's gaze points together (the pose set ``P`` of Eq. 10), 0 without any."""
         c = self.config
         names = self.layer.classes
         insts = sorted(self.layer.instances(), key=lambda i: -max(i.S[:-1]))[: c.max_instances]
+        wanted = None if targets is None else {names.index(t) for t in targets if t in names}
         out: list[ObjectInstance] = []
         gazed = 0
         for inst in insts:
             best = int(np.argmax(inst.S[:-1]))  # the believed task class
             gaze: list[GazePoint] = []
-            candidate = inst.S[best] >= c.cs_min and gazed < c.max_gaze_instances
+            ig = 0.0
+            candidate = (inst.S[best] >= c.cs_min and gazed < c.max_gaze_instances and not self.single_frame
+                         and (wanted is None or best in wanted))
             if grid is not None and occupancy is not None and candidate:
                 gazed += 1
-                gaze = self._gaze(inst.instance_id, best, inst.centre, inst.extent, grid, occupancy, heights,
-                                  camera_height, camera_pitch)
+                gaze, ig = self._gaze(inst.instance_id, best, inst.centre, inst.extent, grid, occupancy, heights,
+                                      camera_height, camera_pitch)
             out.append(ObjectInstance(
                 instance_id=inst.instance_id, cls=names[inst.cls], S=inst.S[inst.cls], U=inst.U[inst.cls],
                 psi=inst.psi[inst.cls],
                 scores={names[k]: (inst.S[k], inst.U[k], inst.psi[k]) for k in range(len(names) - 1)},
                 centre=_finite3(inst.centre), extent=_finite3(inst.extent), n_gaussians=inst.n_gaussians,
-                ig=max((g.ig for g in gaze), default=0.0), gaze=gaze,
+                ig=ig, gaze=gaze,
             ))
         return out
 
     def _gaze(self, instance_id: int, cls: int, centre, extent, grid: GridSpec, occupancy: np.ndarray,
-              heights: np.ndarray | None, camera_height: float, camera_pitch: float | None = None) -> list[GazePoint]:
+              heights: np.ndarray | None, camera_height: float,
+              camera_pitch: float | None = None) -> tuple[list[GazePoint], float]:
+        """The gaze points with Psi' and IG of each alone, and the IG of all of them together (Eq. 10, 12)."""
         c = self.config
         cands = gaze_points(occupancy, heights, grid, tuple(centre), tuple(max(e, 0.0) for e in extent),
-                            c.gaze_radius_m, c.gaze_points, c.gaze_obstacle_m, camera_height)
+                            c.gaze_radius_m, c.gaze_points, c.gaze_obstacle_m, camera_height,
+                            clearance_m=body.mapped_clearance_m())
         if camera_pitch is not None:
             cands = [replace(g, pitch=round(float(camera_pitch), 6)) for g in cands]
+        if not cands:
+            return [], 0.0
         poses = [camera_from_gaze(g.x, g.y, g.yaw, g.pitch, camera_height) for g in cands]
         opts = self.layer.optimistic_each(instance_id, cls, poses)  # each gaze point alone, one render
+        ig_set = float(self.layer.optimistic(instance_id, cls, poses).ig)
         return [GazePoint(x=g.x, y=g.y, yaw=g.yaw, pitch=g.pitch, psi_prime=o.psi_prime, ig=o.ig)
-                for g, o in zip(cands, opts, strict=True)]
+                for g, o in zip(cands, opts, strict=True)], ig_set
 
     # ---- persistence ------------------------------------------------------------------------------------
     def snapshot(self) -> bytes:
@@ -169,6 +204,9 @@ class ObjectMap:
             z.writestr("meta.json", json.dumps({
                 "thresholds": self.thresholds,
                 "history": [[k, v] for k, v in self.history.items()],
+                **({"single_frame": True} if self.single_frame else {}),
+                **({"holding": True} if self.holding else {}),
+                **({"miss_range_m": m} if (m := self.layer.config.other_max_depth_m) is not None else {}),
             }))
         return buf.getvalue()
 
@@ -178,10 +216,24 @@ class ObjectMap:
         with zipfile.ZipFile(io.BytesIO(data)) as z:
             layer = ObjectLayer.restore(z.read("layer.npz"), config.layer, config.device)
             meta = json.loads(z.read("meta.json"))
+        if meta.get("miss_range_m") is not None:  # a task layer (for_task)
+            config = replace(config, layer=replace(config.layer, other_max_depth_m=float(meta["miss_range_m"])))
+            layer.config = config.layer
         om = cls(layer.classes[:-1], meta["thresholds"], config)
         om.layer = layer
         om.history = OrderedDict((int(k), [(int(s), float(p)) for s, p in v]) for k, v in meta["history"])
+        om.single_frame, om.holding = bool(meta.get("single_frame", False)), bool(meta.get("holding", False))
         return om
+
+
+def phase_classes(task: Task, holding: bool) -> list[str]:
+    """The classes a task's current phase looks for (module doc): ``find_object`` the object; ``pick_place``
+    the object and the start receptacle until the object is held, then the goal receptacle."""
+    if task.kind == "find_object" or task.goal_receptacle is None:
+        return [task.object]
+    if holding:
+        return [task.goal_receptacle]
+    return [c for c in (task.object, task.start_receptacle) if c is not None]
 
 
 def _finite3(v) -> tuple[float, float, float]:
@@ -189,7 +241,7 @@ def _finite3(v) -> tuple[float, float, float]:
     return (a[0], a[1], a[2])
 
 
-__all__ = ["OTHER", "ObjectMap", "ObjectMapConfig", "task_classes"]
+__all__ = ["OTHER", "ObjectMap", "ObjectMapConfig", "phase_classes", "task_classes"]
 
 
 # ---- monitoring ----------------------------------------------------------------------------------------------

@@ -5,12 +5,16 @@ Per task episode (``EpisodeStart.task`` set): an :class:`~services.mapper.object
 classes, and one value layer per task class, ``helios:<class>`` (paper 3.1.2). Per frame, while the mapper
 integrates and the question's scores are computed, one worker asks the scorer pool for the frame's detections
 (:class:`~eqa.messages.DetectRequest`) and for the per-target value prompt "Seems like there is a (class)
-ahead" (:class:`~eqa.messages.ValueRequest`); then the detections are fused, the values written at the frame's
-prompt points (max-fused Gaussians, as the question layer), and the map update carries the instances
-(:attr:`~eqa.messages.MapUpdate.objects`). A detection that fails is reported on the mapper's error stream and
-the frame is not fused (no detection is not "nothing detected"). The object layer goes into the episode's
-stored state with the map, so a restarted mapper continues it. Question episodes are untouched: no request,
-no layer, the same state bytes as before.
+ahead" (:class:`~eqa.messages.ValueRequest`); then the detections are fused, each value fused into its layer
+over the frame's field-of-view cone by confidence (paper 3.1.2, as VLFM: :mod:`services.mapper.fov_values`;
+the question layer keeps Explore-EQA's max-fused prompt points), and the map update carries the instances
+(:attr:`~eqa.messages.MapUpdate.objects`). The phase follows the simulator's skill reports on the frames: once a
+pick succeeded, the frontiers take their values from the goal receptacle's layer and the goal receptacle's
+candidates get the gaze points (:func:`services.mapper.object_map.phase_classes`). The trusting agent
+(``EpisodeStart.ablation``) has no 3D layer: its object map holds each frame's detections alone. A detection
+that fails is reported on the mapper's error stream and the frame is not fused (no detection is not "nothing
+detected"). The object layer goes into the episode's stored state with the map, so a restarted mapper
+continues it. Question episodes are untouched: no request, no layer, the same state bytes as before.
 """
 
 from __future__ import annotations
@@ -33,7 +37,8 @@ from eqa.messages import (
     ValueRequest,
     ValueResult,
 )
-from services.mapper.semantic_map import QUESTION_LAYER, write_values
+from services.mapper import fov_values
+from services.mapper.semantic_map import QUESTION_LAYER
 
 if TYPE_CHECKING:
     from services.mapper.object_map import ObjectMap, ObjectMapConfig
@@ -64,10 +69,20 @@ log = logging.getLogger(__name__)
 Detect = Callable[[DetectRequest], DetectResult]
 Values = Callable[[ValueRequest], ValueResult]
 LAYER_PREFIX = "helios:"
+CONFIDENCE_PREFIX = "confidence/"  # the map plane with a task value layer's field-of-view confidence
 
 
 def value_layer(cls: str) -> str:
     return f"{LAYER_PREFIX}{cls}"
+
+
+def frontier_class(task: Any, holding: bool) -> str:
+    """The class whose value layer (paper 3.1.2: "one map layer for the pick location and one for the place
+    location") values the frontiers: the pick location (start receptacle, else the object) until the object is
+    held, then the place location (goal receptacle)."""
+    if holding and task.goal_receptacle:
+        return str(task.goal_receptacle)
+    return str(task.start_receptacle or task.object)
 
 
 def obstacle_heights(em: Any) -> np.ndarray | None:
@@ -132,7 +147,8 @@ class ObjectLayerShell:
         if start.task is None:
             return None
         om_mod = _object_map_module()
-        self.objects[start.episode_id] = om_mod.ObjectMap.for_task(start.task, self.objects_config)
+        self.objects[start.episode_id] = om_mod.ObjectMap.for_task(start.task, self.objects_config,
+                                                                   single_frame=start.ablation == "trusting")
         classes, _ = om_mod.task_classes(start.task, self.objects_config)
         return [QUESTION_LAYER, *(value_layer(c) for c in classes)]
 
@@ -153,7 +169,8 @@ class ObjectLayerShell:
             return em
         em = start_of(data)
         if em.start.task is not None:  # a task episode saved before its layer existed: start a fresh one
-            self.objects[episode_id] = _object_map_module().ObjectMap.for_task(em.start.task, self.objects_config)
+            self.objects[episode_id] = _object_map_module().ObjectMap.for_task(
+                em.start.task, self.objects_config, single_frame=em.start.ablation == "trusting")
         return em
 
     # ---- per frame --------------------------------------------------------------------------------------
@@ -182,10 +199,13 @@ class ObjectLayerShell:
     def objects_apply(self, robot: str, em: Any, frame: Frame, pending: Future | None,
                       timing: dict[str, float]) -> str | None:
         """Fuse the frame's detections and write its values; returns the layer the frontiers take their
-        values from in a task episode (the pick location: start receptacle, else the object), or None."""
+        values from in a task episode, or None: the current phase's search target (:func:`frontier_class`)."""
         om = self.objects.get(em.episode_id)
         if pending is None or om is None:
             return None
+        skill = getattr(frame, "skill", None)
+        if skill is not None and skill.skill == "pick" and skill.success:
+            om.holding = True
         det, val, ask_ms = pending.result()
         timing["objects_ask"] = ask_ms
         t0 = time.perf_counter()
@@ -200,17 +220,17 @@ class ObjectLayerShell:
             reason = det.reason if isinstance(det, ErrorReply) else f"{type(det).__name__}: {det}"
             self.error(robot, em.episode_id, frame.step, f"detector failed, frame not fused: {reason}")
         if isinstance(val, ValueResult) and len(val.values) == len(om.task_classes):
-            pts = [(p.x, p.y) for p in em.prompts]
+            rows, cols, conf = fov_values.fov_cells(frame.depth, frame.intrinsics, frame.camera_pose, em.origin,
+                                                    em.resolution, em.layer(value_layer(om.task_classes[0])).shape)
             for cls, v in zip(om.task_classes, val.values, strict=True):
-                if pts:
-                    write_values(em.layer(value_layer(cls)), em.origin, em.resolution, pts, [float(v)] * len(pts),
-                                 em.config.sigma)
+                name = value_layer(cls)
+                fov_values.fuse(em.layer(name), em.volume.add_plane(f"{CONFIDENCE_PREFIX}{name}", 0.0, np.float32),
+                                rows, cols, conf, float(v))
         elif not isinstance(val, ValueResult):
             reason = val.reason if isinstance(val, ErrorReply) else f"{type(val).__name__}: {val}"
             self.error(robot, em.episode_id, frame.step, f"value prompt failed: {reason}")
         timing["objects_fuse"] = (time.perf_counter() - t0) * 1000.0
-        task = em.start.task
-        return value_layer(task.start_receptacle or task.object)
+        return value_layer(frontier_class(em.start.task, om.holding))
 
     def objects_attach(self, em: Any, update: MapUpdate, frame: Frame | None, timing: dict[str, float]) -> None:
         """Put the episode's instances (with gaze points on this update's map) into ``update``."""
@@ -221,8 +241,9 @@ class ObjectLayerShell:
         height = float(frame.camera_pose[2, 3]) if frame is not None else 1.5
         # the robot's head camera has a fixed tilt: gaze points are scored for the view it really gets there
         pitch = float(np.arcsin(np.clip(frame.camera_pose[2, 2], -1.0, 1.0))) if frame is not None else None
+        targets = _object_map_module().phase_classes(em.start.task, om.holding) if em.start.task else None
         update.objects = om.summaries(update.grid, update.occupied, obstacle_heights(em), camera_height=height,
-                                      camera_pitch=pitch)
+                                      camera_pitch=pitch, targets=targets)
         self.last_objects[em.episode_id] = update.objects
         timing["objects_summary"] = (time.perf_counter() - t0) * 1000.0
         update.timing_ms.update(timing)

@@ -10,8 +10,11 @@ Notation (paper): ``A`` = detected objects of the start receptacle's class with 
   of ``a`` to ``f'``;
 * Eq. 9: ``F_0 = 1/|F'| sum_{f' in F'_p} V_0(f') / F_0(f')``: the average ratio of the candidate score a
   previous frontier turned out to be associated with to its value-map score. ``F'_p`` is read as the previous
-  frontiers with a positive stored score (the ratio is undefined for the others, which still count in
-  ``|F'|``);
+  frontiers with a positive stored score and a positive ``V_0`` (the ratio is undefined for a zero score, and a
+  non-positive ``V_0`` -- no candidate worth more than its distance, e.g. every stored ``IG_a0 = 0`` -- would
+  make ``F_0 <= 0``, which turns Eq. 10's frontier ranking upside down: the frontier of highest value would
+  rank last); the others still count in ``|F'|``. With no term in ``F'_p`` no association is known and
+  ``F_0 = 1``, as with no stored candidate;
 * Eq. 10: ``V(r) = S_a(r) IG_a(r) - alpha_d dist(r)`` for ``r in A``, ``F(r) F_0 - alpha_d dist(r)`` for
   ``r in F``, ``dist`` from the robot to ``r``'s centre; the robot goes to the ``r`` of highest ``V``.
 
@@ -123,14 +126,17 @@ def v0(fx: float, fy: float, stored: Sequence[StoredCandidate], alpha_d: float) 
 
 
 def f0_association(chosen: Sequence[ChosenFrontier], stored: Sequence[StoredCandidate], alpha_d: float) -> float:
-    """Eq. 9 (module doc); 1 when there is no previous frontier or no stored candidate."""
+    """Eq. 9 (module doc); always > 0: 1 when there is no previous frontier, no stored candidate or no
+    previous frontier with a positive stored score and a positive ``V_0``."""
     if not chosen or not stored:
         return 1.0
-    total = 0.0
+    total, terms = 0.0, 0
     for f in chosen:
-        if f.F0 > 0:
-            total += v0(f.x, f.y, stored, alpha_d) / f.F0  # type: ignore[operator]
-    return total / len(chosen)
+        v = v0(f.x, f.y, stored, alpha_d)
+        if f.F0 > 0 and v is not None and v > 0 and math.isfinite(v):
+            total += v / f.F0
+            terms += 1
+    return total / len(chosen) if terms else 1.0
 
 
 def candidates_of(observed: Iterable[CandidateObservation], cs_a: float,

@@ -16,8 +16,12 @@ with ``tau_b``; with no candidate or none worth a look: the frontier of highest 
 target decision (Eq. 11 with ``tau_g``), then the local search in progress, then the global search objective
 (Eq. 10, :mod:`services.planner.helios`). A pick that fails (the oracle pick: target not in frame or not within
 reach) counts against the pick limit (:class:`~services.planner.decisions.PickBudget`); the instance is ruled out
-after :data:`MAX_FAILS_PER_INSTANCE` failures. Ablations: ``trusting`` acts on the first detection (no gaze
-choice, no objective), ``no_global`` always prefers a candidate over a frontier.
+after :data:`MAX_FAILS_PER_INSTANCE` failures. A candidate is looked at from at most
+:data:`MAX_LOOKS_PER_INSTANCE` gaze points; then the look rule passes to the next candidate. With no frontier
+left but candidates of the phase's class known, the machine acts on the best of them rather than end the
+episode with steps left. Ablations: ``trusting`` has no 3D layer (the mapper gives it each frame's detections
+alone) and acts on the first detection, going to it until the skill was tried (no gaze choice, no objective);
+``no_global`` always prefers a candidate over a frontier.
 
 The state is plain data (:meth:`TaskMachine.to_json` / :meth:`TaskMachine.from_json`) so a restarted planner
 continues the task where it was.
@@ -68,8 +72,9 @@ class SeenObject:
     scores: dict[str, tuple[float, float, float]]
     x: float
     y: float
-    ig: float = 0.0
+    ig: float = math.nan  # NaN: not computed (no gaze point, no pose set P for Eq. 12)
     gaze: tuple[Gaze, ...] = ()
+    half: tuple[float, float] = (0.0, 0.0)  # half-sizes of the footprint of its Gaussians (x, y)
 
     def of(self, c: str) -> tuple[float, float, float] | None:
         return self.scores.get(c)
@@ -79,12 +84,17 @@ class SeenObject:
 
 
 def from_instance(inst: Any) -> SeenObject:
-    """A :class:`SeenObject` from an ``eqa.messages.ObjectInstance`` (issue 16's message; read by field name)."""
+    """A :class:`SeenObject` from an ``eqa.messages.ObjectInstance`` (issue 16's message; read by field name).
+    An instance without gaze points has no pose set ``P`` to compute Eq. 12 over: its IG is unknown (NaN), not
+    0 -- it is no candidate of the global objective until it has some (``helios.candidates_of``), and its first
+    detection is stored (``S_a0``, ``IG_a0``) only then."""
     scores = {str(k): (float(v[0]), float(v[1]), float(v[2])) for k, v in dict(inst.scores).items()}
     scores.setdefault(inst.cls, (float(inst.S), float(inst.U), float(inst.psi)))
     gaze = tuple(Gaze(g.x, g.y, g.yaw, g.pitch, g.psi_prime, g.ig) for g in inst.gaze)
+    ext = getattr(inst, "extent", (0.0, 0.0, 0.0))
     return SeenObject(int(inst.instance_id), str(inst.cls), scores, float(inst.centre[0]), float(inst.centre[1]),
-                      float(inst.ig), gaze)
+                      float(inst.ig) if gaze else math.nan, gaze, (max(float(ext[0]), 0.0) / 2,
+                                                                   max(float(ext[1]), 0.0) / 2))
 
 
 def approach_pose(obj: tuple[float, float], towards: tuple[float, float], dist_m: float) -> tuple[float, float, float]:
@@ -118,6 +128,7 @@ class Action:
     pitch: float = 0.0
     reason: str = ""
     success: bool | None = None  # done only
+    near: tuple[float, float, float, float] | None = None  # pick / place / stop: the object's x, y, half-sizes
 
 
 @dataclass(frozen=True)
@@ -175,14 +186,25 @@ class TaskMachine:
             done = self._take(outcome)
             if done is not None:
                 return done
+        elif self.ablation == "trusting" and self.pending is not None:
+            # no 3D layer: the detection it acts on is gone from the next frame's detections, so the trusting
+            # agent keeps going to it until the skill's outcome comes (or the pose proves unreachable)
+            return self.pending
         if self.kind == "find_object":
             return self._find(robot, frontiers, objects)
         if self.holding:
             return self._goal(robot, frontiers, objects)
         return self._search(robot, frontiers, objects)
 
-    def unreachable(self, instance_id: int) -> None:
-        """The planner found no path to this instance's gaze pose: rule it out as a target / goal."""
+    def unreachable(self, instance_id: int, action: Action | None = None) -> None:
+        """The planner found no path to ``action``'s pose for this instance. A gaze point of a look
+        (``looking``) counts as looked from, one of a local search is dropped (the queue already lost it):
+        the instance keeps its other gaze points. A skill pose (or no ``action`` given) rules the instance
+        out as a target / goal."""
+        if action is not None and action.kind == "move":
+            if action.phase == "looking" and action.pose is not None:
+                self.looked.setdefault(instance_id, []).append((action.pose[0], action.pose[1]))
+            return
         self.pending = None
         if self.holding:
             self.bad_goals.add(instance_id)
@@ -222,9 +244,20 @@ class TaskMachine:
                 continue
             if self.ablation == "trusting" and o.cls != c:  # a detection of c is an instance believed to be c
                 continue
-            g = o.best_gaze() if o.cls == c else None
+            g = self._approach(self._unlooked(o), (o.x, o.y, 0.0), best=True) if o.cls == c else None
             out.append(Scored(o.instance_id, s[0], s[2], g.psi_prime if g is not None else None))
         return out
+
+    def _unlooked(self, o: SeenObject) -> SeenObject:
+        """``o`` with the gaze points it may still be looked at from: none once MAX_LOOKS_PER_INSTANCE looks
+        are used up, else those not looked from yet. Its Psi' (Eq. 11) is that of the best of them, so a
+        candidate whose looks are used up is no longer one to look at (the decision goes to the next)."""
+        done = self.looked.get(o.instance_id, [])
+        if len(done) >= MAX_LOOKS_PER_INSTANCE:
+            left: tuple[Gaze, ...] = ()
+        else:
+            left = tuple(g for g in o.gaze if not any(math.hypot(g.x - x, g.y - y) <= ARRIVED_M for x, y in done))
+        return SeenObject(o.instance_id, o.cls, o.scores, o.x, o.y, o.ig, left, o.half)
 
     def _approach(self, o: SeenObject, robot: tuple[float, float, float], best: bool) -> Gaze | None:
         """The gaze point to go to: the one of highest Psi' (``best``) or the nearest (trusting, picking)."""
@@ -240,7 +273,8 @@ class TaskMachine:
         pose = approach_pose((o.x, o.y), (g.x, g.y) if g is not None else robot[:2], SKILL_APPROACH_M)
         phase: Phase = {"pick": "picking", "place": "placing", "stop": "looking"}[kind]  # type: ignore[assignment]
         self.phase = phase
-        self.pending = Action(kind, phase, o.instance_id, pose, g.pitch if g is not None else 0.0, reason)
+        self.pending = Action(kind, phase, o.instance_id, pose, g.pitch if g is not None else 0.0, reason,
+                              near=(o.x, o.y, o.half[0], o.half[1]))
         return self.pending
 
     def _look(self, o: SeenObject, robot: tuple[float, float, float], reason: str) -> Action | None:
@@ -249,9 +283,7 @@ class TaskMachine:
         (or none left) the candidate gets no more looks (None: the caller goes on with the search)."""
         done = self.looked.setdefault(o.instance_id, [])
         while len(done) < MAX_LOOKS_PER_INSTANCE:
-            left = [g for g in o.gaze if not any(math.hypot(g.x - x, g.y - y) <= ARRIVED_M for x, y in done)]
-            g = self._approach(SeenObject(o.instance_id, o.cls, o.scores, o.x, o.y, o.ig, tuple(left)), robot,
-                               best=True)
+            g = self._approach(self._unlooked(o), robot, best=True)
             if g is None:
                 return None
             if math.hypot(g.x - robot[0], g.y - robot[1]) > ARRIVED_M:
@@ -263,12 +295,32 @@ class TaskMachine:
         return Action("move", "looking", o.instance_id, (g.x, g.y, g.yaw), g.pitch, reason)
 
     def _best_frontier(self, robot: tuple[float, float, float], frontiers: Sequence[FrontierOption],
-                       reason: str) -> Action:
+                       reason: str, objects: Sequence[SeenObject] = ()) -> Action:
         ranked = helios.values(robot[:2], frontiers, [], SearchMemory(), self.th.alpha_d)
         if not ranked:
+            last = self._last_resort(robot, objects)
+            if last is not None:
+                return last
             return self._finish(False, f"{reason}; no frontier left to explore")
         self.phase = "searching"
         return Action("frontier", "searching", ranked[0].ref, reason=reason)
+
+    def _last_resort(self, robot: tuple[float, float, float], objects: Sequence[SeenObject]) -> Action | None:
+        """Nothing left to explore but candidates of the phase's class are known: rather than end the episode
+        with steps left, act on the best of them (highest Psi, then S) below the threshold -- a skill call
+        that may fail costs less than a certain failure. None: no candidate left."""
+        if self.kind == "find_object":
+            skill, cls, excluded = "stop", self.object, self._ruled_out()
+        elif self.holding:
+            skill, cls, excluded = "place", self.goal_receptacle or "", self.bad_goals
+        else:
+            skill, cls, excluded = "pick", self.object, self._ruled_out()
+        pool = [(s[2], s[0], -o.instance_id, o) for o in objects if o.instance_id not in excluded
+                and (s := o.of(cls)) is not None and o.cls == cls and math.isfinite(s[2])]
+        if not pool:
+            return None
+        psi, S, _, o = max(pool, key=lambda t: t[:3])
+        return self._act_on(skill, o, robot, f"no frontier left: the best known {cls} (Psi {psi:.3f}, S {S:.3f})")
 
     # ---- pick and place ---------------------------------------------------------------------------------
     def _ruled_out(self) -> set[int]:
@@ -278,15 +330,23 @@ class TaskMachine:
     def _act_or_look(self, skill: str, robot: tuple[float, float, float], objects: Sequence[SeenObject], cls: str,
                      excluded: set[int], tau: float, cs: float) -> Action | None:
         """Eq. 11 for the candidates of ``cls``: act (``skill``) on one confident enough, else go and look again
-        at one whose optimistic score could get there; None: neither (back to search)."""
-        d = decide(self._scored(objects, cls, excluded), tau, self.th.tau_inc, cs, trusting=self.ablation == "trusting")
-        if d.instance_id is None:
-            return None
-        target = {o.instance_id: o for o in objects}[d.instance_id]
-        if d.action == "act":
-            return self._act_on(skill, target, robot, d.reason)
-        if d.action == "look":
-            return self._look(target, robot, d.reason)
+        at one whose optimistic score could get there; None: neither (back to search). A candidate whose looks
+        come to an end here (the robot stands at its last gaze point) leaves the look rule and the decision is
+        taken again over the others."""
+        by_id = {o.instance_id: o for o in objects}
+        for _ in range(len(by_id) + 1):
+            d = decide(self._scored(objects, cls, excluded), tau, self.th.tau_inc, cs,
+                       trusting=self.ablation == "trusting")
+            if d.instance_id is None:
+                return None
+            target = by_id[d.instance_id]
+            if d.action == "act":
+                return self._act_on(skill, target, robot, d.reason)
+            if d.action != "look":
+                return None
+            look = self._look(target, robot, d.reason)
+            if look is not None:
+                return look
         return None
 
     def _search(self, robot: tuple[float, float, float], frontiers: Sequence[FrontierOption],
@@ -305,7 +365,7 @@ class TaskMachine:
             return Action("move", "local_search", self.queue_owner, (g.x, g.y, g.yaw), g.pitch,
                           "local search of a start receptacle candidate")
         if self.ablation == "trusting":
-            return self._best_frontier(robot, frontiers, "trusting: frontier of highest value")
+            return self._best_frontier(robot, frontiers, "trusting: frontier of highest value", objects)
         start = self.start_receptacle or ""
         observed = []
         for o in objects:
@@ -315,7 +375,8 @@ class TaskMachine:
         choice = helios.choose(robot[:2], frontiers, observed, self.memory, self.th.alpha_d, self.th.cs_a,
                                self.ablation)
         if choice is None:
-            return self._finish(False, "nothing left to search: no frontier and no candidate start receptacle")
+            return self._last_resort(robot, objects) or self._finish(
+                False, "nothing left to search: no frontier and no candidate start receptacle")
         if choice.kind == "frontier":
             self.phase = "searching"
             return Action("frontier", "searching", choice.ref, reason=f"global search: frontier V {choice.value:.4g}")
@@ -330,7 +391,7 @@ class TaskMachine:
         a = self._act_or_look("place", robot, objects, goal, self.bad_goals, self.th.tau_b, self.th.cs_b)
         if a is not None:
             return a
-        return self._best_frontier(robot, frontiers, "goal receptacle search: frontier of highest value")
+        return self._best_frontier(robot, frontiers, "goal receptacle search: frontier of highest value", objects)
 
     # ---- find an object (section 4.2) --------------------------------------------------------------------
     def _find(self, robot: tuple[float, float, float], frontiers: Sequence[FrontierOption],
@@ -357,12 +418,13 @@ class TaskMachine:
         a = self._act_or_look("stop", robot, objects, self.object, self._ruled_out(), self.th.tau_g, self.th.cs_g)
         if a is not None:
             return a
-        return self._best_frontier(robot, frontiers, "object search: frontier of highest value")
+        return self._best_frontier(robot, frontiers, "object search: frontier of highest value", objects)
 
     # ---- persistence ------------------------------------------------------------------------------------
     def to_json(self) -> dict[str, Any]:
         def act(a: Action | None) -> dict[str, Any] | None:
-            return None if a is None else {**vars(a), "pose": list(a.pose) if a.pose else None}
+            return None if a is None else {**vars(a), "pose": list(a.pose) if a.pose else None,
+                                           "near": list(a.near) if a.near else None}
 
         return {
             "kind": self.kind, "object": self.object, "start_receptacle": self.start_receptacle,
@@ -378,7 +440,10 @@ class TaskMachine:
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> TaskMachine:
         def act(a: dict[str, Any] | None) -> Action | None:
-            return None if a is None else Action(**{**a, "pose": tuple(a["pose"]) if a["pose"] else None})
+            if a is None:
+                return None
+            near = tuple(a["near"]) if a.get("near") else None
+            return Action(**{**a, "pose": tuple(a["pose"]) if a["pose"] else None, "near": near})
 
         m = cls(d["kind"], d["object"], d["start_receptacle"], d["goal_receptacle"], d["ablation"], d["pick_limit"],
                 Thresholds(**d["th"]))

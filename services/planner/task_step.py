@@ -9,18 +9,32 @@ into the step's goal on the 2D map.
   (:meth:`~services.planner.task_fsm.TaskMachine.unreachable`) and the machine decides again;
 * ``done`` -> ``Goal.done`` with the reason.
 
+One collision model (:mod:`eqa.robot`): every path of a task step -- to a frontier, a gaze point or a skill
+pose -- keeps :func:`eqa.robot.mapped_clearance_m` (the collision radius plus the map margin) from the mapped
+occupied cells. A path that would come closer is cut before it does (a robot already closer may move away,
+never nearer); the planning grid's clearance levels only choose the route. A skill pose (``pick`` / ``place`` /
+``stop``) is a reachable point of the map that keeps that clearance and lies within
+:data:`SKILL_REACH_M` of the object's estimated footprint -- the robot is sent exactly there, so the arrival
+tolerance of gaze poses does not eat into the reach; among such points the one nearest the machine's preferred
+pose (on the line to the chosen gaze point, :data:`~services.planner.task_fsm.SKILL_APPROACH_M` from the
+centre, where the fixed head camera sees the object) is taken.
+
 Frontier values for Eq. 10 come from ``Frontier.sv`` (the value map's score of the frontier for the class being
 searched, in [0, 1]).
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from scipy import ndimage
 
+from eqa import grid as gridm
+from eqa import robot as body
 from eqa.messages import Frontier, GridSpec, Pose2D
 from services.planner.helios import FrontierOption
 from services.planner.paths import MapError, check_map, planning_grid, truncate
@@ -28,6 +42,54 @@ from services.planner.step import Memory, PlannerParams, StepPlan, plan_step, wr
 from services.planner.task_fsm import Action, SeenObject, SkillOutcome, TaskMachine
 
 ARRIVE_TOLERANCE_M = 0.5  # a gaze pose is reached from the nearest traversable point within this
+# A skill pose lies this far from the object's estimated footprint at most: the oracle pick's reach less a margin
+# for the footprint's error (Gaussians of a partly seen object; this implementation's choice, by hand).
+SKILL_REACH_MARGIN_M = 0.2
+SKILL_REACH_M = body.REACH_M - SKILL_REACH_MARGIN_M
+MAX_TRIES = 64  # actions asked of the machine in one step at most (each failed one removes an option)
+
+
+def clearance_field(grid: GridSpec, occupied: np.ndarray) -> np.ndarray:
+    """Metres from each cell centre to the nearest mapped occupied cell centre (inf with none)."""
+    occ = np.asarray(occupied, bool)
+    if not occ.any():
+        return np.full(occ.shape, np.inf)
+    return ndimage.distance_transform_edt(~occ) * grid.resolution
+
+
+def _clearance_at(field: np.ndarray, grid: GridSpec, pts: np.ndarray) -> np.ndarray:
+    i, j = gridm.cell_of(pts[:, 0], pts[:, 1], gridm.origin_of(grid), grid.resolution)
+    ok = gridm.inside(i, j, field.shape)
+    out = np.zeros(len(pts))
+    out[ok] = field[i[ok], j[ok]]
+    return out
+
+
+def safe_prefix(path: list[tuple[float, float]], field: np.ndarray, grid: GridSpec,
+                need_m: float | None = None) -> tuple[list[tuple[float, float]], bool]:
+    """``path`` cut before the first point closer than ``need_m`` (default: the mapped clearance of
+    :mod:`eqa.robot`) to a mapped occupied cell -- or, when the start is already closer, before the first
+    point closer than the start (sampled every half cell). Returns the kept path and whether it is whole."""
+    need = body.mapped_clearance_m() if need_m is None else need_m
+    if len(path) < 2:
+        return list(path), True
+    step = grid.resolution / 2
+    start = float(_clearance_at(field, grid, np.array([path[0]], float))[0])
+    floor = min(need, start) - 1e-9
+    out = [path[0]]
+    for a, b in itertools.pairwise(path):
+        seg = math.dist(a, b)
+        n = max(2, math.ceil(seg / step) + 1)
+        t = np.linspace(0.0, 1.0, n)[1:]
+        pts = np.array(a)[None] + t[:, None] * (np.array(b) - np.array(a))[None]
+        bad = np.flatnonzero(_clearance_at(field, grid, pts) < floor)
+        if bad.size:
+            k = int(bad[0])
+            if k > 0:
+                out.append((float(pts[k - 1, 0]), float(pts[k - 1, 1])))
+            return out, False
+        out.append(b)
+    return out, True
 
 
 @dataclass
@@ -37,18 +99,38 @@ class PoseStep:
     reason: str
 
 
+def _box_distance(x: np.ndarray, y: np.ndarray, near: tuple[float, float, float, float]) -> np.ndarray:
+    ox, oy, hx, hy = near
+    return np.hypot(np.maximum(np.abs(x - ox) - hx, 0.0), np.maximum(np.abs(y - oy) - hy, 0.0))
+
+
 def plan_to_pose(grid: GridSpec, free: np.ndarray, occupied: np.ndarray, robot: Pose2D,
-                 target: tuple[float, float, float], params: PlannerParams | None = None) -> PoseStep:
+                 target: tuple[float, float, float], params: PlannerParams | None = None,
+                 near: tuple[float, float, float, float] | None = None,
+                 dist_field: np.ndarray | None = None) -> PoseStep:
     """A path from ``robot`` to the pose ``target = (x, y, yaw)`` with clearance (tried at each of
-    ``params.clearances_m``), cut at ``params.max_step_m``. On arrival the robot stands at the target (or the
-    nearest traversable point within :data:`ARRIVE_TOLERANCE_M`) facing ``yaw``."""
+    ``params.clearances_m``), cut at ``params.max_step_m`` and before it comes closer than the mapped clearance
+    to an occupied cell (module doc; ``dist_field``: :func:`clearance_field`, computed when not given). On arrival
+    the robot stands at the target (or the nearest traversable point within :data:`ARRIVE_TOLERANCE_M`)
+    facing ``yaw``. ``near = (x, y, half_x, half_y)``: a skill pose for that object footprint -- the
+    reachable point within :data:`SKILL_REACH_M` of it keeping the mapped clearance, nearest the target,
+    facing the object's centre (module doc)."""
     params = params or PlannerParams()
     try:
         check_map(grid, free, occupied)
     except MapError as exc:
         return PoseStep(None, False, f"malformed map: {exc}")
+    dist_field = clearance_field(grid, occupied) if dist_field is None else dist_field
     tx, ty, tyaw = target
-    if math.hypot(tx - robot.x, ty - robot.y) <= 0.05:
+    need = body.mapped_clearance_m()
+    if near is not None:
+        here = float(_box_distance(np.array([robot.x]), np.array([robot.y]), near)[0])
+        if here <= SKILL_REACH_M and math.hypot(tx - robot.x, ty - robot.y) <= ARRIVE_TOLERANCE_M:
+            yaw = math.atan2(near[1] - robot.y, near[0] - robot.x)
+            pose = Pose2D(x=robot.x, y=robot.y, yaw=wrap(yaw))
+            return PoseStep(StepPlan("move", "within reach: turning to face the object", pose=pose,
+                                     path=[(robot.x, robot.y)]), True, "arrived")
+    elif math.hypot(tx - robot.x, ty - robot.y) <= 0.05:
         pose = Pose2D(x=robot.x, y=robot.y, yaw=wrap(tyaw))
         return PoseStep(StepPlan("move", "at the pose: turning to face it", pose=pose,
                                  path=[(robot.x, robot.y)]), True, "arrived")
@@ -57,8 +139,10 @@ def plan_to_pose(grid: GridSpec, free: np.ndarray, occupied: np.ndarray, robot: 
         if not pg.search_from(robot.x, robot.y, params.snap_radius_m) or pg.dist is None:
             continue
         R, C = pg.dist.shape
-        bi, bj = pg.block_of(tx, ty)
-        rad = math.ceil(ARRIVE_TOLERANCE_M / pg.block_m) + 1
+        cxy = (near[0], near[1]) if near is not None else (tx, ty)
+        bi, bj = pg.block_of(*cxy)
+        span = ARRIVE_TOLERANCE_M if near is None else SKILL_REACH_M + max(near[2], near[3])
+        rad = math.ceil(span / pg.block_m) + 1
         r0, r1, c0, c1 = max(0, bi - rad), min(R, bi + rad + 1), max(0, bj - rad), min(C, bj + rad + 1)
         if r0 >= r1 or c0 >= c1:
             continue
@@ -68,7 +152,13 @@ def plan_to_pose(grid: GridSpec, free: np.ndarray, occupied: np.ndarray, robot: 
             continue
         cx, cy = pg.block_centre(ii + r0, jj + c0)
         e = np.hypot(cx - tx, cy - ty)
-        if float(e.min()) > ARRIVE_TOLERANCE_M:
+        if near is not None:
+            ok = (_box_distance(cx, cy, near) <= SKILL_REACH_M) & (
+                _clearance_at(dist_field, grid, np.stack([cx, cy], axis=1)) >= need)
+            ii, jj, cx, cy, e = ii[ok], jj[ok], cx[ok], cy[ok], e[ok]
+            if ii.size == 0:
+                continue
+        elif float(e.min()) > ARRIVE_TOLERANCE_M:
             continue
         m = int(np.argmin(e + 1e-3 * win[ii, jj]))
         block = (int(ii[m] + r0), int(jj[m] + c0))
@@ -77,12 +167,19 @@ def plan_to_pose(grid: GridSpec, free: np.ndarray, occupied: np.ndarray, robot: 
             continue
         path, fits = truncate(pulled, params.max_step_m)
         arrived = fits and complete
-        if arrived and pg.segment_clear(path[-1], (tx, ty)) and math.dist(path[-1], (tx, ty)) > 1e-6:
+        if (near is None and arrived and pg.segment_clear(path[-1], (tx, ty))
+                and math.dist(path[-1], (tx, ty)) > 1e-6):
             path = [*path, (tx, ty)]
             path, fits = truncate(path, params.max_step_m)
             arrived = fits
+        path, whole = safe_prefix(path, dist_field, grid, need)
+        arrived = arrived and whole
+        if len(path) < 2 and not arrived:
+            continue
         gx, gy = path[-1]
-        if arrived:
+        if arrived and near is not None:
+            yaw = math.atan2(near[1] - gy, near[0] - gx)
+        elif arrived:
             yaw = tyaw
         else:
             (ax, ay), (bx, by) = path[-2] if len(path) > 1 else (robot.x, robot.y), path[-1]
@@ -114,38 +211,75 @@ def frontier_options(frontiers: list[Frontier]) -> list[FrontierOption]:
 def task_step(machine: TaskMachine, grid: GridSpec, free: np.ndarray, occupied: np.ndarray, pose: Pose2D,
               frontiers: list[Frontier], objects: list[SeenObject], outcome: SkillOutcome | None,
               memory: Memory, rng: np.random.Generator, params: PlannerParams | None = None,
-              max_tries: int = 8) -> TaskStep:
+              max_tries: int = MAX_TRIES) -> TaskStep:
     """Ask the machine for its action and plan it (module doc). ``memory`` is the planner's frontier memory
-    (not modified; the result carries the one to keep)."""
+    (not modified; the result carries the one to keep). An action that cannot be planned takes its option away
+    (the frontier, the gaze point, the instance: :meth:`TaskMachine.unreachable`) and the machine is asked
+    again; when ``max_tries`` actions all fail the robot turns in place to see more (a new frame, new options)
+    rather than ending the episode with steps left."""
     params = params or PlannerParams()
     robot = (pose.x, pose.y, pose.yaw)
+    dist_field = clearance_field(grid, occupied) if np.shape(occupied) == (grid.rows, grid.cols) else None
     # frontiers the robot already went to are no option (plan_step would refuse them and turn in place)
     options = [o for o in frontier_options(frontiers)
                if not any(math.hypot(o.x - vx, o.y - vy) <= params.visited_radius_m for vx, vy in memory.visited)]
+    turn: TaskStep | None = None  # plan_step's turn in place (it counts the turns) for an unreachable frontier
     for _ in range(max_tries):
         act: Action = machine.step(robot, options, objects, outcome)
         outcome = None  # consumed
         if act.kind == "done":
+            if turn is not None:
+                # out of options only because this step's frontiers proved unreachable (a skill outcome ends
+                # the episode on the first try, before any): turn in place to see more, plan_step's rule
+                machine.finished, machine.phase = None, "searching"
+                return turn
             return TaskStep(StepPlan("done", act.reason, memory=memory.copy()), phase="finished", memory=memory)
         if act.kind == "frontier":
             assert act.ref is not None
             plan = plan_step(grid, free, occupied, pose, [frontiers[act.ref]], "fbe", memory, rng, params)
-            if plan.kind == "done":  # that frontier cannot be reached: let the machine choose again
+            if plan.kind == "move" and dist_field is not None:
+                plan = _keep_clear(plan, grid, dist_field, pose, memory)
+            if plan.kind in ("done", "turn"):  # that frontier cannot be reached: let the machine choose again
                 options = [o for o in options if o.index != act.ref]
+                if plan.kind == "turn" and turn is None:
+                    turn = TaskStep(plan, "move", None, act.phase, plan.memory)
                 continue
             plan.reason = f"{act.reason}; {plan.reason}"
             return TaskStep(plan, "move", None, act.phase, plan.memory)
         assert act.pose is not None
-        ps = plan_to_pose(grid, free, occupied, pose, act.pose, params)
+        ps = plan_to_pose(grid, free, occupied, pose, act.pose, params, near=act.near, dist_field=dist_field)
         if ps.plan is None:
             if act.ref is not None:
-                machine.unreachable(act.ref)
+                machine.unreachable(act.ref, act)
             continue
         ps.plan.reason = f"{act.reason}; {ps.plan.reason}"
         skill = act.kind if act.kind in ("pick", "place", "stop") and ps.arrived else "move"
         return TaskStep(ps.plan, skill, act.ref, act.phase, memory.copy())
-    return TaskStep(StepPlan("done", f"no reachable action after {max_tries} tries", memory=memory.copy()),
-                    phase="finished", memory=memory)
+    if turn is not None:
+        return turn
+    yaw = wrap(pose.yaw + math.radians(params.turn_deg))
+    spin = StepPlan("turn", f"no reachable action after {max_tries} tries: turning in place to see more",
+                    pose=Pose2D(x=pose.x, y=pose.y, yaw=yaw), path=[(pose.x, pose.y)], memory=memory.copy())
+    return TaskStep(spin, "move", None, machine.phase, memory)
+
+
+def _keep_clear(plan: StepPlan, grid: GridSpec, field: np.ndarray, pose: Pose2D, memory: Memory) -> StepPlan:
+    """A frontier move cut before it comes closer than the mapped clearance to an occupied cell (module doc);
+    ``done`` when nothing of it is left. A cut move has not arrived: the frontier is not marked visited."""
+    path, whole = safe_prefix(plan.path, field, grid)
+    if whole:
+        return plan
+    if len(path) < 2 or math.dist(path[0], path[-1]) < 0.05:
+        return StepPlan("done", "the path to the frontier comes closer than the collision radius to an obstacle",
+                        memory=memory.copy())
+    (ax, ay), (bx, by) = path[-2], path[-1]
+    mem = plan.memory.copy()
+    mem.visited = list(memory.visited)
+    plan.path = path
+    plan.pose = Pose2D(x=bx, y=by, yaw=wrap(math.atan2(by - ay, bx - ax)))
+    plan.reason = f"{plan.reason}; cut at {bx:.2f}, {by:.2f} before an obstacle"
+    plan.memory = mem
+    return plan
 
 
 def outcome_of(report: Any) -> SkillOutcome | None:

@@ -25,12 +25,13 @@ from typing import Any
 import numpy as np
 
 from eqa import grid as gridm
+from eqa import robot
 from eqa.messages import Pose2D
 from services.sim.camera import camera_pose, intrinsics
 from services.sim.motion import GRID_RES, clearance_map
 from services.sim.scene import Scene
 
-REACH_M = 0.9  # base centre to the object's box, horizontally (arm reach of a mobile manipulator base)
+REACH_M = robot.REACH_M  # base centre to the object's box, horizontally
 PICK_MIN_PIXELS_FRAC = 0.0003  # share of the image the target must cover to count as "in frame"
 PLACE_REGION = (0.3, 1.0, 0.3)  # in front of the robot: from 0.3 m to 1.0 m ahead, +-0.3 m sideways
 PLACE_PROBE_STEP = 0.05  # m between downward probes of the region
@@ -38,7 +39,7 @@ PROBE_TOP_Z = 2.0  # m, probes start here (below the 2.7 m ceiling, above every 
 DROP_CLEARANCE_M = 0.05  # the object is released this far above the highest point
 CONTACT_TOL_M = 0.01  # footprint probes within this of the rest height touch the support
 STABILITY_MARGIN = 0.25  # share of the half footprint the contacts must extend past the centre on each side
-COLLISION_RADIUS_M = 0.15  # a path closer than this to an obstacle collides (robot body, margin for the arm)
+COLLISION_RADIUS_M = robot.COLLISION_RADIUS_M  # a path closer than this to an obstacle collides
 
 
 def _ray_scene(scene: Scene, exclude: frozenset[int] = frozenset()) -> tuple[Any, np.ndarray | None]:

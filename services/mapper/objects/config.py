@@ -31,6 +31,9 @@ class ObjectLayerConfig:
     min_transmittance: float = 1e-4  # 3DGS: stop blending behind this
     valid_acc: float = 0.5  # rendered depth is defined where the accumulated alpha reaches this
     max_depth_m: float = 8.0  # measured depth past this is not used (noisy, far objects)
+    # "other" pixels (no detection) past this depth are no evidence (None: up to max_depth_m). A missed detection
+    # is evidence against an object only where the detector would see it: see ObjectMapConfig.miss_range_m.
+    other_max_depth_m: float | None = None
     touched_evidence: float = 0.05  # a Gaussian counts as updated by a frame when it got this much evidence
     max_gaussians: int = 60_000  # the bound; see gaussians.GaussianStore.enforce_bound for the drop policy
     max_new_per_frame: int = 6_000  # creations of one frame beyond this are dropped (farthest first)

@@ -183,7 +183,10 @@ class ObjectLayer:
         lap("create")
         # 2. re-observation mask and the Dirichlet update (Eq. 3)
         r = self._render(pose, Ks, h, w) if len(new) else first  # nothing new: the first render is the same
-        mask = reobservation_mask(d, r.depth, c.reobserve_depth_m, c.close_px).reshape(-1)
+        mask = reobservation_mask(d, r.depth, c.reobserve_depth_m, c.close_px)
+        if c.other_max_depth_m is not None:  # a miss beyond the detector's range says nothing
+            mask = mask & ~((pc == self.other) & (d > c.other_max_depth_m))
+        mask = mask.reshape(-1)
         sel = mask[r.pixel]
         g, k, y = r.gauss[sel], r.kappa[sel], pc.reshape(-1)[r.pixel[sel]]
         self.store.gamma = dirichlet.update(self.store.gamma, g, k, y, c.alpha_cpa, c.pixel_weight)
