@@ -22,7 +22,7 @@ from typing import Any
 
 import zenoh
 
-from eqa import keys, security
+from eqa import keys, metrics, security
 from eqa.codec import CodecError
 from eqa.messages import ErrorReply, M, Message, decode, encode
 from eqa.settings import Settings
@@ -55,8 +55,9 @@ class _SerialQueryable:
 
     _STOP = object()
 
-    def __init__(self, key: str, answer: Callable[[Any], None]) -> None:
+    def __init__(self, key: str, answer: Callable[[Any], None], service: str = "") -> None:
         self.jobs: queue.Queue[Any] = queue.Queue()
+        self.service = service
         self.queryable: Any = None
         self._answer = answer
         self._thread = threading.Thread(target=self._serve, name=f"queryable {key}", daemon=True)
@@ -67,6 +68,7 @@ class _SerialQueryable:
             query = self.jobs.get()
             if query is self._STOP:
                 return
+            metrics.gauge_add(metrics.QUEUE_DEPTH, self.service, amount=-1)
             try:
                 self._answer(query)
             except Exception:
@@ -75,6 +77,11 @@ class _SerialQueryable:
                 # finalise now (sends the end-of-replies marker) rather than whenever the object is collected: a
                 # logged exception's traceback may keep it alive, and the client would wait for its timeout
                 query.drop()
+
+    def put(self, query: Any) -> None:
+        """Queue a query (the Zenoh callback)."""
+        metrics.gauge_add(metrics.QUEUE_DEPTH, self.service)
+        self.jobs.put(query)
 
     def undeclare(self) -> None:
         if self.queryable is not None:
@@ -169,6 +176,7 @@ class Bus:
                 msg = decode(payload, expected)
             except CodecError as exc:
                 log.warning("dropped malformed message on %s: %s", skey, exc)
+                metrics.inc(metrics.BUS_DROPPED, self.service, "malformed")
                 if on_invalid is not None:
                     try:
                         on_invalid(skey, payload, str(exc))
@@ -179,6 +187,7 @@ class Bus:
                 handler(skey, msg)
             except Exception:
                 log.exception("handler for %s failed; going on", skey)
+                metrics.inc(metrics.BUS_DROPPED, self.service, "handler_error")
 
         return self._keep(self.session.declare_subscriber(key, on_sample))
 
@@ -200,6 +209,7 @@ class Bus:
                 request = decode(payload, expected)
             except CodecError as exc:
                 log.warning("malformed query on %s: %s", query.key_expr, exc)
+                metrics.inc(metrics.BUS_DROPPED, self.service, "malformed_query")
                 reply: Message = ErrorReply(source=f"{self.service}/{self.instance}", reason=str(exc))
             else:
                 try:
@@ -218,8 +228,8 @@ class Bus:
 
         if not serial:
             return self._keep(self.session.declare_queryable(key, on_query))
-        server = _SerialQueryable(key, on_query)
-        server.queryable = self.session.declare_queryable(key, server.jobs.put)
+        server = _SerialQueryable(key, on_query, self.service)
+        server.queryable = self.session.declare_queryable(key, server.put)
         return self._keep(server)
 
     def query(self, key: str, msg: Message, timeout: float, expected: type[M] | tuple[type[M], ...] | None = None
@@ -239,6 +249,7 @@ class Bus:
                     raise CodecError(f"unexpected reply kind {decoded.kind}")
             except CodecError as exc:
                 log.warning("malformed reply on %s: %s", reply.ok.key_expr, exc)
+                metrics.inc(metrics.BUS_DROPPED, self.service, "malformed_reply")
                 continue
             out.append((str(reply.ok.key_expr), decoded))
         return out

@@ -31,7 +31,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from eqa import dataflow, keys
+from eqa import dataflow, keys, metrics
 from eqa.bus import Bus
 from eqa.settings import Settings
 
@@ -173,9 +173,11 @@ class Fleet:
                 self.children.append(
                     Child(service, instance, self._child_env(service, instance), logs / f"{service}-{i}.log")
                 )
+        metrics_ports(self.settings.metrics_port, self.children)
 
     # ---- lifecycle ----------------------------------------------------------------------------------------
     def start(self, timeout: float = 90.0) -> Fleet:
+        metrics.serve(self.settings, "launcher")
         hub_settings = self._hub_settings()
         self.endpoint = hub_settings.zenoh_listen[0].replace("0.0.0.0", "127.0.0.1")
         self._hub = Bus(hub_settings, "launcher", "launcher").open()
@@ -251,6 +253,7 @@ class Fleet:
                     child.proc = None
                     continue
                 child.restarts += 1
+                metrics.inc(metrics.CHILD_RESTARTS, child.service)
                 delay = min(0.2 * 2**child.restarts, 5.0)
                 log.warning("%s exited with %s; restarting in %.1f s", child.instance, code, delay)
                 time.sleep(delay)
@@ -290,6 +293,7 @@ class Fleet:
         if self._hub is not None:
             self._hub.close()
             self._hub = None
+        metrics.stop_serving(self.settings.metrics_port)
 
     def __enter__(self) -> Fleet:
         return self.start()
@@ -313,6 +317,21 @@ class Fleet:
         return self.settings.model_copy(
             update={"zenoh_mode": "peer", "zenoh_listen": ["tcp/127.0.0.1:0"], "zenoh_connect": [self.endpoint]}
         )
+
+
+def metrics_ports(base: int, children: list[Child]) -> None:
+    """With ``EQA_METRICS_PORT`` set (the launcher serves on it), child ``k`` of the plan serves its metrics on
+    ``base + 1 + k`` (``EQA_METRICS_PORT`` of its environment; the gateway serves /metrics on its own port). A
+    fixed plan gives a restarted child the same port: one scrape target per process."""
+    k = 0
+    for child in children:
+        if base and child.service != "gateway":
+            k += 1
+            if base + k > 65535:
+                raise LaunchError(f"EQA_METRICS_PORT={base} leaves no port for child {k}: use a lower port")
+            child.env["EQA_METRICS_PORT"] = str(base + k)
+        else:
+            child.env["EQA_METRICS_PORT"] = "0"
 
 
 def _password_of(users_file: Path, user: str) -> str:
