@@ -89,20 +89,33 @@ def enable(on: bool = True) -> None:
     _State.on = on
 
 
+_CHILDREN: dict[tuple[Any, tuple[str, ...]], Any] = {}
+
+
+def child(metric: Any, labels: tuple[str, ...]) -> Any:
+    """``metric.labels(*labels)``, looked up once (prometheus-client validates labels on every call). The label
+    values of the kernel's metrics are names from code (services, kinds, reasons, operations, exception types),
+    so the cache stays small."""
+    found = _CHILDREN.get((metric, labels))
+    if found is None:
+        found = _CHILDREN[(metric, labels)] = metric.labels(*labels)
+    return found
+
+
 def inc(metric: Counter, *labels: str, amount: float = 1.0) -> None:
     """``metric.labels(*labels).inc(amount)`` when counting is on."""
     if _State.on:
-        metric.labels(*labels).inc(amount)
+        child(metric, labels).inc(amount)
 
 
 def gauge_add(metric: Gauge, *labels: str, amount: float = 1.0) -> None:
     if _State.on:
-        metric.labels(*labels).inc(amount)
+        child(metric, labels).inc(amount)
 
 
 def observe(metric: Histogram, value: float, *labels: str) -> None:
     if _State.on:
-        metric.labels(*labels).observe(value)
+        child(metric, labels).observe(value)
 
 
 class _Timer:
@@ -116,7 +129,7 @@ class _Timer:
         return self
 
     def __exit__(self, *exc: object) -> None:
-        self.metric.labels(*self.labels).observe(time.perf_counter() - self.t0)
+        child(self.metric, self.labels).observe(time.perf_counter() - self.t0)
 
     def relabel(self, *labels: str) -> None:
         """Observe under these labels instead (an outcome known only at the end)."""
@@ -183,11 +196,11 @@ def timed_store(backend: str) -> Callable[[type], type]:
             try:
                 return fn(*args, **kwargs)
             except Exception as exc:
-                STORE_ERRORS.labels(backend, op, type(exc).__name__).inc()
+                child(STORE_ERRORS, (backend, op, type(exc).__name__)).inc()
                 raise
             finally:
                 _store_depth.n = 0
-                STORE_SECONDS.labels(backend, op).observe(time.perf_counter() - t0)
+                child(STORE_SECONDS, (backend, op)).observe(time.perf_counter() - t0)
 
         return run
 
@@ -219,7 +232,7 @@ def serve(settings: Settings, service: str) -> int | None:
                               "to a free port, or 0 for none)") from exc
             log.info("metrics on http://%s:%d/metrics", settings.metrics_host, port)
     enable()
-    SERVICE_STARTED.labels(service).set(time.time())
+    child(SERVICE_STARTED, (service,)).set(time.time())
     return port
 
 
