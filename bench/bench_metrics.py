@@ -19,6 +19,7 @@ import os
 import statistics
 import sys
 import tempfile
+import threading
 import time
 import timeit
 from pathlib import Path
@@ -120,6 +121,15 @@ def main() -> int:
     print("hooks alone (best of 5, ns per call): off / on")
     for name, (a, b) in costs.items():
         print(f"  {name:28s} {a:8.0f} / {b:8.0f}")
+    lock = threading.Lock()
+
+    def take() -> None:
+        with lock:
+            pass
+
+    print(f"for scale, on this machine: an uncontended threading.Lock taken and released "
+          f"{min(timeit.repeat(take, number=20_000, repeat=5)) / 20_000 * 1e9:.0f} ns "
+          "(prometheus-client takes one or two per observation)")
     return 0
 
 

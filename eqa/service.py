@@ -192,6 +192,10 @@ def main(service_cls: type[Service], argv: list[str] | None = None) -> int:
         print(f"error: invalid EQA_* settings: {exc}", file=sys.stderr)
         return 2
     setup_logging(args.log_level or settings.log_level, service_cls.name, settings.log_format, settings.instance)
-    metrics.serve(settings, service_cls.name)
+    try:
+        metrics.serve(settings, service_cls.name)
+    except OSError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     service_cls(settings).run_forever()
     return 0

@@ -115,7 +115,8 @@ def test_the_monitoring_profile_scrapes_every_service():
     prom = COMPOSE["services"]["prometheus"]
     assert prom["profiles"] == ["monitoring"] and prom["image"].startswith("prom/prometheus:v")
     mounted = {v.split(":")[0]: v.split(":")[1] for v in prom["volumes"] if v.startswith("./")}
-    assert mounted == {"./deploy/prometheus.yml": "/etc/prometheus/prometheus.yml"}
+    assert mounted == {"./deploy/prometheus.yml": "/etc/prometheus/prometheus.yml",
+                       "./deploy/prometheus-rules.yml": "/etc/prometheus/prometheus-rules.yml"}
     assert "--config.file=/etc/prometheus/prometheus.yml" in prom["command"]
     config = yaml.safe_load((REPO / "deploy" / "prometheus.yml").read_text())
     jobs = {job["job_name"]: job for job in config["scrape_configs"]}
@@ -142,6 +143,16 @@ def test_the_scrape_config_passes_promtool(tmp_path: Path):
     token = tmp_path / "metrics_token"
     token.write_text("a-metrics-token\n")
     config = tmp_path / "prometheus.yml"
-    config.write_text(text.replace("/etc/prometheus/secrets/metrics_token", str(token)))
+    config.write_text(text.replace("/etc/prometheus/secrets/metrics_token", str(token)).replace(
+        "/etc/prometheus/prometheus-rules.yml", str(REPO / "deploy" / "prometheus-rules.yml")))
     out = subprocess.run([promtool, "check", "config", str(config)], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert "SUCCESS: 7 rules found" in out.stdout, out.stdout  # the rule file was read and its queries parsed
+    # the queries docs/metrics.md shows parse too (as recording rules)
+    queries = re.findall(r"```promql\n(.*?)```", (REPO / "docs" / "metrics.md").read_text(), re.S)
+    assert len(queries) >= 8
+    rules = [{"record": f"eqa:doc_query_{i}", "expr": q.strip()} for i, q in enumerate(queries)]
+    doc_rules = tmp_path / "doc-queries.yml"
+    doc_rules.write_text(yaml.safe_dump({"groups": [{"name": "docs", "rules": rules}]}))
+    out = subprocess.run([promtool, "check", "rules", str(doc_rules)], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stdout + out.stderr
