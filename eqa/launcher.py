@@ -20,6 +20,7 @@ router listens on ``tls/`` with the ``router`` certificate and each child gets i
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import os
 import signal
@@ -174,6 +175,8 @@ class Fleet:
                     Child(service, instance, self._child_env(service, instance), logs / f"{service}-{i}.log")
                 )
         metrics_ports(self.settings.metrics_port, self.children)
+        if self.settings.metrics_port:
+            write_targets(Path(self.settings.data_dir) / METRICS_TARGETS, self.settings, self.children)
 
     # ---- lifecycle ----------------------------------------------------------------------------------------
     def start(self, timeout: float = 90.0) -> Fleet:
@@ -213,7 +216,9 @@ class Fleet:
         )
         out.close()
         child.started_at = time.monotonic()
-        log.info("started %s (pid %d), log %s", child.instance, child.proc.pid, child.log_path)
+        port = int(child.env.get("EQA_METRICS_PORT", "0"))
+        log.info("started %s (pid %d), log %s%s", child.instance, child.proc.pid, child.log_path,
+                 f", metrics on port {port}" if port else "")
 
     def missing(self) -> list[Child]:
         with self._alive_changed:
@@ -332,6 +337,24 @@ def metrics_ports(base: int, children: list[Child]) -> None:
             child.env["EQA_METRICS_PORT"] = str(base + k)
         else:
             child.env["EQA_METRICS_PORT"] = "0"
+
+
+METRICS_TARGETS = "metrics-targets.json"
+
+
+def write_targets(path: Path, settings: Settings, children: list[Child]) -> None:
+    """The fleet's scrape targets as a Prometheus ``file_sd_configs`` file: the launcher, each child with a
+    metrics port, the gateway's API port (job = service)."""
+    host = "127.0.0.1" if settings.metrics_host in ("0.0.0.0", "::", "") else settings.metrics_host
+    groups = [{"targets": [f"{host}:{settings.metrics_port}"], "labels": {"job": "launcher"}}]
+    for child in children:
+        if child.service == "gateway":
+            target = f"{settings.gateway_host if settings.gateway_host != '0.0.0.0' else '127.0.0.1'}:" \
+                     f"{settings.gateway_port}"
+        else:
+            target = f"{host}:{child.env['EQA_METRICS_PORT']}"
+        groups.append({"targets": [target], "labels": {"job": child.service, "eqa_instance": child.instance}})
+    path.write_text(json.dumps(groups, indent=1))
 
 
 def _password_of(users_file: Path, user: str) -> str:

@@ -120,6 +120,12 @@ def test_metrics_count_what_happened_in_an_episode(fleet: Fleet):
     assert set(ports) == set(ALL_SERVICES) - {"gateway"} and len(ports["vlm_scorer"]) == 2
     launcher_port = fleet.settings.metrics_port
     assert all(p > launcher_port for ps in ports.values() for p in ps)
+    # the scrape targets the launcher wrote (Prometheus file_sd format): itself, each child, the gateway
+    groups = json.loads((Path(fleet.settings.data_dir) / "metrics-targets.json").read_text())
+    listed = sorted((g["labels"]["job"], g["targets"][0]) for g in groups)
+    want = [("launcher", f"127.0.0.1:{launcher_port}"), ("gateway", f"127.0.0.1:{fleet.settings.gateway_port}")]
+    want += [(s, f"127.0.0.1:{p}") for s, ps in ports.items() for p in ps]
+    assert listed == sorted(want)
     before = _scrape_all(fleet)
     with httpx.Client(base_url=_gw(fleet), timeout=30) as client:
         gw_before = parse(client.get("/metrics").text)  # loopback, no proxy header: readable without a token
