@@ -23,7 +23,7 @@ from typing import Any
 
 import zenoh
 
-from eqa import keys, security
+from eqa import keys, metrics, security
 from eqa.codec import CodecError
 from eqa.messages import ErrorReply, M, Message, decode, encode
 from eqa.settings import Settings
@@ -61,8 +61,10 @@ class _SerialQueryable:
 
     _STOP = object()
 
-    def __init__(self, key: str, answer: Callable[[Any], None], batch_max: int = 1, window_s: float = 0.0) -> None:
+    def __init__(self, key: str, answer: Callable[[Any], None], batch_max: int = 1, window_s: float = 0.0,
+                 service: str = "") -> None:
         self.jobs: queue.Queue[Any] = queue.Queue()
+        self.service = service
         self.queryable: Any = None
         self._answer = answer
         self.batch_max = max(1, int(batch_max))
@@ -94,6 +96,7 @@ class _SerialQueryable:
                 batch, stop = [query], False
             else:
                 batch, stop = self._batch(query)
+            metrics.gauge_add(metrics.QUEUE_DEPTH, self.service, amount=-len(batch))
             try:
                 self._answer(batch if self.batch_max > 1 else query)
             except Exception:
@@ -105,6 +108,11 @@ class _SerialQueryable:
                     q.drop()
             if stop:
                 return
+
+    def put(self, query: Any) -> None:
+        """Queue a query (the Zenoh callback)."""
+        metrics.gauge_add(metrics.QUEUE_DEPTH, self.service)
+        self.jobs.put(query)
 
     def undeclare(self) -> None:
         if self.queryable is not None:
@@ -199,6 +207,7 @@ class Bus:
                 msg = decode(payload, expected)
             except CodecError as exc:
                 log.warning("dropped malformed message on %s: %s", skey, exc)
+                metrics.inc(metrics.BUS_DROPPED, self.service, "malformed")
                 if on_invalid is not None:
                     try:
                         on_invalid(skey, payload, str(exc))
@@ -209,6 +218,7 @@ class Bus:
                 handler(skey, msg)
             except Exception:
                 log.exception("handler for %s failed; going on", skey)
+                metrics.inc(metrics.BUS_DROPPED, self.service, "handler_error")
 
         return self._keep(self.session.declare_subscriber(key, on_sample))
 
@@ -239,6 +249,7 @@ class Bus:
                 return decode(payload, expected), None
             except CodecError as exc:
                 log.warning("malformed query on %s: %s", query.key_expr, exc)
+                metrics.inc(metrics.BUS_DROPPED, self.service, "malformed_query")
                 return None, ErrorReply(source=source(), reason=str(exc))
 
         def failed(request: Any, exc: Exception) -> ErrorReply:
@@ -285,10 +296,11 @@ class Bus:
         if not serial:
             return self._keep(self.session.declare_queryable(key, on_query))
         if batch_handler is not None and batch_max > 1:
-            server = _SerialQueryable(key, on_batch, batch_max=batch_max, window_s=batch_window_s)
+            server = _SerialQueryable(key, on_batch, batch_max=batch_max, window_s=batch_window_s,
+                                      service=self.service)
         else:
-            server = _SerialQueryable(key, on_query)
-        server.queryable = self.session.declare_queryable(key, server.jobs.put)
+            server = _SerialQueryable(key, on_query, service=self.service)
+        server.queryable = self.session.declare_queryable(key, server.put)
         return self._keep(server)
 
     def query(self, key: str, msg: Message, timeout: float, expected: type[M] | tuple[type[M], ...] | None = None
@@ -308,6 +320,7 @@ class Bus:
                     raise CodecError(f"unexpected reply kind {decoded.kind}")
             except CodecError as exc:
                 log.warning("malformed reply on %s: %s", reply.ok.key_expr, exc)
+                metrics.inc(metrics.BUS_DROPPED, self.service, "malformed_reply")
                 continue
             out.append((str(reply.ok.key_expr), decoded))
         return out

@@ -64,7 +64,7 @@ from typing import Any, ClassVar, Generic, TypeVar
 
 import numpy as np
 
-from eqa import keys
+from eqa import keys, metrics
 from eqa.bus import Bus
 from eqa.codec import CodecError, packb, unpackb
 from eqa.messages import STREAM_TYPES, EpisodeCancel, EpisodeEnd, EpisodeStart, ErrorReply, Message, decode, encode
@@ -370,6 +370,7 @@ class EpisodeService(Service, Generic[S]):
         resumed = self.answered_step(episode_id, state) + 1
         self._register(episode_id, state, meta, f"{self.name}-resume{resumed}")
         log.info("%s: episode %s restored from the store (next step %d)", self.name, episode_id, resumed)
+        metrics.inc(metrics.EPISODES_RESTORED, self.name)
         return state
 
     ENDED_MAX: ClassVar[int] = 4096
@@ -478,7 +479,8 @@ class EpisodeService(Service, Generic[S]):
                 self._answer_again(robot, eid, state, msg)
                 return
         try:
-            route.handler(robot, state, msg)
+            with metrics.timer(metrics.STEP_SECONDS, self.name, msg.kind):
+                route.handler(robot, state, msg)
         except Exception as exc:
             log.exception("%s: episode %s: %s handler failed", self.name, eid, msg.kind)
             self.error(robot, eid, step, f"{self.name} failed on {msg.kind}: {type(exc).__name__}: {exc}")
@@ -518,6 +520,7 @@ class EpisodeService(Service, Generic[S]):
 
     def _answer_again(self, robot: str, episode_id: str, state: S, msg: Any) -> None:
         meta = self.meta[episode_id]
+        metrics.inc(metrics.RESENDS, self.name, "answer_again")
         if meta.answer_step == msg.step and meta.answers:
             log.info("%s: episode %s step %d sent again; its %s re-published", self.name, episode_id, msg.step,
                      ", ".join(m.kind for m in meta.answers.values()))
@@ -545,12 +548,14 @@ class EpisodeService(Service, Generic[S]):
             log.info("%s: %s of episode %s step %s held until its EpisodeStart", self.name, msg.kind, eid,
                      getattr(msg, "step", None))
             return
+        metrics.inc(metrics.BUS_DROPPED, self.name, "unknown_episode")
         self.unknown_episode(robot, msg, why)
 
     def _expire_held(self) -> None:
         now = time.monotonic()
         for eid in [e for e, hs in self._held.items() if now - hs[0].at > self.hold_ttl_s]:
             for h in self._held.pop(eid):
+                metrics.inc(metrics.BUS_DROPPED, self.name, "unknown_episode")
                 self.unknown_episode(h.robot, h.msg, f"no EpisodeStart within {self.hold_ttl_s:.0f} s and no "
                                                       "stored state")
 

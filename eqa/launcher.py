@@ -20,6 +20,7 @@ router listens on ``tls/`` with the ``router`` certificate and each child gets i
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import os
 import signal
@@ -31,7 +32,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from eqa import dataflow, keys
+from eqa import dataflow, keys, metrics
 from eqa.bus import Bus
 from eqa.settings import Settings
 
@@ -173,9 +174,13 @@ class Fleet:
                 self.children.append(
                     Child(service, instance, self._child_env(service, instance), logs / f"{service}-{i}.log")
                 )
+        metrics_ports(self.settings.metrics_port, self.children)
+        if self.settings.metrics_port:
+            write_targets(Path(self.settings.data_dir) / METRICS_TARGETS, self.settings, self.children)
 
     # ---- lifecycle ----------------------------------------------------------------------------------------
     def start(self, timeout: float = 90.0) -> Fleet:
+        metrics.serve(self.settings, "launcher")
         hub_settings = self._hub_settings()
         self.endpoint = hub_settings.zenoh_listen[0].replace("0.0.0.0", "127.0.0.1")
         self._hub = Bus(hub_settings, "launcher", "launcher").open()
@@ -211,7 +216,9 @@ class Fleet:
         )
         out.close()
         child.started_at = time.monotonic()
-        log.info("started %s (pid %d), log %s", child.instance, child.proc.pid, child.log_path)
+        port = int(child.env.get("EQA_METRICS_PORT", "0"))
+        log.info("started %s (pid %d), log %s%s", child.instance, child.proc.pid, child.log_path,
+                 f", metrics on port {port}" if port else "")
 
     def missing(self) -> list[Child]:
         with self._alive_changed:
@@ -251,6 +258,7 @@ class Fleet:
                     child.proc = None
                     continue
                 child.restarts += 1
+                metrics.inc(metrics.CHILD_RESTARTS, child.service)
                 delay = min(0.2 * 2**child.restarts, 5.0)
                 log.warning("%s exited with %s; restarting in %.1f s", child.instance, code, delay)
                 time.sleep(delay)
@@ -290,6 +298,7 @@ class Fleet:
         if self._hub is not None:
             self._hub.close()
             self._hub = None
+        metrics.stop_serving(self.settings.metrics_port)
 
     def __enter__(self) -> Fleet:
         return self.start()
@@ -313,6 +322,39 @@ class Fleet:
         return self.settings.model_copy(
             update={"zenoh_mode": "peer", "zenoh_listen": ["tcp/127.0.0.1:0"], "zenoh_connect": [self.endpoint]}
         )
+
+
+def metrics_ports(base: int, children: list[Child]) -> None:
+    """With ``EQA_METRICS_PORT`` set (the launcher serves on it), child ``k`` of the plan serves its metrics on
+    ``base + 1 + k`` (``EQA_METRICS_PORT`` of its environment; the gateway serves /metrics on its own port). A
+    fixed plan gives a restarted child the same port: one scrape target per process."""
+    k = 0
+    for child in children:
+        if base and child.service != "gateway":
+            k += 1
+            if base + k > 65535:
+                raise LaunchError(f"EQA_METRICS_PORT={base} leaves no port for child {k}: use a lower port")
+            child.env["EQA_METRICS_PORT"] = str(base + k)
+        else:
+            child.env["EQA_METRICS_PORT"] = "0"
+
+
+METRICS_TARGETS = "metrics-targets.json"
+
+
+def write_targets(path: Path, settings: Settings, children: list[Child]) -> None:
+    """The fleet's scrape targets as a Prometheus ``file_sd_configs`` file: the launcher, each child with a
+    metrics port, the gateway's API port (job = service)."""
+    host = "127.0.0.1" if settings.metrics_host in ("0.0.0.0", "::", "") else settings.metrics_host
+    groups = [{"targets": [f"{host}:{settings.metrics_port}"], "labels": {"job": "launcher"}}]
+    for child in children:
+        if child.service == "gateway":
+            target = f"{settings.gateway_host if settings.gateway_host != '0.0.0.0' else '127.0.0.1'}:" \
+                     f"{settings.gateway_port}"
+        else:
+            target = f"{host}:{child.env['EQA_METRICS_PORT']}"
+        groups.append({"targets": [target], "labels": {"job": child.service, "eqa_instance": child.instance}})
+    path.write_text(json.dumps(groups, indent=1))
 
 
 def _password_of(users_file: Path, user: str) -> str:

@@ -26,7 +26,7 @@ import logging
 import threading
 import time
 
-from eqa import keys
+from eqa import keys, metrics
 from eqa.bus import Bus
 from eqa.messages import (
     DetectRequest,
@@ -130,6 +130,23 @@ class ScorerClient:
         return self._ask(request, ValueResult)  # type: ignore[return-value]
 
     def _ask(self, request: ScoreRequest | DetectRequest | ValueRequest, expected: type[Message]) -> Message:
+        if not metrics.enabled():
+            return self._ask_pool(request, expected)
+        service, kind, outcome = self.bus.service, request.kind, "unavailable"
+        metrics.gauge_add(metrics.SCORER_INFLIGHT, service)
+        t0 = time.perf_counter()
+        try:
+            reply = self._ask_pool(request, expected)
+            outcome = "ok"
+            return reply
+        except ScorerError:
+            outcome = "refused"
+            raise
+        finally:
+            metrics.gauge_add(metrics.SCORER_INFLIGHT, service, amount=-1)
+            metrics.observe(metrics.SCORER_SECONDS, time.perf_counter() - t0, service, kind, outcome)
+
+    def _ask_pool(self, request: ScoreRequest | DetectRequest | ValueRequest, expected: type[Message]) -> Message:
         with self._lock:
             self.stats["requests"] += 1
         tried: set[str] = set()
@@ -162,6 +179,7 @@ class ScorerClient:
                 reasons.append(f"{replica}: no answer within {self.timeout_s:g}s")
             with self._lock:
                 self.stats["failovers"] += 1
+            metrics.inc(metrics.SCORER_FAILOVERS, self.bus.service)
             log.warning(
                 "scorer replica %s gave no answer to %s (attempt %d); trying another",
                 replica,

@@ -21,7 +21,7 @@ import threading
 from collections.abc import Callable
 from typing import Any
 
-from eqa import keys
+from eqa import keys, logs, metrics
 from eqa.bus import Bus
 from eqa.messages import STREAM_TYPES, Message
 from eqa.settings import Settings
@@ -32,11 +32,13 @@ log = logging.getLogger(__name__)
 _STOP = object()
 
 
-def setup_logging(level: str = "INFO", service: str = "eqa") -> None:
+def setup_logging(level: str = "INFO", service: str = "eqa", fmt: str = "text", instance: str | None = None) -> None:
+    """Log to stderr at ``level``; ``fmt`` ``json``: one JSON object per line with the episode context
+    (:mod:`eqa.logs`, ``EQA_LOG_FORMAT``)."""
+    logs.set_process(service=service, instance=instance)
     logging.basicConfig(
         level=getattr(logging, level.upper(), logging.INFO),
-        format=f"%(asctime)s %(levelname)s {service} %(name)s: %(message)s",
-        stream=sys.stderr,
+        handlers=[logs.handler(sys.stderr, service, fmt)],
         force=True,
     )
 
@@ -123,10 +125,13 @@ class Service:
             if item is _STOP:
                 return
             fn, *args = item
+            token = logs.CONTEXT.set({"service": self.name, **logs.message_context(args)})
             try:
                 fn(*args)
             except Exception:
                 log.exception("%s: handler %s failed; going on", self.name, getattr(fn, "__name__", fn))
+            finally:
+                logs.CONTEXT.reset(token)
 
     def stop(self) -> None:
         if self._stopped.is_set():
@@ -186,6 +191,11 @@ def main(service_cls: type[Service], argv: list[str] | None = None) -> int:
     except Exception as exc:
         print(f"error: invalid EQA_* settings: {exc}", file=sys.stderr)
         return 2
-    setup_logging(args.log_level or settings.log_level, service_cls.name)
+    setup_logging(args.log_level or settings.log_level, service_cls.name, settings.log_format, settings.instance)
+    try:
+        metrics.serve(settings, service_cls.name)
+    except OSError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     service_cls(settings).run_forever()
     return 0

@@ -205,6 +205,18 @@ class Settings(BaseSettings):
     rerun_url: str | None = Field(default=None, description="rerun+http://host:9876/proxy for live viewing")
     record: bool = True
 
+    # --- operations: Prometheus metrics and structured logs (eqa/metrics.py, eqa/logs.py; docs/metrics.md) ---
+    log_format: Literal["text", "json"] = Field(
+        default="text", description="json: one JSON object per log line with service, episode, robot, step")
+    metrics_port: int = Field(
+        default=0, ge=0, le=65535,
+        description="a service process serves Prometheus /metrics on this port (0 = off); the launcher gives "
+        "itself this port and each child the next ones; the gateway serves /metrics on its own port")
+    metrics_host: str = Field(default="127.0.0.1", description="address the metrics port binds (0.0.0.0 in compose)")
+    metrics_token: str | None = Field(
+        default=None, description="bearer token for the gateway's /metrics from other hosts (with EQA_API_TOKENS "
+        "set; loopback callers and admin tokens need none)")
+
     @field_validator("zenoh_listen", "zenoh_connect", "api_tokens", "cors_origins", "robots", mode="before")
     @classmethod
     def _split_csv(cls, v: object) -> object:

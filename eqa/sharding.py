@@ -24,7 +24,7 @@ import threading
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
-from eqa import keys
+from eqa import keys, metrics
 from eqa.store import Store
 
 log = logging.getLogger(__name__)
@@ -159,6 +159,7 @@ class StepClaims:
             key = f"{base}:{attempt}"
             if self.store.set_if_absent(key, self.me.encode(), ttl_s=self.ttl_s):
                 self.store.set(base + ":holder", self.me.encode(), ttl_s=self.ttl_s)
+                metrics.inc(metrics.STEP_CLAIMS, self.service, "won")
                 prev = self.holder(episode_id, step - 1) if step > 0 else None
                 return Claim(True, self.me, prev is not None and prev != self.me)
             raw = self.store.get(key)
@@ -166,9 +167,12 @@ class StepClaims:
                 continue
             holder = raw.decode()
             if holder == self.me:  # the same step again (resent): the service answers it from its state
+                metrics.inc(metrics.STEP_CLAIMS, self.service, "again")
                 return Claim(True, self.me, False)
             if self.is_alive(holder):
+                metrics.inc(metrics.STEP_CLAIMS, self.service, "lost")
                 return Claim(False, holder, False)
+            metrics.inc(metrics.STEP_TAKEOVERS, self.service)
             log.info("step %d of %s: %s claimed it and is gone; claiming it again", step, episode_id, holder)
         raise RuntimeError(f"step {step} of {episode_id}: {MAX_ATTEMPTS} claims by dead instances")
 

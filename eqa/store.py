@@ -19,6 +19,7 @@ from abc import ABC, abstractmethod
 from pathlib import Path
 from typing import Any
 
+from eqa import metrics
 from eqa.settings import Settings
 
 EPISODE_STATE_TTL_S = 2 * 24 * 3600.0
@@ -176,6 +177,7 @@ class Store(ABC):
         self.close()
 
 
+@metrics.timed_store("redis")
 class RedisStore(Store):
     def __init__(self, url: str, timeout_s: float = 10.0) -> None:
         """``timeout_s``: how long one call waits for a frozen server before it raises (a connection error
@@ -252,6 +254,7 @@ class RedisStore(Store):
         self._r.close()
 
 
+@metrics.timed_store("sqlite")
 class EmbeddedStore(Store):
     """SQLite file store (WAL mode), safe across processes and threads of one machine."""
 

@@ -27,11 +27,12 @@ from fastapi.responses import HTMLResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
 from starlette.datastructures import Headers
 
-from eqa import keys
+from eqa import keys, logs, metrics
 from eqa.bus import Bus
 from eqa.messages import MESSAGE_TYPES, EpisodeEnd, ErrorReply, Message
 from eqa.settings import Settings
 from eqa.store import open_store, unavailable_errors
+from gateway import metrics as gateway_metrics
 from gateway.auth import Authenticator, authenticate_docs, retry_after
 from gateway.errors import GatewayError
 from gateway.limits import BODY_METHODS, BodyLimit
@@ -97,6 +98,7 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         if not isinstance(msg, CONTROL_TYPES):
             if backlog["data"] >= INBOX_MAX_DATA:
                 backlog["dropped"] += 1
+                metrics.inc(metrics.BUS_DROPPED, "gateway", "inbox_full")
                 if backlog["dropped"] in (1, 10, 100) or backlog["dropped"] % 1000 == 0:
                     log.warning("inbox full: %d data messages dropped so far (a flood on %s?)", backlog["dropped"],
                                 robot)
@@ -118,10 +120,11 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
             robot, msg = await inbox.get()
             if not isinstance(msg, CONTROL_TYPES):
                 backlog["data"] -= 1
-            try:
-                await asyncio.to_thread(manager.handle, robot, msg)
-            except Exception:
-                log.exception("handling %s of %s failed; going on", msg.kind, robot)
+            with logs.bind(robot=robot, episode=getattr(msg, "episode_id", None), step=getattr(msg, "step", None)):
+                try:
+                    await asyncio.to_thread(manager.handle, robot, msg)
+                except Exception:
+                    log.exception("handling %s of %s failed; going on", msg.kind, robot)
 
     async def watchdog() -> None:
         period = _watchdog_period(settings)
@@ -245,6 +248,7 @@ def create_app(settings: Settings, scene_area: SceneArea | None = None) -> FastA
     app.include_router(tasks.router)
     console.install(app)  # the web console at / and the routes it needs
     _add_docs(app)
+    gateway_metrics.install(app)
     return app
 
 

@@ -32,13 +32,16 @@ def serve(args: argparse.Namespace, scene_area: SceneArea | None = None) -> int:
             print(f"error: port {args.port} out of range", file=sys.stderr)
             return 2
         settings = settings.model_copy(update={"gateway_port": args.port})
-    setup_logging(args.log_level or settings.log_level, "gateway")
+    setup_logging(args.log_level or settings.log_level, "gateway", settings.log_format, settings.instance)
+    # JSON logs: uvicorn's loggers go through the root handler (its own config would print them as text)
+    log_config = None if settings.log_format == "json" else uvicorn.config.LOGGING_CONFIG
     uvicorn.run(
         create_app(settings, scene_area),
         host=settings.gateway_host,
         port=settings.gateway_port,
         log_level=(args.log_level or settings.log_level).lower(),
         access_log=False,
+        log_config=log_config,
     )
     return 0
 

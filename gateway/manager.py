@@ -68,6 +68,7 @@ from eqa.messages import (
 from eqa.recording import recording_dir
 from eqa.settings import Settings
 from eqa.store import Store, episode_end_key
+from gateway import metrics as gateway_metrics
 from gateway import state as sm
 from gateway.auth import ANONYMOUS, Caller, RateLimiter
 from gateway.errors import (
@@ -604,6 +605,7 @@ class EpisodeManager:
         if ending.end is None:
             self._append(st.episode_id, sm.end_event(st))
         log.info("episode %s %s: %s", st.episode_id, st.state, st.stop_reason)
+        gateway_metrics.episode_ended(st)
         if self._running_on(st.robot) is None:  # a cancelled queued episode leaves its robot busy
             self._start_next(st.robot)
 

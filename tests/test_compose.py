@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 import yaml
 
 from eqa.dataflow import SERVICES
@@ -106,3 +107,52 @@ def test_compose_file_assumes_nothing_of_this_machine():
     dockerfile = (REPO / "Dockerfile").read_text()
     assert re.search(r"^ARG BASE=python:3\.11-slim$", dockerfile, re.M)
     assert "/opt/" not in dockerfile.replace("/opt/venv", "")
+
+
+def test_the_monitoring_profile_scrapes_every_service():
+    """Prometheus runs only in the ``monitoring`` profile, with deploy/prometheus.yml, and that file scrapes
+    every service on the port compose gives it (the services' EQA_METRICS_PORT, the gateway's API port)."""
+    prom = COMPOSE["services"]["prometheus"]
+    assert prom["profiles"] == ["monitoring"] and prom["image"].startswith("prom/prometheus:v")
+    mounted = {v.split(":")[0]: v.split(":")[1] for v in prom["volumes"] if v.startswith("./")}
+    assert mounted == {"./deploy/prometheus.yml": "/etc/prometheus/prometheus.yml",
+                       "./deploy/prometheus-rules.yml": "/etc/prometheus/prometheus-rules.yml"}
+    assert "--config.file=/etc/prometheus/prometheus.yml" in prom["command"]
+    config = yaml.safe_load((REPO / "deploy" / "prometheus.yml").read_text())
+    jobs = {job["job_name"]: job for job in config["scrape_configs"]}
+    assert set(jobs) == EQA_SERVICES
+    for name in EQA_SERVICES - {"gateway"}:
+        env = COMPOSE["services"][name]["environment"]
+        assert env["EQA_METRICS_HOST"] == "0.0.0.0", name
+        (sd,) = jobs[name]["dns_sd_configs"]
+        assert sd["names"] == [name] and sd["type"] == "A" and str(sd["port"]) == env["EQA_METRICS_PORT"], name
+    gateway = COMPOSE["services"]["gateway"]["environment"]
+    (static,) = jobs["gateway"]["static_configs"]
+    assert static["targets"] == [f"gateway:{gateway['EQA_GATEWAY_PORT']}"]
+    assert jobs["gateway"]["metrics_path"] == "/metrics" and "EQA_METRICS_TOKEN" in gateway
+
+
+def test_the_scrape_config_passes_promtool(tmp_path: Path):
+    """Prometheus' own checker (``promtool``, Debian package ``prometheus``) accepts deploy/prometheus.yml."""
+    import shutil
+
+    promtool = shutil.which("promtool")
+    if promtool is None:
+        pytest.skip("promtool is not installed (apt-get install prometheus)")
+    text = (REPO / "deploy" / "prometheus.yml").read_text()
+    token = tmp_path / "metrics_token"
+    token.write_text("a-metrics-token\n")
+    config = tmp_path / "prometheus.yml"
+    config.write_text(text.replace("/etc/prometheus/secrets/metrics_token", str(token)).replace(
+        "/etc/prometheus/prometheus-rules.yml", str(REPO / "deploy" / "prometheus-rules.yml")))
+    out = subprocess.run([promtool, "check", "config", str(config)], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert "SUCCESS: 7 rules found" in out.stdout, out.stdout  # the rule file was read and its queries parsed
+    # the queries docs/metrics.md shows parse too (as recording rules)
+    queries = re.findall(r"```promql\n(.*?)```", (REPO / "docs" / "metrics.md").read_text(), re.S)
+    assert len(queries) >= 8
+    rules = [{"record": f"eqa:doc_query_{i}", "expr": q.strip()} for i, q in enumerate(queries)]
+    doc_rules = tmp_path / "doc-queries.yml"
+    doc_rules.write_text(yaml.safe_dump({"groups": [{"name": "docs", "rules": rules}]}))
+    out = subprocess.run([promtool, "check", "rules", str(doc_rules)], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stdout + out.stderr

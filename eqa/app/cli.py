@@ -84,7 +84,7 @@ def cmd_up(args: argparse.Namespace) -> int:
 
     settings = load_settings()
     check_scorer(settings)
-    setup_logging(settings.log_level, "eqa-up")
+    setup_logging(settings.log_level, "eqa-up", settings.log_format, settings.instance)
     services = list(PIPELINE if args.no_gateway else ALL_SERVICES)
     if args.services:
         services = [s.strip() for s in args.services.split(",") if s.strip()]

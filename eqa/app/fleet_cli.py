@@ -53,7 +53,7 @@ def cmd_router(args: argparse.Namespace) -> int:
         security.check(settings)
     except security.SecurityConfigError as exc:
         raise UsageError(str(exc)) from None
-    setup_logging(settings.log_level, "eqa-router")
+    setup_logging(settings.log_level, "eqa-router", settings.log_format, settings.instance)
     done = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: done.set())
     with Bus(settings, "router", settings.instance):

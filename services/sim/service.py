@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from eqa import keys
+from eqa import keys, metrics
 from eqa.bus import Bus
 from eqa.codec import CodecError, unpackb
 from eqa.episode_service import EpisodeService
@@ -214,6 +214,7 @@ class SimService(EpisodeService[_Episode]):
                 continue
             ep.resends += 1
             ep.emitted_at = now
+            metrics.inc(metrics.RESENDS, self.name, "frame")
             log.warning("robot %s episode %s: no goal for step %d within %g s; frame sent again (%d of %d)",
                         robot, ep.episode_id, ep.step, self.settings.step_resend_s, ep.resends,
                         self.settings.step_resends_max)
@@ -331,6 +332,7 @@ class SimService(EpisodeService[_Episode]):
             scene=ep.scene.id, floor_area_m2=ep.scene.floor_area_m2, skill=ep.skill,
         )
 
+    @metrics.timed_step("sim", "goal")
     def _emit(self, robot: str, ep: _Episode, goal: Goal | None = None, before: Pose2D | None = None) -> None:
         frame = self.render_frame(ep)
         if ep.task is not None and frame.instances is not None:

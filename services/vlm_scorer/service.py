@@ -29,7 +29,7 @@ import time
 from collections import OrderedDict
 from typing import Any
 
-from eqa import keys
+from eqa import keys, logs, metrics
 from eqa.bus import Bus
 from eqa.messages import (
     DetectRequest,
@@ -118,6 +118,14 @@ class ScorerService(Service):
 
     # ---- serving (eqa.bus.Bus.declare_queryable decodes, answers errors and replies) -------------------
     def _route(self, request: ScoreRequest | DetectRequest | ValueRequest) -> Message:
+        with logs.bind(service=self.name, episode=request.episode_id, step=request.step), \
+                metrics.timer(metrics.REPLICA_SECONDS, request.kind, "served") as timed:
+            reply = self._answer(request)
+            if isinstance(reply, ErrorReply):
+                timed.relabel(request.kind, "refused")
+            return reply
+
+    def _answer(self, request: ScoreRequest | DetectRequest | ValueRequest) -> Message:
         if isinstance(request, DetectRequest):
             return self.handle_detect(request)
         if isinstance(request, ValueRequest):
