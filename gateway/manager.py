@@ -524,6 +524,7 @@ class EpisodeManager:
                 stop=start.stop,
                 max_steps=budget,
                 task=task,
+                **({"ablation": ablation, "pick_limit": pick_limit} if task is not None else {}),
             )
             rec = Record(status=status, start=start, owner=owner)
             self._active[episode_id] = rec

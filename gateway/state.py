@@ -27,6 +27,7 @@ from eqa.messages import (
     Frame,
     Message,
 )
+from eqa.task_traces import task_outcome
 from gateway.events import gateway_event
 
 TERMINAL = frozenset({"stopped", "failed", "cancelled"})
@@ -118,6 +119,8 @@ def finished(
         nxt.correct = nxt.answer == nxt.question.answer
     if recording:
         nxt.recording = f"/v1/episodes/{nxt.episode_id}/recording"
+    if nxt.task is not None:
+        nxt.outcome = task_outcome(nxt.task.kind, nxt.metrics, nxt.state, reason, nxt.steps, nxt.max_steps)
     return nxt
 
 
@@ -136,6 +139,7 @@ def end_event(st: EpisodeStatus) -> dict[str, Any]:
         normalized_steps=round(st.normalized_steps, 4),
         correct=st.correct,
         source="gateway",
+        **({"outcome": st.outcome} if st.outcome is not None else {}),
     )
 
 

@@ -175,7 +175,8 @@ class PlannerService(EpisodeService[_Episode]):
                 ep.task_before = ep.task.to_json()
             tgoal, plan = ep.task.goal(ep.episode_id, mu, memory, step_rng(ep.seed, pending.step, pending.attempt),
                                        self.params, before=ep.task_before if pending.attempt else None)
-            task_fields = {"skill": tgoal.skill, "target": tgoal.target, "phase": tgoal.phase}
+            task_fields = {"skill": tgoal.skill, "target": tgoal.target, "phase": tgoal.phase,
+                           "numbers": tgoal.numbers}
         else:
             memory = pending.memory_before.copy()
             memory.refused.extend(pending.refused)

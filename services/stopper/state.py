@@ -159,6 +159,7 @@ class EpisodeRecord(BaseModel):
     answer_fusion: str = "loglinear"
     # issue 22 item 2: pool the object layer's evidence (StepScores.object_evidence) into f; None = off
     object_evidence: tuple[float, float] | None = None  # (psi_min, weight)
+    task: bool = False  # a task episode: the planner ends it, there is no answer to give
 
     @property
     def answer_rule(self) -> AnswerRule:
@@ -175,6 +176,7 @@ class EpisodeRecord(BaseModel):
             max_steps=start.max_steps,
             record=start.record,
             choices=list(start.question.choices),
+            task=start.task is not None,
         )
 
     @property
@@ -329,7 +331,9 @@ def decide(rec: EpisodeRecord, scores: StepScores) -> Decision | None:
     else:  # max_steps
         stat_scores = {"relevance": rel, "entropy": baselines.entropy(f)}
         reason = f"running to the step limit ({scores.step + 1}/{rec.max_steps})"
-    if not stop and at_limit:
+    if not stop and at_limit and rec.task:
+        stop, reason = True, f"step limit reached ({rec.max_steps} steps)"
+    elif not stop and at_limit:
         stop, answer = True, rec.fallback()
         reason = fallback_reason(f"step limit reached ({rec.max_steps} steps)", answer)
     return Decision(
