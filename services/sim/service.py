@@ -36,6 +36,7 @@ from eqa.bus import Bus
 from eqa.codec import CodecError, unpackb
 from eqa.episode_service import EpisodeService
 from eqa.messages import EpisodeCancel, EpisodeEnd, EpisodeStart, Frame, Goal, Pose2D, SkillReport
+from eqa.recording import ENTITIES
 from eqa.settings import Settings
 from eqa.store import (
     EPISODE_STATE_TTL_S,
@@ -397,3 +398,12 @@ class SimService(EpisodeService[_Episode]):
         if frame.skill is not None:
             s = frame.skill
             rec.log("sim/task", rr.TextLog(f"{s.skill} {'succeeded' if s.success else 'failed'}: {s.reason}"))
+        if ep.task is not None and ep.task.episode.trace:
+            e = ep.task.episode.trace[-1]
+            nums = ", ".join(f"{k} {v:.3g}" for k, v in e["numbers"].items())
+            text = (f"step {e['step']}: {e['phase'] or 'start'}" + (f", {e['skill']}" if e["skill"] else "")
+                    + (f" on #{e['target']}" if e["target"] is not None else "") + (f" ({nums})" if nums else "")
+                    + (" -- COLLISION" if e["collided"] else ""))
+            rec.log(ENTITIES["task_phase"], rr.TextLog(text, level="WARN" if e["collided"] else "INFO"))
+            for k in ("FindObj", "Pick", "FindRec", "Place", "collisions", "pick_attempts"):
+                rec.log(f"{ENTITIES['task_flags']}/{k}", rr.Scalars([float(e[k])]))
