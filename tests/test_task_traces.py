@@ -127,3 +127,22 @@ def test_a_task_in_words_gets_its_ground_truth_from_the_scene(tmp_path: Path) ->
     assert g.object_ids == [mug.id] and g.start_receptacle_ids == [mug.support]  # not the mug on the island
     assert g.goal_receptacle_ids == sorted(i.id for i in scene.objects() if i.category == "bed")
     assert with_ground_truth(g, scene, start) is g  # a benchmark task (ids given) is left as it is
+
+
+def test_eqa_task_demo_is_the_tuning_seeds_first_task_and_the_report_names_the_failure(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from eqa.app.task import demo_task, report
+    from eqa.settings import Settings
+    from services.sim.tasks import task_benchmark
+
+    text, scene, pose = demo_task(tmp_path)
+    first = task_benchmark(11, pick_place=1, find=0, scenes_dir=tmp_path).tasks[0]
+    assert (text, scene, pose) == (first.text, first.scene, first.start_pose) and scene == "gen-115000"
+    status = {"episode_id": "ep-1", "state": "stopped", "steps": 145, "max_steps": 145,
+              "stop_reason": "step limit reached (145 steps)", "task": {"kind": "pick_place"},
+              "metrics": {"FindObj": 1.0, "Pick": 0.0, "FindRec": 0.0, "Place": 0.0, "SR": 0.0, "collisions": 0.0,
+                          "pick_attempts": 2.0}}
+    report(status, Settings(scorer_backend="oracle"), as_json=False)
+    out = capsys.readouterr().out
+    assert "ep-1: task failed after 145 of 145 steps" in out and "outcome: failed: pick failed" in out, out
+    assert "answering" not in out
