@@ -357,15 +357,21 @@ def plot(kind: str, table: dict[str, Any], title: str, path: Path) -> None:
 
 
 def traces_path(out_dir: Path, tag: str, seed: int) -> Path:
-    return out_dir / f"{tag}-seed{seed}-traces.jsonl"
+    """The exported traces of one benchmark and seed; a gzipped copy (``.jsonl.gz``, the committed form) is
+    read when the plain file is absent."""
+    plain = out_dir / f"{tag}-seed{seed}-traces.jsonl"
+    packed = plain.with_name(plain.name + ".gz")
+    return packed if packed.is_file() and not plain.is_file() else plain
 
 
 def load_traces(path: Path) -> list[TaskResult]:
     """The runs of an exported traces file with their metrics replayed from the traces
     (:func:`eqa.app.task_traces.replay_metrics`; runs without a trace keep the metrics they ended with).
     Raises :class:`TraceError` naming the line of a malformed entry."""
+    import gzip
+
     out: list[TaskResult] = []
-    with path.open(encoding="utf-8") as fh:
+    with (gzip.open(path, "rt", encoding="utf-8") if path.suffix == ".gz" else path.open(encoding="utf-8")) as fh:
         for lineno, line in enumerate(fh, start=1):
             if not line.strip():
                 continue
@@ -432,7 +438,7 @@ def cmd(args: argparse.Namespace) -> int:
             if args.tasks_from and args.tasks_from < len(tasks):
                 tasks = tasks[args.tasks_from:]
             path = out_dir / f"{tag}-seed{seed}.jsonl"
-            tpath = traces_path(out_dir, tag, seed)
+            tpath = out_dir / f"{tag}-seed{seed}-traces.jsonl"
             done = load_results(path)
             traced = {r.key(): r for r in load_traces(tpath)} if tpath.is_file() else {}
             for k, r in done.items():
