@@ -123,8 +123,8 @@ def failure_cause(kind: str, trace: dict[str, Any] | None, metrics: dict[str, fl
         if metrics.get("SR", 0.0) >= 1.0:
             return Failure("success", end_phase, last["step"])
         stop = next((s for s in steps if (s.get("skill_result") or {}).get("skill") == "stop"), None)
-        if stop is not None:
-            return Failure("stopped away from the object", stop.get("phase"), stop["step"])
+        if stop is not None or "not near a target object" in text:  # the sim's stop report (a trace or not)
+            return Failure("stopped away from the object", (stop or {}).get("phase"), (stop or {}).get("step"))
         return Failure(f"object not found: {ending}", end_phase, last["step"])
     hit = next((s for s in steps if s.get("collided")), None)
     if hit is not None:

@@ -78,6 +78,8 @@ def test_first_failure_of_a_run() -> None:
     assert failure_cause("pick_place", None, {}, "failed", "no progress for 300 s").cause == "run failed"
     away = trace(entry(0, None), entry(1, "looking", skill_result={"skill": "stop", "success": False}))
     assert failure_cause("find_object", away, m).cause == "stopped away from the object"
+    assert failure_cause("find_object", None, m, reason="task ended: stopped (not near a target object)").cause \
+        == "stopped away from the object"
     # no trace at hand (the gateway): the final metrics and the end say as much as they can
     f = failure_cause("pick_place", None, {"FindObj": 1.0, "Pick": 0.0, "SR": 0.0, "collisions": 0.0},
                       reason="step limit reached (9 steps)", max_steps=9, steps_run=9)
