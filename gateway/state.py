@@ -27,7 +27,7 @@ from eqa.messages import (
     Frame,
     Message,
 )
-from eqa.task_traces import task_outcome
+from eqa.task_traces import TraceError, task_outcome
 from gateway.events import gateway_event
 
 TERMINAL = frozenset({"stopped", "failed", "cancelled"})
@@ -95,10 +95,13 @@ def started(st: EpisodeStatus, now: float) -> EpisodeStatus:
 
 
 def finished(
-    st: EpisodeStatus, state: str, reason: str, now: float, end: EpisodeEnd | None = None, recording: bool = False
+    st: EpisodeStatus, state: str, reason: str, now: float, end: EpisodeEnd | None = None, recording: bool = False,
+    trace: dict[str, Any] | None = None,
 ) -> EpisodeStatus:
     """The final status: the stopper's answer, set and steps when ``end`` is given; the answer's text from the
-    choices; ``correct`` against a known ground truth; the recording link when there is a recording."""
+    choices; ``correct`` against a known ground truth; the recording link when there is a recording; a task's
+    outcome (:func:`eqa.task_traces.task_outcome`, with the phase and step of its first failure when the sim's
+    ``trace`` is given)."""
     nxt = st.model_copy(deep=True)
     nxt.state = state  # type: ignore[assignment]
     nxt.updated_at = now
@@ -120,7 +123,10 @@ def finished(
     if recording:
         nxt.recording = f"/v1/episodes/{nxt.episode_id}/recording"
     if nxt.task is not None:
-        nxt.outcome = task_outcome(nxt.task.kind, nxt.metrics, nxt.state, reason, nxt.steps, nxt.max_steps)
+        try:
+            nxt.outcome = task_outcome(nxt.task.kind, nxt.metrics, nxt.state, reason, nxt.steps, nxt.max_steps, trace)
+        except TraceError:
+            nxt.outcome = task_outcome(nxt.task.kind, nxt.metrics, nxt.state, reason, nxt.steps, nxt.max_steps)
     return nxt
 
 
