@@ -511,6 +511,8 @@ class Goal(Message):
     skill: Skill = "move"
     target: int | None = None  # object-layer instance id the skill aims at (the oracle pick uses ground truth)
     phase: TaskPhase | None = None
+    # task episodes: the decision's numbers (Psi, Psi', IG, S, U, V, F, F0; NaN-free) for the task trace
+    numbers: dict[Annotated[str, Field(max_length=16)], float] = Field(default_factory=dict, max_length=16)
 
 
 class EpisodeEnd(Message):
@@ -557,6 +559,9 @@ class EpisodeStatus(BaseModel):
     recording: str | None = None
     task: Task | None = None  # a task episode (issue 17)
     metrics: dict[str, float] = Field(default_factory=dict)  # its phase metrics (FindObj ... SR) at the end
+    outcome: dict[str, Any] | None = None  # a finished task: success, first failure cause / phase, a line of text
+    ablation: Ablation | None = None  # a task: the agent variant
+    pick_limit: int | None = None  # a task: pick attempts (None = unlimited)
 
 
 # ---- HELIOS object layer (issue 16; contract: briefs/helios-interface.md) ----------------------------------

@@ -50,6 +50,9 @@ ENTITIES: dict[str, str] = {
     "goal": "world/plan/goal",  # planner: next pose; path under world/plan/path
     "prediction_set": "stopper/prediction_set",  # stopper: rr.TextLog of the set per step
     "scores": "stopper/scores",  # stopper: rr.Scalars per answer, stopper/scores/<letter>
+    "task_phase": "task/phase",  # sim, task episodes: rr.TextLog per step (phase, skill, target, decision numbers)
+    "task_flags": "task/metrics",  # sim, task episodes: rr.Scalars per step, task/metrics/<FindObj ... collisions>
+    "task_outcome": "task/outcome",  # stopper, task episodes: rr.TextLog of the outcome (a failure at level WARN)
 }
 
 # What the design asks a demo episode's merged recording to hold (checked by the full-fleet test).

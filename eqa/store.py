@@ -56,6 +56,12 @@ def episode_trace_key(episode_id: str) -> str:
     return f"eqa:trace:episode:{episode_id}"
 
 
+def task_trace_key(episode_id: str) -> str:
+    """Where the sim keeps the per-step trace of a task episode (phase, decision numbers, pose, collisions,
+    skills, phase flags; :class:`services.sim.task_episode.TaskEpisode`), rewritten after each step."""
+    return f"eqa:trace:task:{episode_id}"
+
+
 LABEL_PREFIX = "eqa:label:"
 
 

@@ -20,6 +20,7 @@ from eqa.messages import (
     Pose2D,
     StepScores,
 )
+from eqa.task_traces import kind_of_metrics, task_outcome
 
 MAX_FRONTIERS = 8  # frontiers listed in a map_update summary (the highest weights)
 MAX_TEXT = 2000  # characters of a reason kept in an event
@@ -89,6 +90,7 @@ def summarize(msg: Message) -> dict[str, Any]:
             skill=msg.skill,
             target=msg.target,
             phase=msg.phase,
+            numbers={k: _r(v) for k, v in msg.numbers.items()},
             frontier=None
             if msg.frontier is None
             else {"x": _r(msg.frontier.x, 2), "y": _r(msg.frontier.y, 2), "weight": _r(msg.frontier.weight)},
@@ -108,8 +110,10 @@ def summarize(msg: Message) -> dict[str, Any]:
             normalized_steps=_r(msg.normalized_steps),
             correct=msg.correct,
         )
-        if msg.metrics:  # a task episode's phase metrics (issue 17)
+        if msg.metrics:  # a task episode's phase metrics (issue 17) and what they mean
             out["metrics"] = {k: _r(v) for k, v in msg.metrics.items()}
+            out["outcome"] = task_outcome(kind_of_metrics(msg.metrics), msg.metrics, msg.state, msg.reason,
+                                          msg.steps, msg.max_steps)
     elif isinstance(msg, EpisodeStart):
         out.update(
             robot=msg.robot,

@@ -67,7 +67,7 @@ from eqa.messages import (
 )
 from eqa.recording import recording_dir
 from eqa.settings import Settings
-from eqa.store import Store, episode_end_key
+from eqa.store import Store, episode_end_key, task_trace_key
 from gateway import metrics as gateway_metrics
 from gateway import state as sm
 from gateway.auth import ANONYMOUS, Caller, RateLimiter
@@ -525,6 +525,7 @@ class EpisodeManager:
                 stop=start.stop,
                 max_steps=budget,
                 task=task,
+                **({"ablation": ablation, "pick_limit": pick_limit} if task is not None else {}),
             )
             rec = Record(status=status, start=start, owner=owner)
             self._active[episode_id] = rec
@@ -592,7 +593,15 @@ class EpisodeManager:
         now = time.time()
         rdir = recording_dir(self.settings, rec.status.episode_id)
         has_recording = rdir.is_dir() and any(rdir.glob("*.rrd"))
-        rec.status = sm.finished(rec.status, ending.state, ending.reason, now, end=ending.end, recording=has_recording)
+        trace = None
+        if rec.status.task is not None:  # the sim's task trace names the phase and step of the first failure
+            try:
+                raw = self.store.get_json(task_trace_key(rec.status.episode_id))
+                trace = raw if isinstance(raw, dict) else None
+            except Exception:
+                log.warning("task trace of %s unreadable; outcome from the metrics", rec.status.episode_id)
+        rec.status = sm.finished(rec.status, ending.state, ending.reason, now, end=ending.end, recording=has_recording,
+                                 trace=trace)
         st = rec.status
         if was_running:
             self._mean_episode_s = 0.8 * self._mean_episode_s + 0.2 * max(0.0, now - st.created_at)

@@ -27,6 +27,7 @@ from eqa.messages import (
     Frame,
     Message,
 )
+from eqa.task_traces import TraceError, task_outcome
 from gateway.events import gateway_event
 
 TERMINAL = frozenset({"stopped", "failed", "cancelled"})
@@ -94,10 +95,13 @@ def started(st: EpisodeStatus, now: float) -> EpisodeStatus:
 
 
 def finished(
-    st: EpisodeStatus, state: str, reason: str, now: float, end: EpisodeEnd | None = None, recording: bool = False
+    st: EpisodeStatus, state: str, reason: str, now: float, end: EpisodeEnd | None = None, recording: bool = False,
+    trace: dict[str, Any] | None = None,
 ) -> EpisodeStatus:
     """The final status: the stopper's answer, set and steps when ``end`` is given; the answer's text from the
-    choices; ``correct`` against a known ground truth; the recording link when there is a recording."""
+    choices; ``correct`` against a known ground truth; the recording link when there is a recording; a task's
+    outcome (:func:`eqa.task_traces.task_outcome`, with the phase and step of its first failure when the sim's
+    ``trace`` is given)."""
     nxt = st.model_copy(deep=True)
     nxt.state = state  # type: ignore[assignment]
     nxt.updated_at = now
@@ -118,6 +122,11 @@ def finished(
         nxt.correct = nxt.answer == nxt.question.answer
     if recording:
         nxt.recording = f"/v1/episodes/{nxt.episode_id}/recording"
+    if nxt.task is not None:
+        try:
+            nxt.outcome = task_outcome(nxt.task.kind, nxt.metrics, nxt.state, reason, nxt.steps, nxt.max_steps, trace)
+        except TraceError:
+            nxt.outcome = task_outcome(nxt.task.kind, nxt.metrics, nxt.state, reason, nxt.steps, nxt.max_steps)
     return nxt
 
 
@@ -136,6 +145,7 @@ def end_event(st: EpisodeStatus) -> dict[str, Any]:
         normalized_steps=round(st.normalized_steps, 4),
         correct=st.correct,
         source="gateway",
+        **({"outcome": st.outcome} if st.outcome is not None else {}),
     )
 
 

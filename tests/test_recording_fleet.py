@@ -20,6 +20,7 @@ from eqa.recording import ENTITIES, REQUIRED_ENTITIES
 from gateway import recordings
 
 SCENE = "gen-00001"
+TASK_SCENE = "gen-115001"  # a tuning-seed task house with potted plants
 
 
 @dataclass
@@ -30,6 +31,7 @@ class Episode:
     rrd: httpx.Response
     missing: httpx.Response
     out: Path
+    task: tuple[dict[str, Any], Path] | None = None  # a task episode on the same fleet: final status, merged .rrd
 
 
 @pytest.fixture(scope="module")
@@ -38,6 +40,7 @@ def episode(tmp_path_factory: pytest.TempPathFactory, redis_url: str) -> Iterato
 
     s = fleet_settings(tmp_path_factory.mktemp("rec-fleet"), redis_url, record=True, episode_timeout_s=120.0)
     load_or_generate(SCENE, s.scenes_path)
+    load_or_generate(TASK_SCENE, s.scenes_path)
     with (
         Fleet(s, scorers=1) as fleet,
         GatewayThread(fleet.client_settings()) as gw,
@@ -62,9 +65,20 @@ def episode(tmp_path_factory: pytest.TempPathFactory, redis_url: str) -> Iterato
         time.sleep(1.0)  # each service closes (flushes) its recorder when it sees the episode end
         rrd = c.get(f"/v1/episodes/{eid}/recording")
         missing = c.get("/v1/episodes/ep-none/recording")
+        t = c.post("/v1/tasks", json={"instruction": "Find a potted plant", "scene": TASK_SCENE, "max_steps": 6,
+                                      "seed": 1})
+        assert t.status_code == 202, t.text
+        tid = t.json()["episode_id"]
+        list(sse_events(c, f"/v1/episodes/{tid}/events", timeout=300))
+        tst = c.get(f"/v1/episodes/{tid}").json()
+        time.sleep(1.0)
+        trrd = c.get(f"/v1/episodes/{tid}/recording")
+        assert trrd.status_code == 200, trrd.text
     out = s.data_dir / f"{eid}.rrd"
     out.write_bytes(rrd.content)
-    yield Episode(eid, st, events, rrd, missing, out)
+    tout = s.data_dir / f"{tid}.rrd"
+    tout.write_bytes(trrd.content)
+    yield Episode(eid, st, events, rrd, missing, out, (tst, tout))
 
 
 def test_recording_served_over_http(episode: Episode) -> None:
@@ -86,3 +100,16 @@ def test_demo_episode_recording_has_every_entity(episode: Episode) -> None:
         if not any(p == "/" + ENTITIES[k] or p.startswith("/" + ENTITIES[k] + "/") for p in paths)
     ]
     assert not missing, f"missing entities {missing}; recording has {sorted(paths)}"
+
+
+def test_task_episode_recording_shows_phase_and_outcome(episode: Episode) -> None:
+    """A task's recording holds its phase per step and its outcome (eqa.recording ENTITIES task_*)."""
+    assert episode.task is not None
+    st, path = episode.task
+    assert st["state"] in ("stopped", "failed") and st["outcome"] is not None, st
+    assert st["outcome"]["success"] == bool(st["metrics"].get("SR")), st
+    assert "answering" not in (st["stop_reason"] or "")
+    paths = recordings.entity_paths(path)
+    for k in ("task_phase", "task_outcome"):
+        assert "/" + ENTITIES[k] in paths, f"{ENTITIES[k]} missing; recording has {sorted(paths)}"
+    assert any(p.startswith("/" + ENTITIES["task_flags"] + "/") for p in paths), sorted(paths)

@@ -51,6 +51,12 @@ def test_a_pick_and_place_task_through_the_services(client: httpx.Client, gw_set
     end = stored_end(gw_settings, eid)
     assert end is not None and end.metrics == st["metrics"]
     assert events[-1]["metrics"] == {k: round(v, 4) if isinstance(v, float) else v for k, v in st["metrics"].items()}
+    # what it means: 5 steps do not achieve a pick-and-place; the status and the end event say which phase failed
+    assert st["outcome"]["success"] is False and st["outcome"]["cause"] != "success", st
+    assert st["outcome"]["phase"] is not None and st["outcome"]["step"] is not None, st  # from the sim's trace
+    assert events[-1]["outcome"]["cause"] == st["outcome"]["cause"]
+    assert (st["ablation"], st["pick_limit"]) == ("helios", 5)
+    assert "answering" not in st["stop_reason"]
 
 
 def test_a_task_without_a_budget_gets_the_task_budget(client: httpx.Client) -> None:

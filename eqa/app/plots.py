@@ -159,3 +159,45 @@ def plot_stop(results: dict[str, Any], out: Path) -> Path:
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
+
+
+FAILURE_COLORS = {"collision": "tab:red", "object not found: out of steps": "tab:blue",
+                  "object not found: search ended": "lightsteelblue",
+                  "object not found: pick limit used up": "tab:cyan", "pick failed": "tab:orange",
+                  "receptacle not found: out of steps": "tab:purple", "receptacle not found: search ended": "plum",
+                  "place failed": "tab:brown", "stopped away from the object": "tab:orange", "run failed": "black",
+                  "success": "tab:green"}
+
+
+def plot_failures(table: dict[str, dict[str, int]], causes: tuple[str, ...], variants: list[str], title: str,
+                  path: Path) -> Path:
+    """HELIOS Fig. 5 / 6: per agent variant, the share of runs by first failure (eqa.task_traces), one
+    horizontal stacked bar each, the count written in every segment wide enough; legend in the causes' order."""
+    from matplotlib.patches import Patch
+
+    vs = [v for v in variants if v in table]
+    shown = [c for c in causes if any(table[v][c] for v in vs)]
+    fig, ax = plt.subplots(figsize=(8.5, 1.3 + 0.5 * len(vs)))
+    for y, v in enumerate(vs):
+        n = max(sum(table[v].values()), 1)
+        left = 0.0
+        for c in shown:
+            w = 100 * table[v][c] / n
+            if w <= 0:
+                continue
+            ax.barh(y, w, left=left, color=FAILURE_COLORS.get(c, "grey"), edgecolor="white")
+            if w >= 4:
+                light = FAILURE_COLORS.get(c) in ("lightsteelblue", "plum")
+                ax.text(left + w / 2, y, str(table[v][c]), ha="center", va="center", fontsize=8,
+                        color="black" if light else "white")
+            left += w
+    ax.set_yticks(range(len(vs)), [f"{v} (n={sum(table[v].values())})" for v in vs])
+    ax.invert_yaxis()
+    ax.set_xlim(0, 100)
+    ax.set_xlabel("% of runs, by the first thing that failed")
+    ax.set_title(title, fontsize=8.5)
+    ax.legend([Patch(color=FAILURE_COLORS.get(c, "grey")) for c in shown], shown, fontsize=7, ncol=3,
+              loc="upper center", bbox_to_anchor=(0.5, -0.15 - 0.4 / max(len(vs), 1)), frameon=False)
+    fig.savefig(path, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return path

@@ -2,7 +2,7 @@
 
     eqa task "Move the mug from the kitchen counter to the dining table" --scene gen-15000
     eqa task "Find a potted plant" --scene gen-15000 --ablation trusting
-    eqa task                                   # the built-in demo task (a generated house, ground truth known)
+    eqa task                                   # the first task of the tuning seed 11's benchmark (gen-115000)
 
 Without ``--url`` it starts the whole fleet (every service as its own process, over Zenoh, and the gateway on a
 free port), submits the task to ``POST /v1/tasks``, follows the episode's events (the phases: searching, local
@@ -25,23 +25,19 @@ from eqa.messages import Pose2D
 
 log = logging.getLogger(__name__)
 
-DEMO_HOUSE = 115000  # the first house of the tuning task set (eqa.seeds.TUNING_SEED 11)
 PHASES_PICK_PLACE = ("FindObj", "Pick", "FindRec", "Place", "SR")
 SIMULATED = ("perception: oracle detector = a simulated perception model reading ground-truth labels of the "
              "visible pixels, not a detector")
 
 
 def demo_task(scenes_dir: Path) -> tuple[str, str, Pose2D | None]:
-    """The demo: the first pick-and-place task of the tuning house (instruction, scene, start pose)."""
-    import numpy as np
+    """The demo: the first pick-and-place task of the tuning seed's task benchmark (``eqa bench ovmm --seeds
+    11``'s first row; :data:`eqa.seeds.TUNING_SEED`): instruction, scene, start pose."""
+    from eqa.seeds import TUNING_SEED
+    from services.sim.tasks import task_benchmark
 
-    from services.sim.library import load_or_generate
-    from services.sim.tasks import generate_tasks
-
-    scene_id = f"gen-{DEMO_HOUSE}"
-    scene = load_or_generate(scene_id, scenes_dir)
-    task = next(t for t in generate_tasks(scene, np.random.default_rng(DEMO_HOUSE)) if t.kind == "pick_place")
-    return task.text, scene_id, task.start_pose
+    task = task_benchmark(TUNING_SEED, pick_place=1, find=0, scenes_dir=scenes_dir).tasks[0]
+    return task.text, task.scene, task.start_pose
 
 
 def _pick_limit(text: str) -> int | None:
@@ -62,7 +58,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("instruction", nargs="?",
                    help="'Move the <object> from the <start receptacle> to the <goal receptacle>' or "
-                   "'Find a <object>'; omit it for the demo task")
+                   "'Find a <object>'; omit it for the first task of the tuning seed 11")
     p.add_argument("--scene", help="scene id, e.g. gen-15000 (a generated house)")
     p.add_argument("--pose", type=parse_pose, help="start pose x,y[,yaw]; default: sampled")
     p.add_argument("--ablation", default="helios", choices=["helios", "no_global", "trusting"],
@@ -142,10 +138,18 @@ def report(s: dict[str, Any], settings: Any, as_json: bool, seconds: float = 0.0
     if as_json:
         print(json.dumps(s))
         return
+    from eqa.task_traces import task_outcome
+
     m = s.get("metrics") or {}
     task = s.get("task") or {}
+    out = s.get("outcome") or (task_outcome(task.get("kind", "pick_place"), m, s.get("state", ""),
+                                            s.get("stop_reason") or "", s.get("steps"), s.get("max_steps"))
+                               if m else None)
+    state = s.get("state")
+    if out is not None and state == "stopped":
+        state = "task succeeded" if out["success"] else "task failed"
     print()
-    print(f"episode {s.get('episode_id')}: {s.get('state')} after {s.get('steps')} of {s.get('max_steps')} steps: "
+    print(f"episode {s.get('episode_id')}: {state} after {s.get('steps')} of {s.get('max_steps')} steps: "
           f"{s.get('stop_reason')}")
     if not m:
         print("no metrics (the episode ended before the simulator reported any)")
@@ -156,6 +160,8 @@ def report(s: dict[str, Any], settings: Any, as_json: bool, seconds: float = 0.0
         marks = "   ".join(f"{k}: {'yes' if m.get(k) else 'no'}" for k in PHASES_PICK_PLACE)
         print(f"  {marks}")
         print(f"  pick attempts: {int(m.get('pick_attempts', 0))}   collisions: {int(m.get('collisions', 0))}")
+    if out is not None:
+        print(f"  outcome: {out['text']}")
     if settings.scorer_backend == "oracle":
         print(f"note: {SIMULATED}")
     if s.get("recording"):

@@ -278,6 +278,7 @@
     $("w-answer").hidden = true;
     $("w-recording").hidden = true;
     $("w-task").hidden = true;
+    for (const id of ["w-set-title", "w-set", "w-set-history"]) $(id).hidden = false;
     $("w-phase").textContent = "";
     $("w-phase-history").textContent = "";
     $("w-cancel").hidden = false;
@@ -303,9 +304,12 @@
       s.maxSteps = s.maxSteps || st.max_steps;
       s.stopRule = st.stop.rule;
       s.eps = st.stop.eps;
-      $("w-meta").textContent = s.eid + " on " + st.robot + ", scene " + st.question.scene + ", " + st.strategy +
-        ", stop rule " + st.stop.rule + (st.stop.rule === "cp" ? " (eps " + st.stop.eps + ")" : "");
+      $("w-meta").textContent = s.eid + " on " + st.robot + ", scene " + st.question.scene + ", " + (st.task
+        ? "task " + st.task.kind.replace("_", " ") + ", agent " + (st.ablation || "helios") + ", pick attempts " +
+          (st.pick_limit || "unlimited")
+        : st.strategy + ", stop rule " + st.stop.rule + (st.stop.rule === "cp" ? " (eps " + st.stop.eps + ")" : ""));
       if (!s.ended) setState(st.state);
+      else if (st.outcome) setState(taskState(st.state, st.outcome));
       if (["stopped", "failed", "cancelled"].includes(st.state)) finalStatus(s, st);
       renderSteps(s);
     } catch (e) {
@@ -389,6 +393,19 @@
     b.className = "badge " + state.replace(/\s/g, "-");
   }
 
+  // A task that ended without achieving its goal is a failure whatever the episode's state says ("stopped"
+  // only means it ran to its end).
+  function taskState(state, outcome) {
+    if (!outcome || state !== "stopped") return state;
+    return outcome.success ? "task succeeded" : "task failed";
+  }
+
+  function numbersText(numbers) {  // the decision's numbers (Psi, Psi', IG, V, F0 ...) of a task goal
+    const names = {Psi_prime: "Psi'"};
+    const parts = Object.entries(numbers || {}).map(([k, v]) => (names[k] || k) + " " + Number(v).toPrecision(3));
+    return parts.length ? " (" + parts.join(", ") + ")" : "";
+  }
+
   function letterList(set) { return "{" + set.join(", ") + "}"; }
 
   // One event: the log line, then what it changes on the page.
@@ -435,7 +452,7 @@
           $("w-task").hidden = false;
           s.phases.push(ev.phase);
           $("w-phase").textContent = "phase: " + ev.phase + (ev.skill ? ", next skill " + ev.skill : "") +
-            (ev.target !== undefined && ev.target !== null ? " on #" + ev.target : "");
+            (ev.target !== undefined && ev.target !== null ? " on #" + ev.target : "") + numbersText(ev.numbers);
           $("w-phase").dataset.phase = ev.phase;
           $("w-phase-history").textContent = "phases so far: " + compress(s.phases).join(" > ");
           li.textContent += ": " + ev.phase;
@@ -458,7 +475,7 @@
       case "episode_end":
         s.ended = true;
         $("w-cancel").hidden = true;
-        setState(ev.state);
+        setState(taskState(ev.state, ev.outcome));
         if (s.stopRule === "cp" || (ev.prediction_set && ev.prediction_set.length)) renderSet(s, ev.prediction_set || []);
         showAnswer(s, ev);
         if (!replay) refreshStatus(s);
@@ -522,9 +539,15 @@
     box.textContent = "";
     const h = document.createElement("p");
     h.className = "final";
+    box.classList.remove("fail");
     if (s.task) {
+      const out = ev.outcome;
       const sr = ev.metrics ? ev.metrics.SR : undefined;
-      h.textContent = "Task " + (ev.state || "ended") + (sr === undefined ? "" : sr ? ": success" : ": not achieved");
+      const ok = out ? out.success : sr === undefined ? null : Boolean(sr);
+      h.textContent = "Task " + (ok === null ? (ev.state || "ended") : ok ? "succeeded" : "failed") +
+        (out && !out.success ? ": " + out.text.replace(/^failed: /, "") : "");
+      if (ok === false || ev.state === "failed" || ev.state === "cancelled") box.classList.add("fail");
+      box.dataset.outcome = ok === null ? "" : ok ? "success" : "failure";
     } else if (ev.answer) {
       h.textContent = "Answer: " + ev.answer + ") " + (ev.answer_text || "");
     } else {
@@ -623,7 +646,7 @@
   function showTask(s, task) {
     s.task = task;
     $("w-task").hidden = false;
-    $("w-set-title").textContent = "Prediction set (questions only)";
+    for (const id of ["w-set-title", "w-set", "w-set-history"]) $(id).hidden = true;  // a task has no answer set
     if (!$("w-phase").textContent) $("w-phase").textContent = "task " + task.kind + ": " + task.text;
   }
 
@@ -632,7 +655,7 @@
     if (st.answer && !$("w-answer").hidden) return;
     showAnswer(s, {answer: st.answer, answer_text: st.answer_text, prediction_set: st.prediction_set,
                    steps: st.steps, max_steps: st.max_steps, reason: st.stop_reason, state: st.state,
-                   metrics: st.metrics});
+                   metrics: st.metrics, outcome: st.outcome});
   }
 
   // ---- fleet -----------------------------------------------------------------------------------------

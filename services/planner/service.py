@@ -175,7 +175,8 @@ class PlannerService(EpisodeService[_Episode]):
                 ep.task_before = ep.task.to_json()
             tgoal, plan = ep.task.goal(ep.episode_id, step_map, refusals.memory(), rng, self.params,
                                        before=ep.task_before if refusals.attempt else None)
-            task_fields = {"skill": tgoal.skill, "target": tgoal.target, "phase": tgoal.phase}
+            task_fields = {"skill": tgoal.skill, "target": tgoal.target, "phase": tgoal.phase,
+                           "numbers": tgoal.numbers}
         else:
             plan = plan_attempt(step_map, ep.strategy, refusals, rng, self.params)
         pending.plan = plan

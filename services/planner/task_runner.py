@@ -8,14 +8,17 @@ from the state before the step (:meth:`PlannerTask.goal` with ``before``).
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 
-from eqa.messages import EpisodeStart, Goal, MapUpdate
+from eqa.messages import EpisodeStart, Frontier, Goal, MapUpdate, Pose2D
+from services.planner import helios
 from services.planner.step import Memory, PlannerParams, StepPlan
-from services.planner.task_fsm import TaskMachine, Thresholds, from_instance
-from services.planner.task_step import outcome_of, task_step
+from services.planner.task_fsm import SeenObject, TaskMachine, Thresholds, from_instance
+from services.planner.task_step import TaskStep, outcome_of, task_step
 
 
 class PlannerTask:
@@ -43,7 +46,8 @@ class PlannerTask:
         plan.memory = st.memory
         goal = Goal(episode_id=episode_id, step=mu.step, pose=plan.pose, path=plan.path, frontier=plan.frontier,
                     weights=plan.probabilities, done=plan.done, reason=plan.reason, skill=st.skill,  # type: ignore[arg-type]
-                    target=st.target, phase=st.phase)  # type: ignore[arg-type]
+                    target=st.target, phase=st.phase,  # type: ignore[arg-type]
+                    numbers=decision_numbers(self.machine, st, objects, mu.pose))
         return goal, plan
 
     def to_json(self) -> dict[str, Any]:
@@ -52,3 +56,35 @@ class PlannerTask:
     @classmethod
     def from_json(cls, data: dict[str, Any]) -> PlannerTask:
         return cls(TaskMachine.from_json(data))
+
+
+def decision_numbers(machine: TaskMachine, st: TaskStep, objects: Sequence[SeenObject],
+                     robot: Pose2D) -> dict[str, float]:
+    """The numbers behind the step's decision, for the task trace (read from the state the machine decided on,
+    never fed back into it). An instance goal (``st.target``): its ``S``, ``U``, ``Psi`` (Eq. 7) for the class
+    of the phase (the goal receptacle while holding, the start receptacle in local search, else the object),
+    ``Psi'`` of its best gaze point (Eq. 11), its optimistic ``IG`` (Eq. 12) and, for a start-receptacle
+    candidate, ``V = S IG - alpha_d dist`` (Eq. 10). A frontier goal: its value-map score ``F``, ``F0`` (Eq. 9)
+    and ``V = F F0 - alpha_d dist`` (Eq. 10). ``F0`` is given on every step; non-finite numbers are left out."""
+    th = machine.th
+    f0 = helios.f0_association(machine.memory.chosen, list(machine.memory.stored.values()), th.alpha_d)
+    out: dict[str, float] = {"F0": f0}
+    obj = next((o for o in objects if o.instance_id == st.target), None) if st.target is not None else None
+    if obj is not None:
+        cls = (machine.goal_receptacle if machine.holding else
+               machine.start_receptacle if st.phase == "local_search" else machine.object) or machine.object
+        s = obj.of(cls)
+        if s is not None:
+            out.update(S=s[0], U=s[1], Psi=s[2])
+        g = obj.best_gaze()
+        if g is not None:
+            out["Psi_prime"] = g.psi_prime
+        out["IG"] = obj.ig
+        if st.phase == "local_search" and s is not None:
+            out["V"] = s[0] * obj.ig - th.alpha_d * math.hypot(obj.x - robot.x, obj.y - robot.y)
+    elif st.plan.frontier is not None and st.phase == "searching":
+        f: Frontier = st.plan.frontier
+        out["F"] = f.sv
+        scale = f0 if (machine.ablation != "trusting" and not machine.holding and machine.kind == "pick_place") else 1.0
+        out["V"] = f.sv * scale - th.alpha_d * math.hypot(f.x - robot.x, f.y - robot.y)
+    return {k: float(v) for k, v in out.items() if v is not None and math.isfinite(v)}

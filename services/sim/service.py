@@ -36,8 +36,16 @@ from eqa.bus import Bus
 from eqa.codec import CodecError, unpackb
 from eqa.episode_service import EpisodeService
 from eqa.messages import EpisodeCancel, EpisodeEnd, EpisodeStart, Frame, Goal, Pose2D, SkillReport
+from eqa.recording import ENTITIES
 from eqa.settings import Settings
-from eqa.store import EPISODE_STATE_TTL_S, Store, episode_end_key, episode_state_key, task_metrics_key
+from eqa.store import (
+    EPISODE_STATE_TTL_S,
+    Store,
+    episode_end_key,
+    episode_state_key,
+    task_metrics_key,
+    task_trace_key,
+)
 from services.sim import hmeqa
 from services.sim.camera import camera_pose, intrinsics
 from services.sim.library import load_or_generate
@@ -275,7 +283,7 @@ class SimService(EpisodeService[_Episode]):
                 self.error(robot, start.episode_id, 0, str(exc))
                 return None
         ep = _Episode(start.episode_id, scene, renderer, pose, start.max_steps, start)
-        ep.task = SimTask.from_start(start)
+        ep.task = SimTask.from_start(start, scene, pose)
         return ep
 
     def started(self, robot: str, episode_id: str, state: _Episode) -> None:
@@ -284,6 +292,11 @@ class SimService(EpisodeService[_Episode]):
 
     def on_goal(self, robot: str, goal: Goal) -> None:
         if goal.done:
+            ep = self.episodes.get(goal.episode_id)
+            if ep is not None and ep.task is not None and self.owns(robot):  # the task trace keeps the end
+                ep.task.episode.end_reason = goal.reason[:300]
+                self.store.set_json(task_trace_key(ep.episode_id), ep.task.episode.trace_doc(),
+                                    ttl_s=EPISODE_STATE_TTL_S)
             return
         if not self.owns(robot) or not self._claim(robot, goal.episode_id, goal.step + 1):
             return
@@ -348,7 +361,9 @@ class SimService(EpisodeService[_Episode]):
         ep.emitted_at, ep.resends = time.monotonic(), 0
         ep.trajectory.append((ep.pose.x, ep.pose.y))
         if ep.task is not None:
+            ep.task.record(ep.step, ep.pose, goal, frame.skill)
             self.store.set_json(task_metrics_key(ep.episode_id), ep.task.metrics(), ttl_s=EPISODE_STATE_TTL_S)
+            self.store.set_json(task_trace_key(ep.episode_id), ep.task.episode.trace_doc(), ttl_s=EPISODE_STATE_TTL_S)
         self.save(ep.episode_id)
         self.publish(robot, keys.SIM_FRAME, frame)
         self._log_step(ep, frame)
@@ -385,3 +400,12 @@ class SimService(EpisodeService[_Episode]):
         if frame.skill is not None:
             s = frame.skill
             rec.log("sim/task", rr.TextLog(f"{s.skill} {'succeeded' if s.success else 'failed'}: {s.reason}"))
+        if ep.task is not None and ep.task.episode.trace:
+            e = ep.task.episode.trace[-1]
+            nums = ", ".join(f"{k} {v:.3g}" for k, v in e["numbers"].items())
+            text = (f"step {e['step']}: {e['phase'] or 'start'}" + (f", {e['skill']}" if e["skill"] else "")
+                    + (f" on #{e['target']}" if e["target"] is not None else "") + (f" ({nums})" if nums else "")
+                    + (" -- COLLISION" if e["collided"] else ""))
+            rec.log(ENTITIES["task_phase"], rr.TextLog(text, level="WARN" if e["collided"] else "INFO"))
+            for k in ("FindObj", "Pick", "FindRec", "Place", "collisions", "pick_attempts"):
+                rec.log(f"{ENTITIES['task_flags']}/{k}", rr.Scalars([float(e[k])]))

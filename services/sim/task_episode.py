@@ -31,6 +31,8 @@ from services.sim.scene import Scene
 from services.sim.tasks import FIND_SUCCESS_M
 
 OBJECT_SIZE_DEFAULT = (0.15, 0.15, 0.15)
+TRACE_FIELDS = ("step", "pose", "phase", "skill", "target", "reason", "numbers", "collided", "skill_result",
+                "collisions", "pick_attempts", "path_m", "FindObj", "Pick", "FindRec", "Place", "found")
 
 
 @dataclass
@@ -48,6 +50,8 @@ class TaskEpisode:
     pick_attempts: int = 0
     path_m: float = 0.0
     skill_log: list[dict[str, Any]] = field(default_factory=list)
+    trace: list[dict[str, Any]] = field(default_factory=list)  # one entry per step (:meth:`record`)
+    end_reason: str | None = None  # the planner's reason when it ended the task
 
     # ---- observations and motion ------------------------------------------------------------------------
     def observe(self, scene: Scene, pose: Pose2D, instances: np.ndarray) -> None:
@@ -102,6 +106,33 @@ class TaskEpisode:
             <= FIND_SUCCESS_M for i in self.task.object_ids if i in scene.instances)
         self.skill_log.append({"skill": "stop", "success": self.found})
         return self.found
+
+    # ---- the trace ----------------------------------------------------------------------------------------
+    def record(self, step: int, pose: Pose2D, goal: dict[str, Any] | None, collided: bool,
+               skill: dict[str, Any] | None) -> dict[str, Any]:
+        """Append the trace entry of ``step`` (:data:`TRACE_FIELDS`): the planner's goal that led here (phase,
+        skill asked for, target instance, reason, decision numbers; None at step 0), the pose reached, whether
+        the motion collided, the skill's outcome and, after it, the cumulative counts and phase flags."""
+        entry: dict[str, Any] = {
+            "step": int(step), "pose": [round(pose.x, 4), round(pose.y, 4), round(pose.yaw, 4)],
+            "phase": None, "skill": None, "target": None, "reason": "", "numbers": {},
+            **({k: goal[k] for k in ("phase", "skill", "target", "reason", "numbers") if k in goal} if goal else {}),
+            "collided": bool(collided), "skill_result": skill,
+            "collisions": self.collisions, "pick_attempts": self.pick_attempts, "path_m": round(self.path_m, 4),
+            "FindObj": self.find_obj, "Pick": self.picked, "FindRec": self.find_rec, "Place": self.placed,
+            "found": self.found,
+        }
+        if self.trace and self.trace[-1]["step"] == entry["step"]:  # the same step rendered again (a restart)
+            self.trace[-1] = entry
+        else:
+            self.trace.append(entry)
+        return entry
+
+    def trace_doc(self) -> dict[str, Any]:
+        """The stored trace of the episode (:func:`eqa.store.task_trace_key`): the task with its ground truth,
+        the pick limit, the planner's end reason (once it is done) and the per-step entries."""
+        return {"task": self.task.model_dump(mode="json"), "pick_limit": self.pick_limit,
+                "end_reason": self.end_reason, "steps": self.trace}
 
     # ---- scoring -----------------------------------------------------------------------------------------
     def metrics(self) -> dict[str, float]:

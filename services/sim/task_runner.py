@@ -23,20 +23,28 @@ from services.sim.task_episode import TaskEpisode
 class SimTask:
     def __init__(self, episode: TaskEpisode) -> None:
         self.episode = episode
+        self.collided = False  # the last motion's collision, until the step's trace entry takes it
 
     @classmethod
-    def from_start(cls, start: EpisodeStart) -> SimTask | None:
-        """The task runner of an episode, or None for a question episode."""
+    def from_start(cls, start: EpisodeStart, scene: Scene | None = None, pose: Pose2D | None = None) -> SimTask | None:
+        """The task runner of an episode, or None for a question episode. With the ``scene`` and start ``pose``,
+        a task given in words gets its ground truth from the scene graph
+        (:func:`services.sim.tasks.with_ground_truth`)."""
         if start.task is None:
             return None
-        return cls(TaskEpisode(start.task, pick_limit=start.pick_limit))
+        task = start.task
+        if scene is not None and pose is not None:
+            from services.sim.tasks import with_ground_truth
+
+            task = with_ground_truth(task, scene, pose)
+        return cls(TaskEpisode(task, pick_limit=start.pick_limit))
 
     def after_goal(self, scene: Scene, before: Pose2D, goal: Goal, instances: np.ndarray) -> SkillReport | None:
         """Count the motion ``before -> goal.path -> goal.pose`` and run ``goal.skill`` with the per-pixel
         ``instances`` of the frame rendered at ``goal.pose``."""
         assert goal.pose is not None
         pts = [(before.x, before.y), *[(float(x), float(y)) for x, y in goal.path], (goal.pose.x, goal.pose.y)]
-        self.episode.move(scene, pts)
+        self.collided = self.episode.move(scene, pts)
         if goal.skill == "pick":
             r = self.episode.pick(scene, goal.pose, instances)
             return SkillReport(skill="pick", success=r.success, target=goal.target, reason=r.reason[:300])
@@ -51,6 +59,13 @@ class SimTask:
 
     def observe(self, scene: Scene, pose: Pose2D, instances: np.ndarray) -> None:
         self.episode.observe(scene, pose, instances)
+
+    def record(self, step: int, pose: Pose2D, goal: Goal | None, skill: SkillReport | None) -> dict[str, Any]:
+        """The trace entry of the step just rendered (after :meth:`after_goal` and :meth:`observe`)."""
+        g = None if goal is None else {"phase": goal.phase, "skill": goal.skill, "target": goal.target,
+                                       "reason": goal.reason[:300], "numbers": dict(goal.numbers)}
+        hit, self.collided = self.collided, False
+        return self.episode.record(step, pose, g, hit, None if skill is None else skill.model_dump())
 
     def metrics(self) -> dict[str, float]:
         return self.episode.metrics()

@@ -261,3 +261,42 @@ def task_benchmark(seed: int, pick_place: int = 60, find: int = 30, scenes_dir: 
         bar.close()
     return TaskBenchmark(seed=seed, tasks=pp + fo)
 
+
+
+# ---- ground truth of a task given in words ----------------------------------------------------------------
+
+
+def with_ground_truth(task: Task, scene: Scene, start: Pose2D) -> Task:
+    """``task`` with the simulator's ground truth filled in from ``scene``'s graph when it has none (a task
+    typed by a user, ``POST /v1/tasks``): the same sets :func:`generate_tasks` gives -- every object of the
+    class standing on a start receptacle of the class (for ``find_object`` every object of the class), every
+    instance of the goal class -- and, for ``find_object``, the geodesic from ``start`` to the nearest success
+    pose (SPL). A task that already lists its ``object_ids`` (a benchmark task) is returned as it is. Classes
+    the house lacks leave the lists empty: the skills then fail with "not near a target object"."""
+    if task.object_ids:
+        return task
+    objs = scene.objects()
+    of_class = sorted(o.id for o in objs if o.category == task.object)
+    update: dict[str, object] = {}
+    if task.kind == "pick_place":
+        starts = {o.id for o in objs if o.category == task.start_receptacle}
+        ids = sorted(i for i in of_class if scene.instances[i].support in starts)
+        update["object_ids"] = ids
+        update["start_receptacle_ids"] = sorted({scene.instances[i].support for i in ids})  # type: ignore[misc]
+        update["goal_receptacle_ids"] = sorted(o.id for o in objs if o.category == task.goal_receptacle)
+    else:
+        update["object_ids"] = of_class
+        if of_class and task.shortest_path_m is None:
+            reach, ox, oy = reachable_map(scene, start)
+            geo = geodesic_from(reach, (ox, oy), start)
+            goal_mask = np.zeros(reach.shape, bool)
+            for i in of_class:
+                info = scene.instances[i]
+                goal_mask |= _near_box_mask(reach.shape, (ox, oy), info.position, info.size, FIND_SUCCESS_M)
+            ok = goal_mask & reach & np.isfinite(geo)
+            if ok.any():
+                update["shortest_path_m"] = round(float(geo[ok].min()), 3)
+    if not update.get("object_ids"):
+        log.warning("task %r in %s: the house has no %s%s; its skills cannot succeed", task.text, scene.id,
+                    task.object, f" on a {task.start_receptacle}" if task.start_receptacle else "")
+    return task.model_copy(update=update)

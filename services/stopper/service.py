@@ -16,7 +16,8 @@ Messages published while the stopper is down are not replayed by Zenoh: the gate
 
 Rerun (``eqa.recording``): per step ``stopper/rho/<letter>`` (also under ``ENTITIES["scores"]``, i.e.
 ``stopper/scores/<letter>``), ``stopper/set_size``, ``stopper/relevance``, a text log of the prediction set
-at ``ENTITIES["prediction_set"]`` (``stopper/prediction_set``) and the final answer at ``stopper/log``.
+at ``ENTITIES["prediction_set"]`` (``stopper/prediction_set``) and the final answer at ``stopper/log``; a task
+episode's outcome (:func:`eqa.task_traces.task_outcome`) at ``ENTITIES["task_outcome"]`` (``task/outcome``).
 After a restart the recording continues in
 ``stopper-resume<k>.rrd`` next to ``stopper.rrd`` (a file sink cannot be appended to).
 """
@@ -41,6 +42,7 @@ from eqa.messages import (
 from eqa.recording import recording_dir
 from eqa.settings import Settings
 from eqa.store import EPISODE_STATE_TTL_S, Store, episode_end_key, episode_state_key, task_metrics_key
+from eqa.task_traces import kind_of_metrics, task_outcome
 from services.stopper.calibration import TraceStore, load_table
 from services.stopper.conformal import ScoreError
 from services.stopper.state import (
@@ -58,6 +60,7 @@ STATE_PREFIX = episode_state_key("stopper", "")
 _ENTITIES: dict[str, str] = getattr(recording, "ENTITIES", {})
 PREDICTION_SET_ENTITY = _ENTITIES.get("prediction_set", "stopper/prediction_set")
 SCORES_ENTITY = _ENTITIES.get("scores", "stopper/scores")
+TASK_OUTCOME_ENTITY = _ENTITIES.get("task_outcome", "task/outcome")
 
 
 class StopperService(EpisodeService[EpisodeRecord]):
@@ -221,6 +224,10 @@ class StopperService(EpisodeService[EpisodeRecord]):
             end = end_message(rec, state, reason, None, self._recording(rec))
             end = end.model_copy(update={"metrics": metrics, "answer": None, "answer_text": None,
                                          "prediction_set": []})
+            if r is not None and r.enabled:
+                out = task_outcome(kind_of_metrics(metrics), metrics, state, reason, end.steps, end.max_steps)
+                r.log(TASK_OUTCOME_ENTITY, _text(f"task {out['text']} ({reason})",
+                                                      "INFO" if out["success"] else "WARN"))
         self.store.set(episode_end_key(rec.episode_id), end.model_dump_json().encode(), ttl_s=EPISODE_STATE_TTL_S)
         self._drop(rec, reason)
         if decision is not None:
@@ -251,7 +258,7 @@ class StopperService(EpisodeService[EpisodeRecord]):
         r.log(PREDICTION_SET_ENTITY, rr.TextLog(text))
 
 
-def _text(message: str) -> Any:
+def _text(message: str, level: str = "INFO") -> Any:
     import rerun as rr
 
-    return rr.TextLog(message)
+    return rr.TextLog(message, level=level)

@@ -161,6 +161,7 @@ class EpisodeRecord(BaseModel):
     answer_fusion: str = "loglinear"
     # issue 22 item 2: pool the object layer's evidence (StepScores.object_evidence) into f; None = off
     object_evidence: tuple[float, float] | None = None  # (psi_min, weight)
+    task: bool = False  # a task episode: the planner ends it, there is no answer to give
 
     @property
     def answer_rule(self) -> AnswerRule:
@@ -177,6 +178,7 @@ class EpisodeRecord(BaseModel):
             max_steps=start.max_steps,
             record=start.record,
             choices=list(start.question.choices),
+            task=start.task is not None,
         )
 
     @property
@@ -314,7 +316,9 @@ def _baseline(step: RuleStep, hit: bool, reason: str, stat_scores: dict[str, flo
     """A baseline rule's decision: answer argmax f when it fires, else at the step limit the fallback answer."""
     episode = step.episode
     stop, answer = hit, step.argmax if hit else None
-    if not stop and step.at_limit:
+    if not stop and step.at_limit and episode.task:  # a task: the planner ends it, there is no answer to give
+        stop, reason = True, f"step limit reached ({episode.max_steps} steps)"
+    elif not stop and step.at_limit:
         stop, answer = True, episode.fallback()
         reason = fallback_reason(f"step limit reached ({episode.max_steps} steps)", answer)
     return Decision(episode_id=episode.episode_id, step=step.scores.step, rule=episode.stop.rule, stop=stop,
