@@ -256,3 +256,22 @@ def test_a_robot_that_sends_garbage_is_refused_with_reasons_and_no_hang(run: Run
     for code in ("encoding", "stale"):  # counted and logged by reason
         assert f"ROS input refused ({code}," in run.bridge_log, code
     assert "nan_pose" in run.bridge_log or "stale" in run.bridge_log
+
+
+def test_the_bridge_counts_each_refusal_by_reason(tmp_path: Any) -> None:
+    from services.ros2_bridge.service import Ros2BridgeService
+
+    s = fleet_settings(tmp_path, None, robots=["r1"], ros2_robots=["r1"], ros2_max_image_pixels=100)
+    bridge = Ros2BridgeService(s)  # not started: its handlers are called directly
+    rb = bridge.robots["r1"]
+    assert rb.namespace == "/r1"
+    bridge._take("r1", "rgb", ros.IMAGE, b"\x00\x01\x00\x00garbage", time.monotonic())
+    big = ros.serialize(ros.image(time.time_ns(), "c", np.zeros((20, 20, 3), np.uint8), "rgb8"), ros.IMAGE)
+    bridge._take("r1", "rgb", ros.IMAGE, big, time.monotonic())
+    old = ros.serialize(ros.image(time.time_ns() - 10**11, "c", np.zeros((2, 2, 3), np.uint8), "rgb8"), ros.IMAGE)
+    bridge._take("r1", "rgb", ros.IMAGE, old, time.monotonic())
+    assert bridge.refused == {"cdr": 1, "huge": 1, "stale": 1} and rb.rgb is None
+    assert "100.0 s old" in rb.last_refusal
+    ok = ros.serialize(ros.image(time.time_ns(), "c", np.full((2, 2, 3), 7, np.uint8), "rgb8"), ros.IMAGE)
+    bridge._take("r1", "rgb", ros.IMAGE, ok, time.monotonic())
+    assert rb.rgb is not None and rb.rgb.value.tolist() == [[[7, 7, 7]] * 2] * 2
