@@ -43,6 +43,10 @@ SERVICES = (*PIPELINE, GATEWAY)
 STATEFUL = ("sim", "mapper", "planner", "stopper")
 """Services with per-episode state (sharded by robot when several instances run)."""
 _EPISODE = ("sim", "mapper", "planner", "stopper")
+STANDS_IN: dict[str, str] = {"ros2_bridge": "sim"}
+"""Processes that take a service's place for some robots and keep its contract: they consume and publish exactly
+the streams of the one they stand in for (``ros2_bridge``: a ROS 2 robot in the sim's place for the robots of
+``EQA_ROS2_ROBOTS``; docs/robots.md). The gateway counts one alive as the service."""
 
 
 @dataclass(frozen=True)

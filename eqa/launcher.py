@@ -87,7 +87,7 @@ class Fleet:
         join: list[str] | None = None,
         instances: dict[str, int] | None = None,
     ) -> None:
-        unknown = set(services) - set(ALL_SERVICES)
+        unknown = set(services) - set(ALL_SERVICES) - set(dataflow.STANDS_IN)
         if unknown:
             raise LaunchError(f"unknown services {sorted(unknown)}; known: {', '.join(ALL_SERVICES)}")
         if scorers < 1 and "vlm_scorer" in services:

@@ -217,7 +217,41 @@ class Settings(BaseSettings):
         default=None, description="bearer token for the gateway's /metrics from other hosts (with EQA_API_TOKENS "
         "set; loopback callers and admin tokens need none)")
 
-    @field_validator("zenoh_listen", "zenoh_connect", "api_tokens", "cors_origins", "robots", mode="before")
+    # --- ROS 2 bridge (services/ros2_bridge; the robot contract is docs/robots.md) ---
+    ros2_robots: CsvList = Field(default_factory=list, description="robots a ROS 2 robot on rmw_zenoh drives "
+                                 "through the bridge; the sim leaves them alone")
+    ros2_domain_id: int = Field(default=0, ge=0, le=232, description="ROS_DOMAIN_ID of the robots")
+    ros2_namespace: str = Field(default="/{robot}", max_length=200,
+                                description="ROS namespace of a robot's topics; {robot} is the robot's name")
+    ros2_rgb_topic: str = Field(default="camera/color/image_raw", description="sensor_msgs/Image, rgb8 or bgr8")
+    ros2_depth_topic: str = Field(default="camera/depth/image_raw",
+                                  description="sensor_msgs/Image, 16UC1 (EQA_ROS2_DEPTH_UNIT_M) or 32FC1 metres")
+    ros2_info_topic: str = Field(default="camera/color/camera_info", description="sensor_msgs/CameraInfo")
+    ros2_pose_topic: str = Field(default="odom", description="base pose: nav_msgs/Odometry, or tf2_msgs/TFMessage")
+    ros2_pose_type: Literal["odometry", "tf"] = "odometry"
+    ros2_map_frame: str = Field(default="map", description="the world frame of poses and goals")
+    ros2_base_frame: str = Field(default="base_link", description="child frame of the base pose (TF)")
+    ros2_goal_topic: str = Field(default="goal_pose", description="geometry_msgs/PoseStamped goals (Nav2's topic)")
+    ros2_depth_unit_m: float = Field(default=0.001, gt=0, le=1.0, description="metres per 16UC1 depth unit")
+    ros2_camera_height_m: float = Field(default=1.5, ge=0.0, le=5.0, description="camera above the base")
+    ros2_camera_tilt_deg: float = Field(default=-30.0, ge=-90.0, le=90.0, description="camera pitch, negative down")
+    ros2_arrive_tolerance_m: float = Field(default=0.25, gt=0, le=5.0)
+    ros2_arrive_yaw_tolerance_deg: float = Field(default=20.0, gt=0, le=180.0)
+    ros2_settle_s: float = Field(default=0.5, ge=0.0, le=30.0,
+                                 description="the pose must stay within tolerance this long to count as arrived")
+    ros2_goal_timeout_s: float = Field(default=60.0, gt=0, le=3600.0,
+                                       description="a goal not reached in this time is refused to the planner")
+    ros2_frame_timeout_s: float = Field(default=5.0, gt=0, le=300.0,
+                                        description="time to get a fresh, consistent RGB-D frame after arrival")
+    ros2_max_stamp_age_s: float = Field(default=2.0, gt=0, le=600.0, description="older stamps are stale")
+    ros2_max_stamp_skew_s: float = Field(default=0.5, gt=0, le=60.0,
+                                         description="colour, depth and pose stamps of one frame at most this apart")
+    ros2_max_image_pixels: int = Field(default=4_194_304, ge=1, le=67_108_864)
+    ros2_pick_place_service: str = Field(default="", max_length=200, description="the robot's pick/place hook "
+                                         "(docs/robots.md); empty: task episodes are refused on its robots")
+
+    @field_validator("zenoh_listen", "zenoh_connect", "api_tokens", "cors_origins", "robots", "ros2_robots",
+                     mode="before")
     @classmethod
     def _split_csv(cls, v: object) -> object:
         if isinstance(v, str):

@@ -53,6 +53,7 @@ def summarize(msg: Message) -> dict[str, Any]:
         out.update(
             step=msg.step,
             pose=_pose(msg.pose),
+            grid=msg.grid.model_dump(),
             explored_area_m2=_r(msg.explored_area_m2, 2),
             frontiers=len(msg.frontiers),
             top_frontiers=[{"x": _r(f.x, 2), "y": _r(f.y, 2), "weight": _r(f.weight)} for f in best],

@@ -251,7 +251,8 @@ class EpisodeManager:
 
     def missing_services(self) -> list[str]:
         alive = self.alive_services()
-        return [s for s in REQUIRED_SERVICES if not alive.get(s)]
+        stand_ins = {s: [b for b, of in dataflow.STANDS_IN.items() if of == s] for s in REQUIRED_SERVICES}
+        return [s for s in REQUIRED_SERVICES if not alive.get(s) and not any(alive.get(b) for b in stand_ins[s])]
 
     def _build_indexes(self) -> None:
         """Once per store: index records written before the indexes existed (one scan, at start)."""

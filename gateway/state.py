@@ -17,6 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+from eqa import dataflow
 from eqa.messages import (
     Decision,
     EpisodeCancel,
@@ -74,8 +75,9 @@ def on_message(st: EpisodeStatus, robot: str, msg: Message, now: float) -> Trans
     out = Transition(status=nxt)
     if isinstance(msg, ErrorReply):
         out.last_error = f"{msg.source} at step {msg.step}: {msg.reason}"
-        if msg.source.startswith("sim") and st.steps == 0:
-            out.ending = Ending("failed", f"sim refused the episode: {msg.reason}", tell_services=True)
+        robot_side = "sim" if msg.source.startswith("sim") else msg.source
+        if dataflow.STANDS_IN.get(robot_side, robot_side) == "sim" and st.steps == 0:
+            out.ending = Ending("failed", f"{robot_side} refused the episode: {msg.reason}", tell_services=True)
             return out
     step = getattr(msg, "step", None)
     if isinstance(step, int):

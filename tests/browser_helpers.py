@@ -9,6 +9,7 @@ The browser is Debian's ``chromium`` driven by Selenium through Debian's ``chrom
 from __future__ import annotations
 
 import contextlib
+import os
 import shutil
 import time
 from collections.abc import Callable, Iterator
@@ -20,6 +21,9 @@ import pytest
 CHROMIUM = "/usr/bin/chromium"
 CHROMEDRIVER = "/usr/bin/chromedriver"
 OFFLINE_RULES = "MAP * ~NOTFOUND, EXCLUDE 127.0.0.1"
+# Selenium Manager (run by Selenium to locate the browser) posts usage statistics to an analytics host and may
+# look for downloads; no test reaches outside the machine.
+SELENIUM_MANAGER_ENV = {"SE_AVOID_STATS": "true", "SE_OFFLINE": "true"}
 
 
 def _require() -> None:
@@ -32,6 +36,7 @@ def _require() -> None:
 def chromium(profile_dir: Path, offline: bool = True, width: int = 1280, height: int = 900) -> Iterator[Any]:
     """A headless Chromium (a Selenium ``WebDriver``) with a fresh profile in ``profile_dir``; quit on exit."""
     _require()
+    os.environ.update(SELENIUM_MANAGER_ENV)
     from selenium import webdriver
     from selenium.webdriver.chrome.service import Service
 

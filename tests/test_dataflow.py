@@ -81,6 +81,15 @@ def test_each_service_publishes_and_subscribes_what_the_graph_says() -> None:
             f"{service} subscribes {sorted(subscribed)}, the graph says {sorted(dataflow.consumed_by(service))}")
 
 
+def test_a_stand_in_keeps_the_contract_of_the_service_it_replaces() -> None:
+    for stand_in, service in dataflow.STANDS_IN.items():
+        assert service in dataflow.SERVICES and stand_in not in dataflow.SERVICES
+        published, subscribed, _ = code_flow(REPO / "services" / stand_in)
+        assert published == dataflow.produced_by(service), (stand_in, sorted(published))
+        assert subscribed == dataflow.consumed_by(service) | BASE_INPUTS, (stand_in, sorted(subscribed))
+        assert launcher.module_of(stand_in) == f"services.{stand_in}"
+
+
 def test_code_flow_notices_an_undeclared_stream(tmp_path: Path) -> None:
     pkg = tmp_path / "svc"
     pkg.mkdir()

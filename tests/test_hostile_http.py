@@ -302,6 +302,8 @@ def test_openapi_lists_every_answer_and_its_examples_work(gw) -> None:
                                                   "503"},
         ("/v1/episodes/{episode_id}/events", "get"): {"200", "401", "403", "404", "422", "429", "503"},
         ("/v1/episodes/{episode_id}/recording", "get"): {"200", "401", "403", "404", "422", "429", "500", "503"},
+        ("/v1/episodes/{episode_id}/recording.mcap", "get"): {"200", "401", "403", "404", "422", "429", "500",
+                                                              "503"},
         ("/v1/ready", "get"): {"200", "503"},
     }
     for (path, method), codes in want.items():

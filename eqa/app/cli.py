@@ -4,6 +4,7 @@
     eqa task ["Move the X from the Y to the Z" --scene S]      run one HELIOS task and print each phase
     eqa up [--scorers N]                                      run the fleet until Ctrl-C
     eqa health SERVICE...                                     exit 0 when each service has a live instance
+    eqa export EPISODE_ID --mcap                              the episode as MCAP (Foxglove, ros2 bag, Rerun)
     eqa sim ...  eqa calibrate ...  eqa bench ...  eqa gateway   (see each --help)
 
 Every command is configured by ``EQA_*`` environment variables (eqa/settings.py); flags override them.
@@ -35,6 +36,7 @@ _SUBCOMMAND_MODULES = (
     "eqa.app.calibrate",
     "eqa.app.bench_cli",
     "eqa.app.fleet_cli",
+    "eqa.app.export",
 )
 
 

@@ -17,7 +17,7 @@ from starlette.concurrency import run_in_threadpool
 from eqa import keys
 from eqa.messages import EpisodeState, EpisodeStatus
 from eqa.store import parse_stream_id
-from gateway import recordings
+from gateway import mcap_export, recordings
 from gateway.deps import ManagerDep, ReaderDep, SettingsDep, SubmitterDep
 from gateway.manager import TERMINAL
 from gateway.schemas import EpisodeList, Problem, QuestionRequest, Submitted
@@ -238,3 +238,30 @@ async def recording(episode_id: EpisodeId, manager: ManagerDep, settings: Settin
         log.error("merge of %s failed: %s", eid, exc)
         raise HTTPException(status.HTTP_500_INTERNAL_SERVER_ERROR, detail=str(exc)) from exc
     return FileResponse(path, media_type="application/octet-stream", filename=f"{eid}.rrd")
+
+
+@router.get(
+    "/episodes/{episode_id}/recording.mcap",
+    response_class=FileResponse,
+    summary="The episode as MCAP (ROS 2 messages + EQA JSON events) for Foxglove, ros2 bag or Rerun",
+    description="Frames (sensor_msgs/Image), camera info and pose, base poses, goals and paths (PoseStamped, "
+    "Path), 2D maps (OccupancyGrid) and every stored event on a JSON channel /eqa/<kind>; images and maps only "
+    "when the episode was recorded (EQA_RECORD). Channels: docs/mcap.md.",
+    responses={200: {"content": {"application/octet-stream": {}}}, **errors(404, 500, *READ_ERRORS)},
+)
+async def recording_mcap(episode_id: EpisodeId, manager: ManagerDep, settings: SettingsDep, caller: ReaderDep
+                         ) -> FileResponse:
+    eid = _episode_id(episode_id)
+    await run_in_threadpool(manager.get, eid, caller)
+
+    def build() -> mcap_export.ExportSummary:
+        return mcap_export.export_episode(settings, eid, mcap_export.read_events(manager.events, eid))
+
+    try:
+        summary = await run_in_threadpool(build)
+    except FileNotFoundError as exc:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, detail=str(exc)) from exc
+    except recordings.RecordingError as exc:
+        log.error("MCAP export of %s failed: %s", eid, exc)
+        raise HTTPException(status.HTTP_500_INTERNAL_SERVER_ERROR, detail=str(exc)) from exc
+    return FileResponse(summary.path, media_type="application/octet-stream", filename=f"{eid}.mcap")

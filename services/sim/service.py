@@ -103,6 +103,13 @@ class SimService(EpisodeService[_Episode]):
         self._scenes: OrderedDict[tuple[str, int], Renderer] = OrderedDict()
         self._K = intrinsics(settings.sim_width, settings.sim_height)
 
+    def owns(self, robot: str) -> bool:
+        # A robot of EQA_ROS2_ROBOTS is a real one: the ROS 2 bridge keeps the contract for it.
+        return robot not in self.settings.ros2_robots and super().owns(robot)
+
+    def wants(self, robot: str) -> bool:
+        return robot not in self.settings.ros2_robots and super().wants(robot)
+
     def setup_episodes(self) -> None:
         # Robots are shared among the live sim instances by the base's Shard (EQA_SHARD): this one drives only
         # its own, claims each step it renders, and takes a robot that moves here up from the store.

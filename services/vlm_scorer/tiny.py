@@ -142,3 +142,99 @@ def build_tiny_qwen2vl(path: str | Path, letters: str | None = None, seed: int =
     model = Qwen2VLForConditionalGeneration(config).eval()
     model.save_pretrained(out)
     return out
+
+
+def build_tiny_llama_gguf(path: str | Path, seed: int = 0) -> Path:
+    """Write a tiny random Llama (transformers ``LlamaForCausalLM``, 2 layers of width 32) with the byte-level
+    BPE tokenizer and ChatML template of :func:`build_tiny_qwen2vl` as one GGUF file (``gguf`` writer, F32), for
+    llama.cpp's server: text only, no vision projector. Returns the file."""
+    import json
+    import tempfile
+
+    import gguf
+    import numpy as np
+    import torch
+    from transformers import LlamaConfig, LlamaForCausalLM, PreTrainedTokenizerFast
+
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        tok_dir = Path(tmp) / "tok"
+        tok_dir.mkdir()
+        build_tiny_qwen2vl(tok_dir)
+        tokenizer = PreTrainedTokenizerFast.from_pretrained(tok_dir)
+        spec = json.loads((tok_dir / "tokenizer.json").read_text())
+    vocab = len(tokenizer)
+    ids = {t: tokenizer.convert_tokens_to_ids(t) for t in SPECIAL_TOKENS}
+    cfg = LlamaConfig(vocab_size=vocab, hidden_size=32, intermediate_size=64, num_hidden_layers=2,
+                      num_attention_heads=2, num_key_value_heads=1, max_position_embeddings=2048,
+                      rms_norm_eps=1e-5, bos_token_id=ids["<|endoftext|>"], eos_token_id=ids["<|im_end|>"])
+    torch.manual_seed(seed)
+    sd = {k: v.detach().float().numpy() for k, v in LlamaForCausalLM(cfg).state_dict().items()}
+    head_dim = cfg.hidden_size // cfg.num_attention_heads
+
+    def permute(w: np.ndarray, heads: int) -> np.ndarray:  # HF's rotary layout -> GGML's (as convert_hf_to_gguf)
+        return w.reshape(heads, 2, w.shape[0] // heads // 2, *w.shape[1:]).swapaxes(1, 2).reshape(w.shape)
+
+    w = gguf.GGUFWriter(str(out), "llama")
+    w.add_name("eqa-tiny-llama")
+    w.add_context_length(cfg.max_position_embeddings)
+    w.add_embedding_length(cfg.hidden_size)
+    w.add_block_count(cfg.num_hidden_layers)
+    w.add_feed_forward_length(cfg.intermediate_size)
+    w.add_head_count(cfg.num_attention_heads)
+    w.add_head_count_kv(cfg.num_key_value_heads)
+    w.add_rope_dimension_count(head_dim)
+    w.add_layer_norm_rms_eps(cfg.rms_norm_eps)
+    w.add_file_type(gguf.LlamaFileType.ALL_F32)
+    w.add_vocab_size(vocab)
+    w.add_tokenizer_model("gpt2")
+    w.add_tokenizer_pre("default")
+    by_id = {i: t for t, i in tokenizer.get_vocab().items()}
+    w.add_token_list([by_id[i] for i in range(vocab)])
+    special = set(ids.values())
+    w.add_token_types([gguf.TokenType.CONTROL if i in special else gguf.TokenType.NORMAL for i in range(vocab)])
+    merges = spec["model"]["merges"]
+    w.add_token_merges([m if isinstance(m, str) else " ".join(m) for m in merges])
+    w.add_bos_token_id(ids["<|endoftext|>"])
+    w.add_eos_token_id(ids["<|im_end|>"])
+    w.add_pad_token_id(ids["<|endoftext|>"])
+    w.add_add_bos_token(False)
+    w.add_chat_template(TEXT_CHAT_TEMPLATE)
+    names = {"model.embed_tokens.weight": "token_embd.weight", "model.norm.weight": "output_norm.weight",
+             "lm_head.weight": "output.weight"}
+    per_layer = {"input_layernorm": "attn_norm", "self_attn.q_proj": "attn_q", "self_attn.k_proj": "attn_k",
+                 "self_attn.v_proj": "attn_v", "self_attn.o_proj": "attn_output",
+                 "post_attention_layernorm": "ffn_norm", "mlp.gate_proj": "ffn_gate", "mlp.up_proj": "ffn_up",
+                 "mlp.down_proj": "ffn_down"}
+    for name, arr in sd.items():
+        if name in names:
+            w.add_tensor(names[name], arr)
+            continue
+        _, _, layer, *rest = name.split(".")
+        part = ".".join(rest[:-1])
+        if part == "self_attn.q_proj":
+            arr = permute(arr, cfg.num_attention_heads)
+        elif part == "self_attn.k_proj":
+            arr = permute(arr, cfg.num_key_value_heads)
+        w.add_tensor(f"blk.{layer}.{per_layer[part]}.weight", np.ascontiguousarray(arr, dtype=np.float32))
+    w.write_header_to_file()
+    w.write_kv_data_to_file()
+    w.write_tensors_to_file()
+    w.close()
+    return out
+
+
+# The ChatML turns of CHAT_TEMPLATE for a text-only server (image parts are dropped; the text is kept).
+TEXT_CHAT_TEMPLATE = (
+    "{% for message in messages %}"
+    "{% if loop.first and message['role'] != 'system' %}"
+    "<|im_start|>system\nYou are a helpful assistant.<|im_end|>\n"
+    "{% endif %}"
+    "<|im_start|>{{ message['role'] }}\n"
+    "{% if message['content'] is string %}{{ message['content'] }}"
+    "{% else %}{% for part in message['content'] %}{% if 'text' in part %}{{ part['text'] }}{% endif %}"
+    "{% endfor %}{% endif %}<|im_end|>\n"
+    "{% endfor %}"
+    "{% if add_generation_prompt %}<|im_start|>assistant\n{% endif %}"
+)
