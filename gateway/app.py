@@ -225,12 +225,14 @@ def create_app(settings: Settings, scene_area: SceneArea | None = None) -> FastA
     app.state.auth = Authenticator(settings)  # ValueError naming a bad EQA_API_TOKENS entry
     app.state.limiter = app.state.auth.limiter
     app.state.manager = None
+    app.state.sse_open = {}  # open event streams per caller key (gateway/routers/episodes.py)
     app.add_exception_handler(RequestValidationError, _validation_error)
     app.add_exception_handler(GatewayError, _gateway_error)
     for exc_type in unavailable_errors():
         app.add_exception_handler(exc_type, _store_unavailable)
     # Body cap and authentication before a body is read (pure ASGI: chunked bodies are counted as they come).
-    app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
+    app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes, timeout_s=settings.body_timeout_s,
+                       max_uploads=settings.max_concurrent_uploads)
 
     if settings.cors_origins:
         app.add_middleware(

@@ -24,6 +24,7 @@ from eqa.messages import EpisodeEnd
 from eqa.settings import Settings
 from eqa.store import episode_end_key, open_store
 from gateway.app import create_app
+from gateway.cli import uvicorn_options
 from services.sim.library import floor_area
 
 if TYPE_CHECKING:
@@ -114,11 +115,9 @@ class GatewayThread:
         self.url = f"http://127.0.0.1:{self.port}"
         config = uvicorn.Config(
             create_app(self.settings, scene_area=floor_area),
-            host="127.0.0.1",
-            port=self.port,
             log_level="warning",
-            access_log=False,
             lifespan="on",
+            **uvicorn_options(self.settings),
         )
         self.server = uvicorn.Server(config)
         self._thread = threading.Thread(target=self.server.run, name="gateway-uvicorn", daemon=True)
