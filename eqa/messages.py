@@ -248,9 +248,6 @@ class Task(BaseModel):
         if self.object in (self.start_receptacle, self.goal_receptacle):
             raise ValueError(f"the object ({self.object!r}) is also named as a receptacle: name the thing to move "
                              "and two other things it is on and goes to")
-        if self.start_receptacle is not None and self.start_receptacle == self.goal_receptacle:
-            raise ValueError(f"the start and goal receptacles are both {self.start_receptacle!r}: the object is "
-                             "already there; name another goal receptacle")
         return self
 
     @property

@@ -31,7 +31,7 @@ from eqa import keys
 from eqa.bus import Bus
 from eqa.messages import MESSAGE_TYPES, EpisodeEnd, ErrorReply, Message
 from eqa.settings import Settings
-from eqa.store import open_store, unavailable_errors
+from eqa.store import StoreUnavailable, open_store, unavailable_errors
 from gateway.auth import Authenticator, authenticate_docs, retry_after
 from gateway.errors import GatewayError
 from gateway.limits import BODY_METHODS, BodyLimit
@@ -179,10 +179,10 @@ async def _gateway_error(_request: Request, exc: Exception) -> JSONResponse:
 async def _store_unavailable(_request: Request, exc: Exception) -> JSONResponse:
     """503 with ``Retry-After`` while the store cannot be reached (it was a 500)."""
     log.warning("store unavailable: %s: %s", type(exc).__name__, exc)
+    why = str(exc) if isinstance(exc, StoreUnavailable) else type(exc).__name__  # its own words say what happened
     return JSONResponse(
         status_code=status.HTTP_503_SERVICE_UNAVAILABLE,
-        content={"detail": f"the episode store is unavailable ({type(exc).__name__}); retry in "
-                           f"{STORE_RETRY_AFTER_S} s"},
+        content={"detail": f"the episode store is unavailable ({why}); retry in {STORE_RETRY_AFTER_S} s"},
         headers={"Retry-After": str(STORE_RETRY_AFTER_S)},
     )
 

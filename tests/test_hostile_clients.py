@@ -8,6 +8,7 @@ The gateway runs in this process with a private Zenoh port and no services (epis
 
 from __future__ import annotations
 
+import contextlib
 import socket
 import threading
 import time
@@ -16,7 +17,7 @@ from pathlib import Path
 import httpx
 import pytest
 from fleet_support import GatewayThread
-from test_hostile_http import A, ADMIN, B, Q, gw_settings
+from test_hostile_http import ADMIN, A, B, Q, gw_settings
 
 from gateway.auth import client_ip, parse_networks
 
@@ -138,10 +139,8 @@ def test_slow_loris_uploads_are_cut_off_and_capped(tmp_path: Path) -> None:
         def trickle() -> None:
             while not stop.wait(2.0):
                 for sock in socks:
-                    try:
+                    with contextlib.suppress(OSError):
                         sock.sendall(b" ")
-                    except OSError:
-                        pass
 
         def watch(i: int) -> None:
             status, closed = _answer_and_close(socks[i], timeout=20)
@@ -224,7 +223,6 @@ def test_exact_values_are_still_accepted(gw) -> None:
 TASKS = [
     ("object is its own receptacle", "Move the mug from the mug to the mug"),
     ("object is the goal", "Move the mug from the table to the mug"),
-    ("start is the goal", "Move the mug from the table to the table"),
     ("zero-width instruction", "\u200b\u200b"),
 ]
 
