@@ -207,7 +207,7 @@ def refusals(args: argparse.Namespace) -> int:
     flood, submitter = TOKEN, TOKEN + "-submitter"
     queue_max = 5
     settings = fleet_settings(tmp / "var", redis_url, log_level="WARNING").model_copy(update={
-        "api_tokens": [flood, submitter], "rate_limit_per_s": 20.0, "auth_failures_per_min": 20.0,
+        "api_tokens": [flood, submitter], "rate_limit_per_s": 5.0, "auth_failures_per_min": 20.0,
         "queue_max_per_robot": queue_max, "queue_max_per_token": 100, "episode_timeout_s": 3600.0,
         "zenoh_listen": [f"tcp/127.0.0.1:{free_port()}"], "zenoh_connect": [],
     })
@@ -236,7 +236,7 @@ def refusals(args: argparse.Namespace) -> int:
                 if r.status_code != 202:
                     print(f"error: filling the queue: {r.status_code} {r.text[:200]}", file=sys.stderr)
                     return 1
-                time.sleep(1.0 / 20)  # within the rate limit
+                time.sleep(1.0 / 4)  # within the rate limit
             time.sleep(1.5)  # the submitter's rate bucket refills
             load_before = os.getloadavg()[0]
             lat, errors, lag = asyncio.run(refusal_load(gw.port, mix, args.rate, args.duration, args.connections))

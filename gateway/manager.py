@@ -475,6 +475,40 @@ class EpisodeManager:
         while len(self._known_scenes) > 10_000:
             self._known_scenes.pop(next(iter(self._known_scenes)))
 
+    def refuse_if_full(self, caller: Caller | None, robot: str | None) -> None:
+        """:class:`TooManyError` when memory already shows that :meth:`submit` would refuse for a full queue
+        or too many episodes of this token: the same limits, checked on the event loop from the lock-free
+        snapshots of the active episodes, so a flood of submissions against a full queue is refused without
+        a thread hop, the lock or a store call. Refuses nothing :meth:`submit` would take (it checks again)."""
+        owner = caller.tenant if caller is not None else ANONYMOUS
+        active = list(self._snapshots.values())  # one atomic copy (the dict changes on worker threads)
+        owned = sum(1 for o, _ in active if o == owner)
+        if owned >= self.settings.queue_max_per_token:
+            wait = self.retry_after_s()
+            raise TooManyError(
+                f"this token has {owned} queued or running episodes, the most one token may have "
+                f"(EQA_QUEUE_MAX_PER_TOKEN={self.settings.queue_max_per_token}); retry in about {wait:.0f} s",
+                retry_after_s=wait,
+            )
+        if self.settings.busy_policy != "queue" or (robot is not None and robot not in self.settings.robots):
+            return
+        candidates = [robot] if robot is not None else list(self.settings.robots)
+        queued = {r: 0 for r in candidates}
+        busy: set[str] = set()
+        for _, st in active:
+            if st.robot in queued:
+                busy.add(st.robot)
+                queued[st.robot] += st.state == "queued"
+        cap = self.settings.queue_max_per_robot
+        if all(r in busy and queued[r] >= cap for r in candidates):
+            fullest = min(candidates, key=lambda r: queued[r])
+            wait = self.retry_after_s(queued[fullest] // max(1, cap))
+            raise TooManyError(
+                f"the queue of robot {fullest} is full ({queued[fullest]} episodes, EQA_QUEUE_MAX_PER_ROBOT={cap}); "
+                f"retry in about {wait:.0f} s",
+                retry_after_s=wait,
+            )
+
     def submit(self, req: QuestionRequest, caller: Caller | None = None, *, task: Task | None = None,
                ablation: Ablation = "helios", pick_limit: int | None = None) -> Submitted:
         """A question episode; with ``task`` a HELIOS task episode whose stand-in question is ``req``

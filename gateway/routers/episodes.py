@@ -116,8 +116,9 @@ def _event_id(value: str, where: list[str]) -> str:
     summary="Submit a question; returns the episode id (running or queued)",
     responses=errors(400, 401, 403, 409, 413, 422, 429, 503),
 )
-def submit(body: QuestionRequest, manager: ManagerDep, caller: SubmitterDep) -> Submitted:
-    return manager.submit(body, caller)
+async def submit(body: QuestionRequest, manager: ManagerDep, caller: SubmitterDep) -> Submitted:
+    manager.refuse_if_full(caller, body.robot)  # a full queue is refused on the event loop, at once
+    return await run_in_threadpool(manager.submit, body, caller)
 
 
 @router.get(

@@ -5,11 +5,13 @@ is the instruction (status and events at ``/v1/episodes/{id}``)."""
 
 from __future__ import annotations
 
+import functools
 import logging
 from typing import Annotated, Literal
 
 from fastapi import APIRouter, status
 from pydantic import BaseModel, ConfigDict, Field, StrictBool, ValidationError, field_validator
+from starlette.concurrency import run_in_threadpool
 
 from eqa.instructions import InstructionError, parse_instruction
 from eqa.messages import SCENE_ID, Ablation, Pose2D, Task, TaskKind, check_text
@@ -75,10 +77,14 @@ def build_task(req: TaskRequest) -> Task:
     summary="Submit a pick-and-place or find-object task; returns the episode id (running or queued)",
     responses=errors(400, 401, 403, 409, 413, 422, 429, 503),
 )
-def submit_task(body: TaskRequest, manager: ManagerDep, caller: SubmitterDep, settings: SettingsDep) -> Submitted:
+async def submit_task(body: TaskRequest, manager: ManagerDep, caller: SubmitterDep, settings: SettingsDep
+                      ) -> Submitted:
+    manager.refuse_if_full(caller, body.robot)  # a full queue is refused on the event loop, at once
     task = build_task(body)
     limit = body.pick_limit if body.pick_limit is not None else (settings.helios_pick_attempts or None)
     stand_in = QuestionRequest(question=body.instruction.strip(), scene=body.scene, robot=body.robot,
                                start_pose=body.start_pose, stop_rule="max_steps", max_steps=body.max_steps,
                                seed=body.seed, record=body.record)
-    return manager.submit(stand_in, caller, task=task, ablation=body.ablation, pick_limit=limit)
+    return await run_in_threadpool(
+        functools.partial(manager.submit, stand_in, caller, task=task, ablation=body.ablation, pick_limit=limit)
+    )
