@@ -239,7 +239,9 @@ def refusals(args: argparse.Namespace) -> int:
                 time.sleep(1.0 / 4)  # within the rate limit
             time.sleep(1.5)  # the submitter's rate bucket refills
             load_before = os.getloadavg()[0]
+            cpu0 = _cpu_s(gw.proc.pid)  # type: ignore[union-attr]
             lat, errors, lag = asyncio.run(refusal_load(gw.port, mix, args.rate, args.duration, args.connections))
+            cpu_s = _cpu_s(gw.proc.pid) - cpu0  # type: ignore[union-attr]
             load_after = os.getloadavg()[0]
     finally:
         if redis_proc is not None:
@@ -252,9 +254,18 @@ def refusals(args: argparse.Namespace) -> int:
         ms = np.asarray(values) * 1000
         print(f"{kind}: p50 {np.percentile(ms, 50):.2f}  p90 {np.percentile(ms, 90):.2f}  p99 "
               f"{np.percentile(ms, 99):.2f}  max {ms.max():.2f} ms (n={len(ms)})")
+    n = sum(len(v) for v in lat.values())
+    print(f"gateway process CPU time: {cpu_s:.2f} s for {n} requests = {cpu_s / max(1, n) * 1000:.2f} ms per request "
+          "(user + system; what a request costs the server whatever the machine's load)")
     print(f"worst lag of a request behind its schedule: {lag * 1000:.1f} ms")
     print(f"errors: {len(errors)}" + (f" (first: {errors[0]})" if errors else ""))
     return 1 if errors else 0
+
+
+def _cpu_s(pid: int) -> float:
+    """User + system CPU seconds of a process so far (Linux /proc)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def seed_history(settings: Settings, n: int) -> list[str]:

@@ -255,9 +255,11 @@ _EDGE_ANSWERS = {  # what the authentication, limits and store handlers may answ
     "403": "the token lacks the scope this route needs",
     "422": "invalid input: one entry per field saying what to change",
     "429": "too many requests (rate, failed authentications, full queue); see Retry-After",
-    "503": "the episode store is unavailable; see Retry-After",
+    "503": "the episode store is unavailable, or (a body) EQA_MAX_CONCURRENT_UPLOADS are being received; see "
+           "Retry-After",
 }
 _BODY_ANSWERS = {"400": "malformed request (a Content-Length that is not a number)",
+                 "408": "the body did not arrive whole within EQA_BODY_TIMEOUT_S (the connection is closed)",
                  "413": "body over EQA_MAX_BODY_BYTES (checked while it streams in, chunked too)"}
 
 
