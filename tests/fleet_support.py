@@ -148,7 +148,11 @@ class GatewayProcess:
         env = {**os.environ, **self.settings.env(), "EQA_INSTANCE": f"gw-{os.getpid()}-{self._n}"}
         out = open(self.log_path, "ab") if self.log_path else subprocess.DEVNULL  # noqa: SIM115
         self.proc = subprocess.Popen([sys.executable, "-m", "gateway"], env=env, stdout=out, stderr=out)
-        wait_ready(self.url, timeout=120.0, proc=self.proc)  # a process start imports much: slow on a loaded machine
+        try:
+            wait_ready(self.url, timeout=120.0, proc=self.proc)  # a process start imports much: slow when loaded
+        except BaseException:
+            self.kill()  # a gateway that never answered is not left running after the test
+            raise
         return self
 
     def kill(self) -> None:
