@@ -13,6 +13,14 @@ request failed.
 
     python bench/bench_gateway.py                  # 200 rps for 30 s
     python bench/bench_gateway.py --rate 50 --duration 5
+
+``--refusals``: the cost of refusals instead (no services, only the gateway process and its Redis): an
+open-loop mix at --rate (default 500 req/s) of requests that must be refused: a valid token over its rate limit
+(429), wrong tokens (401, then 429 once the address' failure bucket is empty), bodies over the cap (413,
+answered from the headers, a new connection each) and submissions against a full queue (429); prints the
+latency percentiles of each kind and the machine's load.
+
+    python bench/bench_gateway.py --refusals --rate 500 --duration 20
 """
 
 from __future__ import annotations
@@ -133,6 +141,133 @@ async def load(
     return latencies, errors, lag
 
 
+async def refusal_load(port: int, mix: list[tuple[str, bytes, bool, set[int]]], rate: float, duration: float,
+                       conns: int) -> tuple[dict[str, list[float]], list[str], float]:
+    """Open-loop load of ``mix`` entries ``(kind, raw request, on a new connection, statuses wanted)``, request
+    i being entry i mod len(mix), due at i/rate. Returns latencies per kind, errors (other statuses) and the
+    worst lag behind the schedule."""
+    latencies: dict[str, list[float]] = {}
+    errors: list[str] = []
+    due: asyncio.Queue[tuple[float, int] | None] = asyncio.Queue()
+    lag = 0.0
+
+    async def worker() -> None:
+        nonlocal lag
+        reader, writer = await asyncio.open_connection("127.0.0.1", port)
+        try:
+            while (item := await due.get()) is not None:
+                t_due, i = item
+                kind, raw, fresh, wanted = mix[i % len(mix)]
+                t0 = time.perf_counter()
+                lag = max(lag, t0 - t_due)
+                try:
+                    if fresh:
+                        r2, w2 = await asyncio.open_connection("127.0.0.1", port)
+                        try:
+                            status, body = await asyncio.wait_for(_request(r2, w2, raw), timeout=10)
+                        finally:
+                            w2.close()
+                    else:
+                        status, body = await asyncio.wait_for(_request(reader, writer, raw), timeout=10)
+                except (OSError, asyncio.IncompleteReadError, TimeoutError, ValueError) as exc:
+                    errors.append(f"{kind}: {type(exc).__name__}: {exc}")
+                    writer.close()
+                    reader, writer = await asyncio.open_connection("127.0.0.1", port)
+                    continue
+                latencies.setdefault(f"{kind} -> {status}", []).append(time.perf_counter() - t0)
+                if status not in wanted:
+                    errors.append(f"{kind}: HTTP {status}: {body[:100]!r}")
+        finally:
+            writer.close()
+
+    workers = [asyncio.create_task(worker()) for _ in range(conns)]
+    total = int(rate * duration)
+    start = time.perf_counter()
+    for i in range(total):
+        t_due = start + i / rate
+        delay = t_due - time.perf_counter()
+        if delay > 0:
+            await asyncio.sleep(delay)
+        due.put_nowait((t_due, i))
+    for _ in workers:
+        due.put_nowait(None)
+    await asyncio.gather(*workers)
+    elapsed = time.perf_counter() - start
+    print(f"sent {total} requests in {elapsed:.1f} s ({total / elapsed:.1f} req/s), {conns} keep-alive connections")
+    return latencies, errors, lag
+
+
+def refusals(args: argparse.Namespace) -> int:
+    """The ``--refusals`` bench (see the module docstring)."""
+    import json
+
+    print(f"machine: {os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f} (1 min) at the start")
+    tmp = Path(tempfile.mkdtemp(prefix="bench-refusals-"))
+    redis_proc, redis_url = (None, args.redis_url) if args.redis_url else start_redis(tmp)
+    flood, submitter = TOKEN, TOKEN + "-submitter"
+    queue_max = 5
+    settings = fleet_settings(tmp / "var", redis_url, log_level="WARNING").model_copy(update={
+        "api_tokens": [flood, submitter], "rate_limit_per_s": 5.0, "auth_failures_per_min": 20.0,
+        "queue_max_per_robot": queue_max, "queue_max_per_token": 100, "episode_timeout_s": 3600.0,
+        "zenoh_listen": [f"tcp/127.0.0.1:{free_port()}"], "zenoh_connect": [],
+    })
+    question = json.dumps({"question": "Is the oven on?", "scene": "gen-00001", "max_steps": 5,
+                           "record": False}).encode()
+
+    def req(method: str, path: str, token: str, body: bytes = b"", length: int | None = None) -> bytes:
+        head = f"{method} {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nAuthorization: Bearer {token}\r\n"
+        if method == "POST":
+            head += f"Content-Type: application/json\r\nContent-Length: {len(body) if length is None else length}\r\n"
+        return (head + "\r\n").encode() + body
+
+    # per 10 requests: 4 over the rate limit, 3 wrong tokens, 2 bodies over the cap, 1 against a full queue
+    mix = [
+        *[("valid token over its rate limit", req("GET", "/v1/episodes?limit=1", flood), False, {200, 429})] * 4,
+        *[("wrong token", req("GET", "/v1/episodes?limit=1", "wrong-token"), False, {401, 429})] * 3,
+        *[("body over the cap", req("POST", "/v1/questions", flood, length=64 * 1024 * 1024), True, {413})] * 2,
+        ("submission against a full queue", req("POST", "/v1/questions", submitter, question), False, {429}),
+    ]
+    try:
+        with GatewayProcess(settings, log_path=tmp / "gateway.log") as gw, httpx.Client(
+            base_url=gw.url, headers={"Authorization": f"Bearer {submitter}"}, timeout=30
+        ) as c:
+            for _ in range(queue_max + 1):  # one running (no services: it stays so) + a full queue
+                r = c.post("/v1/questions", content=question, headers={"Content-Type": "application/json"})
+                if r.status_code != 202:
+                    print(f"error: filling the queue: {r.status_code} {r.text[:200]}", file=sys.stderr)
+                    return 1
+                time.sleep(1.0 / 4)  # within the rate limit
+            time.sleep(1.5)  # the submitter's rate bucket refills
+            load_before = os.getloadavg()[0]
+            cpu0 = _cpu_s(gw.proc.pid)  # type: ignore[union-attr]
+            lat, errors, lag = asyncio.run(refusal_load(gw.port, mix, args.rate, args.duration, args.connections))
+            cpu_s = _cpu_s(gw.proc.pid) - cpu0  # type: ignore[union-attr]
+            load_after = os.getloadavg()[0]
+    finally:
+        if redis_proc is not None:
+            redis_proc.terminate()
+            redis_proc.wait(timeout=10)
+    print(f"machine load average (1 min): {load_before:.2f} before, {load_after:.2f} after ({os.cpu_count()} cores, "
+          "shared with whatever else runs)")
+    all_ms = np.asarray([x for v in lat.values() for x in v]) * 1000
+    for kind, values in [("all", list(all_ms / 1000)), *sorted(lat.items())]:
+        ms = np.asarray(values) * 1000
+        print(f"{kind}: p50 {np.percentile(ms, 50):.2f}  p90 {np.percentile(ms, 90):.2f}  p99 "
+              f"{np.percentile(ms, 99):.2f}  max {ms.max():.2f} ms (n={len(ms)})")
+    n = sum(len(v) for v in lat.values())
+    print(f"gateway process CPU time: {cpu_s:.2f} s for {n} requests = {cpu_s / max(1, n) * 1000:.2f} ms per request "
+          "(user + system; what a request costs the server whatever the machine's load)")
+    print(f"worst lag of a request behind its schedule: {lag * 1000:.1f} ms")
+    print(f"errors: {len(errors)}" + (f" (first: {errors[0]})" if errors else ""))
+    return 1 if errors else 0
+
+
+def _cpu_s(pid: int) -> float:
+    """User + system CPU seconds of a process so far (Linux /proc)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def seed_history(settings: Settings, n: int) -> list[str]:
     """``n`` ended episodes of the bench's token written into the gateway's store (its record and index
     layout, :meth:`gateway.manager.EpisodeManager.store_record`), as a long-running gateway would hold them."""
@@ -190,7 +325,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--embedded", action="store_true", help="use the embedded SQLite store instead of Redis")
     ap.add_argument("--stored", type=int, default=10_000, help="ended episodes in the store during the load (10000)")
     ap.add_argument("--queue-max", type=int, default=20, help="EQA_QUEUE_MAX_PER_ROBOT for the full-queue POSTs (20)")
+    ap.add_argument("--refusals", action="store_true",
+                    help="measure refusals (429/401/413) instead: gateway and Redis only, default 500 req/s")
     args = ap.parse_args(argv)
+    if args.refusals:
+        if "--rate" not in (argv if argv is not None else sys.argv[1:]):
+            args.rate = 500.0
+        if not (0 < args.rate <= 5000 and 0 < args.duration <= 600 and 1 <= args.connections <= 256):
+            print("error: need 0 < rate <= 5000, 0 < duration <= 600, 1 <= connections <= 256", file=sys.stderr)
+            return 2
+        return refusals(args)
     if not (0 < args.rate <= 5000 and 0 < args.duration <= 600 and 1 <= args.connections <= 256):
         print("error: need 0 < rate <= 5000, 0 < duration <= 600, 1 <= connections <= 256", file=sys.stderr)
         return 2

@@ -20,11 +20,22 @@ import math
 import re
 import string
 import time
+import unicodedata
 import uuid
 from typing import Annotated, Any, ClassVar, Literal, TypeVar
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StrictBool,
+    StrictFloat,
+    StrictInt,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from eqa import keys
 from eqa.codec import CodecError, NDArray, ZNDArray, packb, unpackb
@@ -61,12 +72,18 @@ def check_scene_id(value: str) -> str:
     return value
 
 
+def is_blank(value: str) -> bool:
+    """True when ``value`` shows nothing: only white space and Unicode format characters (category Cf:
+    zero-width spaces and joiners, byte-order marks, direction marks), which a reader cannot see."""
+    return all(c.isspace() or unicodedata.category(c) == "Cf" for c in value)
+
+
 def check_text(value: str, what: str) -> str:
-    """No NUL (or other C0 control character but tab and newline) and not blank."""
+    """No NUL (or other C0 control character but tab and newline) and not blank (:func:`is_blank`)."""
     if any(c < " " and c not in "\t\n\r" for c in value):
         raise ValueError(f"{what} contains a control character (NUL or similar): remove it")
-    if not value.strip():
-        raise ValueError(f"{what} is empty")
+    if is_blank(value):
+        raise ValueError(f"{what} is empty (only spaces or invisible characters)")
     return value
 
 
@@ -160,7 +177,7 @@ class Question(BaseModel):
     # room's centre when no object is the evidence). Read by no scorer and by no product strategy.
     targets: list[tuple[float, float]] = Field(default_factory=list, max_length=64)
     start_pose: Pose2D | None = None
-    max_steps: int | None = Field(default=None, ge=1, le=10_000)
+    max_steps: StrictInt | None = Field(default=None, ge=1, le=10_000)
 
     def without_ground_truth(self) -> Question:
         """The question as a scorer sees it: no answer, evidence ids or target positions (ground truth)."""
@@ -223,7 +240,7 @@ class Task(BaseModel):
     start_receptacle_ids: list[int] = Field(default_factory=list, max_length=256)
     goal_receptacle_ids: list[int] = Field(default_factory=list, max_length=256)
     start_pose: Pose2D | None = None
-    max_steps: int | None = Field(default=None, ge=1, le=10_000)
+    max_steps: StrictInt | None = Field(default=None, ge=1, le=10_000)
     shortest_path_m: float | None = Field(default=None, ge=0.0)
 
     @model_validator(mode="after")
@@ -232,6 +249,9 @@ class Task(BaseModel):
             raise ValueError("a pick_place task names a start_receptacle and a goal_receptacle")
         if self.kind == "find_object" and (self.start_receptacle is not None or self.goal_receptacle is not None):
             raise ValueError("a find_object task names only the object")
+        if self.object in (self.start_receptacle, self.goal_receptacle):
+            raise ValueError(f"the object ({self.object!r}) is also named as a receptacle: name the thing to move "
+                             "and two other things it is on and goes to")
         return self
 
     @property
@@ -263,8 +283,8 @@ class StopConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
     rule: StopRule = "cp"
-    eps: float = Field(default=0.2, gt=0.0, lt=1.0, description="CP miscoverage: 1-eps is the success wanted")
-    threshold: float | None = Field(
+    eps: StrictFloat = Field(default=0.2, gt=0.0, lt=1.0, description="CP miscoverage: 1-eps is the success wanted")
+    threshold: StrictFloat | None = Field(
         default=None, ge=0.0, le=100.0, allow_inf_nan=False, description="entropy (nats) or relevance threshold"
     )
 
@@ -276,9 +296,9 @@ class EpisodeStart(Message):
     question: Question
     strategy: Strategy = "semantic"
     stop: StopConfig = Field(default_factory=StopConfig)
-    max_steps: int = Field(ge=1, le=10_000)
-    seed: int = Field(default=0, ge=0, le=2**63 - 1)
-    record: bool = True
+    max_steps: StrictInt = Field(ge=1, le=10_000)
+    seed: StrictInt = Field(default=0, ge=0, le=2**63 - 1)
+    record: StrictBool = True
     # A HELIOS task episode (issue 17) when set; ``question`` is then its stand-in (text = the instruction).
     task: Task | None = None
     ablation: Ablation = "helios"

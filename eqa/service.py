@@ -23,9 +23,10 @@ from typing import Any
 
 from eqa import keys, logs, metrics
 from eqa.bus import Bus
+from eqa.event_log import encode_event, summarize
 from eqa.messages import STREAM_TYPES, Message
 from eqa.settings import Settings
-from eqa.store import Store, open_store
+from eqa.store import EPISODE_STATE_TTL_S, Store, episode_journal_key, open_store
 
 log = logging.getLogger(__name__)
 
@@ -106,7 +107,19 @@ class Service:
 
         threading.Thread(target=tick, name=f"{self.name}-every-{period_s:g}s", daemon=True).start()
 
+    journal: bool = True  # journal what is published for an episode (eqa.event_log), before publishing it
+
     def publish(self, robot: str, pair: tuple[str, str], msg: Message) -> None:
+        """Journal the message's summary in the store (the episode's event log holds it whatever process dies
+        next: :mod:`eqa.event_log`), then publish it. A store that fails is logged; the message goes out."""
+        episode_id = getattr(msg, "episode_id", None)
+        if self.journal and isinstance(episode_id, str):
+            try:
+                self.store.append(episode_journal_key(self.name, episode_id), encode_event(summarize(msg)),
+                                  ttl_s=EPISODE_STATE_TTL_S)
+            except Exception as exc:
+                log.warning("%s: journal of episode %s not written (%s: %s); publishing anyway", self.name,
+                            episode_id, type(exc).__name__, exc)
         self.bus.publish(keys.stream(robot, pair), msg)
 
     # ---- lifecycle --------------------------------------------------------------------------------------

@@ -250,6 +250,44 @@ class Settings(BaseSettings):
     ros2_pick_place_service: str = Field(default="", max_length=200, description="the robot's pick/place hook "
                                          "(docs/robots.md); empty: task episodes are refused on its robots")
 
+    # --- gateway: failed-auth limits, trusted proxies, hostile clients (docs/security.md) ---
+    trusted_proxies: CsvList = Field(
+        default_factory=list,
+        description="CIDRs of reverse proxies whose X-Forwarded-For names the client (e.g. 10.0.0.0/8); empty = the "
+        "client is the TCP peer, X-Forwarded-For is ignored",
+    )
+    auth_failures_per_prefix_per_min: float = Field(
+        default=60.0, gt=0, description="failed authentications per minute with tokens of one 6-character prefix "
+        "(from any address; then 429 for wrong tokens of that prefix)",
+    )
+    body_timeout_s: float = Field(
+        default=10.0, gt=0, le=3600, description="a request body must arrive whole within this (else 408, closed)"
+    )
+    max_concurrent_uploads: int = Field(
+        default=32, ge=1, le=100_000, description="request bodies read at once (more get 503 with Retry-After)"
+    )
+    sse_max_per_token: int = Field(
+        default=16, ge=1, le=100_000, description="open event streams (SSE) per token (more get 429)"
+    )
+    gateway_keep_alive_s: float = Field(
+        default=5.0, gt=0, le=600, description="idle HTTP keep-alive connections are closed after this"
+    )
+
+    @field_validator("trusted_proxies", mode="before")
+    @classmethod
+    def _proxy_cidrs(cls, v: object) -> object:
+        import ipaddress
+
+        items = [p.strip() for p in v.split(",") if p.strip()] if isinstance(v, str) else v
+        if isinstance(items, list):
+            for item in items:
+                try:
+                    ipaddress.ip_network(str(item), strict=False)
+                except ValueError as exc:
+                    raise ValueError(f"EQA_TRUSTED_PROXIES: {item!r} is not an address or CIDR (e.g. 10.0.0.0/8)"
+                                     ) from exc
+        return items
+
     @field_validator("zenoh_listen", "zenoh_connect", "api_tokens", "cors_origins", "robots", "ros2_robots",
                      mode="before")
     @classmethod

@@ -62,6 +62,12 @@ def task_trace_key(episode_id: str) -> str:
     return f"eqa:trace:task:{episode_id}"
 
 
+def episode_journal_key(service: str, episode_id: str) -> str:
+    """The stream where ``service`` journals a summary of every message it publishes for an episode, before
+    publishing it (:mod:`eqa.event_log`): the gateway backfills its event log from these after a restart."""
+    return f"eqa:journal:{service}:{episode_id}"
+
+
 LABEL_PREFIX = "eqa:label:"
 
 
@@ -125,8 +131,9 @@ class Store(ABC):
         """Atomically set ``key`` if it does not exist; True when set (a lock)."""
 
     @abstractmethod
-    def append(self, stream: str, value: bytes) -> str:
-        """Append to a stream; return the new entry id."""
+    def append(self, stream: str, value: bytes, ttl_s: float | None = None) -> str:
+        """Append to a stream; return the new entry id. ``ttl_s``: the stream expires that long after its last
+        append (Redis; the embedded store keeps streams until they are deleted)."""
 
     @abstractmethod
     def read(self, stream: str, after: str = "0-0", count: int = 1000) -> list[tuple[str, bytes]]:
@@ -212,8 +219,14 @@ class RedisStore(Store):
     def set_if_absent(self, key: str, value: bytes, ttl_s: float | None = None) -> bool:
         return bool(self._r.set(key, value, nx=True, px=int(ttl_s * 1000) if ttl_s else None))
 
-    def append(self, stream: str, value: bytes) -> str:
-        return self._r.xadd(stream, {"v": value}).decode()
+    def append(self, stream: str, value: bytes, ttl_s: float | None = None) -> str:
+        if not ttl_s:
+            return self._r.xadd(stream, {"v": value}).decode()
+        pipe = self._r.pipeline(transaction=False)
+        pipe.xadd(stream, {"v": value})
+        pipe.pexpire(stream, int(ttl_s * 1000))
+        entry, _ = pipe.execute()
+        return entry.decode()
 
     def read(self, stream: str, after: str = "0-0", count: int = 1000) -> list[tuple[str, bytes]]:
         _id_tuple(after)
@@ -326,7 +339,7 @@ class EmbeddedStore(Store):
             conn.execute("ROLLBACK")
             raise
 
-    def append(self, stream: str, value: bytes) -> str:
+    def append(self, stream: str, value: bytes, ttl_s: float | None = None) -> str:
         conn = self._conn()
         conn.execute("BEGIN IMMEDIATE")
         try:

@@ -31,7 +31,7 @@ from eqa import keys, logs, metrics
 from eqa.bus import Bus
 from eqa.messages import MESSAGE_TYPES, EpisodeEnd, ErrorReply, Message
 from eqa.settings import Settings
-from eqa.store import open_store, unavailable_errors
+from eqa.store import StoreUnavailable, open_store, unavailable_errors
 from gateway import metrics as gateway_metrics
 from gateway.auth import Authenticator, authenticate_docs, retry_after
 from gateway.errors import GatewayError
@@ -182,10 +182,10 @@ async def _gateway_error(_request: Request, exc: Exception) -> JSONResponse:
 async def _store_unavailable(_request: Request, exc: Exception) -> JSONResponse:
     """503 with ``Retry-After`` while the store cannot be reached (it was a 500)."""
     log.warning("store unavailable: %s: %s", type(exc).__name__, exc)
+    why = str(exc) if isinstance(exc, StoreUnavailable) else type(exc).__name__  # its own words say what happened
     return JSONResponse(
         status_code=status.HTTP_503_SERVICE_UNAVAILABLE,
-        content={"detail": f"the episode store is unavailable ({type(exc).__name__}); retry in "
-                           f"{STORE_RETRY_AFTER_S} s"},
+        content={"detail": f"the episode store is unavailable ({why}); retry in {STORE_RETRY_AFTER_S} s"},
         headers={"Retry-After": str(STORE_RETRY_AFTER_S)},
     )
 
@@ -228,12 +228,14 @@ def create_app(settings: Settings, scene_area: SceneArea | None = None) -> FastA
     app.state.auth = Authenticator(settings)  # ValueError naming a bad EQA_API_TOKENS entry
     app.state.limiter = app.state.auth.limiter
     app.state.manager = None
+    app.state.sse_open = {}  # open event streams per caller key (gateway/routers/episodes.py)
     app.add_exception_handler(RequestValidationError, _validation_error)
     app.add_exception_handler(GatewayError, _gateway_error)
     for exc_type in unavailable_errors():
         app.add_exception_handler(exc_type, _store_unavailable)
     # Body cap and authentication before a body is read (pure ASGI: chunked bodies are counted as they come).
-    app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
+    app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes, timeout_s=settings.body_timeout_s,
+                       max_uploads=settings.max_concurrent_uploads)
 
     if settings.cors_origins:
         app.add_middleware(
@@ -257,9 +259,11 @@ _EDGE_ANSWERS = {  # what the authentication, limits and store handlers may answ
     "403": "the token lacks the scope this route needs",
     "422": "invalid input: one entry per field saying what to change",
     "429": "too many requests (rate, failed authentications, full queue); see Retry-After",
-    "503": "the episode store is unavailable; see Retry-After",
+    "503": "the episode store is unavailable, or (a body) EQA_MAX_CONCURRENT_UPLOADS are being received; see "
+           "Retry-After",
 }
 _BODY_ANSWERS = {"400": "malformed request (a Content-Length that is not a number)",
+                 "408": "the body did not arrive whole within EQA_BODY_TIMEOUT_S (the connection is closed)",
                  "413": "body over EQA_MAX_BODY_BYTES (checked while it streams in, chunked too)"}
 
 

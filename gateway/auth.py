@@ -8,9 +8,18 @@ Each token is a tenant: an episode belongs to the token that created it, and eve
 token (``t-<16 hex>``), never the token. With ``EQA_API_TOKENS`` empty authentication is off (local use):
 every caller is the tenant ``anon`` with every scope, and the rate limit applies per client address.
 
-Tokens are compared in constant time. A client address that fails authentication more than
-``EQA_AUTH_FAILURES_PER_MIN`` times a minute gets 429 with ``Retry-After`` (without its token being checked)
-until its bucket refills.
+Tokens are compared in constant time. Failed authentication is limited without ever refusing a valid token:
+a request is checked for a valid token first, and one that carries one is served whatever other requests from
+its address did (behind a NAT or a reverse proxy one address is many users). Wrong or missing tokens are
+counted per client address (``EQA_AUTH_FAILURES_PER_MIN``) and wrong tokens also per token prefix (their first
+:data:`PREFIX_CHARS` characters, from any address: ``EQA_AUTH_FAILURES_PER_PREFIX_PER_MIN``); over either a
+wrong token gets 429 with ``Retry-After`` instead of 401 until the bucket refills. So the limit bounds the
+failed attempts a client can make and what they cost; it does not make a guessable token safe: tokens must be
+long random strings (``eqa`` warns at start about tokens shorter than :data:`MIN_TOKEN_CHARS`).
+
+The client address is the TCP peer, or, when the peer is one of ``EQA_TRUSTED_PROXIES`` (CIDRs), the address
+its ``X-Forwarded-For`` names (read from the right, skipping trusted proxies): a client that is not a trusted
+proxy cannot choose its address by sending the header (:func:`client_ip`).
 
 The API documentation (``/docs``, ``/redoc``, ``/openapi.json``) needs a token too when tokens are
 configured. A browser cannot send a bearer header when it opens a page, so those three routes also take the
@@ -25,6 +34,8 @@ import base64
 import binascii
 import hashlib
 import hmac
+import ipaddress
+import logging
 import math
 import threading
 import time
@@ -35,9 +46,16 @@ from fastapi import HTTPException, Request, status
 
 from eqa.settings import Settings
 
+log = logging.getLogger(__name__)
+
 SCOPES = ("submit", "read", "admin")
 DEFAULT_SCOPES = frozenset({"submit", "read"})
 ANONYMOUS = "anon"
+PREFIX_CHARS = 6  # wrong tokens sharing their first characters share a failure bucket
+MIN_TOKEN_CHARS = 24  # shorter tokens are logged as guessable at start
+MAX_FORWARDED_HOPS = 32  # X-Forwarded-For entries looked at (from the right)
+
+Network = ipaddress.IPv4Network | ipaddress.IPv6Network
 
 
 @dataclass(frozen=True)
@@ -127,14 +145,56 @@ def retry_after(seconds: float) -> str:
     return str(max(1, math.ceil(seconds)))
 
 
+def parse_networks(cidrs: list[str]) -> tuple[Network, ...]:
+    """``EQA_TRUSTED_PROXIES`` entries as networks (a bare address is a /32 or /128)."""
+    return tuple(ipaddress.ip_network(c.strip(), strict=False) for c in cidrs if c.strip())
+
+
+def _ip(text: str) -> ipaddress.IPv4Address | ipaddress.IPv6Address | None:
+    try:
+        return ipaddress.ip_address(text.strip().strip("[]"))
+    except ValueError:
+        return None
+
+
+def client_ip(peer: str, forwarded: list[str], trusted: tuple[Network, ...]) -> str:
+    """The client address of a request from TCP peer ``peer`` with ``X-Forwarded-For`` values ``forwarded``:
+    the peer itself unless it is a trusted proxy; then the entry the proxy appended (the rightmost), and on
+    leftwards while that one is a trusted proxy too. An entry that is not an address stops the walk at the
+    last trusted hop (whose address is then the client's: a broken proxy header lumps its clients together
+    rather than letting them pick an address). Pure."""
+    if not trusted:
+        return peer
+    hops = [h for value in forwarded for h in value.split(",") if h.strip()][-MAX_FORWARDED_HOPS:]
+    addr = peer
+    while hops:
+        ip = _ip(addr)
+        if ip is None or not any(ip in net for net in trusted):
+            break
+        nxt = hops.pop()
+        if _ip(nxt) is None:
+            break
+        addr = str(_ip(nxt))
+    return addr
+
+
 class Authenticator:
-    """Token check, tenants and scopes, failed-auth limit per client address, rate limit per caller."""
+    """Token check, tenants and scopes, failed-auth limits (per client address, per token prefix) that never
+    refuse a valid token, rate limit per caller, client address behind trusted proxies."""
 
     def __init__(self, settings: Settings) -> None:
         self.tokens = parse_tokens(list(settings.api_tokens))
         self.limiter = RateLimiter(settings.rate_limit_per_s)
         per_min = settings.auth_failures_per_min
         self.failures = RateLimiter(per_min / 60.0, burst=max(1.0, per_min))
+        per_prefix = settings.auth_failures_per_prefix_per_min
+        self.prefix_failures = RateLimiter(per_prefix / 60.0, burst=max(1.0, per_prefix))
+        self.trusted = parse_networks(list(settings.trusted_proxies))
+        short = [t[:4] + "..." for t in self.tokens if len(t) < MIN_TOKEN_CHARS]
+        if short:
+            log.warning("%d API token(s) shorter than %d characters (%s): a failure limit does not make a short "
+                        "token safe; use long random tokens (e.g. `openssl rand -hex 24`)", len(short),
+                        MIN_TOKEN_CHARS, ", ".join(short))
 
     @property
     def enabled(self) -> bool:
@@ -143,32 +203,43 @@ class Authenticator:
     def lookup(self, presented: str | None) -> frozenset[str] | None:
         return lookup_token(self.tokens, presented)
 
+    def client_of(self, peer: str, forwarded: list[str]) -> str:
+        return client_ip(peer, forwarded, self.trusted)
+
     def identify(self, headers: Mapping[str, str], client: str, allow_basic: bool = False) -> Caller:
-        """The caller of a request, or :class:`HTTPException` 401 (bad or missing token) / 429 (this client
-        failed authentication too often). Rate limit not applied here (see :meth:`admit`)."""
+        """The caller of a request, or :class:`HTTPException` 401 (bad or missing token) / 429 (a wrong or
+        missing token from a client, or of a token prefix, that failed too often). A valid token is never
+        refused here. Rate limit not applied here (see :meth:`admit`)."""
         if not self.enabled:
             return Caller(tenant=ANONYMOUS, scopes=frozenset(SCOPES), key=f"addr:{client}")
-        wait = self.failures.blocked(client)
-        if wait > 0:
-            raise HTTPException(
-                status.HTTP_429_TOO_MANY_REQUESTS,
-                detail=f"too many failed authentications from {client}; wait {retry_after(wait)} s",
-                headers={"Retry-After": retry_after(wait)},
-            )
         token, via = bearer_token(headers), "bearer token"
         if token is None and allow_basic:
             token, via = basic_password(headers), "token (basic auth password)"
         scopes = self.lookup(token)
-        if scopes is None:
-            self.failures.allow(client)  # one failure taken from this client's bucket
-            challenge = 'Bearer, Basic realm="EQA gateway API docs", charset="UTF-8"' if allow_basic else "Bearer"
+        if scopes is not None:
+            tenant = tenant_of(token)  # type: ignore[arg-type]
+            return Caller(tenant=tenant, scopes=scopes, key=f"tenant:{tenant}")
+        prefix = None if token is None else "p-" + hashlib.sha256(token[:PREFIX_CHARS].encode()).hexdigest()[:16]
+        wait = self.failures.blocked(client)
+        what = f"from {client}"
+        if prefix is not None and wait <= 0:
+            wait, what = self.prefix_failures.blocked(prefix), "with tokens of this prefix"
+        if wait > 0:
             raise HTTPException(
-                status.HTTP_401_UNAUTHORIZED,
-                detail="missing bearer token" if token is None else f"invalid {via}",
-                headers={"WWW-Authenticate": challenge},
+                status.HTTP_429_TOO_MANY_REQUESTS,
+                detail=f"too many failed authentications {what}; wait {retry_after(wait)} s (a valid token is "
+                "still served)",
+                headers={"Retry-After": retry_after(wait)},
             )
-        tenant = tenant_of(token)  # type: ignore[arg-type]
-        return Caller(tenant=tenant, scopes=scopes, key=f"tenant:{tenant}")
+        self.failures.allow(client)  # one failure taken from this client's bucket
+        if prefix is not None:
+            self.prefix_failures.allow(prefix)
+        challenge = 'Bearer, Basic realm="EQA gateway API docs", charset="UTF-8"' if allow_basic else "Bearer"
+        raise HTTPException(
+            status.HTTP_401_UNAUTHORIZED,
+            detail="missing bearer token" if token is None else f"invalid {via}",
+            headers={"WWW-Authenticate": challenge},
+        )
 
     def admit(self, caller: Caller) -> None:
         """429 with ``Retry-After`` over the caller's request rate."""
@@ -221,7 +292,10 @@ def check_token(tokens: list[str], presented: str | None) -> bool:
 
 
 def client_address(request: Request) -> str:
-    return request.client.host if request.client else "unknown"
+    """The client address of a request (:func:`client_ip`: the peer, or behind a trusted proxy the client)."""
+    peer = request.client.host if request.client else "unknown"
+    auth: Authenticator = request.app.state.auth
+    return auth.client_of(peer, request.headers.getlist("x-forwarded-for"))
 
 
 def _caller(request: Request, allow_basic: bool, scope: str | None) -> Caller:

@@ -7,11 +7,30 @@ import argparse
 import functools
 import logging
 import sys
+from typing import Any
 
 from eqa.settings import Settings
 from gateway.manager import SceneArea
 
 log = logging.getLogger(__name__)
+
+
+def uvicorn_options(settings: Settings) -> dict[str, Any]:
+    """How uvicorn serves the gateway (``python -m gateway`` and the tests' servers alike).
+
+    ``proxy_headers`` off: uvicorn would otherwise take the client address from ``X-Forwarded-For`` of any
+    peer on 127.0.0.1 (its ``forwarded_allow_ips`` default), so a local client could pick its address; the
+    app reads the header itself, only from ``EQA_TRUSTED_PROXIES`` (:func:`gateway.auth.client_ip`).
+    Idle keep-alive connections close after ``EQA_GATEWAY_KEEP_ALIVE_S``; slow bodies are the app's
+    (:class:`gateway.limits.BodyLimit`)."""
+    return {
+        "host": settings.gateway_host,
+        "port": settings.gateway_port,
+        "proxy_headers": False,
+        "server_header": False,
+        "timeout_keep_alive": settings.gateway_keep_alive_s,
+        "access_log": False,
+    }
 
 
 def serve(args: argparse.Namespace, scene_area: SceneArea | None = None) -> int:
@@ -37,11 +56,9 @@ def serve(args: argparse.Namespace, scene_area: SceneArea | None = None) -> int:
     log_config = None if settings.log_format == "json" else uvicorn.config.LOGGING_CONFIG
     uvicorn.run(
         create_app(settings, scene_area),
-        host=settings.gateway_host,
-        port=settings.gateway_port,
         log_level=(args.log_level or settings.log_level).lower(),
-        access_log=False,
         log_config=log_config,
+        **uvicorn_options(settings),
     )
     return 0
 

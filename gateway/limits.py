@@ -5,12 +5,21 @@
 * ``Content-Length`` over ``EQA_MAX_BODY_BYTES`` gets 413 at once; a body without a length (chunked) is read
   while counting and gets 413 as soon as it passes the cap. A body within the cap is handed to the
   application from memory (at most the cap per request).
+* Slow and short bodies: the whole body must arrive within ``EQA_BODY_TIMEOUT_S`` (each ``receive()`` is
+  timed against that deadline), else 408 and the connection is closed. A trickle of one byte every few seconds
+  (slow-loris) and a body shorter than its ``Content-Length`` both end there instead of holding a connection
+  and a task for ever.
+* At most ``EQA_MAX_CONCURRENT_UPLOADS`` bodies are read at once; one more gets 503 with ``Retry-After`` at
+  once (nothing of it read), so slow uploads cannot take every connection the server has.
 
-A 400 MB chunked POST without a token used to be read whole (96 MB -> 1.3 GB) before its 401.
+Every refusal here is answered from the headers (or the bytes counted so far) on the event loop, without a
+thread hop, a store call or a lock: it costs microseconds at any rate. The client address of the failed-auth
+limit is the one :func:`gateway.auth.client_ip` gives (``X-Forwarded-For`` only from trusted proxies).
 """
 
 from __future__ import annotations
 
+import asyncio
 import json
 import logging
 from typing import Any
@@ -42,15 +51,19 @@ async def _answer_json(send: Send, status: int, content: Any, headers: dict[str,
 class BodyLimit:
     """ASGI middleware: authenticate body-bearing API requests before reading, then cap the body."""
 
-    def __init__(self, app: ASGIApp, max_bytes: int) -> None:
+    def __init__(self, app: ASGIApp, max_bytes: int, timeout_s: float = 10.0, max_uploads: int = 32) -> None:
         self.app = app
         self.max_bytes = max_bytes
+        self.timeout_s = timeout_s
+        self.max_uploads = max_uploads
+        self.uploads = 0  # bodies being read now (event loop only: no lock)
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope.get("headers", [])}
+        raw_headers = scope.get("headers", [])
+        headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in raw_headers}
         if scope["method"] not in BODY_METHODS and "transfer-encoding" not in headers and headers.get(
             "content-length", "0"
         ) in ("", "0"):
@@ -59,7 +72,9 @@ class BodyLimit:
         path: str = scope.get("path", "")
         auth: Authenticator | None = getattr(scope["app"].state, "auth", None) if "app" in scope else None
         if auth is not None and path.startswith("/v1/") and not path.startswith(OPEN_PREFIXES):
-            client = scope["client"][0] if scope.get("client") else "unknown"
+            peer = scope["client"][0] if scope.get("client") else "unknown"
+            client = auth.client_of(peer, [v.decode("latin-1") for k, v in raw_headers if k.lower() ==
+                                           b"x-forwarded-for"])
             try:
                 auth.identify(headers, client)
             except HTTPException as exc:
@@ -73,22 +88,17 @@ class BodyLimit:
             if int(length) > self.max_bytes:
                 await _answer(send, 413, f"body of {length} bytes is over the cap of {self.max_bytes} bytes")
                 return
-        chunks: list[bytes] = []
-        total = 0
-        while True:
-            message = await receive()
-            if message["type"] == "http.disconnect":
-                return
-            chunk = message.get("body", b"")
-            total += len(chunk)
-            if total > self.max_bytes:
-                log.warning("%s %s: body over %d bytes refused while streaming", scope["method"], path, self.max_bytes)
-                await _answer(send, 413, f"body over the cap of {self.max_bytes} bytes (EQA_MAX_BODY_BYTES)")
-                return
-            chunks.append(chunk)
-            if not message.get("more_body", False):
-                break
-        body = b"".join(chunks)
+        if self.uploads >= self.max_uploads:
+            await _answer(send, 503, f"{self.uploads} request bodies are being received, the most at once "
+                          "(EQA_MAX_CONCURRENT_UPLOADS); retry in a second", {"Retry-After": "1"})
+            return
+        self.uploads += 1
+        try:
+            body = await self._read(scope, receive, send, path)
+        finally:
+            self.uploads -= 1
+        if body is None:
+            return
         if body and "json" in headers.get("content-type", ""):
             try:
                 body.decode("utf-8")
@@ -109,5 +119,29 @@ class BodyLimit:
         await self.app(scope, replay, send)
 
 
-def add_body_limit(app: Any, max_bytes: int) -> None:
-    app.add_middleware(BodyLimit, max_bytes=max_bytes)
+    async def _read(self, scope: Scope, receive: Receive, send: Send, path: str) -> bytes | None:
+        """The whole body, or None once answered (413 over the cap, 408 past the deadline) or disconnected."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + self.timeout_s
+        chunks: list[bytes] = []
+        total = 0
+        while True:
+            try:
+                message = await asyncio.wait_for(receive(), timeout=max(0.0, deadline - loop.time()))
+            except TimeoutError:
+                log.warning("%s %s: body not received whole within %g s (%d bytes came); 408", scope["method"], path,
+                            self.timeout_s, total)
+                await _answer(send, 408, f"the request body did not arrive within {self.timeout_s:g} s "
+                              f"(EQA_BODY_TIMEOUT_S; {total} bytes came): send it whole, with a true Content-Length")
+                return None
+            if message["type"] == "http.disconnect":
+                return None
+            chunk = message.get("body", b"")
+            total += len(chunk)
+            if total > self.max_bytes:
+                log.warning("%s %s: body over %d bytes refused while streaming", scope["method"], path, self.max_bytes)
+                await _answer(send, 413, f"body over the cap of {self.max_bytes} bytes (EQA_MAX_BODY_BYTES)")
+                return None
+            chunks.append(chunk)
+            if not message.get("more_body", False):
+                return b"".join(chunks)

@@ -6,8 +6,9 @@ Store layout (all keys under ``gw:``):
 
 * ``gw:ep:{episode_id}``  JSON ``{"status": EpisodeStatus, "start": EpisodeStart, "owner": tenant}`` - the
   episode record (``owner``: the tenant of the token that submitted it, :mod:`gateway.auth`).
-* ``gw:ev:{episode_id}``  stream of compact JSON events (:mod:`gateway.events`); the entry ids are the SSE
-  event ids, so a client resuming with ``Last-Event-ID`` gets every stored event exactly once.
+* ``gw:ev:{episode_id}``  stream of compact JSON events (:mod:`eqa.event_log`; after a restart backfilled from
+  the services' journals); the entry ids are the SSE event ids, so a client resuming with ``Last-Event-ID``
+  gets every stored event exactly once.
 * ``gw:robot:{robot}``    id of the episode running on the robot (absent = robot free).
 * ``gw:queue:{robot}``    JSON list of queued episode ids (``EQA_BUSY_POLICY=queue``), at most
   ``EQA_QUEUE_MAX_PER_ROBOT``.
@@ -22,10 +23,12 @@ run by the watchdog loop). Queued and running episodes are never pruned.
 
 The state machine itself is pure (:mod:`gateway.state`); this module is its I/O shell.
 
-Restart semantics (the choice documented for issue #8). Bus messages published while no gateway runs are
-not seen by any gateway, so they are not in the event stream. On start the gateway reconciles: every
-episode stored as ``running`` gets a ``gateway_restart`` event (naming the time of the last event it saw,
-so a client knows where the stream may have a hole), and its watchdog clock restarts from the restart time.
+Restart semantics. Bus messages published while no gateway runs are not seen by any gateway, but every
+service journals what it publishes before publishing it (:mod:`eqa.event_log`). On start the gateway
+reconciles: every episode stored as ``running`` gets a ``gateway_restart`` event (naming the time of the last
+event it saw), then the events of the services' journals that its stream lacks (marked ``backfilled``; one
+that also arrives live afterwards is stored once), and its watchdog clock restarts from the restart time.
+The gateway alone writes ``gw:ev:*``; each service alone writes its journal (one writer per key).
 If the services are still working on it, its later events are picked up live and the episode ends
 normally on the stopper's ``EpisodeEnd``. If the episode ended while the gateway was down, the stopper's
 copy of the ``EpisodeEnd`` in the store (``eqa:stopper:end:{episode_id}``, written before it publishes)
@@ -53,6 +56,7 @@ from typing import Any
 
 from eqa import dataflow, keys
 from eqa.bus import Bus
+from eqa.event_log import JOURNAL_SERVICES, Identity, event_identity, missing_events
 from eqa.messages import (
     Ablation,
     EpisodeCancel,
@@ -67,7 +71,7 @@ from eqa.messages import (
 )
 from eqa.recording import recording_dir
 from eqa.settings import Settings
-from eqa.store import Store, episode_end_key, task_trace_key
+from eqa.store import Store, StoreUnavailable, episode_end_key, episode_journal_key, task_trace_key
 from gateway import metrics as gateway_metrics
 from gateway import state as sm
 from gateway.auth import ANONYMOUS, Caller, RateLimiter
@@ -147,6 +151,7 @@ class Record:
     last_activity: float = field(default_factory=time.time)  # watchdog clock (not persisted)
     last_error: str | None = None  # the last ErrorReply of the episode, for the watchdog's reason (not persisted)
     events: int = 0  # bus messages stored as events by this process (bounded per episode; not persisted)
+    backfilled: set[Identity] = field(default_factory=set)  # events taken from the journals (not stored twice)
 
     def dump(self) -> dict[str, Any]:
         return {
@@ -303,10 +308,11 @@ class EpisodeManager:
                             st.episode_id,
                             last_seen=st.updated_at,
                             step=st.step,
-                            note="the gateway restarted; bus messages published after last_seen while it "
-                            "was down were not seen",
+                            note="the gateway restarted; what the services published after last_seen while it "
+                            "was down follows, backfilled from their journals",
                         ),
                     )
+                    self._backfill(rec)
                     if self._recover_end(rec):
                         continue
                     log.info("reconciled running episode %s on %s (step %d)", st.episode_id, st.robot, st.step)
@@ -360,7 +366,20 @@ class EpisodeManager:
 
     def load(self, episode_id: str) -> Record | None:
         raw = self.store.get_json(ep_key(episode_id))
-        return None if raw is None else Record.load(raw)
+        if raw is None:
+            self._check_store_intact()
+            return None
+        return Record.load(raw)
+
+    def _check_store_intact(self) -> None:
+        """Before answering "no such episode": :class:`StoreUnavailable` (503) when the store has lost the
+        gateway's data (its index marker is gone: a Redis restarted without persistence, or flushed), so a
+        lost episode is never reported as one that never existed. One read, on a miss only."""
+        if self.store.get(IDX_VERSION_KEY) is None:
+            log.error("the store holds no gateway data (a Redis restarted without persistence, or flushed?): "
+                      "episodes stored before are gone; run Redis with appendonly yes (docs/durability.md) and "
+                      "restart the gateway")
+            raise StoreUnavailable("the store has lost the gateway's data (restarted without persistence?)")
 
     # ---- queries (each checks the caller's tenant: another tenant's episode is "not found") --------------
     def peek(self, episode_id: str, caller: Caller | None = None) -> EpisodeStatus | None:
@@ -384,6 +403,7 @@ class EpisodeManager:
         if hit is None:
             raw = self.store.get(ep_key(episode_id))
             if raw is None:
+                self._check_store_intact()
                 raise NotFoundError(f"no episode {episode_id!r}")
             data = json.loads(raw)
             hit = (str(data.get("owner", LEGACY_OWNER)), EpisodeStatus.model_validate(data["status"]))
@@ -456,6 +476,40 @@ class EpisodeManager:
         self._known_scenes[scene] = None
         while len(self._known_scenes) > 10_000:
             self._known_scenes.pop(next(iter(self._known_scenes)))
+
+    def refuse_if_full(self, caller: Caller | None, robot: str | None) -> None:
+        """:class:`TooManyError` when memory already shows that :meth:`submit` would refuse for a full queue
+        or too many episodes of this token: the same limits, checked on the event loop from the lock-free
+        snapshots of the active episodes, so a flood of submissions against a full queue is refused without
+        a thread hop, the lock or a store call. Refuses nothing :meth:`submit` would take (it checks again)."""
+        owner = caller.tenant if caller is not None else ANONYMOUS
+        active = list(self._snapshots.values())  # one atomic copy (the dict changes on worker threads)
+        owned = sum(1 for o, _ in active if o == owner)
+        if owned >= self.settings.queue_max_per_token:
+            wait = self.retry_after_s()
+            raise TooManyError(
+                f"this token has {owned} queued or running episodes, the most one token may have "
+                f"(EQA_QUEUE_MAX_PER_TOKEN={self.settings.queue_max_per_token}); retry in about {wait:.0f} s",
+                retry_after_s=wait,
+            )
+        if self.settings.busy_policy != "queue" or (robot is not None and robot not in self.settings.robots):
+            return
+        candidates = [robot] if robot is not None else list(self.settings.robots)
+        queued = {r: 0 for r in candidates}
+        busy: set[str] = set()
+        for _, st in active:
+            if st.robot in queued:
+                busy.add(st.robot)
+                queued[st.robot] += st.state == "queued"
+        cap = self.settings.queue_max_per_robot
+        if all(r in busy and queued[r] >= cap for r in candidates):
+            fullest = min(candidates, key=lambda r: queued[r])
+            wait = self.retry_after_s(queued[fullest] // max(1, cap))
+            raise TooManyError(
+                f"the queue of robot {fullest} is full ({queued[fullest]} episodes, EQA_QUEUE_MAX_PER_ROBOT={cap}); "
+                f"retry in about {wait:.0f} s",
+                retry_after_s=wait,
+            )
 
     def submit(self, req: QuestionRequest, caller: Caller | None = None, *, task: Task | None = None,
                ablation: Ablation = "helios", pick_limit: int | None = None) -> Submitted:
@@ -669,8 +723,11 @@ class EpisodeManager:
                 return
             rec.events += 1
             cap = EVENTS_PER_STEP * rec.status.max_steps + 100
-            if rec.events <= cap or isinstance(msg, ErrorReply):
-                self._append(episode_id, summarize(msg))
+            event = summarize(msg)
+            if rec.backfilled and event_identity(event) in rec.backfilled:
+                rec.backfilled.discard(event_identity(event))  # seen in a journal first: stored once
+            elif rec.events <= cap or isinstance(msg, ErrorReply):
+                self._append(episode_id, event)
             elif rec.events == cap + 1:
                 log.warning("episode %s: over %d events (a flood on the bus?); further data messages are not "
                             "stored as events", episode_id, cap)
@@ -680,6 +737,33 @@ class EpisodeManager:
             assert t.status is not None
             rec.status = t.status
             self._save(rec)
+
+    def _backfill(self, rec: Record) -> int:
+        """Append the events the services journalled (:mod:`eqa.event_log`) that the stored stream lacks: what
+        was published while no gateway listened. Bounded by the episode's event cap; returns how many."""
+        eid = rec.status.episode_id
+        cap = EVENTS_PER_STEP * rec.status.max_steps + 100
+
+        def events(key: str) -> list[dict[str, Any]]:
+            out = []
+            for _, raw in self.store.read(key, count=cap):
+                try:
+                    event = json.loads(raw)
+                except ValueError:
+                    continue
+                if isinstance(event, dict) and event.get("episode_id") == eid:
+                    out.append(event)
+            return out
+
+        missing = missing_events(events(ev_key(eid)), [events(episode_journal_key(s, eid)) for s in JOURNAL_SERVICES])
+        for event in missing[:cap]:
+            self._append(eid, event)
+            rec.backfilled.add(event_identity(event))
+        rec.events += len(missing)
+        if missing:
+            log.info("episode %s: %d events published while the gateway was down backfilled from the services' "
+                     "journals", eid, len(missing))
+        return len(missing)
 
     def _recover_end(self, rec: Record) -> bool:
         """End ``rec`` from the stopper's stored ``EpisodeEnd`` if there is one (an end not seen on the bus)."""
@@ -744,7 +828,8 @@ class EpisodeManager:
                 self.store.index_remove(index, members)
             for eid in ids:
                 self._ended.pop(eid, None)
-            self.store.delete_many([ep_key(e) for e in ids] + [ev_key(e) for e in ids])
+            self.store.delete_many([ep_key(e) for e in ids] + [ev_key(e) for e in ids]
+                                   + [episode_journal_key(s, e) for e in ids for s in JOURNAL_SERVICES])
         for eid in ids:
             shutil.rmtree(recording_dir(self.settings, eid), ignore_errors=True)
         log.info("retention: %d ended episodes deleted (keep %d, at most %g days)", len(ids),

@@ -46,16 +46,29 @@ _EXAMPLE_POSE = {
 }
 
 
+def strict_pose(value: object) -> object:
+    """A request's ``start_pose`` with JSON numbers only (``{"x": "9.3"}`` and ``{"x": true}`` are refused;
+    :class:`Pose2D` itself converts, as a bus message it reads numbers of any kind)."""
+    if isinstance(value, dict):
+        for name, v in value.items():
+            if isinstance(v, bool) or not isinstance(v, int | float):
+                raise ValueError(f"start_pose.{str(name)[:20]} must be a number, got {type(v).__name__}")
+    return value
+
+
 class QuestionRequest(BaseModel):
     """A question for one robot. Give a ``scene`` (simulated robots load or generate it), a ``robot`` id, or
     both; without ``robot`` the gateway picks a free robot (or queues, per ``EQA_BUSY_POLICY``).
 
     Every field is checked here, once: numbers finite and in range, texts bounded and free of NUL and other
     control characters, choices distinct, ids by one strict pattern (matched whole: no trailing newline),
-    booleans strict (``"record": 0`` is refused). The bus messages built from it are checked again by the
-    services that receive them (:mod:`eqa.messages`)."""
+    types strict (a number is a JSON number, never ``"0.2"`` or ``true``; a boolean is ``true``/``false``, never
+    ``0``), texts not blank (spaces and invisible format characters alone are blank), ``choices`` absent or
+    2..26 of them. The bus messages built from it are checked again by the services that receive them
+    (:mod:`eqa.messages`)."""
 
-    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [_EXAMPLE, _EXAMPLE_POSE]})
+    model_config = ConfigDict(extra="forbid", strict=True,
+                              json_schema_extra={"examples": [_EXAMPLE, _EXAMPLE_POSE]})
     question: Annotated[str, Field(min_length=1, max_length=MAX_QUESTION_CHARS, description="the question text")]
     choices: list[Annotated[str, Field(min_length=1, max_length=MAX_CHOICE_CHARS)]] | None = Field(
         default=None,
@@ -102,9 +115,16 @@ class QuestionRequest(BaseModel):
     @field_validator("choices")
     @classmethod
     def _choice_count(cls, v: list[str] | None) -> list[str] | None:
-        if v is None or not v:
+        if v is None:
             return None
+        if not v:
+            raise ValueError(f"give 2..{MAX_CHOICES} choices, or leave choices out for an open question")
         return check_choices(v)
+
+    @field_validator("start_pose", mode="before")
+    @classmethod
+    def _pose_numbers(cls, v: object) -> object:
+        return strict_pose(v)
 
     @field_validator("strategy")
     @classmethod

@@ -24,6 +24,7 @@ from eqa.messages import EpisodeEnd
 from eqa.settings import Settings
 from eqa.store import episode_end_key, open_store
 from gateway.app import create_app
+from gateway.cli import uvicorn_options
 from services.sim.library import floor_area
 
 if TYPE_CHECKING:
@@ -114,11 +115,9 @@ class GatewayThread:
         self.url = f"http://127.0.0.1:{self.port}"
         config = uvicorn.Config(
             create_app(self.settings, scene_area=floor_area),
-            host="127.0.0.1",
-            port=self.port,
             log_level="warning",
-            access_log=False,
             lifespan="on",
+            **uvicorn_options(self.settings),
         )
         self.server = uvicorn.Server(config)
         self._thread = threading.Thread(target=self.server.run, name="gateway-uvicorn", daemon=True)
@@ -149,7 +148,11 @@ class GatewayProcess:
         env = {**os.environ, **self.settings.env(), "EQA_INSTANCE": f"gw-{os.getpid()}-{self._n}"}
         out = open(self.log_path, "ab") if self.log_path else subprocess.DEVNULL  # noqa: SIM115
         self.proc = subprocess.Popen([sys.executable, "-m", "gateway"], env=env, stdout=out, stderr=out)
-        wait_ready(self.url, proc=self.proc)
+        try:
+            wait_ready(self.url, timeout=120.0, proc=self.proc)  # a process start imports much: slow when loaded
+        except BaseException:
+            self.kill()  # a gateway that never answered is not left running after the test
+            raise
         return self
 
     def kill(self) -> None:

@@ -140,3 +140,58 @@ def test_episode_stalled_while_down_fails_with_reason(fleet: Fleet, gw_settings:
     pattern = r"no message for 0.5 s \(last step \d+\); services not alive: (none, all alive|sim); "
     assert re.match(pattern, reason), reason
     assert "gateway restarted" in reason
+
+
+def test_events_published_while_the_gateway_is_dead_are_in_the_log(fleet: Fleet, gw_settings: Settings,
+                                                                   tmp_path: Path) -> None:
+    """kill -9 of the gateway for several steps of a running episode: when it comes back it backfills what the
+    services published meanwhile from their journals (eqa.event_log). A bus listener of its own records every
+    message the services publish; at the end every one of them is in the stored log, each once."""
+    from eqa import keys
+    from eqa.bus import Bus
+    from eqa.event_log import event_identity, summarize
+    from eqa.messages import MESSAGE_TYPES
+
+    published: list[tuple[str, int | None, str | None]] = []
+    steps_seen: list[int] = []
+    eid = ""
+
+    def on_message(_key: str, msg: object) -> None:
+        if getattr(msg, "episode_id", None) == eid and msg.kind not in ("episode_start", "episode_cancel"):
+            event = summarize(msg)  # type: ignore[arg-type]
+            published.append(event_identity(event))
+            if event["kind"] == "frame":
+                steps_seen.append(int(event["step"]))
+
+    gw = GatewayProcess(gw_settings, log_path=tmp_path / "gateway.log").start()
+    with Bus(fleet.client_settings(), "operator", "listener") as bus:
+        bus.subscribe(keys.robot_streams("robot0"), tuple(MESSAGE_TYPES.values()), on_message)
+        try:
+            with _client(gw) as c:
+                assert wait_for(lambda: c.get("/v1/ready").status_code == 200), c.get("/v1/ready").text
+                eid = c.post("/v1/questions", json={**BODY, "max_steps": 12}).json()["episode_id"]
+                assert wait_for(lambda: c.get(f"/v1/episodes/{eid}").json()["step"] >= 2, EPISODE_S)
+            gw.kill()
+            down_at = max(steps_seen)
+            assert wait_for(lambda: max(steps_seen) >= down_at + 4 or stored_end(gw_settings, eid) is not None,
+                            EPISODE_S), steps_seen  # several steps run with no gateway
+            missed_steps = max(steps_seen) - down_at
+            gw.start()
+            with _client(gw) as c:
+                assert wait_for(lambda: c.get(f"/v1/episodes/{eid}").json()["state"] != "running", EPISODE_S)
+                st = c.get(f"/v1/episodes/{eid}").json()
+                events = [e for _, e in sse_events(c, f"/v1/episodes/{eid}/events")]
+        finally:
+            gw.stop()
+    assert st["state"] == "stopped" and st["steps"] == 12, st
+    assert missed_steps >= 4, (down_at, steps_seen)
+    stored = [event_identity(e) for e in events if e["kind"] not in ("episode_start", "gateway_restart")]
+    lost = sorted(set(published) - set(stored), key=str)
+    assert not lost, f"published but not in the stored log: {lost}"
+    backfilled = [e for e in events if e.get("backfilled")]
+    live = {event_identity(e) for e in events if not e.get("backfilled")}
+    twice = [event_identity(e) for e in backfilled if event_identity(e) in live]
+    assert not twice, f"backfilled and also stored live: {twice}"
+    frames = {e["step"] for e in backfilled if e["kind"] == "frame"}
+    assert len(frames) >= 3, sorted(frames)  # the frames of the steps run while the gateway was dead
+    assert [e["kind"] for e in events].count("episode_end") == 1 and events[-1]["kind"] == "episode_end"

@@ -70,7 +70,9 @@ def test_request_validation_messages() -> None:
         QuestionRequest(question="   ", scene="s")
     with pytest.raises(ValidationError, match="not one of the choice letters"):
         QuestionRequest(question="q", choices=["a", "b"], scene="s", answer="C")
-    r = QuestionRequest(question="q", choices=[], robot="r0")
+    with pytest.raises(ValidationError, match=r"give 2\.\.26 choices, or leave choices out"):
+        QuestionRequest(question="q", choices=[], robot="r0")
+    r = QuestionRequest(question="q", robot="r0")
     assert r.choices is None and r.stop_config().eps == 0.2
 
 

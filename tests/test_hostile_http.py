@@ -295,11 +295,11 @@ def test_openapi_lists_every_answer_and_its_examples_work(gw) -> None:
     _g, c = gw
     spec = c.get("/openapi.json", headers=A).json()
     want = {
-        ("/v1/questions", "post"): {"202", "400", "401", "403", "409", "413", "422", "429", "503"},
+        ("/v1/questions", "post"): {"202", "400", "401", "403", "408", "409", "413", "422", "429", "503"},
         ("/v1/episodes", "get"): {"200", "401", "403", "422", "429", "503"},
         ("/v1/episodes/{episode_id}", "get"): {"200", "401", "403", "404", "422", "429", "503"},
-        ("/v1/episodes/{episode_id}", "delete"): {"200", "400", "401", "403", "404", "409", "413", "422", "429",
-                                                  "503"},
+        ("/v1/episodes/{episode_id}", "delete"): {"200", "400", "401", "403", "404", "408", "409", "413", "422",
+                                                  "429", "503"},
         ("/v1/episodes/{episode_id}/events", "get"): {"200", "401", "403", "404", "422", "429", "503"},
         ("/v1/episodes/{episode_id}/recording", "get"): {"200", "401", "403", "404", "422", "429", "500", "503"},
         ("/v1/episodes/{episode_id}/recording.mcap", "get"): {"200", "401", "403", "404", "422", "429", "500",

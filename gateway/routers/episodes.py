@@ -6,7 +6,7 @@ import asyncio
 import contextlib
 import logging
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Header, HTTPException, Query, Request, status
@@ -41,7 +41,8 @@ _ERRORS: dict[int, tuple[str, object]] = {
           "body over the cap of 2097152 bytes (EQA_MAX_BODY_BYTES)"),
     422: ("invalid input: one entry per field saying what to change",
           [{"loc": ["body", "eps"], "msg": "Input should be less than 1", "type": "less_than"}]),
-    429: ("too many requests (rate limit, failed authentications, or a full queue); see Retry-After",
+    429: ("too many requests (rate limit, failed authentications, a full queue, too many open event streams); "
+          "see Retry-After",
           "rate limit of 50 requests/s exceeded"),
     500: ("the recording could not be merged", "rerun rrd merge failed: ..."),
     503: ("the episode store is unavailable; see Retry-After", "the episode store is unavailable "
@@ -71,6 +72,23 @@ EpisodeId = Annotated[
 ]
 
 
+class CountedStream(StreamingResponse):
+    """A streaming response that calls ``release`` once when it is over, however it ends (finished, client
+    gone, server stopping, or never started): the per-token count of open event streams."""
+
+    def __init__(self, content: AsyncIterator[bytes], release: Callable[[], None], **kwargs: Any) -> None:
+        super().__init__(content, **kwargs)
+        self._release: Callable[[], None] | None = release
+
+    async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
+        try:
+            await super().__call__(scope, receive, send)
+        finally:
+            release, self._release = self._release, None
+            if release is not None:
+                release()
+
+
 def _episode_id(episode_id: str) -> str:
     try:
         return keys.check_id(episode_id, "episode id")
@@ -98,8 +116,9 @@ def _event_id(value: str, where: list[str]) -> str:
     summary="Submit a question; returns the episode id (running or queued)",
     responses=errors(400, 401, 403, 409, 413, 422, 429, 503),
 )
-def submit(body: QuestionRequest, manager: ManagerDep, caller: SubmitterDep) -> Submitted:
-    return manager.submit(body, caller)
+async def submit(body: QuestionRequest, manager: ManagerDep, caller: SubmitterDep) -> Submitted:
+    manager.refuse_if_full(caller, body.robot)  # a full queue is refused on the event loop, at once
+    return await run_in_threadpool(manager.submit, body, caller)
 
 
 @router.get(
@@ -181,6 +200,23 @@ async def events(
         start = _event_id(after, ["query", "after"]) if after is not None else "0-0"
     await run_in_threadpool(manager.get, eid, caller)
     hub = request.app.state.hub
+    streams: dict[str, int] = request.app.state.sse_open
+    cap = request.app.state.settings.sse_max_per_token
+    if streams.get(caller.key, 0) >= cap:
+        raise HTTPException(
+            status.HTTP_429_TOO_MANY_REQUESTS,
+            detail=f"this token has {streams[caller.key]} event streams open, the most one token may "
+            f"(EQA_SSE_MAX_PER_TOKEN={cap}); close one (or follow several episodes with fewer streams)",
+            headers={"Retry-After": "5"},
+        )
+    streams[caller.key] = streams.get(caller.key, 0) + 1  # event loop only: counted and released there
+
+    def release() -> None:
+        left = streams.get(caller.key, 1) - 1
+        if left > 0:
+            streams[caller.key] = left
+        else:
+            streams.pop(caller.key, None)
 
     async def gen() -> AsyncIterator[bytes]:
         cursor = start
@@ -213,8 +249,9 @@ async def events(
             except TimeoutError:
                 yield b": keepalive\n\n"
 
-    return StreamingResponse(
+    return CountedStream(
         gen(),
+        release=release,
         media_type="text/event-stream",
         headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"},
     )

@@ -35,8 +35,9 @@ router = APIRouter(prefix="/v1", tags=["episodes"])
 class LabelRequest(BaseModel):
     """The true answer of a finished episode's question."""
 
-    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{"answer": "B"}, {"answer": 1}]})
-    answer: str | int = Field(description="a choice letter ('B') or a 0-based choice index (1)")
+    model_config = ConfigDict(extra="forbid", strict=True,
+                              json_schema_extra={"examples": [{"answer": "B"}, {"answer": 1}]})
+    answer: str | int = Field(description="a choice letter ('B') or a 0-based choice index (1); not a boolean")
 
 
 def _choices(manager: EpisodeManager, episode_id: str, asked: list[str]) -> list[str]:

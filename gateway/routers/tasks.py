@@ -5,18 +5,20 @@ is the instruction (status and events at ``/v1/episodes/{id}``)."""
 
 from __future__ import annotations
 
+import functools
 import logging
 from typing import Annotated, Literal
 
 from fastapi import APIRouter, status
-from pydantic import BaseModel, ConfigDict, Field, StrictBool
+from pydantic import BaseModel, ConfigDict, Field, StrictBool, ValidationError, field_validator
+from starlette.concurrency import run_in_threadpool
 
 from eqa.instructions import InstructionError, parse_instruction
 from eqa.messages import SCENE_ID, Ablation, Pose2D, Task, TaskKind, check_text
 from gateway.deps import ManagerDep, SettingsDep, SubmitterDep
 from gateway.errors import InvalidError
 from gateway.routers.episodes import errors
-from gateway.schemas import QuestionRequest, Submitted
+from gateway.schemas import QuestionRequest, Submitted, strict_pose
 
 log = logging.getLogger(__name__)
 router = APIRouter(prefix="/v1", tags=["tasks"])
@@ -30,7 +32,7 @@ class TaskRequest(BaseModel):
     scene and/or robot as for questions, the agent variant (Table 1: ``helios``, ``no_global``, ``trusting``) and
     the pick-attempt limit (1, 5, ... or none = unlimited)."""
 
-    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [_EXAMPLE]})
+    model_config = ConfigDict(extra="forbid", strict=True, json_schema_extra={"examples": [_EXAMPLE]})
     instruction: Annotated[str, Field(min_length=1, max_length=500)]
     kind: TaskKind | None = Field(default=None, description="pick_place or find_object; default: from the words")
     scene: Annotated[str, Field(min_length=1, max_length=64, pattern=f"^{SCENE_ID.pattern}$")] | None = None
@@ -43,6 +45,11 @@ class TaskRequest(BaseModel):
     seed: int = Field(default=0, ge=0, le=2**31 - 1)
     record: StrictBool = True
 
+    @field_validator("start_pose", mode="before")
+    @classmethod
+    def _pose_numbers(cls, v: object) -> object:
+        return strict_pose(v)
+
 
 def build_task(req: TaskRequest) -> Task:
     """The :class:`Task` of a request, or :class:`InvalidError` (422) saying what to write."""
@@ -54,9 +61,13 @@ def build_task(req: TaskRequest) -> Task:
     if req.kind is not None and req.kind != parsed.kind:
         raise InvalidError(f"the instruction reads as a {parsed.kind} task, not {req.kind}", field="kind")
     kind: Literal["pick_place", "find_object"] = parsed.kind  # type: ignore[assignment]
-    return Task(kind=kind, text=req.instruction.strip(), scene=req.scene or "", object=parsed.object,
-                start_receptacle=parsed.start_receptacle, goal_receptacle=parsed.goal_receptacle,
-                start_pose=req.start_pose, max_steps=req.max_steps)
+    try:  # the Task checks what no parser can (the object named as its own receptacle, start = goal)
+        return Task(kind=kind, text=req.instruction.strip(), scene=req.scene or "", object=parsed.object,
+                    start_receptacle=parsed.start_receptacle, goal_receptacle=parsed.goal_receptacle,
+                    start_pose=req.start_pose, max_steps=req.max_steps)
+    except ValidationError as exc:
+        msg = "; ".join(str(e.get("msg", "")).removeprefix("Value error, ") for e in exc.errors())
+        raise InvalidError(msg, field="instruction") from exc
 
 
 @router.post(
@@ -66,10 +77,14 @@ def build_task(req: TaskRequest) -> Task:
     summary="Submit a pick-and-place or find-object task; returns the episode id (running or queued)",
     responses=errors(400, 401, 403, 409, 413, 422, 429, 503),
 )
-def submit_task(body: TaskRequest, manager: ManagerDep, caller: SubmitterDep, settings: SettingsDep) -> Submitted:
+async def submit_task(body: TaskRequest, manager: ManagerDep, caller: SubmitterDep, settings: SettingsDep
+                      ) -> Submitted:
+    manager.refuse_if_full(caller, body.robot)  # a full queue is refused on the event loop, at once
     task = build_task(body)
     limit = body.pick_limit if body.pick_limit is not None else (settings.helios_pick_attempts or None)
     stand_in = QuestionRequest(question=body.instruction.strip(), scene=body.scene, robot=body.robot,
                                start_pose=body.start_pose, stop_rule="max_steps", max_steps=body.max_steps,
                                seed=body.seed, record=body.record)
-    return manager.submit(stand_in, caller, task=task, ablation=body.ablation, pick_limit=limit)
+    return await run_in_threadpool(
+        functools.partial(manager.submit, stand_in, caller, task=task, ablation=body.ablation, pick_limit=limit)
+    )
