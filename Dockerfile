@@ -14,7 +14,7 @@ ENV PYTHONUNBUFFERED=1 \
     RERUN_TELEMETRY_ENABLED=false \
     HF_HUB_OFFLINE=1 \
     EQA_DATA_DIR=/data \
-    NUMBA_CACHE_DIR=/opt/numba-cache \
+    NUMBA_CACHE_DIR=/var/cache/eqa-numba \
     VIRTUAL_ENV=/opt/venv \
     PATH=/opt/venv/bin:$PATH
 
@@ -38,7 +38,7 @@ COPY eqa ./eqa
 COPY services ./services
 COPY gateway ./gateway
 RUN pip install --no-deps . && rm -rf build \
- && mkdir -p /opt/numba-cache && chmod 1777 /opt/numba-cache \
+ && mkdir -p /var/cache/eqa-numba && chmod 1777 /var/cache/eqa-numba \
  && python -c "import services.mapper.tsdf_kernel"  # numba compiles the TSDF kernel into the image
 
 VOLUME ["/data"]
