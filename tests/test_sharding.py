@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from eqa import sharding
+from eqa import keys, sharding
 from eqa.bus import Bus
 from eqa.settings import Settings
 from eqa.sharding import Membership, StepClaims
@@ -189,3 +189,23 @@ def test_refused_robots_are_dropped_before_decoding(settings: Settings, hub_sett
         assert done.wait(5)
         time.sleep(0.2)
     assert invalid == [keys.stream("mine", keys.SIM_FRAME)] and not seen
+
+
+def test_a_session_behind_a_slow_link_sees_the_instances_already_there(settings: Settings, hub_settings: Settings,
+                                                                      zenoh_port: int, store):
+    """The link's handshake completes 2.5 s after ``zenoh.open`` returned (it returns after ~0.5 s without it):
+    the bus waits for the link before it answers, so the first view of a starting instance already counts the
+    instance that was there. Without the wait (``bus_link_wait_s=0``) the same query answers "nobody"."""
+    from slow_link import SlowLink
+
+    with Bus(hub_settings, "stopper", "st-a") as a, SlowLink(zenoh_port, 2.5) as link:
+        a.declare_alive()
+        via = settings.model_copy(update={"zenoh_connect": [link.endpoint]})
+        with Bus(via.model_copy(update={"bus_link_wait_s": 0.0}), "stopper", "st-early") as early:
+            assert early.alive(keys.alive_service("stopper"), timeout=1.0) == []
+        with Bus(via, "stopper", "st-b") as b:
+            sb = sharding.Shard(b, lambda: store, "stopper", "st-b").start()
+            assert sb.membership.live == {"st-a", "st-b"}
+            robots = [f"r{i}" for i in range(20)]
+            mine = {r for r in robots if sharding.owner(r, ["st-a", "st-b"]) == "st-b"}
+            assert {r for r in robots if sb.owns(r)} == mine
