@@ -32,6 +32,7 @@ log = logging.getLogger(__name__)
 CLAIM_PREFIX = "eqa:claim:"
 CLAIM_TTL_S = 900.0  # a step claim matters while its episode runs: resends, the next step's staleness check
 MAX_ATTEMPTS = 64
+FORGET_ATTEMPTS = 4  # claims deleted per step when an episode ends (later takeovers, rarer still, expire)
 
 
 def weight(instance: str, robot: str) -> int:
@@ -154,8 +155,14 @@ class StepClaims:
         return raw.decode() if raw is not None else None
 
     def claim(self, episode_id: str, step: int) -> Claim:
+        """Attempts ``0, 1, ...`` of a step are claimed in turn; the latest one present decides: held by this
+        instance (a resent step, or a restarted process of the same instance name whose predecessor claimed
+        it) it is won again, held by a live instance it is lost, held by a dead one the next attempt is
+        claimed. An earlier attempt never decides while a later one exists: an instance restarted under its
+        name must not take back a step another instance took over while it was down."""
         base = self._key(episode_id, step)
-        for attempt in range(MAX_ATTEMPTS):
+        attempt = 0
+        while attempt < MAX_ATTEMPTS:
             key = f"{base}:{attempt}"
             if self.store.set_if_absent(key, self.me.encode(), ttl_s=self.ttl_s):
                 self.store.set(base + ":holder", self.me.encode(), ttl_s=self.ttl_s)
@@ -164,12 +171,16 @@ class StepClaims:
             raw = self.store.get(key)
             if raw is None:  # expired between the two calls: try the same attempt again
                 continue
+            if self.store.get(f"{base}:{attempt + 1}") is not None:  # superseded by a takeover
+                attempt += 1
+                continue
             holder = raw.decode()
             if holder == self.me:  # the same step again (resent): the service answers it from its state
                 return Claim(True, self.me, False)
             if self.is_alive(holder):
                 return Claim(False, holder, False)
             log.info("step %d of %s: %s claimed it and is gone; claiming it again", step, episode_id, holder)
+            attempt += 1
         raise RuntimeError(f"step {step} of {episode_id}: {MAX_ATTEMPTS} claims by dead instances")
 
     def forget(self, episode_id: str, upto_step: int) -> None:
@@ -177,7 +188,7 @@ class StepClaims:
         names = []
         for step in range(upto_step + 1):
             base = self._key(episode_id, step)
-            names += [base + ":holder"] + [f"{base}:{a}" for a in range(2)]
+            names += [base + ":holder"] + [f"{base}:{a}" for a in range(FORGET_ATTEMPTS)]
         self.store.delete_many(names)
 
 

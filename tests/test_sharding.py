@@ -122,6 +122,24 @@ def test_each_step_is_claimed_once_and_a_dead_holders_claim_is_taken_over(store)
     assert b.holder("ep-1", 2) is None
 
 
+def test_an_instance_restarted_under_its_name_does_not_take_back_a_step_taken_over(store):
+    alive = {"pl-a", "pl-b"}
+    a = StepClaims(store, "planner", "pl-a", alive.__contains__)
+    b = StepClaims(store, "planner", "pl-b", alive.__contains__)
+    assert a.claim("ep-2", 4).won
+    alive.discard("pl-a")  # killed after its claim; pl-b takes the step over
+    assert b.claim("ep-2", 4).won
+    alive.add("pl-a")  # the launcher restarts it under the same name; the step comes again (a resend)
+    again = a.claim("ep-2", 4)
+    assert not again.won and again.holder == "pl-b"
+    assert b.claim("ep-2", 4).won  # at its holder: answered from its state
+    alive.discard("pl-b")
+    third = a.claim("ep-2", 4)  # the takeover's holder died too: the next attempt
+    assert third.won and a.holder("ep-2", 4) == "pl-a"
+    a.forget("ep-2", 4)
+    assert store.keys(f"{sharding.CLAIM_PREFIX}planner:ep-2:") == []
+
+
 def test_concurrent_claimants_get_exactly_one_winner(store):
     alive = {f"i{k}" for k in range(4)}
     winners: list[str] = []

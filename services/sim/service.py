@@ -282,7 +282,7 @@ class SimService(EpisodeService[_Episode]):
         self._emit(robot, state)
 
     def on_goal(self, robot: str, goal: Goal) -> None:
-        if goal.done:
+        if goal.done or goal.episode_id in self._ended:
             return
         if not self.owns(robot) or not self._claim(robot, goal.episode_id, goal.step + 1):
             return
