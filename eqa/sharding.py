@@ -258,3 +258,69 @@ class Shard:
         if (gained or lost) and self._on_moved is not None:
             log.info("%s %s: robots gained %s, lost %s", self.service, self.me, sorted(gained), sorted(lost))
             self._on_moved(gained, lost)
+
+
+def reassigned(robots: Iterable[str], before: Iterable[str], after: Iterable[str]) -> set[str]:
+    """Robots whose owner differs between the live sets ``before`` and ``after`` (an instance that left held
+    them, or one that joined takes them; with no instance at all the owner is None). Pure."""
+    b, a = sorted(set(before)), sorted(set(after))
+    return {r for r in robots if owner(r, b) != owner(r, a)}
+
+
+REDRIVE_AFTER_S = (0.3, 2.0)
+
+
+class Redrive:
+    """When to send a robot's current step again because the instances of a service downstream changed.
+
+    A step in flight when its consumer's instance dies is lost with it, and one sent while a newcomer takes a
+    robot over may reach neither the old owner (it no longer takes the robot) nor the new one (not subscribed
+    yet): without help it waits for the step-resend timer. The producer (the sim) feeds :meth:`changed` with
+    the liveliness of the services downstream; each robot whose owner in one of them changed is due
+    ``after_s`` later (the first lets the new owner's subscriptions and view of the live set settle, the next
+    covers an instance that saw the change late), and :meth:`due` hands out the robots to send again with the
+    step they were at. Re-sent steps are answered by the consumers without computing anything twice (the
+    step claims and their stored answers). Not thread-safe: call it from the producer's worker."""
+
+    def __init__(self, services: Iterable[str], after_s: tuple[float, ...] = REDRIVE_AFTER_S) -> None:
+        self.after_s = tuple(sorted(after_s))
+        self._live: dict[str, frozenset[str]] = {keys.check_id(s, "service"): frozenset() for s in services}
+        self._due: dict[str, tuple[object, list[float]]] = {}
+
+    def live(self, service: str) -> frozenset[str]:
+        return self._live.get(service, frozenset())
+
+    def changed(self, service: str, instance: str, up: bool, robots: dict[str, object], now: float) -> set[str]:
+        """An instance of ``service`` appeared (``up``) or vanished; ``robots`` maps each robot the producer
+        drives to its current step (any value compared by equality). Returns the robots scheduled."""
+        before = self._live.get(service)
+        if before is None:
+            return set()
+        after = before | {instance} if up else before - {instance}
+        if after == before:
+            return set()
+        self._live[service] = after
+        moved_ = reassigned(robots, before, after)
+        self.schedule({r: robots[r] for r in moved_}, now)
+        return moved_
+
+    def schedule(self, robots: dict[str, object], now: float) -> None:
+        """Send the current step of each robot again ``after_s`` from ``now`` (a robot already scheduled is
+        scheduled anew)."""
+        for robot, step in robots.items():
+            self._due[robot] = (step, [now + d for d in self.after_s])
+
+    def due(self, now: float) -> dict[str, object]:
+        """Robots whose next re-send time has come, with the step they were at when scheduled."""
+        out: dict[str, object] = {}
+        for robot, (step, times) in list(self._due.items()):
+            if times and times[0] <= now:
+                out[robot] = step
+                while times and times[0] <= now:
+                    times.pop(0)
+            if not times:
+                del self._due[robot]
+        return out
+
+    def pending(self) -> int:
+        return len(self._due)
