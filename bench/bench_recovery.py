@@ -84,6 +84,24 @@ class Frames:
         return min(times) - t0 if times else None
 
 
+class Ups:
+    """When instances' liveliness tokens appear (service -> times), from the bus."""
+
+    def __init__(self) -> None:
+        self.times: dict[str, list[float]] = {}
+        self.lock = threading.Lock()
+
+    def __call__(self, service: str, _instance: str, up: bool) -> None:
+        if up:
+            with self.lock:
+                self.times.setdefault(service, []).append(time.monotonic())
+
+    def first_after(self, service: str, t0: float) -> float | None:
+        with self.lock:
+            later = [t for t in self.times.get(service, []) if t > t0]
+        return min(later) - t0 if later else None
+
+
 def _start(robot: str, eid: str, max_steps: int, seed: int) -> EpisodeStart:
     q = Question(text="Is there a bed in the bedroom?", choices=["Yes", "No"], scene=SCENE)
     return EpisodeStart(episode_id=eid, robot=robot, question=q, max_steps=max_steps,
@@ -97,10 +115,12 @@ def _summary(xs: list[float]) -> dict[str, float | int]:
             "max_s": round(max(xs), 3)}
 
 
-def kill_rounds(fleet: Fleet, frames: Frames, service: str, args: argparse.Namespace, rng: random.Random,
-                episodes: dict[str, int]) -> list[float]:
+def kill_rounds(fleet: Fleet, frames: Frames, ups: Ups, service: str, args: argparse.Namespace,
+                rng: random.Random, episodes: dict[str, int]) -> tuple[list[float], list[float]]:
+    """Recovery times of each round, and the times from the kill to the restarted process's liveliness token."""
     bus = fleet.hub
     out: list[float] = []
+    restarts: list[float] = []
     for r in range(args.rounds):
         fleet.wait_alive(timeout=args.timeout)
         eid = f"rec-{service}-{r}-{os.getpid()}-{time.time_ns()}"
@@ -118,6 +138,10 @@ def kill_rounds(fleet: Fleet, frames: Frames, service: str, args: argparse.Names
         fleet.kill(service, index)
         ok = frames.wait(lambda eid=eid, last=last: frames.last(eid) > last, args.timeout)
         rec = frames.new_step_after(eid, last, t_kill) if ok else None
+        fleet.wait_alive(timeout=args.timeout)
+        up = ups.first_after(service, t_kill)
+        if up is not None:
+            restarts.append(up)
         bus.publish(keys.stream("robot0", keys.EPISODE_CANCEL),
                     EpisodeCancel(episode_id=eid, reason="bench round over"))
         episodes[eid] = frames.last(eid)
@@ -126,10 +150,11 @@ def kill_rounds(fleet: Fleet, frames: Frames, service: str, args: argparse.Names
             out.append(float("inf"))
         else:
             print(f"  {service} round {r + 1}/{args.rounds}: killed at step {last} (step {step_s:.2f} s), next step "
-                  f"after {rec:.2f} s", flush=True)
+                  f"after {rec:.2f} s (restarted process up after {'-' if up is None else f'{up:.2f} s'})",
+                  flush=True)
             out.append(rec)
         time.sleep(1.0)  # the cancel reaches every service before the next episode on the same robot
-    return out
+    return out, restarts
 
 
 def join_rounds(fleet: Fleet, frames: Frames, args: argparse.Namespace, episodes: dict[str, int],
@@ -255,10 +280,13 @@ def main(argv: list[str] | None = None) -> int:
                 frames = Frames()
                 fleet.hub.subscribe(keys.any_robot(keys.SIM_FRAME), Frame, frames)
                 ledger.subscribe(fleet.hub)
+                ups = Ups()
+                fleet.hub.watch_alive(keys.ALIVE_ANY, ups)
                 time.sleep(0.5)
                 for service in services:
                     print(f"kill -9 {service} ({args.rounds} rounds)", flush=True)
-                    results[f"kill {service}"] = kill_rounds(fleet, frames, service, args, rng, episodes)
+                    results[f"kill {service}"], results[f"restart {service}"] = kill_rounds(
+                        fleet, frames, ups, service, args, rng, episodes)
                 if args.join:
                     print(f"join of a {args.join_service} instance ({args.rounds} rounds, {args.robots} robots)",
                           flush=True)
@@ -279,7 +307,8 @@ def main(argv: list[str] | None = None) -> int:
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(summary, indent=2))
-    print(f"\n{'case':<18} {'n':>3} {'median':>8} {'min':>8} {'max':>8}  (seconds to the next step)")
+    print(f"\n{'case':<18} {'n':>3} {'median':>8} {'min':>8} {'max':>8}  seconds (kill, join: to the episode's next "
+          "step; restart: from the kill to the restarted process's liveliness token)")
     for case, s in summary["cases"].items():
         if s["n"]:
             print(f"{case:<18} {s['n']:>3} {s['median_s']:>8.2f} {s['min_s']:>8.2f} {s['max_s']:>8.2f}"

@@ -11,7 +11,8 @@ write its own way:
   of one stream can arrive before the start on another) are held, bounded (episodes, messages per episode,
   bytes), for :attr:`hold_ttl_s`, and handled in step order right after the start. Expired or refused ones go
   to :meth:`EpisodeService.unknown_episode`; those of an episode that already ended are dropped.
-* **The resent step** (the sim sends a step again when no goal came back, ``EQA_STEP_RESEND_S``): a message of
+* **The resent step** (the sim sends a step again when the instances downstream changed, and when no goal came
+  back within ``EQA_STEP_RESEND_S``): a message of
   the step this service last answered (:meth:`answered_step`) is answered by publishing the step's outputs
   again (recorded by :meth:`publish_step`, kept in the store when :attr:`persist_answers`), or, when they are
   not at hand, by :meth:`answer_again`; an older step is a stale re-delivery and is ignored.
