@@ -134,11 +134,16 @@ def kill_rounds(fleet: Fleet, frames: Frames, ups: Ups, service: str, args: argp
         last = frames.last(eid)
         names = [c.instance for c in fleet.children if c.service == service]
         index = names.index(sharding.owner("robot0", names)) if service in STATEFUL else 0  # robot0's instance
+        child = [c for c in fleet.children if c.service == service][index]
+        old_pid = child.proc.pid if child.proc is not None else None
         t_kill = time.monotonic()
         fleet.kill(service, index)
         ok = frames.wait(lambda eid=eid, last=last: frames.last(eid) > last, args.timeout)
         rec = frames.new_step_after(eid, last, t_kill) if ok else None
-        fleet.wait_alive(timeout=args.timeout)
+        deadline = time.monotonic() + args.timeout  # the launcher restarts it (a new process), then it is up
+        while (child.proc is None or child.proc.pid == old_pid) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        fleet.wait_alive(timeout=max(1.0, deadline - time.monotonic()), children=[child])
         up = ups.first_after(service, t_kill)
         if up is not None:
             restarts.append(up)
