@@ -172,22 +172,24 @@ def test_shard_reports_the_robots_that_move_when_an_instance_joins(settings: Set
                                                                    store):
     moves: list[tuple[set[str], set[str]]] = []
     robots = [f"r{i}" for i in range(20)]
-    with Bus(hub_settings, "stopper", "st-a") as a, Bus(settings, "stopper", "st-b") as b:
+    with Bus(hub_settings, "stopper", "st-a") as a:
         a.declare_alive()
         sa = sharding.Shard(a, lambda: store, "stopper", "st-a", on_moved=lambda g, lo: moves.append((g, lo))).start()
         assert all(sa.owns(r) for r in robots)  # alone: every robot (and now it knows them)
-        sb = sharding.Shard(b, lambda: store, "stopper", "st-b").start()
-        assert sb.membership.live == {"st-a", "st-b"}  # synced at start, before its own token exists
-        b.declare_alive()
-        deadline = time.monotonic() + 10
-        while not moves and time.monotonic() < deadline:
-            time.sleep(0.05)
-        gained, lost = moves[-1]
-        assert not gained and lost == {r for r in robots if sharding.owner(r, ["st-a", "st-b"]) == "st-b"}
-        assert all(sa.owns(r) != sb.owns(r) for r in robots)
-        assert sa.claim("ep", 0).won and not sb.claim("ep", 0).won
-        off = sharding.Shard(b, lambda: store, "stopper", "st-c", enabled=False).start()
-        assert all(off.owns(r) for r in robots) and off.claim("ep", 0).won
+        # st-b starts after st-a is up (its token routed at the link handshake, which Bus.open waits for)
+        with Bus(settings, "stopper", "st-b") as b:
+            sb = sharding.Shard(b, lambda: store, "stopper", "st-b").start()
+            assert sb.membership.live == {"st-a", "st-b"}  # synced at start, before its own token exists
+            b.declare_alive()
+            deadline = time.monotonic() + 10
+            while not moves and time.monotonic() < deadline:
+                time.sleep(0.05)
+            gained, lost = moves[-1]
+            assert not gained and lost == {r for r in robots if sharding.owner(r, ["st-a", "st-b"]) == "st-b"}
+            assert all(sa.owns(r) != sb.owns(r) for r in robots)
+            assert sa.claim("ep", 0).won and not sb.claim("ep", 0).won
+            off = sharding.Shard(b, lambda: store, "stopper", "st-c", enabled=False).start()
+            assert all(off.owns(r) for r in robots) and off.claim("ep", 0).won
 
 
 def test_refused_robots_are_dropped_before_decoding(settings: Settings, hub_settings: Settings):
