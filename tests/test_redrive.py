@@ -105,5 +105,9 @@ def test_an_episode_goes_on_after_a_kill_with_no_resend_timer(fleet, service: st
     end = run.ends[eid]
     assert end.state == "stopped" and end.steps == STEPS, end
     assert f.child(service).proc.pid != before  # type: ignore[union-attr]
-    problems = ledger.problems({eid: STEPS})
+    # the ledger's subscriptions run on their own threads: give the last decision, published right before the end,
+    # a moment to be counted (a missing one stays missing)
+    deadline = time.monotonic() + 10
+    while (problems := ledger.problems({eid: STEPS})) and time.monotonic() < deadline:
+        time.sleep(0.1)
     assert not problems, problems
