@@ -37,3 +37,10 @@ compose-smoke:
 
 clean:
 	rm -rf var .pytest_cache .ruff_cache
+
+# The reliability tests N times each with every core busy, then the recovery figures (not part of `make test`;
+# `make stress STRESS_RUNS=3` for a short run; scripts/stress.py --help).
+STRESS_RUNS ?= 30
+.PHONY: stress
+stress: setup
+	$(PY) scripts/stress.py --runs $(STRESS_RUNS) $(STRESS_ARGS)

@@ -149,7 +149,28 @@ class Bus:
                     f"could not open a Zenoh {s.zenoh_mode} session connecting to "
                     f"{', '.join(s.zenoh_connect) or 'nothing'}: {exc}; check EQA_ZENOH_CONNECT{hint}"
                 ) from exc
+            if self.settings.zenoh_connect and self.settings.bus_link_wait_s > 0:
+                self.wait_linked(self.settings.bus_link_wait_s)
         return self
+
+    def linked(self) -> bool:
+        """Whether the session has a link to at least one router or peer."""
+        info = self.session.info
+        return bool(list(info.routers_zid()) or list(info.peers_zid()))
+
+    def wait_linked(self, timeout: float) -> bool:
+        """Wait up to ``timeout`` s for the first link. A peer session returns from ``zenoh.open`` before its
+        connect endpoints have finished their handshake; until then a liveliness query answers "nobody" at
+        once (a sharded instance would take every robot) and publications reach no one. Without a link after
+        ``timeout`` the session goes on (Zenoh keeps retrying) and a warning says so."""
+        deadline = time.monotonic() + timeout
+        while not self.linked():
+            if time.monotonic() >= deadline:
+                log.warning("%s/%s: no link to %s after %g s; going on (Zenoh keeps trying)", self.service,
+                            self.instance, ", ".join(self.settings.zenoh_connect), timeout)
+                return False
+            time.sleep(0.01)
+        return True
 
     def close(self) -> None:
         with self._lock:

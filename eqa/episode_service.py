@@ -11,7 +11,8 @@ write its own way:
   of one stream can arrive before the start on another) are held, bounded (episodes, messages per episode,
   bytes), for :attr:`hold_ttl_s`, and handled in step order right after the start. Expired or refused ones go
   to :meth:`EpisodeService.unknown_episode`; those of an episode that already ended are dropped.
-* **The resent step** (the sim sends a step again when no goal came back, ``EQA_STEP_RESEND_S``): a message of
+* **The resent step** (the sim sends a step again when the instances downstream changed, and when no goal came
+  back within ``EQA_STEP_RESEND_S``): a message of
   the step this service last answered (:meth:`answered_step`) is answered by publishing the step's outputs
   again (recorded by :meth:`publish_step`, kept in the store when :attr:`persist_answers`), or, when they are
   not at hand, by :meth:`answer_again`; an older step is a stale re-delivery and is ignored.
@@ -297,9 +298,7 @@ class EpisodeService(Service, Generic[S]):
         restart or by another instance would otherwise be left to expire)."""
         self.episodes.pop(episode_id, None)
         meta = self.meta.pop(episode_id, None)
-        if meta is not None and self.shard is not None and self.shard.claims is not None:
-            # they would expire; not wait for it
-            self.shard.claims.forget(episode_id, max(meta.answer_step + 1, upto_step))
+        self._forget_claims(episode_id, max(meta.answer_step + 1, upto_step) if meta is not None else upto_step)
         self._held.pop(episode_id, None)
         self.store.delete(episode_state_key(self.name, episode_id))
         if meta is not None and meta.parts:
@@ -307,6 +306,11 @@ class EpisodeService(Service, Generic[S]):
         rec = self.recorders.pop(episode_id, None)
         if rec is not None:
             rec.close()
+
+    def _forget_claims(self, episode_id: str, upto_step: int) -> None:
+        """Delete the step claims of an ended episode (they would expire; not wait for it)."""
+        if self.shard is not None and self.shard.claims is not None:
+            self.shard.claims.forget(episode_id, upto_step)
 
     def robot_of(self, episode_id: str) -> str:
         return self.meta[episode_id].robot
@@ -429,15 +433,21 @@ class EpisodeService(Service, Generic[S]):
 
     def _on_finish(self, robot: str, msg: EpisodeCancel | EpisodeEnd) -> None:
         self._note_ended(msg.episode_id)
+        upto = getattr(msg, "steps", 0) + 1  # an EpisodeEnd counts its steps
         if not self.owns(robot):
-            self._forget(msg.episode_id)  # a copy left from when the robot was ours; its owner drops the rest
+            # A copy left from when the robot was ours; its owner drops the rest. The claims go here too: this
+            # instance may have claimed a step after the robot moved away, and the owner may stop before it
+            # sees the end; every instance deletes them after its own last claim, so none is left behind.
+            meta = self.meta.get(msg.episode_id)
+            self._forget(msg.episode_id)
+            self._forget_claims(msg.episode_id, max(upto, meta.answer_step + 1 if meta is not None else 0))
             return
         state = self.episode(msg.episode_id)
         try:
             if state is not None:
                 self.finish_episode(robot, msg, state)
         finally:
-            self.drop(msg.episode_id, upto_step=getattr(msg, "steps", 0) + 1)  # an EpisodeEnd counts its steps
+            self.drop(msg.episode_id, upto_step=upto)
 
     def _dispatch(self, robot: str, msg: Any, route: _Route) -> None:
         eid = msg.episode_id

@@ -39,6 +39,8 @@ from eqa.settings import Settings
 log = logging.getLogger(__name__)
 
 PIPELINE = dataflow.PIPELINE
+SUPERVISE_S = 0.1  # how often the supervisor looks for exited children (a poll() each)
+STEADY_S = 10.0  # a child that ran this long before it exited restarts with the shortest backoff
 ALL_SERVICES = dataflow.SERVICES
 
 
@@ -65,6 +67,7 @@ class Child:
     log_path: Path
     proc: subprocess.Popen[bytes] | None = None
     restarts: int = 0
+    streak: int = 0  # restarts in a row, each after less than STEADY_S of running (the backoff grows with it)
     started_at: float = 0.0
     history: list[str] = field(default_factory=list)
 
@@ -247,7 +250,7 @@ class Fleet:
                 self._alive_changed.wait(min(left, 0.5))
 
     def _supervise(self) -> None:
-        while not self._stop.wait(0.5):
+        while not self._stop.wait(SUPERVISE_S):
             for child in self.children:
                 if self._stop.is_set() or child.proc is None or child.proc.poll() is None:
                     continue
@@ -259,7 +262,9 @@ class Fleet:
                     continue
                 child.restarts += 1
                 metrics.inc(metrics.CHILD_RESTARTS, child.service)
-                delay = min(0.2 * 2**child.restarts, 5.0)
+                # a crash loop backs off; a child that ran steadily before it died is back at once
+                child.streak = child.streak + 1 if time.monotonic() - child.started_at < STEADY_S else 1
+                delay = min(0.2 * 2 ** (child.streak - 1), 5.0)
                 log.warning("%s exited with %s; restarting in %.1f s", child.instance, code, delay)
                 time.sleep(delay)
                 if not self._stop.is_set():

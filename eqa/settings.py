@@ -288,6 +288,18 @@ class Settings(BaseSettings):
                                      ) from exc
         return items
 
+    # --- fleet reliability (bus links, step re-drive) ---
+    bus_link_wait_s: float = Field(
+        default=5.0, ge=0,
+        description="a session with EQA_ZENOH_CONNECT endpoints waits this long at open for its first link, so its "
+        "first liveliness query and publications reach the fleet (then it goes on and keeps retrying); 0 = no wait",
+    )
+    step_redrive: bool = Field(
+        default=True,
+        description="when an instance of a stateful service (re)appears, the sim sends the current frame of the "
+        "robots it now owns at once instead of waiting for EQA_STEP_RESEND_S",
+    )
+
     @field_validator("zenoh_listen", "zenoh_connect", "api_tokens", "cors_origins", "robots", "ros2_robots",
                      mode="before")
     @classmethod

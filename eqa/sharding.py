@@ -32,6 +32,7 @@ log = logging.getLogger(__name__)
 CLAIM_PREFIX = "eqa:claim:"
 CLAIM_TTL_S = 900.0  # a step claim matters while its episode runs: resends, the next step's staleness check
 MAX_ATTEMPTS = 64
+FORGET_ATTEMPTS = 4  # claims deleted per step when an episode ends (later takeovers, rarer still, expire)
 
 
 def weight(instance: str, robot: str) -> int:
@@ -154,8 +155,14 @@ class StepClaims:
         return raw.decode() if raw is not None else None
 
     def claim(self, episode_id: str, step: int) -> Claim:
+        """Attempts ``0, 1, ...`` of a step are claimed in turn; the latest one present decides: held by this
+        instance (a resent step, or a restarted process of the same instance name whose predecessor claimed
+        it) it is won again, held by a live instance it is lost, held by a dead one the next attempt is
+        claimed. An earlier attempt never decides while a later one exists: an instance restarted under its
+        name must not take back a step another instance took over while it was down."""
         base = self._key(episode_id, step)
-        for attempt in range(MAX_ATTEMPTS):
+        attempt = 0
+        while attempt < MAX_ATTEMPTS:
             key = f"{base}:{attempt}"
             if self.store.set_if_absent(key, self.me.encode(), ttl_s=self.ttl_s):
                 self.store.set(base + ":holder", self.me.encode(), ttl_s=self.ttl_s)
@@ -164,6 +171,9 @@ class StepClaims:
                 return Claim(True, self.me, prev is not None and prev != self.me)
             raw = self.store.get(key)
             if raw is None:  # expired between the two calls: try the same attempt again
+                continue
+            if self.store.get(f"{base}:{attempt + 1}") is not None:  # superseded by a takeover
+                attempt += 1
                 continue
             holder = raw.decode()
             if holder == self.me:  # the same step again (resent): the service answers it from its state
@@ -174,6 +184,7 @@ class StepClaims:
                 return Claim(False, holder, False)
             metrics.inc(metrics.STEP_TAKEOVERS, self.service)
             log.info("step %d of %s: %s claimed it and is gone; claiming it again", step, episode_id, holder)
+            attempt += 1
         raise RuntimeError(f"step {step} of {episode_id}: {MAX_ATTEMPTS} claims by dead instances")
 
     def forget(self, episode_id: str, upto_step: int) -> None:
@@ -181,7 +192,7 @@ class StepClaims:
         names = []
         for step in range(upto_step + 1):
             base = self._key(episode_id, step)
-            names += [base + ":holder"] + [f"{base}:{a}" for a in range(2)]
+            names += [base + ":holder"] + [f"{base}:{a}" for a in range(FORGET_ATTEMPTS)]
         self.store.delete_many(names)
 
 
@@ -251,3 +262,69 @@ class Shard:
         if (gained or lost) and self._on_moved is not None:
             log.info("%s %s: robots gained %s, lost %s", self.service, self.me, sorted(gained), sorted(lost))
             self._on_moved(gained, lost)
+
+
+def reassigned(robots: Iterable[str], before: Iterable[str], after: Iterable[str]) -> set[str]:
+    """Robots whose owner differs between the live sets ``before`` and ``after`` (an instance that left held
+    them, or one that joined takes them; with no instance at all the owner is None). Pure."""
+    b, a = sorted(set(before)), sorted(set(after))
+    return {r for r in robots if owner(r, b) != owner(r, a)}
+
+
+REDRIVE_AFTER_S = (0.3, 2.0)
+
+
+class Redrive:
+    """When to send a robot's current step again because the instances of a service downstream changed.
+
+    A step in flight when its consumer's instance dies is lost with it, and one sent while a newcomer takes a
+    robot over may reach neither the old owner (it no longer takes the robot) nor the new one (not subscribed
+    yet): without help it waits for the step-resend timer. The producer (the sim) feeds :meth:`changed` with
+    the liveliness of the services downstream; each robot whose owner in one of them changed is due
+    ``after_s`` later (the first lets the new owner's subscriptions and view of the live set settle, the next
+    covers an instance that saw the change late), and :meth:`due` hands out the robots to send again with the
+    step they were at. Re-sent steps are answered by the consumers without computing anything twice (the
+    step claims and their stored answers). Not thread-safe: call it from the producer's worker."""
+
+    def __init__(self, services: Iterable[str], after_s: tuple[float, ...] = REDRIVE_AFTER_S) -> None:
+        self.after_s = tuple(sorted(after_s))
+        self._live: dict[str, frozenset[str]] = {keys.check_id(s, "service"): frozenset() for s in services}
+        self._due: dict[str, tuple[object, list[float]]] = {}
+
+    def live(self, service: str) -> frozenset[str]:
+        return self._live.get(service, frozenset())
+
+    def changed(self, service: str, instance: str, up: bool, robots: dict[str, object], now: float) -> set[str]:
+        """An instance of ``service`` appeared (``up``) or vanished; ``robots`` maps each robot the producer
+        drives to its current step (any value compared by equality). Returns the robots scheduled."""
+        before = self._live.get(service)
+        if before is None:
+            return set()
+        after = before | {instance} if up else before - {instance}
+        if after == before:
+            return set()
+        self._live[service] = after
+        moved_ = reassigned(robots, before, after)
+        self.schedule({r: robots[r] for r in moved_}, now)
+        return moved_
+
+    def schedule(self, robots: dict[str, object], now: float) -> None:
+        """Send the current step of each robot again ``after_s`` from ``now`` (a robot already scheduled is
+        scheduled anew)."""
+        for robot, step in robots.items():
+            self._due[robot] = (step, [now + d for d in self.after_s])
+
+    def due(self, now: float) -> dict[str, object]:
+        """Robots whose next re-send time has come, with the step they were at when scheduled."""
+        out: dict[str, object] = {}
+        for robot, (step, times) in list(self._due.items()):
+            if times and times[0] <= now:
+                out[robot] = step
+                while times and times[0] <= now:
+                    times.pop(0)
+            if not times:
+                del self._due[robot]
+        return out
+
+    def pending(self) -> int:
+        return len(self._due)

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from eqa import sharding
+from eqa import keys, sharding
 from eqa.bus import Bus
 from eqa.settings import Settings
 from eqa.sharding import Membership, StepClaims
@@ -122,6 +122,24 @@ def test_each_step_is_claimed_once_and_a_dead_holders_claim_is_taken_over(store)
     assert b.holder("ep-1", 2) is None
 
 
+def test_an_instance_restarted_under_its_name_does_not_take_back_a_step_taken_over(store):
+    alive = {"pl-a", "pl-b"}
+    a = StepClaims(store, "planner", "pl-a", alive.__contains__)
+    b = StepClaims(store, "planner", "pl-b", alive.__contains__)
+    assert a.claim("ep-2", 4).won
+    alive.discard("pl-a")  # killed after its claim; pl-b takes the step over
+    assert b.claim("ep-2", 4).won
+    alive.add("pl-a")  # the launcher restarts it under the same name; the step comes again (a resend)
+    again = a.claim("ep-2", 4)
+    assert not again.won and again.holder == "pl-b"
+    assert b.claim("ep-2", 4).won  # at its holder: answered from its state
+    alive.discard("pl-b")
+    third = a.claim("ep-2", 4)  # the takeover's holder died too: the next attempt
+    assert third.won and a.holder("ep-2", 4) == "pl-a"
+    a.forget("ep-2", 4)
+    assert store.keys(f"{sharding.CLAIM_PREFIX}planner:ep-2:") == []
+
+
 def test_concurrent_claimants_get_exactly_one_winner(store):
     alive = {f"i{k}" for k in range(4)}
     winners: list[str] = []
@@ -154,22 +172,24 @@ def test_shard_reports_the_robots_that_move_when_an_instance_joins(settings: Set
                                                                    store):
     moves: list[tuple[set[str], set[str]]] = []
     robots = [f"r{i}" for i in range(20)]
-    with Bus(hub_settings, "stopper", "st-a") as a, Bus(settings, "stopper", "st-b") as b:
+    with Bus(hub_settings, "stopper", "st-a") as a:
         a.declare_alive()
         sa = sharding.Shard(a, lambda: store, "stopper", "st-a", on_moved=lambda g, lo: moves.append((g, lo))).start()
         assert all(sa.owns(r) for r in robots)  # alone: every robot (and now it knows them)
-        sb = sharding.Shard(b, lambda: store, "stopper", "st-b").start()
-        assert sb.membership.live == {"st-a", "st-b"}  # synced at start, before its own token exists
-        b.declare_alive()
-        deadline = time.monotonic() + 10
-        while not moves and time.monotonic() < deadline:
-            time.sleep(0.05)
-        gained, lost = moves[-1]
-        assert not gained and lost == {r for r in robots if sharding.owner(r, ["st-a", "st-b"]) == "st-b"}
-        assert all(sa.owns(r) != sb.owns(r) for r in robots)
-        assert sa.claim("ep", 0).won and not sb.claim("ep", 0).won
-        off = sharding.Shard(b, lambda: store, "stopper", "st-c", enabled=False).start()
-        assert all(off.owns(r) for r in robots) and off.claim("ep", 0).won
+        # st-b starts after st-a is up (its token routed at the link handshake, which Bus.open waits for)
+        with Bus(settings, "stopper", "st-b") as b:
+            sb = sharding.Shard(b, lambda: store, "stopper", "st-b").start()
+            assert sb.membership.live == {"st-a", "st-b"}  # synced at start, before its own token exists
+            b.declare_alive()
+            deadline = time.monotonic() + 10
+            while not moves and time.monotonic() < deadline:
+                time.sleep(0.05)
+            gained, lost = moves[-1]
+            assert not gained and lost == {r for r in robots if sharding.owner(r, ["st-a", "st-b"]) == "st-b"}
+            assert all(sa.owns(r) != sb.owns(r) for r in robots)
+            assert sa.claim("ep", 0).won and not sb.claim("ep", 0).won
+            off = sharding.Shard(b, lambda: store, "stopper", "st-c", enabled=False).start()
+            assert all(off.owns(r) for r in robots) and off.claim("ep", 0).won
 
 
 def test_refused_robots_are_dropped_before_decoding(settings: Settings, hub_settings: Settings):
@@ -189,3 +209,23 @@ def test_refused_robots_are_dropped_before_decoding(settings: Settings, hub_sett
         assert done.wait(5)
         time.sleep(0.2)
     assert invalid == [keys.stream("mine", keys.SIM_FRAME)] and not seen
+
+
+def test_a_session_behind_a_slow_link_sees_the_instances_already_there(settings: Settings, hub_settings: Settings,
+                                                                      zenoh_port: int, store):
+    """The link's handshake completes 2.5 s after ``zenoh.open`` returned (it returns after ~0.5 s without it):
+    the bus waits for the link before it answers, so the first view of a starting instance already counts the
+    instance that was there. Without the wait (``bus_link_wait_s=0``) the same query answers "nobody"."""
+    from slow_link import SlowLink
+
+    with Bus(hub_settings, "stopper", "st-a") as a, SlowLink(zenoh_port, 2.5) as link:
+        a.declare_alive()
+        via = settings.model_copy(update={"zenoh_connect": [link.endpoint]})
+        with Bus(via.model_copy(update={"bus_link_wait_s": 0.0}), "stopper", "st-early") as early:
+            assert early.alive(keys.alive_service("stopper"), timeout=1.0) == []
+        with Bus(via, "stopper", "st-b") as b:
+            sb = sharding.Shard(b, lambda: store, "stopper", "st-b").start()
+            assert sb.membership.live == {"st-a", "st-b"}
+            robots = [f"r{i}" for i in range(20)]
+            mine = {r for r in robots if sharding.owner(r, ["st-a", "st-b"]) == "st-b"}
+            assert {r for r in robots if sb.owns(r)} == mine

@@ -83,6 +83,8 @@ class EpisodeMap:
         self.maps: Maps2D | None = None
         self.frontiers: list[Frontier] = []
         self.prompts: list[PromptPoint] = []
+        # (sent_at, timing_ms) of the MapUpdate of step ``step``: a re-published update is the same message
+        self.made: tuple[float, dict[str, float]] | None = None
 
     @property
     def episode_id(self) -> str:
@@ -127,6 +129,7 @@ class EpisodeMap:
         timer.lap("prompt_points", t0)
         self.step = frame.step
         self.pose = frame.pose
+        self.made = None
         return self.maps
 
     def _mark_footprint(self, pose: Pose2D) -> None:
@@ -230,10 +233,17 @@ class EpisodeMap:
         return float(self.maps.explored.sum()) * self.resolution**2
 
     def map_update(self, timing_ms: dict[str, float] | None = None) -> MapUpdate:
+        """The map update of the last integrated step; once :attr:`made` is set, with its ``sent_at`` and
+        timings (the update of a step is one message however often it is published)."""
         if self.maps is None or self.pose is None:
             raise RuntimeError("no frame integrated yet")
         m = self.maps
+        made: dict[str, Any] = {}
+        if self.made is not None:
+            made = {"sent_at": self.made[0]}
+            timing_ms = self.made[1]
         return MapUpdate(
+            **made,
             episode_id=self.episode_id,
             step=self.step,
             grid=self.grid(),

@@ -56,6 +56,7 @@ from services.mapper.tsdf import FrameError
 log = logging.getLogger(__name__)
 
 EARLY_FRAME_TTL_S = 30.0
+MADE_KEY = "made"  # the stored state's part with the last map update's sent_at and timings
 
 Scorer = Callable[[ScoreRequest], ScoreResult]
 
@@ -128,15 +129,21 @@ class MapperService(AnswerViewsShell, QuestionObjectsShell, ObjectLayerShell, Ep
         header, write, delete = snapshots.snapshot_step(state)
         state_header = self.qobjects_dump(state.episode_id, self.objects_dump(state.episode_id, header))
         state_header = self.views_dump(state.episode_id, state_header)
+        if state.made is not None:
+            state_header = snapshots.with_state_part(state_header, MADE_KEY, {
+                "step": state.step, "sent_at": state.made[0], "timing_ms": dict(state.made[1])})
         return StateParts(state_header, write, delete)
 
     def load_state(self, episode_id: str, data: Any) -> EpisodeMap:
+        data, made = snapshots.without_state_part(data, MADE_KEY)
         data, answer_views = self.views_split(data)
         data, question_objects = self.qobjects_split(data)
         em = self.objects_load(episode_id, data, lambda b: snapshots.restore(
             b, lambda part: self.read_part(episode_id, part), self.config))
         self.qobjects_restore(em, question_objects)
         self.views_restore(em.start, answer_views)
+        if isinstance(made, dict) and made.get("step") == em.step:
+            em.made = (float(made["sent_at"]), {str(k): float(v) for k, v in dict(made["timing_ms"]).items()})
         log.info("episode %s: restored from snapshot at step %d", episode_id, em.step)
         return em
 
@@ -191,12 +198,15 @@ class MapperService(AnswerViewsShell, QuestionObjectsShell, ObjectLayerShell, Ep
         frontier_layer = self.objects_apply(robot, em, frame, pending_objects, timer.ms)
         evidence = self.qobjects_apply(em, frame, pending_question_objects, timer.ms)
         em.compute_frontiers(frontier_layer or QUESTION_LAYER, timer=timer, candidates=candidates)
-        # Persist before publishing: whatever a consumer has seen survives a crash of this process.
+        # Persist before publishing: whatever a consumer has seen survives a crash of this process. The update's
+        # time and timings are stored with the map, so one killed between the two is answered by its successor
+        # with the same message, not a second one.
+        em.made = (time.time(), timer.ms)
         t0 = time.perf_counter()
         self._save(em)
         timer.lap("snapshot", t0)
         timer.ms["step"] = (time.perf_counter() - t_start) * 1000.0
-        update = em.map_update(timer.ms)
+        update = em.map_update()
         update.skill = frame.skill  # a task skill's outcome, passed on to the planner's state machine (issue 17)
         self.objects_attach(em, update, frame, {})
         if result is None:  # not kept as the step's answer: a resent step is scored again (answer_again)
@@ -217,6 +227,7 @@ class MapperService(AnswerViewsShell, QuestionObjectsShell, ObjectLayerShell, Ep
         map, without integrating the frame twice or writing its semantic values twice."""
         log.info("episode %s: frame %d sent again; its map update and scores re-published", em.episode_id, frame.step)
         update = em.map_update({})
+        update.skill = frame.skill
         self.objects_attach(em, update, frame, {})
         self.publish(robot, keys.MAPPER_MAP, update)
         result = self._score(robot, em, frame)

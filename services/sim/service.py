@@ -14,10 +14,14 @@ that names the robot), so a sim restarted between two steps continues the episod
 restarted sim also takes up the recent states it finds there at start (the newest one per robot). States of
 the older format (JSON under ``eqa:sim:robot:{robot}``, before 2026-12-01 21:00 UTC) are not read.
 
-A message lost while a service restarted would stall an episode: the sim sends the frame of a step again when
-no goal came back within ``EQA_STEP_RESEND_S`` (at most ``EQA_STEP_RESENDS_MAX`` times per step), and the
-mapper, stopper and planner answer a repeated step by publishing their output for it again, so the goal comes
-back and the episode goes on. After the last resend the gateway's watchdog ends the episode with a reason.
+A message lost while a service restarted would stall an episode. The sim watches the liveliness of the mapper,
+planner and stopper instances (and its own shard): when one vanishes or (re)appears, the current frame of each
+robot whose owner changed is sent again a moment later (:class:`eqa.sharding.Redrive`, ``EQA_STEP_REDRIVE``), and
+a restarted sim sends the frames of the episodes it takes up from the store; the mapper, stopper and planner
+answer a repeated step by publishing their output for it again (computed once: step claims and stored answers),
+so the goal comes back within about a second of the new instance being up. As the last resort the sim sends the
+frame of a step again when no goal came back within ``EQA_STEP_RESEND_S`` (at most ``EQA_STEP_RESENDS_MAX`` times
+per step); after the last resend the gateway's watchdog ends the episode with a reason.
 """
 
 from __future__ import annotations
@@ -31,13 +35,14 @@ from typing import Any
 
 import numpy as np
 
-from eqa import keys, metrics
+from eqa import dataflow, keys, metrics
 from eqa.bus import Bus
 from eqa.codec import CodecError, unpackb
 from eqa.episode_service import EpisodeService
 from eqa.messages import EpisodeCancel, EpisodeEnd, EpisodeStart, Frame, Goal, Pose2D, SkillReport
 from eqa.recording import ENTITIES
 from eqa.settings import Settings
+from eqa.sharding import Redrive
 from eqa.store import (
     EPISODE_STATE_TTL_S,
     Store,
@@ -56,6 +61,7 @@ from services.sim.task_runner import SimTask
 
 log = logging.getLogger(__name__)
 MAX_CACHED_SCENES = 4
+REDRIVE_TICK_S = 0.1  # how often due re-sends are looked for (a dict lookup when none is pending)
 
 
 @dataclass
@@ -102,6 +108,7 @@ class SimService(EpisodeService[_Episode]):
         super().__init__(settings, bus, store)
         self._scenes: OrderedDict[tuple[str, int], Renderer] = OrderedDict()
         self._K = intrinsics(settings.sim_width, settings.sim_height)
+        self._redrive: Redrive | None = None
 
     def owns(self, robot: str) -> bool:
         # A robot of EQA_ROS2_ROBOTS is a real one: the ROS 2 bridge keeps the contract for it.
@@ -114,6 +121,13 @@ class SimService(EpisodeService[_Episode]):
         # Robots are shared among the live sim instances by the base's Shard (EQA_SHARD): this one drives only
         # its own, claims each step it renders, and takes a robot that moves here up from the store.
         self.on(keys.PLANNER_GOAL, self.on_goal)
+        if self.settings.step_redrive:
+            # an instance downstream (re)appears or vanishes: the current frame of each robot it takes or held
+            # is sent again within a second, not after EQA_STEP_RESEND_S (that timer stays the last resort)
+            self._redrive = Redrive(s for s in dataflow.STATEFUL if s != self.name)
+            self.bus.watch_alive(keys.ALIVE_ANY, lambda service, instance, up: self.submit(
+                self._downstream_changed, service, instance, up))
+            self.every(REDRIVE_TICK_S, self._redrive_due)
         self.submit(self._resume_stored)
         if self.settings.step_resend_s > 0:
             self.every(min(1.0, self.settings.step_resend_s / 4), self._resend_stale)
@@ -208,8 +222,37 @@ class SimService(EpisodeService[_Episode]):
                 newest[robot] = (saved_at, episode_id)
         for robot, (_, episode_id) in newest.items():
             if self.episode(episode_id) is not None:
-                log.info("robot %s: episode %s restored at step %d", robot, episode_id,
-                         self.episodes[episode_id].step)
+                step = self.episodes[episode_id].step
+                log.info("robot %s: episode %s restored at step %d", robot, episode_id, step)
+                if self._redrive is not None:  # its frame may never have reached anyone
+                    self._redrive.schedule({robot: (episode_id, step)}, time.monotonic())
+
+    def _driven(self) -> dict[str, tuple[str, int]]:
+        """``robot -> (episode, current step)`` of the episodes this instance drives."""
+        return {meta.robot: (eid, self.episodes[eid].step) for eid, meta in list(self.meta.items())
+                if eid in self.episodes and self.owns(meta.robot)}
+
+    def _downstream_changed(self, service: str, instance: str, up: bool) -> None:
+        if self._redrive is None:
+            return
+        robots = self._redrive.changed(service, instance, up, self._driven(), time.monotonic())
+        if robots:
+            log.info("%s %s %s: current frames of %s to be sent again", service, instance,
+                     "appeared" if up else "vanished", ", ".join(sorted(robots)))
+
+    def _redrive_due(self) -> None:
+        """Send again the frames :class:`eqa.sharding.Redrive` says are due, unless the robot moved on since."""
+        if self._redrive is None or not self._redrive.pending():
+            return
+        now = time.monotonic()
+        for robot, (episode_id, step) in self._redrive.due(now).items():  # type: ignore[misc]
+            ep = self.episodes.get(episode_id)
+            if ep is None or ep.step != step or not self.owns(robot):
+                continue
+            ep.emitted_at = now  # the resend timer starts again from here
+            log.info("robot %s episode %s: instances downstream changed; frame sent again for step %d", robot,
+                     episode_id, step)
+            self.publish(robot, keys.SIM_FRAME, self.render_frame(ep))
 
     def _resend_stale(self) -> None:
         """Send the current frame again for every episode whose goal has not come back in time."""
@@ -298,9 +341,9 @@ class SimService(EpisodeService[_Episode]):
         self._emit(robot, state)
 
     def on_goal(self, robot: str, goal: Goal) -> None:
-        if goal.done:
+        if goal.done or goal.episode_id in self._ended:
             ep = self.episodes.get(goal.episode_id)
-            if ep is not None and ep.task is not None and self.owns(robot):  # the task trace keeps the end
+            if goal.done and ep is not None and ep.task is not None and self.owns(robot):  # the task trace keeps the end
                 ep.task.episode.end_reason = goal.reason[:300]
                 self.store.set_json(task_trace_key(ep.episode_id), ep.task.episode.trace_doc(),
                                     ttl_s=EPISODE_STATE_TTL_S)
