@@ -343,7 +343,7 @@ class SimService(EpisodeService[_Episode]):
     def on_goal(self, robot: str, goal: Goal) -> None:
         if goal.done or goal.episode_id in self._ended:
             ep = self.episodes.get(goal.episode_id)
-            if goal.done and ep is not None and ep.task is not None and self.owns(robot):  # the task trace keeps the end
+            if goal.done and ep is not None and ep.task is not None and self.owns(robot):  # the trace keeps the end
                 ep.task.episode.end_reason = goal.reason[:300]
                 self.store.set_json(task_trace_key(ep.episode_id), ep.task.episode.trace_doc(),
                                     ttl_s=EPISODE_STATE_TTL_S)
