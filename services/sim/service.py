@@ -252,6 +252,7 @@ class SimService(EpisodeService[_Episode]):
             ep.emitted_at = now  # the resend timer starts again from here
             log.info("robot %s episode %s: instances downstream changed; frame sent again for step %d", robot,
                      episode_id, step)
+            metrics.inc(metrics.RESENDS, self.name, "redrive")
             self.publish(robot, keys.SIM_FRAME, self.render_frame(ep))
 
     def _resend_stale(self) -> None:
