@@ -13,7 +13,7 @@ demo: setup
 	$(VENV)/bin/eqa ask
 
 test: setup
-	@# the real OpenAI-compatible server of tests/test_scorer_serve.py in its own venv (issue 23; ~5.5 GB, a few
+	@# the real OpenAI-compatible server of tests/test_scorer_serve.py in its own venv (~5.5 GB, a few
 	@# minutes the first time, then a stamp check): set-up time, not suite time. If it fails, that test skips saying why.
 	@bash scripts/setup-serve.sh || echo "setup: transformers serve could not be installed; tests/test_scorer_serve.py will skip" >&2
 	$(PY) -m ruff check .
@@ -28,7 +28,7 @@ bench: setup
 up: setup
 	$(VENV)/bin/eqa up
 
-# The compose fleet in podman containers, one question through them (issue 25; not part of `make test`:
+# The compose fleet in podman containers, one question through them (not part of `make test`:
 # 8.5 min on a host without podman, about 1.5 min once set up and built; see README "Containers here").
 compose-smoke:
 	bash scripts/containers.sh setup

@@ -1,4 +1,4 @@
-"""Answer memory (issue 22, item 1) against the paper's single-view answer, on recorded traces (offline).
+"""Answer memory against the paper's single-view answer, on recorded traces (offline).
 
 SIMULATED PERCEPTION MODEL (oracle scorer), not a VLM. The answer rules need only the per-step answer
 distributions f(x^t) and relevances Rel(x^t), which the traces hold, so the episodes are re-scored offline:
@@ -7,7 +7,7 @@ which the replay models exactly as :func:`services.stopper.state.decide` does (a
 
 Data (all ``semantic`` exploration, 320x240, full-length ``max_steps`` runs):
 
-* evaluation seeds 1-3: test splits = ``bench/results/explore-seeds/traces`` (200 per seed, issue 14);
+* evaluation seeds 1-3: test splits = ``bench/results/explore-seeds/traces`` (200 per seed);
   calibration splits recorded with ``eqa.app.stop_sensitivity`` (``--recordings DIR``, the first ``--n-cal``
   of the round-robin category order);
 * tuning seed 11: calibration + test recordings; K and the fusion are chosen there only, by the answer

@@ -3,7 +3,7 @@ against open3d's ``VoxelBlockGrid``, on the same frames, interleaved, in one run
 
 Per frame, in rotating order so that load drifts hit all alike:
 
-* ``baseline``: the TSDF of git revision ``--baseline`` (default: the commit before issue 20's work), its
+* ``baseline``: the TSDF of git revision ``--baseline`` (default: the first TSDF of the project, git 5f008c0), its
   source read with ``git show`` into a private module (nothing of it is kept in the tree);
 * ``ours``: :class:`services.mapper.tsdf.TSDFVolume` of this tree;
 * ``open3d``: ``o3d.t.geometry.VoxelBlockGrid`` with the same voxel size and truncation (surface band only:
@@ -102,7 +102,7 @@ class Open3DTSDF:
         return int(n * 8**3 * 8)
 
 
-BASELINE_REV = "5f008c0"  # the tree before issue 20 (TSDF, projection and snapshot as they were)
+BASELINE_REV = "5f008c0"  # the project's first TSDF, projection and snapshot
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -174,7 +174,7 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         from services.mapper.snapshots import snapshot_step
-    except ImportError:  # a tree before issue 20: whole-map snapshots only
+    except ImportError:  # a tree with whole-map snapshots only
         snapshot_step = None
 
     base_tsdf = base_proj = None
@@ -272,7 +272,7 @@ def main(argv: list[str] | None = None) -> int:
         store.set("mapper/episode/bench", full)
         extra["snapshot full"].append((time.perf_counter() - t0) * 1000)
         nbytes["snapshot full"].append(len(full))
-        if snapshot_step is not None:  # incremental snapshot (issue 20): the step's parts + header
+        if snapshot_step is not None:  # incremental snapshot: the step's parts + header
             t0 = time.perf_counter()
             header, parts, obsolete = snapshot_step(em)
             build_ms.append((time.perf_counter() - t0) * 1000)

@@ -1,4 +1,4 @@
-"""Object evidence for questions (issue 22, item 2) against VLM-only answers, on existence and counting questions.
+"""Object evidence for questions against VLM-only answers, on existence and counting questions.
 
 SIMULATED PERCEPTION MODEL (oracle scorer) and SIMULATED DETECTOR, not a VLM / detector. Two steps:
 

@@ -1,4 +1,4 @@
-"""Object evidence (issue 22, item 2): the floor plan's rooms (as bench_object_evidence.py) against the whole
+"""Object evidence: the floor plan's rooms (as bench_object_evidence.py) against the whole
 explored map (what the product does: the mapper has no floor plan), from the SAME object layer per episode,
 both against VLM-only answers. Full budget, single-view answer rule, test split of the evaluation seeds, the
 knobs fixed at the settings' defaults (psi_min, weight: chosen on the tuning seed 11 by bench_object_evidence).

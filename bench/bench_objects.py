@@ -1,4 +1,4 @@
-"""HELIOS object layer benchmarks (issue 16): update time against the number of Gaussians, memory of the
+"""HELIOS object layer benchmarks: update time against the number of Gaussians, memory of the
 object-only layer against the same layer over every observed surface (paper Fig. 4), and a multi-view fusion
 figure like the paper's Fig. 2.
 

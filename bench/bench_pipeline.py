@@ -22,7 +22,7 @@ External figures, not measured by this script: the reference code (Explore-EQA's
 the project's task brief to take about 200 ms per mapper+planner step with its figures off and about 5.8 s
 with them on (it saves matplotlib figures every step); date, machine load, frames and n of that measurement
 are not recorded. They are printed next to ours for orientation only, labelled as external, and no ratio is
-formed from them (a ratio must come from two things timed in the same run; issue 20). Issue 20 records a
+formed from them (a ratio must come from two things timed in the same run). docs/results/performance.md records a
 side-by-side run (same 40 rendered 640x480 frames, interleaved, load ~7): reference mapper+planner p50
 564.6 ms against ours 40.1 ms. The figures here are p50 / p95 in milliseconds unless stated.
 
@@ -318,7 +318,7 @@ def in_process(base: Settings, scene_id: str, size: tuple[int, int], steps: int,
         timer.lap("semantic_values", t1)
         em.compute_frontiers(timer=timer)
         t1 = time.perf_counter()
-        header, parts, obsolete = snapshot_step(em)  # what the mapper service stores (issue 20: incremental)
+        header, parts, obsolete = snapshot_step(em)  # what the mapper service stores (incremental)
         for name, data in parts.items():
             store.set(f"mapper/episode/bench:{name}", data)
         store.set("mapper/episode/bench", header)

@@ -1,4 +1,4 @@
-"""Scorer modes on real and double servers (issue 23): per-step latency of each mode side by side, and a
+"""Scorer modes on real and double servers: per-step latency of each mode side by side, and a
 conformal calibration made in sampling mode on the tiny Qwen2-VL served by ``transformers serve``, with its
 coverage on held-out episodes.
 

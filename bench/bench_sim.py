@@ -81,7 +81,7 @@ def identical_to(rev: str, houses: int, frames: int, width: int, height: int) ->
             base = new.render(T, K, width, height)
             ids, counts = np.unique(base.instances[base.instances >= 0], return_counts=True)
             cases = [frozenset()]
-            if ids.size and hasattr(old, "_without"):  # revisions before issue 17 cannot hide
+            if ids.size and hasattr(old, "_without"):  # older revisions cannot hide
                 cases.append(frozenset({int(ids[counts.argmax()])}))
             for hidden in cases:
                 pair = [(old, t_old), (new, t_new)]

@@ -28,7 +28,7 @@ write its own way:
   A service whose :meth:`dump_state` returns plain data stores exactly what it did before.
 * **Recorder bookkeeping**: one :class:`eqa.recording.EpisodeRecorder` per episode in :attr:`recorders`, named
   after the service (``{service}-resume{k}`` after a restart: a file sink cannot be appended to).
-* **Ownership** (sharding, issue 21): :meth:`owns` is asked before any message is handled. With ``EQA_SHARD``
+* **Ownership** (sharding): :meth:`owns` is asked before any message is handled. With ``EQA_SHARD``
   (the default) the robots are shared among the live instances of the service by :class:`eqa.sharding.Shard`
   (rendezvous hashing over liveliness; one instance alone owns every robot). Before a step's handler runs the
   step is claimed in the store, so no step is computed by two instances while their views of the live set

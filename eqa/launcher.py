@@ -9,7 +9,7 @@ own ``EQA_INSTANCE``; output goes to ``{data_dir}/logs/<instance>.log``.
 A supervisor thread restarts a child that exits unexpectedly (with backoff, at most ``max_restarts`` times);
 the services restore their per-episode state from the store, so the episode goes on.
 
-One host's share of a fleet (``join``, issue 21): the launcher's router also connects to an existing router
+One host's share of a fleet (``join``): the launcher's router also connects to an existing router
 (``eqa up --join tls/10.0.0.1:7447``) and the children are Zenoh *clients* of it, so all of this host's traffic
 goes through its router (no peer-to-peer links across hosts). With ``EQA_ZENOH_TLS_DIR`` (``eqa certs``) the
 router listens on ``tls/`` with the ``router`` certificate and each child gets its own role's certificate; with

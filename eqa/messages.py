@@ -267,7 +267,7 @@ Skill = Literal["move", "pick", "place", "stop"]
 
 
 class SkillReport(BaseModel):
-    """What a task skill did (the sim runs it after moving to the goal's pose; issue 17): the oracle pick, the
+    """What a task skill did (the sim runs it after moving to the goal's pose): the oracle pick, the
     heuristic place, or the stop call of a find-object task. Carried by the next ``Frame`` and passed on by the
     mapper in ``MapUpdate.skill`` so the planner's state machine learns the outcome."""
 
@@ -299,7 +299,7 @@ class EpisodeStart(Message):
     max_steps: StrictInt = Field(ge=1, le=10_000)
     seed: StrictInt = Field(default=0, ge=0, le=2**63 - 1)
     record: StrictBool = True
-    # A HELIOS task episode (issue 17) when set; ``question`` is then its stand-in (text = the instruction).
+    # A HELIOS task episode when set; ``question`` is then its stand-in (text = the instruction).
     task: Task | None = None
     ablation: Ablation = "helios"
     pick_limit: int | None = Field(default=None, ge=1, le=1000)  # None = unlimited (Table 1: 1, 5, unlimited)
@@ -398,7 +398,7 @@ class MapUpdate(Message):
     objects: list[ObjectInstance] = Field(default_factory=list)  # HELIOS object layer (task episodes only)
 
 
-MAX_MEMORY_VIEWS = 16  # issue 22 joint answer: views in one prompt
+MAX_MEMORY_VIEWS = 16  # joint answer: views in one prompt
 MAX_MEMORY_VIEW_SIDE = 448  # pixels, the longer side of a memory view (the mapper downscales to this)
 
 
@@ -414,7 +414,7 @@ def _check_memory_views(views: list[np.ndarray]) -> list[np.ndarray]:
 class ScoreRequest(Message):
     """The four queries of one step (Explore-EQA Eq. 1, 2, 5 and the answer distribution).
 
-    Issue 22, joint answer memory: with ``memory_views`` (1..16 images, each side <= 448 px) the request asks
+    Joint answer memory: with ``memory_views`` (1..16 images, each side <= 448 px) the request asks
     only for the answer distribution over ALL those views in one prompt (backends that take several images);
     the reply's ``relevance``/``lsv``/``gsv`` are then empty."""
 
@@ -452,7 +452,7 @@ class ScoreResult(Message):
     replica: str = ""
     latency_ms: float = 0.0
     proposed_choices: list[str] = Field(default_factory=list)  # questions without choices (VI-A)
-    # issue 23: how the distribution was read: "logprobs" (the model's probabilities) or "sampling" (frequencies
+    # how the distribution was read: "logprobs" (the model's probabilities) or "sampling" (frequencies
     # of sampled completions, multiples of ``resolution`` = 1/valid samples); "" from older replicas
     mode: str = Field(default="", max_length=32)
     resolution: float = Field(default=0.0, ge=0.0, le=1.0)
@@ -471,7 +471,7 @@ MAX_EVIDENCE_INSTANCES = 64
 
 
 class ObjectEvidence(BaseModel):
-    """The HELIOS object layer's view of a question's target at one step (issue 22, item 2): the Psi (HELIOS
+    """The HELIOS object layer's view of a question's target at one step: the Psi (HELIOS
     Eq. 7) of the target-class instances in the asked region, best first, and the observed share of that
     region. Combined with the VLM's answer by :mod:`services.stopper.object_evidence`."""
 
@@ -494,9 +494,9 @@ class StepScores(Message):
     gsv: float = 0.0
     backend: str = ""
     choices: list[str] = Field(default_factory=list)
-    mode: str = Field(default="", max_length=32)  # the scorer's mode (ScoreResult.mode, issue 23)
-    object_evidence: ObjectEvidence | None = None  # issue 22: the object layer's evidence (question episodes)
-    # issue 22 joint answer memory: the steps whose views answer_probs was answered from in one prompt
+    mode: str = Field(default="", max_length=32)  # the scorer's mode (ScoreResult.mode)
+    object_evidence: ObjectEvidence | None = None  # the object layer's evidence (question episodes)
+    # joint answer memory: the steps whose views answer_probs was answered from in one prompt
     # (empty: answer_probs is this step's own view)
     answer_views: list[Annotated[int, Field(ge=0)]] = Field(default_factory=list, max_length=MAX_MEMORY_VIEWS)
 
@@ -527,7 +527,7 @@ class Goal(Message):
     weights: list[float] = Field(default_factory=list)
     done: bool = False
     reason: str = ""
-    # task episodes (issue 17): after moving to ``pose`` the sim runs ``skill`` on the planner's ``target``
+    # task episodes: after moving to ``pose`` the sim runs ``skill`` on the planner's ``target``
     skill: Skill = "move"
     target: int | None = None  # object-layer instance id the skill aims at (the oracle pick uses ground truth)
     phase: TaskPhase | None = None
@@ -577,14 +577,14 @@ class EpisodeStatus(BaseModel):
     stop_reason: str | None = None
     correct: bool | None = None
     recording: str | None = None
-    task: Task | None = None  # a task episode (issue 17)
+    task: Task | None = None  # a task episode
     metrics: dict[str, float] = Field(default_factory=dict)  # its phase metrics (FindObj ... SR) at the end
     outcome: dict[str, Any] | None = None  # a finished task: success, first failure cause / phase, a line of text
     ablation: Ablation | None = None  # a task: the agent variant
     pick_limit: int | None = None  # a task: pick attempts (None = unlimited)
 
 
-# ---- HELIOS object layer (issue 16; contract: briefs/helios-interface.md) ----------------------------------
+# ---- HELIOS object layer (docs/architecture.md) -----------------------------------------------------
 MAX_DETECT_CLASSES = 32
 MAX_DETECTIONS = 256
 MAX_VALUE_TARGETS = 8
@@ -792,7 +792,7 @@ def model_json(model: BaseModel) -> dict[str, Any]:
 
 class EpisodeLabel(BaseModel):
     """Ground truth given for a finished episode (``POST /v1/episodes/{id}/label``), stored under
-    :func:`eqa.store.episode_label_key`; labelled full-length episodes are new calibration data (issue 15)."""
+    :func:`eqa.store.episode_label_key`; labelled full-length episodes are new calibration data."""
 
     model_config = ConfigDict(extra="forbid")
     schema_version: int = SCHEMA_VERSION

@@ -35,7 +35,7 @@ class Settings(BaseSettings):
     zenoh_listen: CsvList = Field(default_factory=list, description="endpoints to listen on, e.g. tcp/127.0.0.1:7447")
     zenoh_connect: CsvList = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
     zenoh_multicast: bool = False
-    # bus security (issue 21; eqa/security.py): mTLS, user/password, the stream-ownership ACL. All off by default.
+    # bus security (eqa/security.py): mTLS, user/password, the stream-ownership ACL. All off by default.
     zenoh_tls_ca: Path | None = Field(default=None, description="CA certificate (PEM); set = tls/ links only, mTLS")
     zenoh_tls_cert: Path | None = Field(default=None, description="this node's certificate; its CN is its role")
     zenoh_tls_key: Path | None = Field(default=None, description="this node's private key (PEM)")
@@ -44,7 +44,7 @@ class Settings(BaseSettings):
     zenoh_users_file: Path | None = Field(default=None, description="user:password lines a router accepts")
     zenoh_acl: bool = Field(default=False, description="enforce the stream-ownership ACL on this node (routers)")
     zenoh_tls_dir: Path | None = Field(default=None, description="eqa up: dir of <role>.pem/.key + ca.pem (eqa certs)")
-    # robot sharding among instances of a stateful service (issue 21; eqa/sharding.py)
+    # robot sharding among instances of a stateful service (eqa/sharding.py)
     shard: bool = Field(default=True, description="share robots among live instances of a service (rendezvous hash)")
 
     # --- store ---
@@ -72,7 +72,7 @@ class Settings(BaseSettings):
     remote_api_key: str | None = None
     remote_timeout_s: float = Field(default=30.0, gt=0)
     remote_max_retries: int = Field(default=4, ge=0)
-    # issue 23: endpoints without chat-completions logprobs (services/vlm_scorer/backends/remote.py)
+    # endpoints without chat-completions logprobs (services/vlm_scorer/backends/remote.py)
     remote_mode: Literal["auto", "logprobs", "sampling"] = Field(
         default="auto", description="auto: logprobs, or sampling when the endpoint returns none (decided once)"
     )
@@ -87,7 +87,7 @@ class Settings(BaseSettings):
     oracle_min_pixels_frac: float = Field(default=0.0005, ge=0.0, lt=1.0, description="share of image: unseen below")
     oracle_full_pixels_frac: float = Field(default=0.005, gt=0.0, le=1.0, description="share of image: fully seen")
     oracle_max_range_m: float = Field(default=6.0, gt=0.0, description="distance past which a target is unseen")
-    # miscalibration modes of the simulated perception model, 0 = off (issue 15; oracle.py documents each)
+    # miscalibration modes of the simulated perception model, 0 = off (oracle.py documents each)
     oracle_miscal_category: float = Field(default=0.0, ge=0.0, le=1.0, description="Rel varies by question category")
     oracle_miscal_view: float = Field(default=0.0, ge=0.0, le=1.0, description="Rel varies by view clutter")
     oracle_miscal_related: float = Field(default=0.0, ge=0.0, le=1.0, description="related-but-wrong object taken")
@@ -98,26 +98,26 @@ class Settings(BaseSettings):
     tau_gsv: float = 1.0
     tau_sv: float = 1.0
     tau_sv_normal: float = 1.0
-    # view orientation in the value layers (issue 22 item 3; services/mapper/semantic_map.py). 0 = off
+    # view orientation in the value layers (services/mapper/semantic_map.py). 0 = off
     view_bins: int = Field(default=0, ge=0, le=16, description="viewing-direction bins per value layer, 0 = off")
     view_agree: int = Field(default=2, ge=1, le=16, description="bins that must see a cell before a value below "
                             "neutral (LSV < 1/|P|) is believed")
 
     # --- stopper ---
     calibration_name: str = Field(default="default", description="CP calibration table name (eqa calibrate)")
-    # issue 22: answer from the K most relevant views (services/stopper/answer_memory.py); 0 = the paper's
+    # answer from the K most relevant views (services/stopper/answer_memory.py); 0 = the paper's
     # single-view answer. A CP table must be calibrated with the same rule (eqa calibrate --answer-memory K).
     answer_memory_k: int = Field(default=0, ge=0, le=16, description="answer memory: views pooled, 0 = off")
     answer_memory_fusion: Literal["loglinear", "linear"] = Field(
         default="loglinear", description="answer memory pooling: relevance-weighted log-linear or linear")
-    # issue 22 item 1, joint mode (h22j): the MAPPER keeps the answer_memory_views most relevant views and asks
+    # joint mode: the MAPPER keeps the answer_memory_views most relevant views and asks
     # the scorer pool for ONE answer over all of them (several images in one prompt; hf backend only); the
     # step's StepScores.answer_probs is that joint answer. "fusion" (default) leaves the mapper alone and the
     # stopper pools per-view distributions (answer_memory_k). Use joint with answer_memory_k = 0.
     answer_memory_mode: Literal["fusion", "joint"] = Field(
         default="fusion", description="answer memory: stopper fusion, or one multi-image prompt (mapper, hf only)")
     answer_memory_views: int = Field(default=4, ge=1, le=16, description="joint mode: views in the prompt (K)")
-    # issue 22 item 2: question episodes track the target class in the HELIOS object layer and the stopper
+    # question episodes track the target class in the HELIOS object layer and the stopper
     # combines its evidence with the VLM's answer (services/stopper/object_evidence.py); off by default.
     object_evidence: bool = Field(default=False, description="object evidence for existence/counting questions")
     # chosen on the tuning seed 11 (bench/bench_object_evidence.py eval; bench/results/answer_rules_objects.json)
@@ -162,7 +162,7 @@ class Settings(BaseSettings):
         "so a killed launcher leaves no orphaned services); 0 = never (containers, systemd, a shell)",
     )
 
-    # --- HELIOS (paper Table 3 defaults; object layer = issue 16, tasks/planning = issue 17) ---
+    # --- HELIOS (paper Table 3 defaults: object layer, tasks, planning) ---
     helios_alpha_cs: float = Field(default=1.0, ge=0.0, description="alpha_cs: uncertainty weight, Eq. 7/11")
     helios_alpha_d: float = Field(default=0.001, ge=0.0, description="alpha_d: distance weight, Eq. 8/10")
     helios_tau_g: float = Field(default=0.5, description="tau_g: Psi_g threshold to pick the object")
@@ -180,7 +180,7 @@ class Settings(BaseSettings):
     helios_gaze_points: int = Field(default=12, ge=1, le=256, description="gaze points on the contour")
     helios_gaze_obstacle_m: float = Field(default=1.0, ge=0.0, description="gaze: taller obstacles on the way occlude")
 
-    # --- HELIOS object layer and detector (issue 16; services/mapper/objects, services/vlm_scorer/detector) ---
+    # --- HELIOS object layer and detector (services/mapper/objects, services/vlm_scorer/detector) ---
     detector_backend: Literal["oracle", "hf", "remote"] = Field(
         default="oracle", description="open-vocabulary detector of the scorer pool (remote: no standard protocol)"
     )

@@ -33,7 +33,7 @@ def episode_end_key(episode_id: str) -> str:
 
 
 def task_metrics_key(episode_id: str) -> str:
-    """Where the sim keeps a task episode's phase metrics (FindObj ... SR, collisions, pick attempts; issue 17),
+    """Where the sim keeps a task episode's phase metrics (FindObj ... SR, collisions, pick attempts),
     rewritten after every step: the stopper puts them in the episode's ``EpisodeEnd.metrics``."""
     return f"eqa:sim:task:{episode_id}"
 
@@ -94,7 +94,7 @@ _STREAM_ID = re.compile(r"([0-9]{1,19})-([0-9]{1,19})")  # ASCII digits only (\\
 def parse_stream_id(entry_id: str) -> tuple[int, int]:
     """``(ms, seq)`` of a stream id ``<ms>-<seq>``: two decimal integers of at most 19 digits, each at most
     :data:`MAX_STREAM_PART`. Anything else raises ``ValueError`` saying what a valid id looks like (a
-    Last-Event-ID of 20-digit parts used to pass a regex and kill the stream in the backend)."""
+    Last-Event-ID of 20-digit parts would otherwise pass a loose pattern and fail the stream in the backend)."""
     m = _STREAM_ID.fullmatch(entry_id) if isinstance(entry_id, str) else None
     if m is None:
         raise ValueError(f"event id {str(entry_id)[:40]!r} must look like <ms>-<seq> (two integers), e.g. 0-0")

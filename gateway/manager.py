@@ -190,8 +190,8 @@ def step_budget(settings: Settings, req: QuestionRequest, scene_area: SceneArea 
                 per_sqrt_m2: float = QUESTION_STEPS_PER_SQRT_M2) -> int:
     """``max_steps`` of an episode: the request's budget, else ``int(per_sqrt_m2 * sqrt(floor area))`` (a
     question: Explore-EQA section VI, T = 3 * sqrt(scene area); a task: 6, as the task benchmark), else
-    :data:`DEFAULT_MAX_STEPS`. The scene is checked in every case
-    (an explicit budget used to skip the check: unknown scenes were accepted, then failed by the sim). The
+    :data:`DEFAULT_MAX_STEPS`. The scene is checked in every case,
+    an explicit budget too (an unknown scene would otherwise be accepted here and fail in the sim). The
     422 says what a scene id looks like and never shows the server's paths or its list of scenes."""
     if req.scene is None or scene_area is None:
         return req.max_steps or DEFAULT_MAX_STEPS

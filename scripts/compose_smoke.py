@@ -1,4 +1,4 @@
-"""Smoke run of the compose fleet in containers (issue 25; ``make compose-smoke``).
+"""Smoke run of the compose fleet in containers (``make compose-smoke``).
 
 Starts docker-compose.yml (with docker-compose.podman.yml) under podman: the Zenoh router, Redis, every service,
 two scorer replicas and the gateway; waits until every container with a health check passes it (the compose

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Containers on a host without Docker and without a reachable image registry (issue 25): podman from Debian,
+# Containers on a host without Docker and without a reachable image registry: podman from Debian,
 # a local base image made with debootstrap, the project image built with the host's own pip indexes.
 #
 #   scripts/containers.sh setup    podman, runc, netavark, podman-compose (pinned, own venv), podman's
@@ -21,7 +21,7 @@ BASE_IMAGE=localhost/eqa-base:$SUITE
 REDIS_IMAGE=localhost/eqa-redis:7
 IMAGE=localhost/eqa:latest
 CONF=/etc/containers/containers.conf
-MARK="# Written by scripts/containers.sh (eqa issue 25)"
+MARK="# Written by scripts/containers.sh (eqa)"
 CHANGED=()
 
 SUDO=""

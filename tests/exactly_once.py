@@ -1,4 +1,4 @@
-"""What the services publish, read back to tell whether a step was computed once (issue 21's sharding tests).
+"""What the services publish, read back to tell whether a step was computed once.
 
 Every message carries ``sent_at``, the time it was made. A step *integrated* by the mapper is a ``MapUpdate``
 with its stage timings (a resent frame is answered from the stored map with an empty ``timing_ms``); a step

@@ -1,5 +1,5 @@
 """Three hosts as Linux network namespaces on one bridge (made and torn down here), for the fleet-across-hosts
-test and its longer bench version (issue 21).
+test and its longer bench version.
 
 Layout, on a private /24 (``10.221.<n>.0``): ``h1`` = .1, ``h2`` = .2, ``h3`` = .3, and the machine's own
 namespace (the test driver, like an operator's laptop) = .254, all on a bridge inside a fourth namespace, so the

@@ -1,4 +1,4 @@
-"""Joint answer memory in the live services (issue 22 item 1, EQA_ANSWER_MEMORY_MODE=joint): a question episode
+"""Joint answer memory in the live services (EQA_ANSWER_MEMORY_MODE=joint): a question episode
 through the real mapper and scorer replica (hf backend on a tiny random Qwen2-VL built offline: its
 probabilities are meaningless, the plumbing is real) on Zenoh. The mapper keeps the K most relevant views, asks
 the pool for one multi-image answer whenever that set changes, and the StepScores carry it; the memory survives
@@ -117,7 +117,7 @@ def test_joint_answer_through_mapper_and_scorer(hub_settings: Settings, settings
             want = backend.answer_from_views(kept_images, Q, Q.choices)
             assert got[-1].answer_views == sorted(av.steps) and got[-1].answer_probs == pytest.approx(want, abs=1e-5)
             assert got[0].answer_views == [0] and all(s.answer_views for s in got)
-            assert all(s.mode == "logprobs" for s in got)  # the scorer's mode (issue 23) is kept
+            assert all(s.mode == "logprobs" for s in got)  # the scorer's mode is kept
             # the stopper's trace (what `eqa calibrate` learns CP from) holds the joint answers
             traces = TraceStore(stopper.store)
             deadline = time.monotonic() + 15

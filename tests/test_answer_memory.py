@@ -1,4 +1,4 @@
-"""Answer memory (issue 22, item 1): pooling, bounds, causality, calibration with the same rule, decide()."""
+"""Answer memory: pooling, bounds, causality, calibration with the same rule, decide()."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Answer memory on the hf backend (issue 22): one prompt with several images, through the real transformers
+"""Answer memory on the hf backend: one prompt with several images, through the real transformers
 code path of a tiny random Qwen2-VL built offline (its probabilities are meaningless; the plumbing is real)."""
 
 from __future__ import annotations

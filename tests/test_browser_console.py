@@ -1,5 +1,5 @@
 """The web console at ``/`` in a real browser (headless Chromium, ``browser_helpers``) against a real fleet
-(issue 24): ask from the form using only the keyboard and watch the episode live (step counter, prediction
+: ask from the form using only the keyboard and watch the episode live (step counter, prediction
 set, images, answer); reload mid-episode and get every event exactly once; a wrong token and an unreachable
 gateway explained on the page, and the page recovering by itself; a killed service on the fleet view.
 

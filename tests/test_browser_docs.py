@@ -1,4 +1,4 @@
-"""The API documentation pages render in a real browser with no internet access (issue 26).
+"""The API documentation pages render in a real browser with no internet access.
 
 Headless Chromium (``browser_helpers``) resolves no host but 127.0.0.1, so a page whose script or style
 comes from a CDN stays blank. A check for "200 OK" cannot see that; these tests wait for the page's

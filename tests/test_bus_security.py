@@ -2,7 +2,7 @@
 authentication and the stream-ownership ACL; services connect to it as clients. Certificates are made by the
 test (a private CA, one certificate per role, with openssl), never committed.
 
-The attack of issue 21: a well-formed but forged EpisodeEnd (and EpisodeStart) from a peer that is not the
+The attack : a well-formed but forged EpisodeEnd (and EpisodeStart) from a peer that is not the
 stream's owner. It is refused at the router; the owner's own message is delivered."""
 
 from __future__ import annotations

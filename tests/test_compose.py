@@ -84,7 +84,7 @@ _Override.add_constructor("!reset", lambda loader, node: None)
 
 
 def test_podman_override_changes_only_what_cannot_be_pulled_here():
-    """docker-compose.podman.yml (issue 25) swaps the two registry images for local ones and the published
+    """docker-compose.podman.yml swaps the two registry images for local ones and the published
     ports; the services, replicas, health checks and variables stay docker-compose.yml's."""
     override = yaml.load((REPO / "docker-compose.podman.yml").read_text(), Loader=_Override)
     services = override["services"]

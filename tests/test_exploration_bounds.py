@@ -1,4 +1,4 @@
-"""Benchmark-only yardsticks (issue 14): target_oracle and perfect_sv read ground truth, the product refuses them,
+"""Benchmark-only yardsticks: target_oracle and perfect_sv read ground truth, the product refuses them,
 and the tuning tools refuse the evaluation seeds."""
 
 from __future__ import annotations
@@ -195,7 +195,7 @@ def test_oracle_tuning_tool_refuses_evaluation_seeds(capsys: pytest.CaptureFixtu
                    "withdrawn")
 def test_planner_enters_a_room_behind_a_narrowed_doorway() -> None:
     """Two rooms joined by a doorway the map narrows to 0.5 m: a frontier inside the far room should be approached
-    through the door at the reduced clearance, not 'reached' from this side of the wall (issue 14: rooms behind
+    through the door at the reduced clearance, not 'reached' from this side of the wall (rooms behind
     such doors were never entered, even by target_oracle)."""
     from eqa.messages import GridSpec
     from services.planner.sampling import step_rng

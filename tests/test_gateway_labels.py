@@ -1,6 +1,6 @@
 """Ground truth through the real gateway (``POST /v1/episodes/{id}/label``) and recalibration from it
 (``eqa calibrate --from-store`` / ``--check --from-store``), end to end: real services over Zenoh, real Redis,
-the gateway over real HTTP (issue 15)."""
+the gateway over real HTTP."""
 
 from __future__ import annotations
 

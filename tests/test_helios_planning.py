@@ -222,7 +222,7 @@ def test_gaze_points_refuse_bad_input() -> None:
         gaze_points(occ, None, GRID, (0, 0, 0), (1, 1, 1), -1.0, 8, 1.0)
 
 
-# ---- the skill pose (issue 17: the gaze contour was the pick reach) ----------------------------------------
+# ---- the skill pose (the gaze contour was the pick reach) ----------------------------------------
 
 
 def test_skill_pose_is_within_reach_of_the_object_facing_it() -> None:

@@ -1,4 +1,4 @@
-"""Hostile bus payloads (issue 19): decompression bombs and lying array headers are refused before any large
+"""Hostile bus payloads: decompression bombs and lying array headers are refused before any large
 allocation, frames held for unknown episodes are capped in bytes, an EpisodeStart that does not validate (or
 whose handler fails) is answered with an ErrorReply at once instead of silence for the gateway's watchdog,
 and a flood of data messages cannot hold up an EpisodeEnd in the gateway. Real Zenoh sessions on loopback,

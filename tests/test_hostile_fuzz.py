@@ -1,4 +1,4 @@
-"""Property-based fuzz of the HTTP API from its own OpenAPI document (schemathesis over hypothesis, issue 19):
+"""Property-based fuzz of the HTTP API from its own OpenAPI document (schemathesis over hypothesis):
 for every operation, generated valid and invalid requests must never get a 5xx, and every answer must be one
 the document lists, with the documented content type, headers and body schema. A bounded, derandomised
 example count (FUZZ_EXAMPLES per operation) keeps it to seconds in CI.

@@ -1,4 +1,4 @@
-"""Hostile input against the gateway over real HTTP (uvicorn on loopback, issue 19): bodies and headers,
+"""Hostile input against the gateway over real HTTP (uvicorn on loopback): bodies and headers,
 event-stream ids, oversized and chunked bodies with and without a token, tenant crossing, failed-auth floods,
 queue floods, readiness without a token, a store that goes away. Each case was accepted (or answered 500, or
 read a whole body) before the fix.

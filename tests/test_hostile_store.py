@@ -1,4 +1,4 @@
-"""Unbounded growth (issue 19): stored episode records have a retention (count and age), the episode list
+"""Unbounded growth: stored episode records have a retention (count and age), the episode list
 reads one page of an index instead of scanning every record, and stream ids are parsed into bounded
 integers. Both store backends (embedded SQLite and a private Redis)."""
 

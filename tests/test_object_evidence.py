@@ -1,4 +1,4 @@
-"""Object evidence for questions (issue 22, item 2): the layer's distribution on hand-computed cases, pooling,
+"""Object evidence for questions: the layer's distribution on hand-computed cases, pooling,
 validation off the bus, the stopper with the setting on/off, calibration of the combined score, and the real
 HELIOS object layer tracking a question's target class in a generated house."""
 

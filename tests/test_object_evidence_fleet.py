@@ -1,4 +1,4 @@
-"""Object evidence in the live services (issue 22, item 2): an existence question typed by a user (no
+"""Object evidence in the live services: an existence question typed by a user (no
 benchmark ``query``) through the real mapper, scorer replica (oracle VLM + simulated detector) and stopper on
 Zenoh. With EQA_OBJECT_EVIDENCE on, the mapper parses the target from the text, asks the pool for detections,
 puts the layer's evidence into StepScores, keeps the layer over a restart; the stopper's trace holds the

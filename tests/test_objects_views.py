@@ -1,4 +1,4 @@
-"""The vectorised renders of the object layer (issue 17): several camera poses in one pass and the render
+"""The vectorised renders of the object layer: several camera poses in one pass and the render
 restricted to one instance's box give exactly the single-pose, full-image numbers (Eq. 1, 11, 12)."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Miscalibration modes of the SIMULATED PERCEPTION MODEL (oracle backend), issue 15: 0 = today's behaviour."""
+"""Miscalibration modes of the SIMULATED PERCEPTION MODEL (oracle backend): 0 = today's behaviour."""
 
 from __future__ import annotations
 

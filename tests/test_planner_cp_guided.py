@@ -1,4 +1,4 @@
-"""``cp_guided`` (issue 15): the CP prediction set re-tempers the frontier weights; the planner service uses the
+"""``cp_guided``: the CP prediction set re-tempers the frontier weights; the planner service uses the
 stopper's Decision of the step (real Zenoh)."""
 
 from __future__ import annotations

@@ -4,7 +4,7 @@ Every goal must be a pose the simulator accepts, and FBE must cover the house wi
 T = 3 sqrt(area) (Explore-EQA appendix B).
 
 What "explored" means here: the share of the reachable floor (simulator ground truth) that the map has
-*observed* (seen in a depth image, free-space carving included). Issue 6 asks for >= 90 % of the reachable
+*observed* (seen in a depth image, free-space carving included). The bar is >= 90 % of the reachable
 floor within T. The map's appendix-B "explored" layer (middle 50 % HFOV x lower 50 % VFOV of a camera 30 deg
 down from 1.5 m) marks at most a ~60 deg wedge out to ~2.6 m per step (about 3.5 m2), so 90 % of that layer
 within T = 3 sqrt(area) steps is out of reach for any strategy (T * 3.5 m2 < 0.9 area for areas above

@@ -1,4 +1,4 @@
-"""Task episodes in the planner service over real Zenoh (issue 17): MapUpdate.objects and the sim's skill
+"""Task episodes in the planner service over real Zenoh: MapUpdate.objects and the sim's skill
 outcome in, goals with skill / target / phase out; a planner restarted mid-task continues it."""
 
 from __future__ import annotations

@@ -77,7 +77,7 @@ def test_not_a_model_directory(tmp_path):
 
 def test_helios_value_prompt_reads_p_yes(backend):
     """HELIOS 3.1.2 on the hf backend: P(Yes) of "Seems like there is a (object) ahead. Answer Yes or No.",
-    normalised over Yes / No, one per target (issue 16)."""
+    normalised over Yes / No, one per target."""
     from eqa.messages import ValueRequest
     from services.vlm_scorer.target_values import QUESTION, target_values
 

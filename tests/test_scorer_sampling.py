@@ -1,4 +1,4 @@
-"""Issue 23: the remote scorer on endpoints without logprobs (sampling mode), ``eqa scorer check`` and the check
+"""The remote scorer on endpoints without logprobs (sampling mode), ``eqa scorer check`` and the check
 of ``eqa up``, against the OpenAI-compatible protocol double of tests/scorer_helpers.py (real HTTP on loopback)
 with logprobs on and off, ``n`` honoured, ignored or refused."""
 

@@ -1,4 +1,4 @@
-"""Issue 23: the remote scorer against a real OpenAI-compatible server, ``transformers serve`` (transformers'
+"""The remote scorer against a real OpenAI-compatible server, ``transformers serve`` (transformers'
 own server, a separate process on a free loopback port) serving the tiny offline Qwen2-VL.
 
 The server lives in its own virtualenv (``scripts/setup-serve.sh``: torch 2.14.1 + torchvision 0.29.1 +

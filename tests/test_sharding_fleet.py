@@ -1,4 +1,4 @@
-"""Robots shared among several instances of every stateful service (issue 21), through the real fleet: 2 sims,
+"""Robots shared among several instances of every stateful service, through the real fleet: 2 sims,
 3 mappers, 2 planners, 3 stoppers and 2 scorer replicas as separate processes over Zenoh with Redis; 6 robots
 run 8-step episodes at once while a mapper and a stopper are killed with SIGKILL (their launcher restarts
 them), a sim is killed, and a new planner instance joins mid-run.

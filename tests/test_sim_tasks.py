@@ -1,5 +1,5 @@
 """HELIOS tasks in the simulator: generated episodes, the oracle pick, the heuristic place with its drop test,
-collisions (issue 17)."""
+collisions."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Incremental map snapshots (services/mapper/snapshots.py, issue 20) and state parts in the episode-service base.
+"""Incremental map snapshots (services/mapper/snapshots.py) and state parts in the episode-service base.
 
 Frames are rendered from a generated house; the map restored from the stored parts (full part + deltas +
 header) must equal the live map bit for bit: every step, across compactions, after the grid grew, and after

@@ -1,4 +1,4 @@
-"""The miscalibration sweep's fast replay is the stopper's decide() (issue 15), and its statistics."""
+"""The miscalibration sweep's fast replay is the stopper's decide(), and its statistics."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""A test score equal to q_hat keeps its label (issue 15: the boundary of Eq. 10 in floating point)."""
+"""A test score equal to q_hat keeps its label (the boundary of Eq. 10 in floating point)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Guarantees that survive deployment (issue 15): per-category (Mondrian) calibration with per-category
+"""Guarantees that survive deployment: per-category (Mondrian) calibration with per-category
 coverage, and the staleness check of a table against new labelled episodes (``eqa calibrate --check``)."""
 
 from __future__ import annotations

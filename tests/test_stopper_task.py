@@ -1,4 +1,4 @@
-"""Task episodes in the stopper over real Zenoh (issue 17): the planner's done ends them with the sim's phase
+"""Task episodes in the stopper over real Zenoh: the planner's done ends them with the sim's phase
 metrics in EpisodeEnd.metrics and no answer; question episodes are untouched."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""A task through the product (issue 17): POST /v1/tasks on the real gateway in front of the real services (sim,
+"""A task through the product: POST /v1/tasks on the real gateway in front of the real services (sim,
 mapper, scorer, planner, stopper as processes): the same lifecycle as questions, task phases in the SSE events,
 the per-phase metrics in the final status."""
 

@@ -1,4 +1,4 @@
-"""Issue 17: the object a task robot holds is not rendered where it was picked (services/sim/render.py), a
+"""The object a task robot holds is not rendered where it was picked (services/sim/render.py), a
 question episode renders exactly as before, and the object layer scores gaze points for the camera's own tilt."""
 
 from __future__ import annotations

@@ -50,7 +50,7 @@ def test_task_step_asks_for_the_skill_only_on_arrival() -> None:
     near = task_step(m, GRID, free, occ, pose, [], [mug], None, Memory(), np.random.default_rng(0))
     assert (near.skill, near.target) == ("pick", 20)
     # the skill is called 0.6 m from the object's centre (3, 5) on the line to its gaze point (3, 4.2): within the
-    # oracle pick's 0.9 m reach after the planner's arrival tolerance (task_fsm.SKILL_APPROACH_M, issue 17)
+    # oracle pick's 0.9 m reach after the planner's arrival tolerance (task_fsm.SKILL_APPROACH_M)
     assert (near.plan.pose.x, near.plan.pose.y) == (3.0, 4.4)
 
 

@@ -1,4 +1,4 @@
-"""The projection that follows what a frame changed (issue 20) equals reducing the whole grid, step by step,
+"""The projection that follows what a frame changed equals reducing the whole grid, step by step,
 across grid growth; the change stamps mark exactly the columns whose voxels changed."""
 
 from __future__ import annotations

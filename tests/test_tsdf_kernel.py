@@ -1,4 +1,4 @@
-"""The compiled TSDF integrate kernel equals the numpy reference bit for bit (issue 20).
+"""The compiled TSDF integrate kernel equals the numpy reference bit for bit.
 
 Two volumes, one with the numba kernel (the default) and one with ``tsdf_kernel.integrate_reference`` (the
 vectorised numpy code integrate ran before), fuse the same random frames (planes, noise, holes, ``inf`` and

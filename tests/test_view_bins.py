@@ -1,4 +1,4 @@
-"""View orientation in the semantic value layers (issue 22 item 3; Explore-EQA appendix C).
+"""View orientation in the semantic value layers (Explore-EQA appendix C).
 
 Hand-built cases on the pure writers, and real frames (open3d renderer, real TSDF) through
 :class:`EpisodeMap` for the on/off switch, the bins a real view writes, the snapshot round trip and the

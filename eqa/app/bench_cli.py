@@ -58,7 +58,7 @@ def scorer_label(settings: Any) -> str:
 
 
 # Bumped when the exploration itself changes (planner, mapper value layers), so that traces of an earlier
-# behaviour are not resumed into new figures (version 2 was issue 14's trial of a doorway fix, withdrawn).
+# behaviour are not resumed into new figures (version 2 was a withdrawn trial of a doorway fix).
 EXPLORATION_VERSION = 1
 
 
@@ -80,7 +80,7 @@ def tau_label(tau: float) -> str:
 
 
 def view_bins_label(bins: int, agree: int) -> str:
-    """Name of semantic exploration with ``bins`` viewing-direction bins per value layer (issue 22 item 3)."""
+    """Name of semantic exploration with ``bins`` viewing-direction bins per value layer."""
     return f"semantic_vbins{bins}a{agree}"
 
 
@@ -377,7 +377,7 @@ def cmd_stop(args: argparse.Namespace) -> int:
     from eqa.app import evaluation as ev
     from eqa.service import setup_logging
 
-    if args.miscalibration or args.cp_guided:  # issue 15: from perceptions recorded in-process
+    if args.miscalibration or args.cp_guided:  # from perceptions recorded in-process
         from eqa.app import stop_sensitivity as sens
         from eqa.settings import Settings
 
@@ -482,7 +482,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "temperatures are EQA_TAU_LSV / EQA_TAU_GSV = 1), e.g. --tau 3 5")
     e.add_argument("--view-bins", nargs="*", type=int, default=[], choices=range(1, 17), metavar="B",
                    help="also run semantic exploration keeping the best value per viewing-direction bin, B bins "
-                        "(issue 22; EQA_VIEW_BINS; the agreement EQA_VIEW_AGREE, default 2, from the environment)")
+                        "(EQA_VIEW_BINS; the agreement EQA_VIEW_AGREE, default 2, from the environment)")
     e.set_defaults(func=cmd_explore)
     s = sub.add_parser("stop", help="CP vs entropy vs relevance stopping (calibrate, then replay the test split)",
                        description="Calibrate CP on the calibration split, then replay the test split with an eps "
@@ -508,6 +508,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="compare the cp_guided strategy with semantic instead: steps to a single-answer CP set and "
                         "success at eps 0.2 on the evaluation seeds' test splits (simulated perception model)")
     s.set_defaults(func=cmd_stop)
-    from eqa.app import task_bench  # HELIOS Tables 1, 2 (issue 17)
+    from eqa.app import task_bench  # HELIOS Tables 1, 2
 
     task_bench.register(sub)

@@ -11,7 +11,7 @@ trace is already stored are skipped: an interrupted run, run again, resumes and 
 The table (kappas, ``q_hat`` per eps, N, provenance) goes to the store under ``eqa:calibration:<name>``
 and, with ``--out``, to a JSON file (``services/stopper/data/<name>.json`` is the packaged fallback).
 
-Beyond the paper (issue 15):
+Beyond the paper:
 
 * ``--by-category``: Mondrian calibration, a ``q_hat`` per question category besides the marginal one (the
   stopper uses the question's category's own threshold), so coverage holds within each category;
@@ -118,7 +118,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--alpha", type=float, default=0.05, help="significance level of --check (default 0.05)")
     p.add_argument("--answer-memory", type=int, default=None, metavar="K",
                    help="calibrate the scores of the answer-memory rule that pools the K most relevant views "
-                        "(issue 22; default EQA_ANSWER_MEMORY_K, 0 = the single-view rule); the stopper must use "
+                        "(default EQA_ANSWER_MEMORY_K, 0 = the single-view rule); the stopper must use "
                         "the same K and fusion for the coverage guarantee")
     p.add_argument("--answer-fusion", choices=("loglinear", "linear"), default=None,
                    help="pooling of the answer memory (default EQA_ANSWER_MEMORY_FUSION)")
@@ -190,7 +190,7 @@ def _run_missing(
 
 
 def scorer_mode(settings: Settings) -> str:
-    """The mode the scorer reads distributions in (recorded in the table; issue 23): ``logprobs`` for the
+    """The mode the scorer reads distributions in (recorded in the table): ``logprobs`` for the
     oracle and hf backends, the remote endpoint's resolved mode (EQA_REMOTE_MODE; auto is probed)."""
     if settings.scorer_backend != "remote":
         return "logprobs"
@@ -268,7 +268,7 @@ def run_calibrate(args: argparse.Namespace, settings: Settings, store: Store) ->
 
 
 def _answer_rule(args: argparse.Namespace, settings: Settings) -> AnswerRule:
-    """The answer rule to calibrate (issue 22): --answer-memory / --answer-fusion, else the settings'."""
+    """The answer rule to calibrate: --answer-memory / --answer-fusion, else the settings'."""
     k = getattr(args, "answer_memory", None)
     fusion = getattr(args, "answer_fusion", None)
     try:
@@ -326,7 +326,7 @@ def run_check(args: argparse.Namespace, settings: Settings, store: Store) -> Any
     if args.limit is not None:
         traces = traces[: args.limit]
     try:
-        rule = AnswerRule.from_name(table.provenance.get("answer_rule"))  # the table's own answer rule (issue 22)
+        rule = AnswerRule.from_name(table.provenance.get("answer_rule"))  # the table's own answer rule
         report = check_exchangeable(table, [t.kappa(rule) for t in traces], alpha=args.alpha)
     except ValueError as exc:
         raise UsageError(str(exc)) from exc

@@ -65,7 +65,7 @@ def check_scorer(settings: Settings) -> None:
 
 
 def check_remote(settings: Settings) -> None:
-    """``eqa scorer check`` on the configured endpoint (issue 23): :class:`UsageError` with its findings when
+    """``eqa scorer check`` on the configured endpoint: :class:`UsageError` with its findings when
     the remote scorer could not use it; else one line saying the mode and the latency of a step."""
     from services.vlm_scorer.backends.remote import probe_endpoint
 

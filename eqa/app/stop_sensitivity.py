@@ -721,7 +721,7 @@ def run(modes: list[str], levels: list[float], limit: int | None, out: Path, rec
     return 0
 
 
-# ---- cp_guided against semantic (issue 15, item 4) -----------------------------------------------------------
+# ---- cp_guided against semantic -----------------------------------------------------------
 
 GUIDED_EPS = 0.2  # the product's default eps (eqa ask / make demo), fixed in advance, not tuned
 

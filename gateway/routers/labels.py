@@ -1,4 +1,4 @@
-"""Ground truth for finished episodes: ``POST /v1/episodes/{id}/label`` (issue 15).
+"""Ground truth for finished episodes: ``POST /v1/episodes/{id}/label``.
 
 A user who learns the true answer of a question the robot answered (it looked in the bedroom afterwards) posts
 it here. The label is stored beside the episode (:func:`eqa.store.episode_label_key`, an

@@ -1,4 +1,4 @@
-"""Tasks (HELIOS, issue 17): submit "Move the <object> from the <start receptacle> to the <goal receptacle>" or
+"""Tasks (HELIOS): submit "Move the <object> from the <start receptacle> to the <goal receptacle>" or
 "Find a <object>" as an episode. Same lifecycle, auth, queueing, status, events and recording as questions:
 the task episode is an :class:`eqa.messages.EpisodeStart` with ``task`` set and a stand-in question whose text
 is the instruction (status and events at ``/v1/episodes/{id}``)."""

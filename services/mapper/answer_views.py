@@ -1,4 +1,4 @@
-"""Joint answer memory in the mapper (issue 22 item 1, ``EQA_ANSWER_MEMORY_MODE=joint``).
+"""Joint answer memory in the mapper (``EQA_ANSWER_MEMORY_MODE=joint``).
 
 The mapper keeps the K (``EQA_ANSWER_MEMORY_VIEWS``, <= 16) most relevant views of a question episode, each
 downscaled so that its longer side is <= :data:`eqa.messages.MAX_MEMORY_VIEW_SIDE` pixels; a step's relevance
@@ -161,7 +161,7 @@ class AnswerViewsShell:
                 av.answer = self._views_ask(em, step, av)
         if av.answer is None:
             return result
-        # the scorer's mode (logprobs / sampling, issue 23) stays: the joint prompt is read the same way
+        # the scorer's mode (logprobs / sampling) stays: the joint prompt is read the same way
         return result.model_copy(update={"answer_probs": list(av.answer)})
 
     def views_steps(self, episode_id: str) -> list[int]:

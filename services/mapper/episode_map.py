@@ -47,7 +47,7 @@ class MapperConfig:
     tau_gsv: float = 1.0
     tau_sv: float = 1.0
     tau_sv_normal: float = 1.0
-    view_bins: int = 0  # issue 22: best value per viewing-direction bin (semantic_map.py); 0 = off
+    view_bins: int = 0  # best value per viewing-direction bin (semantic_map.py); 0 = off
     view_agree: int = 2  # bins that must have seen a cell before a below-neutral value is believed
 
 
@@ -161,7 +161,7 @@ class EpisodeMap:
             cam = (self.pose.x, self.pose.y) if self.pose is not None else (0.0, 0.0)
             lsv, gsv = ground_truth_scores([(p.x, p.y) for p in pts], list(self.start.question.targets), cam)
         sv = [semantic_value(lv, gsv, temps[0], temps[1]) for lv in lsv]
-        if self.config.view_bins > 0:  # issue 22 item 3: per viewing-direction bin (planes made at the first
+        if self.config.view_bins > 0:  # per viewing-direction bin (planes made at the first
             # write of a layer: the HELIOS task layers, written by object_shell, have none), combined into the layer
             *bins, neutral = (self.volume.add_plane(n) for n in view_plane_names(layer, self.config.view_bins))
             cam = (self.pose.x, self.pose.y) if self.pose is not None else (0.0, 0.0)

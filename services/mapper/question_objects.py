@@ -1,4 +1,4 @@
-"""The HELIOS object layer in a question episode (issue 22, item 2): track the question's target class.
+"""The HELIOS object layer in a question episode: track the question's target class.
 
 For an existence or counting question (``question.query`` names the ``category`` and maybe a ``room_kind``) the
 mapper keeps an :class:`~services.mapper.object_map.ObjectMap` with the one target class (detector threshold

@@ -31,7 +31,7 @@ QUESTION_LAYER = "question"
 
 def temperatures(strategy: str, tau_lsv: float, tau_gsv: float) -> tuple[float, float] | None:
     """(tau_LSV, tau_GSV) of a strategy, or None when the strategy uses no semantic values."""
-    if strategy in ("semantic", "perfect_sv", "cp_guided"):  # cp_guided: the planner re-tempers (issue 15)
+    if strategy in ("semantic", "perfect_sv", "cp_guided"):  # cp_guided: the planner re-tempers
         return tau_lsv, tau_gsv
     if strategy == "no_lsv":
         return 0.0, tau_gsv
@@ -111,7 +111,7 @@ def _gaussian_windows(
 
 
 # ---- view orientation (Explore-EQA appendix C, "Improving semantic exploration by considering view orientation";
-# issue 22 item 3) ----------------------------------------------------------------------------------------------
+# item 3) ----------------------------------------------------------------------------------------------
 #
 # With ``view_bins = B > 0`` a value layer ``V`` keeps, next to itself, the best value per viewing-direction bin
 # ``V_b(x) = max over the steps that judged x from direction bin b of S_t(x)`` (b: the bin of the bearing from

@@ -79,8 +79,8 @@ class MapperService(AnswerViewsShell, QuestionObjectsShell, ObjectLayerShell, Ep
         super().__init__(settings, bus, store)
         self._scorer = scorer
         self.objects_init(detector, values)  # HELIOS object layer of task episodes (object_shell.py)
-        self.qobjects_init()  # object evidence of question episodes (question_objects.py, issue 22)
-        self.views_init()  # joint answer memory (answer_views.py, issue 22, EQA_ANSWER_MEMORY_MODE=joint)
+        self.qobjects_init()  # object evidence of question episodes (question_objects.py)
+        self.views_init()  # joint answer memory (answer_views.py, EQA_ANSWER_MEMORY_MODE=joint)
         self.config = MapperConfig(
             tau_lsv=settings.tau_lsv,
             tau_gsv=settings.tau_gsv,
@@ -184,7 +184,7 @@ class MapperService(AnswerViewsShell, QuestionObjectsShell, ObjectLayerShell, Ep
         result, score_ms = pending.result()
         timer.lap("score_wait", t0)
         timer.ms["score"] = score_ms
-        if result is not None:  # joint answer memory (issue 22): the answer over the K most relevant views
+        if result is not None:  # joint answer memory: the answer over the K most relevant views
             t0 = time.perf_counter()
             result = self.views_apply(em, frame.step, frame.rgb, result)
             timer.lap("answer_views", t0)
@@ -207,7 +207,7 @@ class MapperService(AnswerViewsShell, QuestionObjectsShell, ObjectLayerShell, Ep
         timer.lap("snapshot", t0)
         timer.ms["step"] = (time.perf_counter() - t_start) * 1000.0
         update = em.map_update()
-        update.skill = frame.skill  # a task skill's outcome, passed on to the planner's state machine (issue 17)
+        update.skill = frame.skill  # a task skill's outcome, passed on to the planner's state machine
         self.objects_attach(em, update, frame, {})
         if result is None:  # not kept as the step's answer: a resent step is scored again (answer_again)
             self.publish(robot, keys.MAPPER_MAP, update)
@@ -247,11 +247,11 @@ class MapperService(AnswerViewsShell, QuestionObjectsShell, ObjectLayerShell, Ep
             lsv=result.lsv,
             gsv=result.gsv,
             backend=result.backend,
-            mode=result.mode,  # logprobs / sampling (issue 23): the stopper warns on a calibration mismatch
+            mode=result.mode,  # logprobs / sampling: the stopper warns on a calibration mismatch
             # a question without choices: the ones the scorer proposed (Explore-EQA section VI-A)
             choices=em.start.question.choices or result.proposed_choices,
-            object_evidence=evidence,  # issue 22: the question's object layer (EQA_OBJECT_EVIDENCE)
-            answer_views=answer_views or [],  # issue 22: steps of the joint answer (EQA_ANSWER_MEMORY_MODE=joint)
+            object_evidence=evidence,  # the question's object layer (EQA_OBJECT_EVIDENCE)
+            answer_views=answer_views or [],  # steps of the joint answer (EQA_ANSWER_MEMORY_MODE=joint)
         )
 
     def _timed_score(self, robot: str, em: EpisodeMap, frame: Frame) -> tuple[ScoreResult | None, float]:

@@ -1,4 +1,4 @@
-"""Incremental snapshots of an episode's map (issue 20): what changed since the last save, not the whole map.
+"""Incremental snapshots of an episode's map: what changed since the last save, not the whole map.
 
 The mapper stores its state before it publishes a step (a restarted mapper continues from it). The whole map
 (:meth:`services.mapper.episode_map.EpisodeMap.snapshot`) is ~1.5 MB and ~15 ms a step at 640x480; here a step
@@ -262,7 +262,7 @@ def restore(header: bytes, read_part: Any, config: MapperConfig | None = None) -
     """The map from a header of :func:`snapshot_step` and ``read_part(name) -> bytes``; the next save
     continues the same log (deltas on the same full part)."""
     head = unpackb(header)
-    if isinstance(head, dict) and "full" not in head:  # a whole-map snapshot (stored before issue 20)
+    if isinstance(head, dict) and "full" not in head:  # a whole-map snapshot (the earlier format)
         return EpisodeMap.restore(header, config)
     if not isinstance(head, dict) or head.get("version") != LOG_VERSION or not isinstance(head.get("full"), str):
         raise ValueError(f"not a mapper snapshot header of version {LOG_VERSION}")

@@ -1,4 +1,4 @@
-"""Compiled inner loop of :meth:`services.mapper.tsdf.TSDFVolume.integrate` (numba, issue 20).
+"""Compiled inner loop of :meth:`services.mapper.tsdf.TSDFVolume.integrate` (numba).
 
 Per candidate voxel (the columns inside the frame's 2D frustum shadow, every layer) it does what the
 vectorised numpy reference :func:`integrate_reference` does, in the same float32 / float64 arithmetic and

@@ -73,7 +73,7 @@ class _Episode:
     planned: int = -1
     pending: _Pending | None = None
     done: bool = False
-    task: PlannerTask | None = None  # a task episode's state machine (issue 17)
+    task: PlannerTask | None = None  # a task episode's state machine
     task_before: dict[str, Any] | None = None  # its state before the pending step (to re-plan a refused goal)
 
 

@@ -47,7 +47,7 @@ ARRIVED_M = 0.3  # a gaze pose counts as reached within this distance
 # robot when the object has no gaze point), this far from the centre, facing the object. The gaze contour lies
 # gaze_radius_m (0.9 m) beyond the footprint of the object's Gaussians, the very reach of the oracle pick
 # (0.9 m from the object's true box, services/sim/skills.py): with the planner's arrival tolerance (0.5 m)
-# and a footprint seen from one side, a skill called from a gaze point was out of reach (issue 17, tuning
+# and a footprint seen from one side, a skill called from a gaze point was out of reach (tuning
 # seed 11). 0.6 m leaves 0.3 m for both.
 SKILL_APPROACH_M = 0.6
 
@@ -84,7 +84,7 @@ class SeenObject:
 
 
 def from_instance(inst: Any) -> SeenObject:
-    """A :class:`SeenObject` from an ``eqa.messages.ObjectInstance`` (issue 16's message; read by field name).
+    """A :class:`SeenObject` from an ``eqa.messages.ObjectInstance`` (read by field name).
     An instance without gaze points has no pose set ``P`` to compute Eq. 12 over: its IG is unknown (NaN), not
     0 -- it is no candidate of the global objective until it has some (``helios.candidates_of``), and its first
     detection is stored (``S_a0``, ``IG_a0``) only then."""

@@ -1,4 +1,4 @@
-"""What the planner shell does for a task episode (issue 17): one :class:`PlannerTask` per episode turns each
+"""What the planner shell does for a task episode: one :class:`PlannerTask` per episode turns each
 ``MapUpdate`` (frontiers, ``objects`` from the object layer, ``skill``: the outcome of the last skill) into the
 step's ``Goal`` through the state machine (:mod:`services.planner.task_fsm`) and the task step
 (:mod:`services.planner.task_step`). The machine's state is plain data: the shell stores it with the episode

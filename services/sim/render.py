@@ -78,8 +78,8 @@ class Renderer:
         return cached
 
     def _without(self, hidden: frozenset[int]) -> tuple[Any, np.ndarray]:
-        """A ray-casting structure of the scene without the instances ``hidden`` (an object the robot holds,
-        issue 17) and the map from its triangle ids to the scene's; built once per set (a few ms)."""
+        """A ray-casting structure of the scene without the instances ``hidden`` (an object the robot holds)
+        and the map from its triangle ids to the scene's; built once per set (a few ms)."""
         cache = self._hidden_rc
         got = cache.get(hidden)
         if got is None:

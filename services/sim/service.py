@@ -11,8 +11,8 @@ error answers come from there; see its docstring for what the sim keeps in its o
 frame the episode's state (start, pose, step, trajectory, task) is written to the store under
 ``eqa.store.episode_state_key("sim", episode_id)`` (``eqa:sim:episode:{id}``, one :mod:`eqa.codec` envelope
 that names the robot), so a sim restarted between two steps continues the episode at the next goal; a
-restarted sim also takes up the recent states it finds there at start (the newest one per robot). States of
-the older format (JSON under ``eqa:sim:robot:{robot}``, before 2026-12-01 21:00 UTC) are not read.
+restarted sim also takes up the recent states it finds there at start (the newest one per robot). States in
+any other format (e.g. JSON under ``eqa:sim:robot:{robot}``) are not read.
 
 A message lost while a service restarted would stall an episode. The sim watches the liveliness of the mapper,
 planner and stopper instances (and its own shard): when one vanishes or (re)appears, the current frame of each
@@ -76,7 +76,7 @@ class _Episode:
     trajectory: list[tuple[float, float]] = field(default_factory=list)
     emitted_at: float = field(default_factory=time.monotonic)  # when the current step's frame was sent
     resends: int = 0  # of the current step
-    task: SimTask | None = None  # a task episode's skills and metrics (issue 17)
+    task: SimTask | None = None  # a task episode's skills and metrics
     skill: SkillReport | None = None  # the skill outcome of the current step (on its frame, resends too)
 
 

@@ -1,4 +1,4 @@
-"""What the sim shell does for a task episode (issue 17), beside rendering: after each goal it counts the motion's
+"""What the sim shell does for a task episode, beside rendering: after each goal it counts the motion's
 collisions, runs the goal's skill on the frame rendered at the goal pose, and keeps the phase metrics
 (:class:`services.sim.task_episode.TaskEpisode`).
 

@@ -1,4 +1,4 @@
-"""Answer memory (issue 22, item 1): answer from the K most relevant views of an episode, not from one.
+"""Answer memory: answer from the K most relevant views of an episode, not from one.
 
 Explore-EQA answers at the end with ``argmax_y f_y(x^{t*})`` at ``t* = argmax_t Rel(x^t)`` (section V-B, last
 paragraph): one view. This module keeps the ``K`` most relevant views seen so far and pools their answer
@@ -149,7 +149,7 @@ def memory_answer(probs: np.ndarray, relevance: np.ndarray, rule: AnswerRule) ->
 
 def rule_mismatch(table_rule: str | None, episode_rule: AnswerRule) -> str:
     """A warning when the calibration table was computed for another answer rule than the episode uses
-    (absent provenance = the single-view rule of tables made before issue 22)."""
+    (absent provenance = the single-view rule of tables made before answer rules were recorded)."""
     have = table_rule or "single"
     if have == episode_rule.name:
         return ""

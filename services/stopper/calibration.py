@@ -149,7 +149,7 @@ class Trace(BaseModel):
 
     def kappa(self, rule: AnswerRule | None = None) -> float:
         """Non-conformity score ``1 - min_t rho_{y}^t`` of this episode (section V-B); with an answer ``rule``
-        (issue 22) of its pooled scores ``rho~`` (:func:`services.stopper.answer_memory.transform`)."""
+        of its pooled scores ``rho~`` (:func:`services.stopper.answer_memory.transform`)."""
         if self.answer is None:
             raise CalibrationError(f"trace of question {self.question_id!r} has no ground-truth answer")
         if not self.steps:
@@ -269,7 +269,7 @@ def calibrate(
 ) -> CalibrationTable:
     """Compute ``kappa_i`` for every trace and ``q_hat(eps)`` for every eps of the grid (section V-A/B);
     ``by_category``: also per question category (Mondrian, :func:`mondrian_groups`). ``answer_rule``: the
-    scores are those of that answer rule (issue 22, answer memory; recorded in ``provenance["answer_rule"]``):
+    scores are those of that answer rule (answer memory; recorded in ``provenance["answer_rule"]``):
     an episode using the rule needs a table calibrated with it for Eq. 6 to hold.
 
     Raises :class:`CalibrationError` for an eps outside (0, 1), an empty grid, duplicate questions, a trace

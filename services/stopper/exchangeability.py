@@ -1,4 +1,4 @@
-"""Is a calibration table still valid for the model that scores today? (issue 15, beyond the paper.)
+"""Is a calibration table still valid for the model that scores today? (beyond the paper.)
 
 The coverage guarantee of conformal prediction (Explore-EQA Eq. 6, Prop. 1) assumes that a new episode's
 non-conformity score ``kappa = 1 - min_t rho_y^t`` is exchangeable with the ``N`` calibration scores. That

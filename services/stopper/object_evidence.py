@@ -1,4 +1,4 @@
-"""Object evidence for questions (issue 22, item 2): the HELIOS object layer's beliefs as an answer distribution.
+"""Object evidence for questions: the HELIOS object layer's beliefs as an answer distribution.
 
 Pure numpy, no I/O. The mapper's object layer (HELIOS 3.1.3, :mod:`services.mapper.objects`) keeps, per
 instance of a tracked class, ``Psi = S * (1 - U)`` (HELIOS Eq. 7: semantic confidence discounted by its

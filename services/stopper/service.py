@@ -115,9 +115,9 @@ class StopperService(EpisodeService[EpisodeRecord]):
     # ---- handlers -----------------------------------------------------------------------------------------
     def start_episode(self, robot: str, start: EpisodeStart) -> EpisodeRecord | None:
         rec = EpisodeRecord.from_start(start, robot)
-        rec.answer_memory = self.settings.answer_memory_k  # issue 22 (answer_memory.py); fixed for the episode
+        rec.answer_memory = self.settings.answer_memory_k  # (answer_memory.py); fixed for the episode
         rec.answer_fusion = self.settings.answer_memory_fusion
-        if self.settings.object_evidence:  # issue 22 item 2 (object_evidence.py)
+        if self.settings.object_evidence:  # pooled into f by object_evidence.py
             rec.object_evidence = (self.settings.object_evidence_psi_min, self.settings.object_evidence_weight)
         try:
             rec.threshold = check_threshold(start)
@@ -180,7 +180,7 @@ class StopperService(EpisodeService[EpisodeRecord]):
     def on_goal(self, robot: str, rec: EpisodeRecord, goal: Goal) -> None:
         if not goal.done:
             return
-        if self._task_metrics(rec.episode_id) is not None:  # a task episode: the planner ends it (issue 17)
+        if self._task_metrics(rec.episode_id) is not None:  # a task episode: the planner ends it
             self._finish(rec, "stopped", f"task ended: {goal.reason or 'the planner is done'}", None)
             return
         answer = rec.fallback()

@@ -54,9 +54,9 @@ class CalibrationChoice(BaseModel):
     source: str
     note: str = ""
     backend: str | None = None  # the scorer backend whose scores the table was calibrated on
-    mode: str | None = None  # ... and its mode: logprobs / sampling (issue 23)
+    mode: str | None = None  # ... and its mode: logprobs / sampling
     category: str | None = None  # Mondrian: the category whose own q_hat this is
-    answer_rule: str | None = None  # the answer rule the table was calibrated with (issue 22; None = single)
+    answer_rule: str | None = None  # the answer rule the table was calibrated with (None = single)
 
 
 # q_hat that keeps every label (kappa <= 2 always): a Mondrian group too small to certify the asked eps
@@ -130,7 +130,7 @@ def backend_mismatch(cal: CalibrationChoice, scores_backend: str | None) -> str:
 
 
 def mode_mismatch(cal: CalibrationChoice, scores_mode: str | None) -> str:
-    """A warning when the scores were read in another mode than the calibration's (issue 23): sampled
+    """A warning when the scores were read in another mode than the calibration's: sampled
     frequencies and logprobs are different score functions, so Claim 1 holds only for the table's mode."""
     if not cal.mode or not scores_mode or scores_mode == cal.mode:
         return ""
@@ -156,10 +156,10 @@ class EpisodeRecord(BaseModel):
     running: list[str] | None = None  # CP running intersection; None before the first step
     restarts: int = 0
     last_decision: Decision | None = None  # re-published when the step's scores come again
-    # issue 22: answer memory (services/stopper/answer_memory.py), fixed at the episode's start; 0 = single view
+    # answer memory (services/stopper/answer_memory.py), fixed at the episode's start; 0 = single view
     answer_memory: int = Field(default=0, ge=0, le=16)
     answer_fusion: str = "loglinear"
-    # issue 22 item 2: pool the object layer's evidence (StepScores.object_evidence) into f; None = off
+    # pool the object layer's evidence (StepScores.object_evidence) into f; None = off
     object_evidence: tuple[float, float] | None = None  # (psi_min, weight)
     task: bool = False  # a task episode: the planner ends it, there is no answer to give
 
@@ -210,7 +210,7 @@ class EpisodeRecord(BaseModel):
 
     def fallback(self) -> str | None:
         """``argmax f`` at the step of highest ``Rel`` (None before any step); with the answer memory on, the
-        argmax of the pooled distribution of the K most relevant views (issue 22)."""
+        argmax of the pooled distribution of the K most relevant views."""
         if not self.probs:
             return None
         return self.labels[memory_answer(np.asarray(self.probs), np.asarray(self.relevance), self.answer_rule)]

@@ -64,11 +64,11 @@ MEMORY_PREAMBLE = (
     "The {n} images are views of the same scene, taken by a robot while exploring it, most relevant first. "
     "Use all of them."
 )
-MAX_MEMORY_VIEWS = 16  # images in one answer-memory prompt (issue 22; services/stopper/answer_memory.MAX_K)
+MAX_MEMORY_VIEWS = 16  # images in one answer-memory prompt (services/stopper/answer_memory.MAX_K)
 
 
 def memory_answer_prompt(question: Question, choices: list[str], n_views: int) -> str:
-    """The answer prompt over ``n_views`` images at once (issue 22, answer memory): a preamble saying the
+    """The answer prompt over ``n_views`` images at once (answer memory): a preamble saying the
     images are views of one scene, then the usual multiple-choice question."""
     if not 1 <= n_views <= MAX_MEMORY_VIEWS:
         raise ValueError(f"an answer-memory prompt takes 1..{MAX_MEMORY_VIEWS} views, got {n_views}")

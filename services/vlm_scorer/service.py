@@ -206,7 +206,7 @@ class ScorerService(Service):
         )
 
     def handle_joint(self, req: ScoreRequest, error: Any) -> Message:
-        """Issue 22, joint answer memory: the answer distribution over the request's ``memory_views`` in ONE
+        """Joint answer memory: the answer distribution over the request's ``memory_views`` in ONE
         prompt (``answer_from_views``: backends that take several images, i.e. hf); others refuse."""
         assert self.backend is not None
         joint = getattr(self.backend, "answer_from_views", None)

@@ -8,7 +8,7 @@ meaningless, only their plumbing (candidate tokens, normalisation, batching) is 
 
 It also has a chat template in the Qwen2-VL format (``chat_template.jinja``, :data:`CHAT_TEMPLATE`: ChatML turns,
 each image as ``<|vision_start|><|image_pad|><|vision_end|>``, a default system turn), so an OpenAI-compatible
-server that renders chats with the checkpoint's own template (``transformers serve``) can serve it (issue 23).
+server that renders chats with the checkpoint's own template (``transformers serve``) can serve it.
 """
 
 from __future__ import annotations

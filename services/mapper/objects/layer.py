@@ -270,7 +270,7 @@ class ObjectLayer:
     # ---- persistence ------------------------------------------------------------------------------------
     def snapshot(self) -> bytes:
         """The whole layer as bytes (an uncompressed ``.npz``), for the mapper's store snapshot (saved every
-        step: zlib cost ~50 ms per 8 000 Gaussians for a third less bytes; measured, issue 17)."""
+        step: zlib cost ~50 ms per 8 000 Gaussians for a third less bytes; measured)."""
         buf = io.BytesIO()
         extra: dict[str, Any] = {}
         if self.last_camera is not None:

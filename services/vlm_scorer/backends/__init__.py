@@ -18,7 +18,7 @@ def check_settings(settings: Settings) -> None:
         from services.vlm_scorer.backends.remote import check_endpoint
 
         check_endpoint(settings.remote_base_url, settings.remote_model)
-    from services.vlm_scorer.detector import check_detector_settings  # HELIOS detector (issue 16)
+    from services.vlm_scorer.detector import check_detector_settings  # HELIOS detector
 
     check_detector_settings(settings)
 

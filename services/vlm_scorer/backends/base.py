@@ -42,7 +42,7 @@ class Scores:
     gsv: float = 0.0
     proposed_choices: list[str] = field(default_factory=list)
     annotated: np.ndarray | None = None  # the visually prompted image (for monitoring)
-    # issue 23: "logprobs" = read from the model's probabilities; "sampling" = frequencies of sampled
+    # "logprobs" = read from the model's probabilities; "sampling" = frequencies of sampled
     # completions, each a multiple of ``resolution`` (1 / the fewest valid samples of the step's queries)
     mode: str = "logprobs"
     resolution: float = 0.0

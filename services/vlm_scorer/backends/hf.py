@@ -165,7 +165,7 @@ class HFBackend(ModelBackend):
         }
 
     def answer_from_views(self, images: list[np.ndarray], question: object, choices: list[str]) -> list[float]:
-        """Issue 22, answer memory: the answer distribution over ``choices`` from one prompt holding every
+        """Answer memory: the answer distribution over ``choices`` from one prompt holding every
         image of ``images`` (the K most relevant views, :class:`services.mapper.answer_views.AnswerViews`);
         softmax of the next-token logits over the choice letters, as for one view."""
         from PIL import Image

@@ -33,7 +33,7 @@ How it behaves (the knobs are :class:`OracleParams`, from settings ``EQA_ORACLE_
   probability 1 - ``accuracy`` the scores are shuffled (a confused model).
 * GSV (Eq. 2): P(Yes) from the best prior among the rooms in view, connectors and seen targets, plus noise.
 
-Miscalibration modes (issue 15; each a level in [0, 1], 0 = the behaviour above, byte-identical). A real
+Miscalibration modes (each a level in [0, 1], 0 = the behaviour above, byte-identical). A real
 VLM's confidences are miscalibrated in ways a raw threshold cannot undo (Explore-EQA section V, "miscalibrated
 VLMs"; section VII-G; appendix C, Fig. A5). The modes imitate what the paper reports, and act on the answer
 distribution and the relevance only (the stopping signals): LSV, GSV and hence the robot's path are those of

@@ -13,7 +13,7 @@ Timeouts are ``remote_timeout_s``; 429 and 5xx answers, timeouts and connection 
 ``remote_max_retries`` times with exponential backoff (``Retry-After`` honoured, capped). Other 4xx answers
 are not retried.
 
-Modes (issue 23, ``EQA_REMOTE_MODE``):
+Modes (``EQA_REMOTE_MODE``):
 
 - ``logprobs``: as above. A response without logprobs raises :class:`BackendUnavailable` naming the settings.
 - ``sampling`` for endpoints that return no logprobs (``transformers serve``, many hosted APIs): each query
