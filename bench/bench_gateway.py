@@ -87,6 +87,24 @@ async def _request(reader: asyncio.StreamReader, writer: asyncio.StreamWriter, r
     return status, body
 
 
+async def _paced(due: asyncio.Queue, workers: list[asyncio.Task], total: int, rate: float) -> None:
+    """Put ``total`` requests on ``due`` at ``rate`` per second (open loop: the schedule does not wait for
+    answers), then one stop marker per worker, and wait for the workers."""
+    start = time.perf_counter()
+    for i in range(total):
+        t_due = start + i / rate
+        delay = t_due - time.perf_counter()
+        if delay > 0:
+            await asyncio.sleep(delay)
+        due.put_nowait((t_due, i))
+    for _ in workers:
+        due.put_nowait(None)
+    await asyncio.gather(*workers)
+    elapsed = time.perf_counter() - start
+    print(f"sent {total} requests in {elapsed:.1f} s ({total / elapsed:.1f} req/s), {len(workers)} keep-alive "
+          "connections")
+
+
 async def load(
     port: int, paths: list[str], rate: float, duration: float, conns: int
 ) -> tuple[dict[str, list[float]], list[str], float]:
@@ -125,19 +143,7 @@ async def load(
         finally:
             writer.close()
 
-    workers = [asyncio.create_task(worker()) for _ in range(conns)]
-    start = time.perf_counter()
-    for i in range(total):
-        t_due = start + i / rate
-        delay = t_due - time.perf_counter()
-        if delay > 0:
-            await asyncio.sleep(delay)
-        due.put_nowait((t_due, i))
-    for _ in workers:
-        due.put_nowait(None)
-    await asyncio.gather(*workers)
-    elapsed = time.perf_counter() - start
-    print(f"sent {total} requests in {elapsed:.1f} s ({total / elapsed:.1f} req/s), {conns} keep-alive connections")
+    await _paced(due, [asyncio.create_task(worker()) for _ in range(conns)], total, rate)
     return latencies, errors, lag
 
 
@@ -180,20 +186,7 @@ async def refusal_load(port: int, mix: list[tuple[str, bytes, bool, set[int]]], 
         finally:
             writer.close()
 
-    workers = [asyncio.create_task(worker()) for _ in range(conns)]
-    total = int(rate * duration)
-    start = time.perf_counter()
-    for i in range(total):
-        t_due = start + i / rate
-        delay = t_due - time.perf_counter()
-        if delay > 0:
-            await asyncio.sleep(delay)
-        due.put_nowait((t_due, i))
-    for _ in workers:
-        due.put_nowait(None)
-    await asyncio.gather(*workers)
-    elapsed = time.perf_counter() - start
-    print(f"sent {total} requests in {elapsed:.1f} s ({total / elapsed:.1f} req/s), {conns} keep-alive connections")
+    await _paced(due, [asyncio.create_task(worker()) for _ in range(conns)], int(rate * duration), rate)
     return latencies, errors, lag
 
 

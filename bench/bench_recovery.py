@@ -39,6 +39,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 from exactly_once import StepLedger
+from scorer_helpers import stop_process
 
 from eqa import keys, sharding
 from eqa.launcher import PIPELINE, Fleet, free_port
@@ -218,12 +219,7 @@ def _join_round(fleet: Fleet, frames: Frames, args: argparse.Namespace, episodes
             bus.publish(keys.stream(rb, keys.EPISODE_CANCEL),
                         EpisodeCancel(episode_id=ids[rb], reason="bench round over"))
             episodes[ids[rb]] = frames.last(ids[rb])
-        proc.terminate()
-        try:
-            proc.wait(timeout=15)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(timeout=10)
+        stop_process(proc)
         time.sleep(1.0)
     return out
 
