@@ -296,6 +296,10 @@ class EpisodeService(Service, Generic[S]):
         the last one answered here, or ``upto_step`` when larger: an episode restored from the store knows its
         last answered step only where answers are persisted, and the claims of the steps computed before a
         restart or by another instance would otherwise be left to expire)."""
+        # noted as ended at once: this instance's own EpisodeEnd comes back over the bus only later, and a step
+        # input sent again meanwhile (a re-driven frame's scores) must not start the episode anew from a
+        # remembered EpisodeStart and compute its last step a second time (its claims are deleted below)
+        self._note_ended(episode_id)
         self.episodes.pop(episode_id, None)
         meta = self.meta.pop(episode_id, None)
         self._forget_claims(episode_id, max(meta.answer_step + 1, upto_step) if meta is not None else upto_step)
@@ -462,6 +466,9 @@ class EpisodeService(Service, Generic[S]):
         state = self.episode(eid)
         if state is None and mine and self.shard is not None:
             start = self.shard.start_of(eid)  # its start came while another instance owned the robot
+            if isinstance(start, EpisodeStart) and self.store.get(episode_end_key(eid)) is not None:
+                self._note_ended(eid)  # ended by the instance that owned it before: nothing to start
+                return
             if isinstance(start, EpisodeStart):
                 self._on_start(robot, start)
                 state = self.episode(eid)
