@@ -38,7 +38,7 @@ os.environ.setdefault("RERUN_TELEMETRY_ENABLED", "false")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-from exactly_once import StepLedger
+from exactly_once import StepLedger, wait_on
 from scorer_helpers import stop_process
 
 from eqa import keys, sharding
@@ -70,14 +70,7 @@ class Frames:
             return max(self.first.get(episode_id, {}) or [-1])
 
     def wait(self, pred, timeout: float) -> bool:
-        deadline = time.monotonic() + timeout
-        with self.cond:
-            while not pred():
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    return False
-                self.cond.wait(min(left, 0.2))
-        return True
+        return wait_on(self.cond, pred, timeout)
 
     def new_step_after(self, episode_id: str, step: int, t0: float) -> float | None:
         with self.cond:

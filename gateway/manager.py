@@ -477,14 +477,8 @@ class EpisodeManager:
         while len(self._known_scenes) > 10_000:
             self._known_scenes.pop(next(iter(self._known_scenes)))
 
-    def refuse_if_full(self, caller: Caller | None, robot: str | None) -> None:
-        """:class:`TooManyError` when memory already shows that :meth:`submit` would refuse for a full queue
-        or too many episodes of this token: the same limits, checked on the event loop from the lock-free
-        snapshots of the active episodes, so a flood of submissions against a full queue is refused without
-        a thread hop, the lock or a store call. Refuses nothing :meth:`submit` would take (it checks again)."""
-        owner = caller.tenant if caller is not None else ANONYMOUS
-        active = list(self._snapshots.values())  # one atomic copy (the dict changes on worker threads)
-        owned = sum(1 for o, _ in active if o == owner)
+    def _check_token_cap(self, owned: int) -> None:
+        """:class:`TooManyError` when a token already has ``owned`` queued or running episodes, its cap."""
         if owned >= self.settings.queue_max_per_token:
             wait = self.retry_after_s()
             raise TooManyError(
@@ -492,6 +486,14 @@ class EpisodeManager:
                 f"(EQA_QUEUE_MAX_PER_TOKEN={self.settings.queue_max_per_token}); retry in about {wait:.0f} s",
                 retry_after_s=wait,
             )
+    def refuse_if_full(self, caller: Caller | None, robot: str | None) -> None:
+        """:class:`TooManyError` when memory already shows that :meth:`submit` would refuse for a full queue
+        or too many episodes of this token: the same limits, checked on the event loop from the lock-free
+        snapshots of the active episodes, so a flood of submissions against a full queue is refused without
+        a thread hop, the lock or a store call. Refuses nothing :meth:`submit` would take (it checks again)."""
+        owner = caller.tenant if caller is not None else ANONYMOUS
+        active = list(self._snapshots.values())  # one atomic copy (the dict changes on worker threads)
+        self._check_token_cap(sum(1 for o, _ in active if o == owner))
         if self.settings.busy_policy != "queue" or (robot is not None and robot not in self.settings.robots):
             return
         candidates = [robot] if robot is not None else list(self.settings.robots)
@@ -532,14 +534,7 @@ class EpisodeManager:
             **({"id": req.question_id} if req.question_id else {}),
         )
         with self._lock:
-            owned = sum(1 for r in self._active.values() if r.owner == owner)
-            if owned >= self.settings.queue_max_per_token:
-                wait = self.retry_after_s()
-                raise TooManyError(
-                    f"this token has {owned} queued or running episodes, the most one token may have "
-                    f"(EQA_QUEUE_MAX_PER_TOKEN={self.settings.queue_max_per_token}); retry in about {wait:.0f} s",
-                    retry_after_s=wait,
-                )
+            self._check_token_cap(sum(1 for r in self._active.values() if r.owner == owner))
             candidates = [req.robot] if req.robot else list(self.settings.robots)
             queues = {r: self._queue(r) for r in candidates}
             free = [r for r in candidates if self._running_on(r) is None and not queues[r]]

@@ -11,6 +11,7 @@ Two instances computing one step leave two different ``sent_at``; a skipped step
 from __future__ import annotations
 
 import threading
+import time
 from collections import defaultdict
 from typing import Any
 
@@ -18,6 +19,18 @@ from eqa import keys
 from eqa.messages import STREAM_TYPES
 
 PAIRS = (keys.MAPPER_MAP, keys.STOPPER_DECISION, keys.PLANNER_GOAL, keys.SIM_ERROR)
+
+
+def wait_on(cond: threading.Condition, pred: Any, timeout: float) -> bool:
+    """Wait on ``cond`` (notified when what ``pred`` reads changes) until ``pred()`` holds; False on timeout."""
+    deadline = time.monotonic() + timeout
+    with cond:
+        while not pred():
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return False
+            cond.wait(min(left, 0.2))
+    return True
 
 
 class StepLedger:

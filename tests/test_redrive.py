@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 
 import pytest
-from exactly_once import StepLedger
+from exactly_once import StepLedger, wait_on
 
 from eqa import keys, sharding
 from eqa.launcher import PIPELINE, Fleet
@@ -59,14 +59,7 @@ class Run:
             self.cond.notify_all()
 
     def wait(self, pred, timeout: float) -> bool:
-        deadline = time.monotonic() + timeout
-        with self.cond:
-            while not pred():
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    return False
-                self.cond.wait(min(left, 0.2))
-        return True
+        return wait_on(self.cond, pred, timeout)
 
 
 @pytest.fixture(scope="module")
