@@ -303,11 +303,19 @@ class EpisodeStart(Message):
     task: Task | None = None
     ablation: Ablation = "helios"
     pick_limit: int | None = Field(default=None, ge=1, le=1000)  # None = unlimited (Table 1: 1, 5, unlimited)
+    # The internal id of the home whose memory the episode reads and extends (:func:`eqa.homes.home_id`);
+    # None: the episode starts from an empty map and leaves no memory.
+    home: str | None = None
 
     @field_validator("episode_id", "robot")
     @classmethod
     def _safe(cls, v: str) -> str:
         return keys.check_id(v)
+
+    @field_validator("home")
+    @classmethod
+    def _safe_home(cls, v: str | None) -> str | None:
+        return None if v is None else keys.check_id(v, "home")
 
 
 class EpisodeCancel(Message):
