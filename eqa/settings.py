@@ -22,15 +22,40 @@ def default_instance() -> str:
     return f"{host}-{os.getpid()}"
 
 
-class Settings(BaseSettings):
+class SettingsGroup(BaseSettings):
+    """One group of settings; each group reads its own ``EQA_*`` variables and can be built on its own."""
+
     model_config = SettingsConfigDict(env_prefix="EQA_", extra="ignore")
+
+    @field_validator("zenoh_listen", "zenoh_connect", "api_tokens", "cors_origins", "robots", "ros2_robots",
+                     mode="before", check_fields=False)
+    @classmethod
+    def _split_csv(cls, v: object) -> object:
+        if isinstance(v, str):
+            return [p.strip() for p in v.split(",") if p.strip()]
+        return v
+
+
+class ProcessSettings(SettingsGroup):
+    """One process of the fleet: its id, logging, data directory, parent."""
 
     # --- process ---
     instance: str = Field(default_factory=default_instance, description="this process' instance id")
     log_level: str = "INFO"
     data_dir: Path = Path("var")
+    parent_pid: int = Field(
+        default=0, ge=0,
+        description="a service exits when this process is no longer its parent (the launcher sets it to its own pid, "
+        "so a killed launcher leaves no orphaned services); 0 = never (containers, systemd, a shell)",
+    )
 
-    # --- zenoh ---
+
+class BusSettings(SettingsGroup):
+    """The Zenoh bus: mode, endpoints, security, robot sharding among instances (eqa/bus.py, eqa/security.py,
+    eqa/sharding.py).
+    """
+
+    # --- bus ---
     zenoh_mode: Literal["peer", "client", "router"] = "peer"
     zenoh_listen: CsvList = Field(default_factory=list, description="endpoints to listen on, e.g. tcp/127.0.0.1:7447")
     zenoh_connect: CsvList = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
@@ -46,15 +71,51 @@ class Settings(BaseSettings):
     zenoh_tls_dir: Path | None = Field(default=None, description="eqa up: dir of <role>.pem/.key + ca.pem (eqa certs)")
     # robot sharding among instances of a stateful service (eqa/sharding.py)
     shard: bool = Field(default=True, description="share robots among live instances of a service (rendezvous hash)")
+    bus_link_wait_s: float = Field(
+        default=5.0, ge=0,
+        description="a session with EQA_ZENOH_CONNECT endpoints waits this long at open for its first link, so its "
+        "first liveliness query and publications reach the fleet (then it goes on and keeps retrying); 0 = no wait",
+    )
+
+
+class StoreSettings(SettingsGroup):
+    """The state store (eqa/store.py)."""
 
     # --- store ---
     redis_url: str | None = Field(default=None, description="redis://host:port/db; unset = embedded SQLite store")
+
+
+class FleetSettings(SettingsGroup):
+    """Robots and step delivery: which robots the simulator drives, re-sending and re-driving a step."""
+
+    # --- fleet ---
+    robots: CsvList = Field(default_factory=lambda: ["robot0"])
+    step_resend_s: float = Field(
+        default=30.0, ge=0,
+        description="the sim sends a step's frame again when no goal came back after this long (a message lost "
+        "while a service restarted); the others answer a repeated step by re-publishing their output; keep it "
+        "above the slowest step (a slow VLM), 0 = never",
+    )
+    step_resends_max: int = Field(default=3, ge=0, description="resends of one step before the sim gives up")
+    step_redrive: bool = Field(
+        default=True,
+        description="when an instance of a stateful service (re)appears, the sim sends the current frame of the "
+        "robots it now owns at once instead of waiting for EQA_STEP_RESEND_S",
+    )
+
+
+class SimulatorSettings(SettingsGroup):
+    """The simulator: scenes and camera (services/sim)."""
 
     # --- simulator ---
     scenes_dir: Path | None = None  # default data_dir/scenes
     sim_width: int = Field(default=640, ge=16, le=4096)
     sim_height: int = Field(default=480, ge=12, le=4096)
     hm3d_dir: Path | None = None
+
+
+class ScorerSettings(SettingsGroup):
+    """The VLM scorer pool and its backends (services/vlm_scorer)."""
 
     # --- scorer ---
     scorer_backend: Literal["oracle", "hf", "remote"] = "oracle"
@@ -78,6 +139,14 @@ class Settings(BaseSettings):
     )
     remote_samples: int = Field(default=8, ge=1, le=64, description="sampled completions per query (sampling)")
     remote_sample_temperature: float = Field(default=1.0, gt=0.0, le=2.0)
+
+
+class SimulatedPerceptionSettings(SettingsGroup):
+    """Knobs of the simulated perception model (the oracle scorer, not a VLM; services/vlm_scorer/backends/oracle.py
+    documents each). Benchmark settings, not deployment settings.
+    """
+
+    # --- simulated perception model ---
     oracle_accuracy: float = Field(default=0.85, ge=0.0, le=1.0)
     # simulated perception model (services/vlm_scorer/backends/oracle.py documents each knob)
     oracle_evidence_confidence: float = Field(default=0.8, gt=0.0, lt=1.0)
@@ -93,6 +162,12 @@ class Settings(BaseSettings):
     oracle_miscal_related: float = Field(default=0.0, ge=0.0, le=1.0, description="related-but-wrong object taken")
     oracle_miscal_irrelevant: float = Field(default=0.0, ge=0.0, le=1.0, description="confident no-evidence answers")
 
+
+class PlannerSettings(SettingsGroup):
+    """Exploration: Eq. A6 temperatures and the value layers' view bins (services/planner,
+    services/mapper/semantic_map.py).
+    """
+
     # --- planner ---
     tau_lsv: float = 1.0
     tau_gsv: float = 1.0
@@ -102,6 +177,10 @@ class Settings(BaseSettings):
     view_bins: int = Field(default=0, ge=0, le=16, description="viewing-direction bins per value layer, 0 = off")
     view_agree: int = Field(default=2, ge=1, le=16, description="bins that must see a cell before a value below "
                             "neutral (LSV < 1/|P|) is believed")
+
+
+class StopperSettings(SettingsGroup):
+    """Stopping and answering: the CP table, answer memory, object evidence (services/stopper)."""
 
     # --- stopper ---
     calibration_name: str = Field(default="default", description="CP calibration table name (eqa calibrate)")
@@ -123,6 +202,10 @@ class Settings(BaseSettings):
     # chosen on the tuning seed 11 (bench/bench_object_evidence.py eval; bench/results/answer_rules_objects.json)
     object_evidence_psi_min: float = Field(default=0.1, ge=0.0, le=1.0, description="Psi from which an instance counts")
     object_evidence_weight: float = Field(default=0.75, ge=0.0, le=1.0, description="the layer's weight in the pool")
+
+
+class GatewaySettings(SettingsGroup):
+    """The HTTP gateway: address, tokens, limits, queues, retention, hostile clients (gateway/, docs/security.md)."""
 
     # --- gateway ---
     gateway_host: str = "127.0.0.1"
@@ -147,110 +230,7 @@ class Settings(BaseSettings):
     episode_retention_days: float = Field(default=30.0, gt=0, description="ended episodes older than this go")
     cors_origins: CsvList = Field(default_factory=list)
     busy_policy: Literal["queue", "refuse"] = "queue"
-    robots: CsvList = Field(default_factory=lambda: ["robot0"])
     episode_timeout_s: float = Field(default=120.0, gt=0, description="no-progress time before an episode fails")
-    step_resend_s: float = Field(
-        default=30.0, ge=0,
-        description="the sim sends a step's frame again when no goal came back after this long (a message lost "
-        "while a service restarted); the others answer a repeated step by re-publishing their output; keep it "
-        "above the slowest step (a slow VLM), 0 = never",
-    )
-    step_resends_max: int = Field(default=3, ge=0, description="resends of one step before the sim gives up")
-    parent_pid: int = Field(
-        default=0, ge=0,
-        description="a service exits when this process is no longer its parent (the launcher sets it to its own pid, "
-        "so a killed launcher leaves no orphaned services); 0 = never (containers, systemd, a shell)",
-    )
-
-    # --- HELIOS (paper Table 3 defaults: object layer, tasks, planning) ---
-    helios_alpha_cs: float = Field(default=1.0, ge=0.0, description="alpha_cs: uncertainty weight, Eq. 7/11")
-    helios_alpha_d: float = Field(default=0.001, ge=0.0, description="alpha_d: distance weight, Eq. 8/10")
-    helios_tau_g: float = Field(default=0.5, description="tau_g: Psi_g threshold to pick the object")
-    helios_tau_b: float = Field(default=0.5, description="tau_b: Psi_b threshold to place on a goal receptacle")
-    helios_tau_inc: float = Field(default=0.05, ge=0.0, description="tau_inc: least gain in Psi to look again")
-    helios_od_a: float = Field(default=0.35, ge=0.0, le=1.0, description="detector threshold, start receptacle")
-    helios_od_g: float = Field(default=0.25, ge=0.0, le=1.0, description="detector threshold, object")
-    helios_od_b: float = Field(default=0.45, ge=0.0, le=1.0, description="detector threshold, goal receptacle")
-    helios_cs_a: float = Field(default=0.3, ge=0.0, le=1.0, description="cs_a: S to be a start receptacle candidate")
-    helios_cs_g: float = Field(default=0.3, ge=0.0, le=1.0, description="cs_g: S to be an object candidate")
-    helios_cs_b: float = Field(default=0.3, ge=0.0, le=1.0, description="cs_b: S to be a goal receptacle candidate")
-    helios_alpha_cpa: float = Field(default=3.0, gt=0.0, description="alpha_cpa: concentration update scaling")
-    helios_pick_attempts: int = Field(default=0, ge=0, description="pick attempts allowed (0 = unlimited)")
-    helios_gaze_radius_m: float = Field(default=0.9, gt=0.0, description="gaze points: contour distance")
-    helios_gaze_points: int = Field(default=12, ge=1, le=256, description="gaze points on the contour")
-    helios_gaze_obstacle_m: float = Field(default=1.0, ge=0.0, description="gaze: taller obstacles on the way occlude")
-
-    # --- HELIOS object layer and detector (services/mapper/objects, services/vlm_scorer/detector) ---
-    detector_backend: Literal["oracle", "hf", "remote"] = Field(
-        default="oracle", description="open-vocabulary detector of the scorer pool (remote: no standard protocol)"
-    )
-    detector_model_path: Path | None = Field(default=None, description="hf detector: OWL-ViT / OWLv2 directory")
-    detector_ground_truth: bool = Field(
-        default=False, description="oracle detector as ground-truth semantics (HELIOS Table 4 yardstick)"
-    )
-    helios_device: str = Field(default="cpu", description="torch device of the object layer (cpu, cuda)")
-    helios_render_scale: float = Field(default=0.5, ge=0.05, le=1.0, description="object layer works at this scale")
-    helios_max_gaussians: int = Field(default=60_000, ge=1, le=5_000_000, description="Gaussians kept per episode")
-    helios_max_new_per_frame: int = Field(default=6_000, ge=0, le=1_000_000, description="Gaussians made per frame")
-    helios_max_instances: int = Field(default=64, ge=0, le=4096, description="instances published per map update")
-    helios_gaze_width: int = Field(default=96, ge=16, le=1024, description="optimistic-view render width (Eq. 11/12)")
-    # simulated detector (services/vlm_scorer/detector/oracle.py documents each knob)
-    detector_oracle_recall: float = Field(default=0.9, ge=0.0, le=1.0)
-    detector_oracle_confusion: float = Field(default=0.12, ge=0.0, le=1.0)
-    detector_oracle_similar_fp: float = Field(default=0.15, ge=0.0, le=1.0)
-    detector_oracle_background_fp: float = Field(default=0.08, ge=0.0, le=1.0)
-    detector_oracle_bleed_frac: float = Field(default=0.015, ge=0.0, le=0.2)
-
-    # --- monitoring ---
-    rerun_url: str | None = Field(default=None, description="rerun+http://host:9876/proxy for live viewing")
-    record: bool = True
-
-    # --- operations: Prometheus metrics and structured logs (eqa/metrics.py, eqa/logs.py; docs/metrics.md) ---
-    log_format: Literal["text", "json"] = Field(
-        default="text", description="json: one JSON object per log line with service, episode, robot, step")
-    metrics_port: int = Field(
-        default=0, ge=0, le=65535,
-        description="a service process serves Prometheus /metrics on this port (0 = off); the launcher gives "
-        "itself this port and each child the next ones; the gateway serves /metrics on its own port")
-    metrics_host: str = Field(default="127.0.0.1", description="address the metrics port binds (0.0.0.0 in compose)")
-    metrics_token: str | None = Field(
-        default=None, description="bearer token for the gateway's /metrics from other hosts (with EQA_API_TOKENS "
-        "set; loopback callers and admin tokens need none)")
-
-    # --- ROS 2 bridge (services/ros2_bridge; the robot contract is docs/robots.md) ---
-    ros2_robots: CsvList = Field(default_factory=list, description="robots a ROS 2 robot on rmw_zenoh drives "
-                                 "through the bridge; the sim leaves them alone")
-    ros2_domain_id: int = Field(default=0, ge=0, le=232, description="ROS_DOMAIN_ID of the robots")
-    ros2_namespace: str = Field(default="/{robot}", max_length=200,
-                                description="ROS namespace of a robot's topics; {robot} is the robot's name")
-    ros2_rgb_topic: str = Field(default="camera/color/image_raw", description="sensor_msgs/Image, rgb8 or bgr8")
-    ros2_depth_topic: str = Field(default="camera/depth/image_raw",
-                                  description="sensor_msgs/Image, 16UC1 (EQA_ROS2_DEPTH_UNIT_M) or 32FC1 metres")
-    ros2_info_topic: str = Field(default="camera/color/camera_info", description="sensor_msgs/CameraInfo")
-    ros2_pose_topic: str = Field(default="odom", description="base pose: nav_msgs/Odometry, or tf2_msgs/TFMessage")
-    ros2_pose_type: Literal["odometry", "tf"] = "odometry"
-    ros2_map_frame: str = Field(default="map", description="the world frame of poses and goals")
-    ros2_base_frame: str = Field(default="base_link", description="child frame of the base pose (TF)")
-    ros2_goal_topic: str = Field(default="goal_pose", description="geometry_msgs/PoseStamped goals (Nav2's topic)")
-    ros2_depth_unit_m: float = Field(default=0.001, gt=0, le=1.0, description="metres per 16UC1 depth unit")
-    ros2_camera_height_m: float = Field(default=1.5, ge=0.0, le=5.0, description="camera above the base")
-    ros2_camera_tilt_deg: float = Field(default=-30.0, ge=-90.0, le=90.0, description="camera pitch, negative down")
-    ros2_arrive_tolerance_m: float = Field(default=0.25, gt=0, le=5.0)
-    ros2_arrive_yaw_tolerance_deg: float = Field(default=20.0, gt=0, le=180.0)
-    ros2_settle_s: float = Field(default=0.5, ge=0.0, le=30.0,
-                                 description="the pose must stay within tolerance this long to count as arrived")
-    ros2_goal_timeout_s: float = Field(default=60.0, gt=0, le=3600.0,
-                                       description="a goal not reached in this time is refused to the planner")
-    ros2_frame_timeout_s: float = Field(default=5.0, gt=0, le=300.0,
-                                        description="time to get a fresh, consistent RGB-D frame after arrival")
-    ros2_max_stamp_age_s: float = Field(default=2.0, gt=0, le=600.0, description="older stamps are stale")
-    ros2_max_stamp_skew_s: float = Field(default=0.5, gt=0, le=60.0,
-                                         description="colour, depth and pose stamps of one frame at most this apart")
-    ros2_max_image_pixels: int = Field(default=4_194_304, ge=1, le=67_108_864)
-    ros2_pick_place_service: str = Field(default="", max_length=200, description="the robot's pick/place hook "
-                                         "(docs/robots.md); empty: task episodes are refused on its robots")
-
-    # --- gateway: failed-auth limits, trusted proxies, hostile clients (docs/security.md) ---
     trusted_proxies: CsvList = Field(
         default_factory=list,
         description="CIDRs of reverse proxies whose X-Forwarded-For names the client (e.g. 10.0.0.0/8); empty = the "
@@ -288,25 +268,128 @@ class Settings(BaseSettings):
                                      ) from exc
         return items
 
-    # --- fleet reliability (bus links, step re-drive) ---
-    bus_link_wait_s: float = Field(
-        default=5.0, ge=0,
-        description="a session with EQA_ZENOH_CONNECT endpoints waits this long at open for its first link, so its "
-        "first liveliness query and publications reach the fleet (then it goes on and keeps retrying); 0 = no wait",
-    )
-    step_redrive: bool = Field(
-        default=True,
-        description="when an instance of a stateful service (re)appears, the sim sends the current frame of the "
-        "robots it now owns at once instead of waiting for EQA_STEP_RESEND_S",
-    )
 
-    @field_validator("zenoh_listen", "zenoh_connect", "api_tokens", "cors_origins", "robots", "ros2_robots",
-                     mode="before")
-    @classmethod
-    def _split_csv(cls, v: object) -> object:
-        if isinstance(v, str):
-            return [p.strip() for p in v.split(",") if p.strip()]
-        return v
+class HeliosSettings(SettingsGroup):
+    """HELIOS tasks and planning (paper Table 3 defaults; services/planner/helios.py, task_fsm.py)."""
+
+    # --- HELIOS ---
+    helios_alpha_cs: float = Field(default=1.0, ge=0.0, description="alpha_cs: uncertainty weight, Eq. 7/11")
+    helios_alpha_d: float = Field(default=0.001, ge=0.0, description="alpha_d: distance weight, Eq. 8/10")
+    helios_tau_g: float = Field(default=0.5, description="tau_g: Psi_g threshold to pick the object")
+    helios_tau_b: float = Field(default=0.5, description="tau_b: Psi_b threshold to place on a goal receptacle")
+    helios_tau_inc: float = Field(default=0.05, ge=0.0, description="tau_inc: least gain in Psi to look again")
+    helios_od_a: float = Field(default=0.35, ge=0.0, le=1.0, description="detector threshold, start receptacle")
+    helios_od_g: float = Field(default=0.25, ge=0.0, le=1.0, description="detector threshold, object")
+    helios_od_b: float = Field(default=0.45, ge=0.0, le=1.0, description="detector threshold, goal receptacle")
+    helios_cs_a: float = Field(default=0.3, ge=0.0, le=1.0, description="cs_a: S to be a start receptacle candidate")
+    helios_cs_g: float = Field(default=0.3, ge=0.0, le=1.0, description="cs_g: S to be an object candidate")
+    helios_cs_b: float = Field(default=0.3, ge=0.0, le=1.0, description="cs_b: S to be a goal receptacle candidate")
+    helios_alpha_cpa: float = Field(default=3.0, gt=0.0, description="alpha_cpa: concentration update scaling")
+    helios_pick_attempts: int = Field(default=0, ge=0, description="pick attempts allowed (0 = unlimited)")
+    helios_gaze_radius_m: float = Field(default=0.9, gt=0.0, description="gaze points: contour distance")
+    helios_gaze_points: int = Field(default=12, ge=1, le=256, description="gaze points on the contour")
+    helios_gaze_obstacle_m: float = Field(default=1.0, ge=0.0, description="gaze: taller obstacles on the way occlude")
+
+
+class ObjectLayerSettings(SettingsGroup):
+    """The HELIOS object layer and the detector backend (services/mapper/objects, services/vlm_scorer/detector)."""
+
+    # --- HELIOS object layer and detector ---
+    detector_backend: Literal["oracle", "hf", "remote"] = Field(
+        default="oracle", description="open-vocabulary detector of the scorer pool (remote: no standard protocol)"
+    )
+    detector_model_path: Path | None = Field(default=None, description="hf detector: OWL-ViT / OWLv2 directory")
+    detector_ground_truth: bool = Field(
+        default=False, description="oracle detector as ground-truth semantics (HELIOS Table 4 yardstick)"
+    )
+    helios_device: str = Field(default="cpu", description="torch device of the object layer (cpu, cuda)")
+    helios_render_scale: float = Field(default=0.5, ge=0.05, le=1.0, description="object layer works at this scale")
+    helios_max_gaussians: int = Field(default=60_000, ge=1, le=5_000_000, description="Gaussians kept per episode")
+    helios_max_new_per_frame: int = Field(default=6_000, ge=0, le=1_000_000, description="Gaussians made per frame")
+    helios_max_instances: int = Field(default=64, ge=0, le=4096, description="instances published per map update")
+    helios_gaze_width: int = Field(default=96, ge=16, le=1024, description="optimistic-view render width (Eq. 11/12)")
+
+
+class SimulatedDetectorSettings(SettingsGroup):
+    """Knobs of the simulated detector (not a real detector; services/vlm_scorer/detector/oracle.py documents each).
+    Benchmark settings, not deployment settings.
+    """
+
+    # --- simulated detector ---
+    # simulated detector (services/vlm_scorer/detector/oracle.py documents each knob)
+    detector_oracle_recall: float = Field(default=0.9, ge=0.0, le=1.0)
+    detector_oracle_confusion: float = Field(default=0.12, ge=0.0, le=1.0)
+    detector_oracle_similar_fp: float = Field(default=0.15, ge=0.0, le=1.0)
+    detector_oracle_background_fp: float = Field(default=0.08, ge=0.0, le=1.0)
+    detector_oracle_bleed_frac: float = Field(default=0.015, ge=0.0, le=0.2)
+
+
+class MonitoringSettings(SettingsGroup):
+    """Rerun recording and live viewing, Prometheus metrics, structured logs (eqa/metrics.py, eqa/logs.py,
+    docs/metrics.md).
+    """
+
+    # --- monitoring ---
+    rerun_url: str | None = Field(default=None, description="rerun+http://host:9876/proxy for live viewing")
+    record: bool = True
+    log_format: Literal["text", "json"] = Field(
+        default="text", description="json: one JSON object per log line with service, episode, robot, step")
+    metrics_port: int = Field(
+        default=0, ge=0, le=65535,
+        description="a service process serves Prometheus /metrics on this port (0 = off); the launcher gives "
+        "itself this port and each child the next ones; the gateway serves /metrics on its own port")
+    metrics_host: str = Field(default="127.0.0.1", description="address the metrics port binds (0.0.0.0 in compose)")
+    metrics_token: str | None = Field(
+        default=None, description="bearer token for the gateway's /metrics from other hosts (with EQA_API_TOKENS "
+        "set; loopback callers and admin tokens need none)")
+
+
+class Ros2Settings(SettingsGroup):
+    """The ROS 2 bridge (services/ros2_bridge; the robot contract is docs/robots.md)."""
+
+    # --- ROS 2 bridge ---
+    ros2_robots: CsvList = Field(default_factory=list, description="robots a ROS 2 robot on rmw_zenoh drives "
+                                 "through the bridge; the sim leaves them alone")
+    ros2_domain_id: int = Field(default=0, ge=0, le=232, description="ROS_DOMAIN_ID of the robots")
+    ros2_namespace: str = Field(default="/{robot}", max_length=200,
+                                description="ROS namespace of a robot's topics; {robot} is the robot's name")
+    ros2_rgb_topic: str = Field(default="camera/color/image_raw", description="sensor_msgs/Image, rgb8 or bgr8")
+    ros2_depth_topic: str = Field(default="camera/depth/image_raw",
+                                  description="sensor_msgs/Image, 16UC1 (EQA_ROS2_DEPTH_UNIT_M) or 32FC1 metres")
+    ros2_info_topic: str = Field(default="camera/color/camera_info", description="sensor_msgs/CameraInfo")
+    ros2_pose_topic: str = Field(default="odom", description="base pose: nav_msgs/Odometry, or tf2_msgs/TFMessage")
+    ros2_pose_type: Literal["odometry", "tf"] = "odometry"
+    ros2_map_frame: str = Field(default="map", description="the world frame of poses and goals")
+    ros2_base_frame: str = Field(default="base_link", description="child frame of the base pose (TF)")
+    ros2_goal_topic: str = Field(default="goal_pose", description="geometry_msgs/PoseStamped goals (Nav2's topic)")
+    ros2_depth_unit_m: float = Field(default=0.001, gt=0, le=1.0, description="metres per 16UC1 depth unit")
+    ros2_camera_height_m: float = Field(default=1.5, ge=0.0, le=5.0, description="camera above the base")
+    ros2_camera_tilt_deg: float = Field(default=-30.0, ge=-90.0, le=90.0, description="camera pitch, negative down")
+    ros2_arrive_tolerance_m: float = Field(default=0.25, gt=0, le=5.0)
+    ros2_arrive_yaw_tolerance_deg: float = Field(default=20.0, gt=0, le=180.0)
+    ros2_settle_s: float = Field(default=0.5, ge=0.0, le=30.0,
+                                 description="the pose must stay within tolerance this long to count as arrived")
+    ros2_goal_timeout_s: float = Field(default=60.0, gt=0, le=3600.0,
+                                       description="a goal not reached in this time is refused to the planner")
+    ros2_frame_timeout_s: float = Field(default=5.0, gt=0, le=300.0,
+                                        description="time to get a fresh, consistent RGB-D frame after arrival")
+    ros2_max_stamp_age_s: float = Field(default=2.0, gt=0, le=600.0, description="older stamps are stale")
+    ros2_max_stamp_skew_s: float = Field(default=0.5, gt=0, le=60.0,
+                                         description="colour, depth and pose stamps of one frame at most this apart")
+    ros2_max_image_pixels: int = Field(default=4_194_304, ge=1, le=67_108_864)
+    ros2_pick_place_service: str = Field(default="", max_length=200, description="the robot's pick/place hook "
+                                         "(docs/robots.md); empty: task episodes are refused on its robots")
+
+
+class Settings(
+    ProcessSettings, BusSettings, StoreSettings, FleetSettings, SimulatorSettings, ScorerSettings,
+    SimulatedPerceptionSettings, PlannerSettings, StopperSettings, GatewaySettings, HeliosSettings,
+    ObjectLayerSettings, SimulatedDetectorSettings, MonitoringSettings, Ros2Settings,
+):
+    """All settings: every group, one flat namespace (``settings.sim_width``), each ``EQA_*`` variable read once.
+
+    A service is handed the whole object; the groups say which knobs belong together, and keep the simulated
+    perception models' knobs (benchmark settings) apart from deployment settings."""
 
     @model_validator(mode="after")
     def _one_answer_rule(self) -> Settings:

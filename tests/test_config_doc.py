@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 from pathlib import Path
 from typing import Literal
 
@@ -76,3 +77,17 @@ def test_check_mode_names_the_command(tmp_path: Path, capsys) -> None:  # type: 
     assert config_doc.REGENERATE in capsys.readouterr().err
     stale.write_text(config_doc.render())
     assert config_doc.main(["--check", str(stale)]) == 0
+
+
+def test_every_setting_belongs_to_a_group() -> None:
+    """Settings are declared in their groups (``eqa.settings.SettingsGroup`` subclasses), never on the flat class,
+    and every group can be read on its own."""
+    import eqa.settings as settings_module
+
+    loose = [r.env for r in config_doc.rows() if not r.about]
+    assert not loose, f"declare these in a settings group of eqa/settings.py, not on Settings: {loose}"
+    groups = [k for k in Settings.__mro__ if k is not Settings and issubclass(k, settings_module.SettingsGroup)
+              and k is not settings_module.SettingsGroup]
+    assert sum(len(inspect.get_annotations(k)) for k in groups) == len(Settings.model_fields)
+    for group in groups:
+        assert set(group().model_dump()) <= set(Settings.model_fields)

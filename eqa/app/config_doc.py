@@ -1,9 +1,9 @@
 """``docs/configuration.md``, generated from the settings class (:class:`eqa.settings.Settings`).
 
 The settings class is the one home of every ``EQA_*`` variable; this page is derived from it so that it cannot
-drift: ``tests/test_config_doc.py`` regenerates it and compares. Sections follow the class's ``# --- name ---``
-comments; a setting's text is its ``description=``, else the comment on its line or the comment block right
-above it.
+drift: ``tests/test_config_doc.py`` regenerates it and compares. Sections follow the ``# --- name ---`` comments
+of the settings groups (a group's docstring says what it is for); a setting's text is its ``description=``,
+else the comment on its line or the comment block right above it.
 
     python -m eqa.app.config_doc > docs/configuration.md     # regenerate
     python -m eqa.app.config_doc --check docs/configuration.md   # exit 1 when the page is stale
@@ -40,6 +40,7 @@ class Row:
     type: str
     default: str
     text: str
+    about: str = ""  # the docstring of the settings group that declares the field
 
 
 def clean(text: str) -> str:
@@ -140,22 +141,26 @@ def rows(cls: type | None = None, source: str | None = None) -> list[Row]:
     src = source if source is not None else Path(inspect.getsourcefile(cls) or "").read_text()
     sections, above, inline = _comments(src)
     tree = ast.parse(src)
+    classes = {k.__name__ for k in cls.__mro__}  # the class and the settings groups it is made of
     lineno: dict[str, int] = {}
     for node in ast.walk(tree):
-        if isinstance(node, ast.ClassDef) and node.name == cls.__name__:
+        if isinstance(node, ast.ClassDef) and node.name in classes:
             for stmt in node.body:
                 if isinstance(stmt, ast.AnnAssign) and isinstance(stmt.target, ast.Name):
                     lineno[stmt.target.id] = stmt.lineno
     prefix = str(getattr(cls, "model_config", {}).get("env_prefix", "")).upper()
     out = []
-    for name, info in cls.model_fields.items():  # type: ignore[attr-defined]
+    for name, info in sorted(cls.model_fields.items(),  # type: ignore[attr-defined]
+                             key=lambda item: lineno.get(item[0], 0)):
         line = lineno.get(name, 0)
         kind = _type_name(info.annotation)
         if limits := _limits(info):
             kind = f"{kind}, {limits}"
         text = clean(info.description or "") or inline.get(line, "")
+        owner = next((k for k in cls.__mro__ if name in inspect.get_annotations(k)), cls)
+        about = clean(" ".join((inspect.getdoc(owner) or "").split())) if owner is not cls else ""
         out.append(Row(section=sections.get(line, "") or "other", note=above.get(line, ""),
-                       env=f"{prefix}{name.upper()}", type=kind, default=_default(info), text=text))
+                       env=f"{prefix}{name.upper()}", type=kind, default=_default(info), text=text, about=about))
     return out
 
 
@@ -171,7 +176,9 @@ def render(cls: type | None = None, source: str | None = None) -> str:
         "",
         "Every setting is an `EQA_*` environment variable, read once by `eqa.settings.Settings` and handed to each",
         "service (nothing deeper reads the environment). Lists are comma-separated. `eqa up` passes its own",
-        "settings to the processes it starts; `docker-compose.yml` sets the same variables.",
+        "settings to the processes it starts; `docker-compose.yml` sets the same variables. The settings come in",
+        "groups (one class each in `eqa/settings.py`, one section each below); the simulated perception models'",
+        "knobs are groups of their own: benchmark settings, not deployment settings.",
         "",
         f"This page is generated from `eqa/settings.py`: `{REGENERATE}`",
         "(`tests/test_config_doc.py` fails when it is stale).",
@@ -187,7 +194,8 @@ def render(cls: type | None = None, source: str | None = None) -> str:
     for section in order:
         title, _, remark = section.partition(" (")
         out += [f"## {title}", ""]
-        if remark := clean(remark.rstrip(")")):
+        about = next((r.about for r in table if r.section == section and r.about), "")
+        if remark := clean(remark.rstrip(")")) or about:
             out += [f"*{remark}*", ""]
         out += header
         for r in (r for r in table if r.section == section):
