@@ -26,6 +26,7 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 GEN_ID = re.compile(r"^gen-(\d{1,9})$")
+CHANGED_ID = re.compile(r"^(gen-\d{1,9})-c(\d{1,3})$")  # a generated house after k rounds of changes
 MESH_SUFFIXES = (".glb", ".gltf", ".ply", ".obj")
 SCENE_FORMAT = 1
 OBSTACLE_MIN_Z = 0.05  # lower than this is floor (rugs, thresholds)
