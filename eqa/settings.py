@@ -300,6 +300,17 @@ class Settings(BaseSettings):
         "robots it now owns at once instead of waiting for EQA_STEP_RESEND_S",
     )
 
+    # --- homes API (gateway: homes of a tenant, their bounds and retention) ---
+    homes_max_per_tenant: int = Field(
+        default=100, ge=1, le=100_000,
+        description="homes one tenant may hold (a question or task naming a new home past it gets 429; delete one "
+        "with DELETE /v1/homes/{name})",
+    )
+    homes_retention_days: float = Field(
+        default=90.0, gt=0,
+        description="a home no episode has used for this long is deleted with its memory (the gateway's watchdog)",
+    )
+
     @field_validator("zenoh_listen", "zenoh_connect", "api_tokens", "cors_origins", "robots", "ros2_robots",
                      mode="before")
     @classmethod
