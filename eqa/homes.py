@@ -9,6 +9,8 @@ service but the gateway needs to know about tenants.
 Store layout (every key of one home starts with :func:`prefix`):
 
 * ``eqa:home:{home}:summary``  JSON :class:`HomeSummary`, rewritten by the mapper whenever the home changes;
+* ``eqa:home:{home}:map.png``  optional: a PNG picture of the home's map, which the gateway serves and the
+  console shows as it is (``GET /v1/homes/{name}/map.png``);
 * ``eqa:home:{home}:*``        the mapper's parts of the home (its map and view memory).
 """
 
@@ -39,6 +41,10 @@ def prefix(home: str) -> str:
 
 def summary_key(home: str) -> str:
     return prefix(home) + "summary"
+
+
+def map_png_key(home: str) -> str:
+    return prefix(home) + "map.png"
 
 
 class HomeSummary(BaseModel):

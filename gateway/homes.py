@@ -31,6 +31,8 @@ from eqa.store import Store
 log = logging.getLogger(__name__)
 
 IDX_USED = "gw:homes:used"
+MAX_PARTS_SHOWN = 64
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
 def record_key(home: str) -> str:
@@ -66,6 +68,11 @@ class HomeInfo(BaseModel):
         default=None, description="what the mapper keeps of it (views, bytes, episodes that updated it, scenes); "
         "null until an episode of the home has been mapped"
     )
+    parts: list[str] | None = Field(
+        default=None, description=f"names of the parts of its memory in the store (at most {MAX_PARTS_SHOWN}; "
+        "one home only, not in the list)"
+    )
+    map_png: str | None = Field(default=None, description="link of the picture of its map, when the mapper keeps one")
 
 
 class HomeList(BaseModel):
@@ -138,6 +145,16 @@ class HomeRegistry:
                 log.warning("unreadable summary of home %s; shown as empty", r.home)
                 out.append(None)
         return out
+
+    def parts(self, rec: HomeRecord) -> list[str]:
+        """Names of the stored parts of the home's memory (key suffixes after :func:`eqa.homes.prefix`)."""
+        pre = homes.prefix(rec.home)
+        return [k[len(pre):] for k in self.store.keys(pre)][:MAX_PARTS_SHOWN]
+
+    def map_png(self, rec: HomeRecord) -> bytes | None:
+        """The picture of the home's map the mapper keeps (PNG bytes), if any."""
+        raw = self.store.get(homes.map_png_key(rec.home))
+        return raw if raw is not None and raw.startswith(PNG_SIGNATURE) else None
 
     def delete(self, rec: HomeRecord) -> int:
         """Delete the home's memory and the gateway's record; the number of memory keys deleted."""

@@ -57,6 +57,7 @@ from pathlib import Path
 from typing import Any
 
 from eqa import dataflow, keys
+from eqa import homes as homes_layout
 from eqa.bus import Bus
 from eqa.event_log import JOURNAL_SERVICES, Identity, event_identity, missing_events
 from eqa.messages import (
@@ -638,10 +639,23 @@ class EpisodeManager:
         return rec
 
     def home(self, name: str, caller: Caller | None = None) -> HomeInfo:
-        """The caller's home ``name`` (another tenant's home of that name is a different home: 404 here)."""
+        """The caller's home ``name`` (another tenant's home of that name is a different home: 404 here), with the
+        names of its stored parts."""
         with self._lock:
             rec = self._home_record(caller, name)
-            return self._home_info(rec, self.homes.summaries([rec])[0], time.time())
+            info = self._home_info(rec, self.homes.summaries([rec])[0], time.time())
+            parts = self.homes.parts(rec)
+        has_map = homes_layout.map_png_key(rec.home)[len(homes_layout.prefix(rec.home)):] in parts
+        return info.model_copy(update={"parts": parts, "map_png": f"/v1/homes/{name}/map.png" if has_map else None})
+
+    def home_map_png(self, name: str, caller: Caller | None = None) -> bytes:
+        """The PNG picture of the caller's home's map; :class:`NotFoundError` when there is none."""
+        with self._lock:
+            rec = self._home_record(caller, name)
+        png = self.homes.map_png(rec)
+        if png is None:
+            raise NotFoundError(f"home {name!r} has no map picture (yet)")
+        return png
 
     def list_homes(self, caller: Caller | None = None, limit: int = 50, offset: int = 0) -> HomeList:
         """One page of the caller's homes, newest first."""

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, HTTPException, Query, Request, status
+from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response, status
 from fastapi import Path as PathParam
 from starlette.concurrency import run_in_threadpool
 
@@ -93,3 +93,17 @@ async def get_home(name: HomeNameParam, manager: ManagerDep, caller: ReaderDep) 
 )
 async def delete_home(name: HomeNameParam, manager: ManagerDep, caller: SubmitterDep) -> HomeDeleted:
     return await run_in_threadpool(manager.delete_home, _name(name), caller)
+
+
+@router.get(
+    "/homes/{name}/map.png",
+    response_class=Response,
+    summary="The picture of a home's map, as the mapper keeps it (PNG)",
+    responses={**errors(*READ_ERRORS),
+               404: _problem("no such home of this token, or no map picture of it (yet)",
+                             "home 'flat-1' has no map picture (yet)"),
+               200: {"content": {"image/png": {}}, "description": "PNG image"}},
+)
+async def home_map(name: HomeNameParam, manager: ManagerDep, caller: ReaderDep) -> Response:
+    png = await run_in_threadpool(manager.home_map_png, _name(name), caller)
+    return Response(png, media_type="image/png", headers={"Cache-Control": "no-store"})
