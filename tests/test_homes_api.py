@@ -265,6 +265,25 @@ def test_many_homes_hit_the_tenant_bound_and_nothing_else_is_lost(gw) -> None:
     assert c.post("/v1/questions", json={**Q, "home": "fresh2"}, headers=A).status_code == 429
 
 
+def test_concurrent_new_homes_never_pass_the_bound(gw) -> None:
+    """40 submissions naming 40 new homes at once (a hostile client in parallel): exactly the bound succeed."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    g, c = gw
+
+    def post(k: int) -> int:
+        with httpx.Client(base_url=g.url, timeout=30) as own:
+            return own.post("/v1/questions", json={**Q, "home": f"p{k}"}, headers=A).status_code
+
+    with ThreadPoolExecutor(max_workers=16) as pool:
+        codes = list(pool.map(post, range(40)))
+    assert sorted(codes) == [202] * CAP + [429] * (40 - CAP), codes
+    assert c.get("/v1/homes", headers=A).json()["total"] == CAP
+    assert len(c.get("/v1/episodes", headers=A).json()["episodes"]) == CAP
+    with open_store(g.settings) as store:
+        assert len(store.keys("gw:home:")) == CAP
+
+
 def test_unused_homes_are_deleted_after_retention(gw) -> None:
     g, c = gw
     r = c.post("/v1/questions", json={**Q, "home": "old"}, headers=A)

@@ -32,7 +32,7 @@ from services.sim.changes import (
     rederive,
 )
 from services.sim.housegen import generate_house
-from services.sim.library import load_or_generate
+from services.sim.library import floor_area, load_or_generate
 from services.sim.motion import pose_error, reachable_map
 from services.sim.questions import generate_questions, witness_poses
 from services.sim.render import Renderer
@@ -129,10 +129,18 @@ def test_saved_reloaded_and_bad_ids(tmp_path, houses) -> None:
     again = load_or_generate("gen-00042-c2", tmp_path)  # from the files
     assert again.graph() == sc.graph() == houses[2][0].graph()
     assert json.loads((tmp_path / "gen-00042-c2" / "scene.json").read_text())["id"] == "gen-00042-c2"
-    assert np.array_equal(again.triangle_instance, houses[2][0].triangle_instance)
+    # built round by round from the cached house before it: the same arrays as all rounds at once
+    assert (tmp_path / "gen-00042-c1" / "scene.json").exists()
+    for name in ("vertices", "triangles", "triangle_instance", "triangle_colors"):
+        assert np.array_equal(getattr(again, name), getattr(houses[2][0], name)), name
+    assert floor_area("gen-00042-c2", tmp_path) == houses[0][0].floor_area_m2
+    assert not (tmp_path / "gen-00042-c3").exists()
+    floor_area("gen-00042-c3", tmp_path)  # the gateway's budget check builds no changed house
+    assert not (tmp_path / "gen-00042-c3").exists()
     for bad in ("gen-00042-c0", f"gen-00042-c{MAX_ROUNDS + 1}"):
-        with pytest.raises(SceneNotFound, match="rounds of changes"):
-            load_or_generate(bad, tmp_path)
+        for load in (load_or_generate, floor_area):
+            with pytest.raises(SceneNotFound, match="rounds of changes"):
+                load(bad, tmp_path)
     with pytest.raises(SceneNotFound, match="unknown scene"):
         load_or_generate("gen-00042-c", tmp_path)
     assert parse_changed_id("gen-00042-c7") == (BASE, 7) and parse_changed_id(BASE) is None

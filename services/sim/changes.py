@@ -47,7 +47,7 @@ from services.sim.scene import CHANGED_ID, GEN_ID, InstanceInfo, Room, Scene
 
 log = logging.getLogger(__name__)
 
-MAX_ROUNDS = 100  # k of "-c<k>": every round is rebuilt from the base house, so k is bounded
+MAX_ROUNDS = 20  # k of "-c<k>": a house is built round by round (about 0.2 s each), so k is bounded
 CHANGES_PER_ROUND = 3
 ROUND_STREAM = 31  # the seed stream of change rounds (the generator's own streams are 7 and 11)
 KINDS = ("move", "add", "remove", "state")
@@ -416,22 +416,35 @@ def apply_round(scene: Scene, base_seed: int, rnd: int) -> list[Change]:
     return out
 
 
+def next_house(prev: Scene, k: int) -> tuple[Scene, list[Change]]:
+    """House ``-c<k>`` made from house ``-c<k-1>`` ``prev`` (the base house for ``k = 1``): a new scene after
+    round ``k``, and that round's changes. The library builds a changed house this way from the cached one before
+    it, so asking for ``-c1`` .. ``-c<k>`` in turn costs one round each."""
+    base_id = prev.id if k == 1 else prev.id.rsplit("-c", 1)[0]
+    if k != 1 and prev.id != changed_scene_id(base_id, k - 1):
+        raise ValueError(f"house -c{k} is made from house -c{k - 1}, not from {prev.id}")
+    sid = changed_scene_id(base_id, k)
+    if prev.seed is None or k < 1:
+        raise ValueError(f"scene {prev.id} has no seed, or k = {k} < 1: only generated houses can change")
+    scene = Scene(
+        id=sid, seed=prev.seed, vertices=prev.vertices.copy(), triangles=prev.triangles.copy(),
+        triangle_instance=prev.triangle_instance.copy(),
+        triangle_colors=None if prev.triangle_colors is None else prev.triangle_colors.copy(),
+        instances=copy.deepcopy(prev.instances), rooms=list(prev.rooms), doors=list(prev.doors),
+        wall_height=prev.wall_height, source=prev.source,
+    )
+    out = apply_round(scene, prev.seed, k)
+    _compact(scene)
+    return scene, out
+
+
 def changed_house(base: Scene, k: int) -> tuple[Scene, list[Change]]:
     """The house ``base`` after rounds 1..k (a new scene, id ``<base>-c<k>``) and the changes of those rounds."""
-    sid = changed_scene_id(base.id, k)
-    if base.seed is None:
-        raise ValueError(f"scene {base.id} has no seed: only generated houses can change")
-    scene = Scene(
-        id=sid, seed=base.seed, vertices=base.vertices.copy(), triangles=base.triangles.copy(),
-        triangle_instance=base.triangle_instance.copy(),
-        triangle_colors=None if base.triangle_colors is None else base.triangle_colors.copy(),
-        instances=copy.deepcopy(base.instances), rooms=list(base.rooms), doors=list(base.doors),
-        wall_height=base.wall_height, source=base.source,
-    )
-    out: list[Change] = []
+    changed_scene_id(base.id, k)
+    scene, out = base, []
     for rnd in range(1, int(k) + 1):
-        out += apply_round(scene, base.seed, rnd)
-    _compact(scene)
+        scene, made = next_house(scene, rnd)
+        out += made
     return scene, out
 
 
