@@ -19,7 +19,7 @@ from fleet_support import wait_for
 
 from eqa import keys
 from eqa.bus import Bus
-from eqa.messages import EpisodeStart, Frame, Question
+from eqa.messages import EpisodeStart, ErrorReply, Frame, Question
 from services.sim.camera import camera_pose, intrinsics
 from services.sim.changes import (
     CHANGES_PER_ROUND,
@@ -228,20 +228,37 @@ def test_sim_service_renders_a_changed_house(hub_settings, settings, houses) -> 
                 frames.setdefault(m.episode_id, m)
 
         bus.subscribe(keys.any_robot(keys.SIM_FRAME), Frame, on_frame)
+        errors: list[ErrorReply] = []
+        bus.subscribe(keys.any_robot(keys.SIM_ERROR), ErrorReply, lambda _k, m: errors.append(m))
         svc = SimService(settings)
         svc.start()
         try:
             time.sleep(0.5)
-            for ep, robot, scene in (("ep-c2", "r0", "gen-00042-c2"), ("ep-base", "r1", BASE)):
+            for ep, robot, scene in (("ep-c2", "r0", "gen-00042-c2"), ("ep-base", "r1", BASE),
+                                     ("ep-bad", "r2", f"gen-00042-c{MAX_ROUNDS + 1}")):
                 q = Question(text="Where is the black trash can?", choices=["In the hallway", "In the bedroom"],
                              scene=scene, start_pose=pose)
                 bus.publish(keys.stream(robot, keys.EPISODE_START),
                             EpisodeStart(episode_id=ep, robot=robot, question=q, max_steps=5, seed=1, record=False))
-            assert wait_for(lambda: len(frames) >= 2, timeout=60.0)
+            assert wait_for(lambda: len(frames) >= 2 and errors, timeout=60.0)
         finally:
             svc.stop()
+    assert [(e.episode_id, e.step) for e in errors] == [("ep-bad", 0)] and "rounds of changes" in errors[0].reason
+    assert "ep-bad" not in frames
     changed, base = frames["ep-c2"], frames["ep-base"]
     assert changed.scene == "gen-00042-c2" and base.scene == BASE
     assert 32 in set(np.unique(changed.instances).tolist()) and 32 not in set(np.unique(base.instances).tolist())
     assert (settings.scenes_path / "gen-00042-c2" / "scene.json").exists()
     assert load_scene(settings, "gen-00042-c2").graph() == sc.graph()
+
+
+def test_cli_lists_changes_and_affected_questions(tmp_path, capsys, houses) -> None:
+    from services.sim.cli import main
+
+    assert main(["sim", "changes", "--scene", BASE, "--rounds", "2", "--questions", "--scenes-dir", str(tmp_path)]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["scene"] == "gen-00042-c2" and out["changes"] == [c.to_json() for c in houses[2][1]]
+    affected = [q["id"] for q in out["questions"] if q["affected"]]
+    assert affected == ["gen-00042-sta0"] and len(out["questions"]) == 10
+    for bad in (["--scene", "gen-00042-c1"], ["--scene", BASE, "--rounds", "0"], ["--scene", BASE, "--rounds", "21"]):
+        assert main(["sim", "changes", *bad, "--scenes-dir", str(tmp_path)]) == 2
