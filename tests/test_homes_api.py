@@ -304,6 +304,28 @@ def test_unused_homes_are_deleted_after_retention(gw) -> None:
         assert store.keys(homes.prefix(hid)) == []
 
 
+def test_a_restarted_gateway_keeps_homes_and_their_running_episodes(tmp_path: Path, redis_url: str) -> None:
+    """Home records and the episodes that hold a home are in the store: a gateway restarted on the same Redis
+    lists the home, shows its running episode and still refuses its reset."""
+    s = _settings(tmp_path, redis_url)
+    _clear(s)
+    try:
+        with GatewayThread(s) as g, httpx.Client(base_url=g.url, timeout=30) as c:
+            eid = c.post("/v1/questions", json={**Q, "home": "kept"}, headers=A).json()["episode_id"]
+            for k in range(CAP - 1):
+                assert c.post("/v1/questions", json={**Q, "home": f"k{k}"}, headers=A).status_code == 202
+        with GatewayThread(s) as g, httpx.Client(base_url=g.url, timeout=30) as c:
+            info = c.get("/v1/homes/kept", headers=A).json()
+            assert info["active_episodes"] == [eid] and info["episodes_submitted"] == 1
+            assert c.delete("/v1/homes/kept", headers=A).status_code == 409
+            assert c.get("/v1/homes", headers=A).json()["total"] == CAP
+            assert c.post("/v1/questions", json={**Q, "home": "one-more"}, headers=A).status_code == 429
+            assert c.delete(f"/v1/episodes/{eid}", headers=A).json()["state"] == "cancelled"
+            assert c.delete("/v1/homes/kept", headers=A).status_code == 200
+    finally:
+        _clear(s)
+
+
 def test_openapi_documents_the_homes_routes(gw) -> None:
     _g, c = gw
     spec = c.get("/openapi.json", headers=A).json()
