@@ -21,6 +21,7 @@ from eqa import keys
 from eqa.bus import Bus
 from eqa.messages import EpisodeStart, ErrorReply, Frame, Question
 from services.sim.camera import camera_pose, intrinsics
+from services.sim.catalog import SMALL_OBJECTS
 from services.sim.changes import (
     CHANGES_PER_ROUND,
     MAX_ROUNDS,
@@ -262,3 +263,47 @@ def test_cli_lists_changes_and_affected_questions(tmp_path, capsys, houses) -> N
     assert affected == ["gen-00042-sta0"] and len(out["questions"]) == 10
     for bad in (["--scene", "gen-00042-c1"], ["--scene", BASE, "--rounds", "0"], ["--scene", BASE, "--rounds", "21"]):
         assert main(["sim", "changes", *bad, "--scenes-dir", str(tmp_path)]) == 2
+
+
+@pytest.mark.parametrize("seed", [3, 17, 10_001, 20_002, 30_003])
+def test_changed_houses_stay_consistent(seed: int) -> None:
+    """Over several houses: the mesh and the scene graph agree after the changes (every object's triangles
+    are where its graph entry says, no triangle of a removed object), small objects only, the robot's free space
+    is not cut."""
+    base = generate_house(seed)
+    sc, changes = changed_house(base, 3)
+    assert len(changes) == 3 * CHANGES_PER_ROUND
+    assert {c.category for c in changes} <= set(SMALL_OBJECTS)
+    ids = set(np.unique(sc.triangle_instance).tolist())
+    assert ids == set(sc.instances), (ids ^ set(sc.instances))
+    for c in changes:
+        if c.after is None or c.object_id not in sc.instances:  # removed (maybe in a later round)
+            continue
+        o = sc.instances[c.object_id]
+        if c.after["position"] != list(o.position):  # changed again in a later round
+            continue
+        tri = sc.vertices[sc.triangles[sc.triangle_instance == o.id]].reshape(-1, 3)
+        assert np.allclose((tri.min(axis=0) + tri.max(axis=0)) / 2, o.position, atol=1e-3), c
+        assert np.allclose(tri.max(axis=0) - tri.min(axis=0), o.size, atol=1e-3), c
+        assert sc.room_at(o.position[0], o.position[1]).id == o.room
+        if o.support is not None:
+            assert sc.instances[o.support].category not in SMALL_OBJECTS
+    assert reachable_map(sc)[0].sum() >= reachable_map(base)[0].sum() * 0.97
+
+
+def test_a_start_pose_an_added_object_stands_on_moves_to_free_floor(houses) -> None:
+    base = houses[0][0]
+    sc, changes = changed_house(base, 3)
+    added = [c for c in changes if c.kind == "add" and c.after["support"] is None]
+    assert [(c.round, c.category) for c in added] == [(3, "laundry_basket")]
+    x, y, _ = sc.instances[added[0].object_id].position
+    q = Question(id="q", text="Is there a laundry basket in the bedroom?", choices=["Yes", "No"], scene=BASE,
+                 category="existence",
+                 query={"type": "existence", "category": "laundry_basket", "room_kind": "bedroom"},
+                 answer="B", start_pose={"x": x, "y": y, "yaw": 0.5})
+    assert rederive(q.model_copy(update={"start_pose": None}), base).answer == "B"  # no basket in a bedroom before
+    assert pose_error(sc, q.start_pose, clearance=0.5) is not None  # the basket stands there now
+    moved = rederive(q, sc)
+    assert moved.answer == "A" and moved.evidence_ids == [added[0].object_id]
+    assert pose_error(sc, moved.start_pose, clearance=0.5) is None and moved.start_pose.yaw == 0.5
+    assert np.hypot(moved.start_pose.x - x, moved.start_pose.y - y) < 1.5
