@@ -144,6 +144,18 @@ def test_homes_view_summary_map_reset_and_tenants(browser: Any, gw: GatewayThrea
             asked = _js(b, "return location.hash").split("/", 1)[1]
             assert c.get("/v1/homes/flat-3", headers=A).json()["active_episodes"] == [asked]
             c.delete(f"/v1/episodes/{asked}", headers=A)
+            # ... and so does the task form's
+            b.get(gw.url + "/#ask")
+            b.find_element("id", "t-instruction").send_keys("Find a mug")
+            b.find_element("id", "t-scene").send_keys(SCENE)
+            b.find_element("id", "t-home").send_keys("flat-3")
+            b.find_element("id", "task-submit").click()
+            wait_until(lambda: _js(b, "return location.hash").startswith("#watch/ep-")
+                       and _js(b, "return location.hash").split("/", 1)[1] != asked, what="the task episode")
+            task = _js(b, "return location.hash").split("/", 1)[1]
+            info = c.get("/v1/homes/flat-3", headers=A).json()
+            assert info["active_episodes"] == [task] and info["episodes_submitted"] == 2
+            c.delete(f"/v1/episodes/{task}", headers=A)
 
         # another tenant's token: no homes, and A's home by name is not found
         with fresh_page(browser) as b:
