@@ -1,5 +1,6 @@
-"""Houses that change (services/sim/changes.py): seeded rounds, the mesh and scene graph really changed,
-rendered frames (also from the sim service over real Zenoh), and which questions the changes affect.
+"""Houses that change (services/sim/changes.py, services/sim/change_impact.py): seeded rounds, the mesh and
+scene graph really changed, rendered frames (also from the sim service over real Zenoh), and which questions the
+changes affect.
 
 The hand-checked cases are of house gen-00042 (its changes of rounds 1 and 2 are listed in
 ``test_rounds_of_gen_42``): round 1 opens the white hallway trash can (31), switches the kitchen kettle on (46)
@@ -22,15 +23,14 @@ from eqa.bus import Bus
 from eqa.messages import EpisodeStart, ErrorReply, Frame, Question
 from services.sim.camera import camera_pose, intrinsics
 from services.sim.catalog import SMALL_OBJECTS
+from services.sim.change_impact import impact, rederive
 from services.sim.changes import (
     CHANGES_PER_ROUND,
     MAX_ROUNDS,
     changed_house,
     changed_scene_id,
     changes_of,
-    impact,
     parse_changed_id,
-    rederive,
 )
 from services.sim.housegen import generate_house
 from services.sim.library import floor_area, load_or_generate

@@ -102,7 +102,8 @@ def cmd_benchmark(args: argparse.Namespace) -> int:
 def cmd_changes(args: argparse.Namespace) -> int:
     """The changes of rounds 1..k of a generated house as JSON; with ``--questions``, which of the house's
     generated questions they affect."""
-    from services.sim.changes import MAX_ROUNDS, changed_house, impact
+    from services.sim.change_impact import impact
+    from services.sim.changes import MAX_ROUNDS, changed_house
     from services.sim.library import load_or_generate
     from services.sim.scene import GEN_ID, SceneLoadError, SceneNotFound
 
