@@ -13,8 +13,8 @@ Store layout (the gateway's part; the home's memory is the mapper's, under ``eqa
 * ``gw:homes:used``         sorted index (score: last use) of every home, for retention
   (``EQA_HOMES_RETENTION_DAYS``).
 
-Nothing here locks: :class:`gateway.manager.EpisodeManager` calls it under its lock, which also guards the
-active episodes a delete must not pull the memory from under.
+Nothing here locks: :class:`gateway.manager.EpisodeManager` makes, bounds and deletes homes under its lock,
+which also guards the active episodes a delete must not pull the memory from under; reads go without it.
 """
 
 from __future__ import annotations
@@ -88,7 +88,7 @@ class HomeDeleted(BaseModel):
 
 
 class HomeRegistry:
-    """Store I/O of the gateway's home records (call under the manager's lock)."""
+    """Store I/O of the gateway's home records (writes under the manager's lock)."""
 
     def __init__(self, store: Store) -> None:
         self.store = store
@@ -113,10 +113,12 @@ class HomeRegistry:
                 return None
             rec = HomeRecord(home=homes.home_id(owner, name), name=name, owner=owner, created_at=now,
                              last_used_at=now)
-            self.store.index_add(idx_owner(owner), rec.home, rec.created_at)
         rec.last_used_at = now
         rec.episodes += 1
+        # the record before the indexes (a reader never finds an indexed home without its record), and both
+        # indexes each time (a delete cut short after its index removals leaves a record that is indexed again)
         self.store.set_json(record_key(rec.home), rec.model_dump(mode="json"))
+        self.store.index_add(idx_owner(owner), rec.home, rec.created_at)
         self.store.index_add(IDX_USED, rec.home, now)
         return rec
 
@@ -125,8 +127,7 @@ class HomeRegistry:
         ids = self.store.index_page(idx_owner(owner), limit, offset)
         out = []
         for hid, raw in zip(ids, self.store.get_many([record_key(h) for h in ids]), strict=True):
-            if raw is None:
-                self.store.index_remove(idx_owner(owner), [hid])
+            if raw is None:  # deleted since the index was read
                 continue
             try:
                 out.append(HomeRecord.model_validate_json(raw))
@@ -157,11 +158,12 @@ class HomeRegistry:
         return raw if raw is not None and raw.startswith(PNG_SIGNATURE) else None
 
     def delete(self, rec: HomeRecord) -> int:
-        """Delete the home's memory and the gateway's record; the number of memory keys deleted."""
-        n = homes.delete_home(self.store, rec.home)
-        self.store.delete(record_key(rec.home))
+        """Delete the home's memory and the gateway's record (the index entries first: the list never shows a
+        home whose memory is half gone); the number of memory keys deleted."""
         self.store.index_remove(idx_owner(rec.owner), [rec.home])
         self.store.index_remove(IDX_USED, [rec.home])
+        n = homes.delete_home(self.store, rec.home)
+        self.store.delete(record_key(rec.home))
         return n
 
     def unused_since(self, cutoff: float, limit: int) -> list[HomeRecord]:

@@ -625,9 +625,11 @@ class EpisodeManager:
         return sorted(eid for eid, r in self._active.items() if r.start.home == home)
 
     def _home_info(self, rec: HomeRecord, summary: Any, now: float) -> HomeInfo:
+        with self._lock:  # only the active episodes need it: the store reads of the read routes go without
+            active = self._home_episodes(rec.home)
         return HomeInfo(name=rec.name, created_at=rec.created_at, last_used_at=rec.last_used_at,
                         age_s=round(max(0.0, now - rec.created_at), 3), episodes_submitted=rec.episodes,
-                        active_episodes=self._home_episodes(rec.home), memory=summary)
+                        active_episodes=active, memory=summary)
 
     def _home_record(self, caller: Caller | None, name: str) -> HomeRecord:
         keys.check_id(name, "home")
@@ -641,18 +643,15 @@ class EpisodeManager:
     def home(self, name: str, caller: Caller | None = None) -> HomeInfo:
         """The caller's home ``name`` (another tenant's home of that name is a different home: 404 here), with the
         names of its stored parts."""
-        with self._lock:
-            rec = self._home_record(caller, name)
-            info = self._home_info(rec, self.homes.summaries([rec])[0], time.time())
-            parts = self.homes.parts(rec)
-        has_map = homes_layout.map_png_key(rec.home)[len(homes_layout.prefix(rec.home)):] in parts
+        rec = self._home_record(caller, name)
+        info = self._home_info(rec, self.homes.summaries([rec])[0], time.time())
+        parts = self.homes.parts(rec)
+        has_map = homes_layout.map_png_key(rec.home) in [homes_layout.prefix(rec.home) + p for p in parts]
         return info.model_copy(update={"parts": parts, "map_png": f"/v1/homes/{name}/map.png" if has_map else None})
 
     def home_map_png(self, name: str, caller: Caller | None = None) -> bytes:
         """The PNG picture of the caller's home's map; :class:`NotFoundError` when there is none."""
-        with self._lock:
-            rec = self._home_record(caller, name)
-        png = self.homes.map_png(rec)
+        png = self.homes.map_png(self._home_record(caller, name))
         if png is None:
             raise NotFoundError(f"home {name!r} has no map picture (yet)")
         return png
@@ -661,11 +660,10 @@ class EpisodeManager:
         """One page of the caller's homes, newest first."""
         owner = caller.tenant if caller is not None else ANONYMOUS
         limit, offset = max(1, min(int(limit), 1000)), max(0, int(offset))
-        with self._lock:
-            recs = self.homes.page(owner, limit, offset)
-            now = time.time()
-            infos = [self._home_info(r, s, now) for r, s in zip(recs, self.homes.summaries(recs), strict=True)]
-            return HomeList(homes=infos, total=self.homes.count(owner), offset=offset, limit=limit)
+        recs = self.homes.page(owner, limit, offset)
+        now = time.time()
+        infos = [self._home_info(r, s, now) for r, s in zip(recs, self.homes.summaries(recs), strict=True)]
+        return HomeList(homes=infos, total=self.homes.count(owner), offset=offset, limit=limit)
 
     def delete_home(self, name: str, caller: Caller | None = None) -> HomeDeleted:
         """Reset the caller's home ``name``: its memory and record go. :class:`ConflictError` (409) while an
