@@ -122,6 +122,15 @@ def test_rendered_frames_show_the_move(houses) -> None:
 
     assert 32 in ids_at(base, seen_before) and 32 not in ids_at(sc, seen_before)
     assert 32 in ids_at(sc, seen_after) and 32 not in ids_at(base, seen_after)
+    # the labels a frame carries (what the oracle perception models read) say the new state and room
+    tv_pose = witness_poses(sc, None, ids=[87])[87]
+    for s, state in ((base, "on"), (sc, "off")):
+        r = Renderer(s)
+        labels = {lab.id: lab for lab in r.labels(r.render(camera_pose(tv_pose), K, 160, 120).instances)}
+        assert labels[87].attributes["state"] == state
+    r = Renderer(sc)
+    labels = {lab.id: lab for lab in r.labels(r.render(camera_pose(seen_after), K, 160, 120).instances)}
+    assert labels[32].room_kind == "bedroom"
 
 
 def test_saved_reloaded_and_bad_ids(tmp_path, houses) -> None:
