@@ -339,3 +339,17 @@ def test_openapi_documents_the_homes_routes(gw) -> None:
         assert set(spec["paths"][path][method]["responses"]) == codes, (path, method)
     for model in ("QuestionRequest", "TaskRequest"):
         assert "home" in spec["components"]["schemas"][model]["properties"]
+
+
+def test_eqa_ask_sends_the_home(tmp_path: Path) -> None:
+    import argparse
+
+    from eqa.app import ask
+
+    parser = argparse.ArgumentParser()
+    ask.register(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(["ask", "Where is it?", "--choice", "a", "--choice", "b", "--scene", SCENE,
+                              "--home", "flat-1"])
+    body, _ = ask._body(args, tmp_path)
+    assert body["home"] == "flat-1" and body["scene"] == SCENE
+    assert "home" not in ask._body(parser.parse_args(["ask", "Where is it?", "--scene", SCENE]), tmp_path)[0]
