@@ -50,6 +50,7 @@ class HomeRecord(BaseModel):
     home: str  # the internal id (eqa.homes.home_id)
     name: str  # the client's name
     owner: str  # the tenant
+    house: str = ""  # the house its episodes run in (eqa.homes.house_of their scene; "": a real robot's world)
     created_at: float = Field(default_factory=time.time)
     last_used_at: float = Field(default_factory=time.time)
     episodes: int = Field(default=0, ge=0)  # episodes submitted naming it
@@ -59,6 +60,8 @@ class HomeInfo(BaseModel):
     """A home as ``GET /v1/homes/{name}`` shows it: the gateway's record and what the mapper stored of it."""
 
     name: str
+    house: str = Field(description="the house (scene, changed versions included) its episodes run in; \"\": a real "
+                       "robot's own world")
     created_at: float
     last_used_at: float
     age_s: float = Field(description="seconds since the home was first named")
@@ -103,15 +106,15 @@ class HomeRegistry:
     def count(self, owner: str) -> int:
         return self.store.index_len(idx_owner(owner))
 
-    def use(self, owner: str, name: str, cap: int, now: float | None = None) -> HomeRecord | None:
-        """The record of ``owner``'s home ``name`` after one more episode named it (made if new); None (and
-        nothing written) when it is new and ``owner`` already holds ``cap`` homes."""
+    def use(self, owner: str, name: str, house: str, cap: int, now: float | None = None) -> HomeRecord | None:
+        """The record of ``owner``'s home ``name`` after one more episode in ``house`` named it (made if new);
+        None (and nothing written) when it is new and ``owner`` already holds ``cap`` homes."""
         now = time.time() if now is None else now
         rec = self.get(owner, name)
         if rec is None:
             if self.count(owner) >= cap:
                 return None
-            rec = HomeRecord(home=homes.home_id(owner, name), name=name, owner=owner, created_at=now,
+            rec = HomeRecord(home=homes.home_id(owner, name), name=name, owner=owner, house=house, created_at=now,
                              last_used_at=now)
         rec.last_used_at = now
         rec.episodes += 1

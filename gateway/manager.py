@@ -558,7 +558,7 @@ class EpisodeManager:
                         retry_after_s=wait,
                     )
                 position = len(queues[robot]) + 1
-            home = self._use_home(owner, req.home) if req.home is not None else None
+            home = self._use_home(owner, req.home, req.scene or "") if req.home is not None else None
             start = EpisodeStart(
                 episode_id=episode_id,
                 robot=robot,
@@ -607,12 +607,20 @@ class EpisodeManager:
         )
 
     # ---- homes ------------------------------------------------------------------------------------------
-    def _use_home(self, owner: str, name: str) -> str:
-        """The internal id of ``owner``'s home ``name`` for one more episode (the home is made if new), or
-        :class:`TooManyError` when it is new and the tenant already holds ``EQA_HOMES_MAX_PER_TENANT`` homes
-        (then nothing is written)."""
+    def _use_home(self, owner: str, name: str, scene: str) -> str:
+        """The internal id of ``owner``'s home ``name`` for one more episode in ``scene`` (the home is made if
+        new). :class:`ConflictError` when the home is another house (its memory would mix two houses), or
+        :class:`TooManyError` when it is new and the tenant already holds ``EQA_HOMES_MAX_PER_TENANT`` homes; then
+        nothing is written."""
+        house = homes_layout.house_of(scene)
+        known = self.homes.get(owner, name)
+        if known is not None and known.house != house:
+            raise ConflictError(
+                f"home {name!r} is the house {known.house or 'of the robot (no scene)'}; this episode is in "
+                f"{house or 'the robot world (no scene)'}: name another home, or reset this one "
+                f"(DELETE /v1/homes/{name})")
         cap = self.settings.homes_max_per_tenant
-        rec = self.homes.use(owner, name, cap)
+        rec = self.homes.use(owner, name, house, cap)
         if rec is None:
             raise TooManyError(
                 f"this token holds {self.homes.count(owner)} homes, the most one tenant may "
@@ -627,7 +635,7 @@ class EpisodeManager:
     def _home_info(self, rec: HomeRecord, summary: Any, now: float) -> HomeInfo:
         with self._lock:  # only the active episodes need it: the store reads of the read routes go without
             active = self._home_episodes(rec.home)
-        return HomeInfo(name=rec.name, created_at=rec.created_at, last_used_at=rec.last_used_at,
+        return HomeInfo(name=rec.name, house=rec.house, created_at=rec.created_at, last_used_at=rec.last_used_at,
                         age_s=round(max(0.0, now - rec.created_at), 3), episodes_submitted=rec.episodes,
                         active_episodes=active, memory=summary)
 

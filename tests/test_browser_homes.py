@@ -102,6 +102,7 @@ def test_homes_view_summary_map_reset_and_tenants(browser: Any, gw: GatewayThrea
             views = wait_until(lambda: b.find_element("css selector", "dd[data-term=views]").text, what="summary")
             assert views == "12"
             assert b.find_element("css selector", "dd[data-term=size]").text == "3.0 MiB"
+            assert b.find_element("css selector", "dd[data-term=house]").text == SCENE
             assert b.find_element("css selector", "dd[data-term='episodes mapped']").text == "2"
             assert b.find_element("css selector", "dd[data-term=scenes]").text == SCENE
             assert [a.text for a in b.find_elements("css selector", "#h-active a")] == [eid]

@@ -167,6 +167,27 @@ def test_home_round_trip_question_task_list_get_delete(gw) -> None:
     assert again["episodes_submitted"] == 1 and again["memory"] is None
 
 
+def test_a_home_is_one_house(gw) -> None:
+    """A home's memory is of one house: the same home in another scene is a 409 (nothing written); the house
+    after changes (gen-<seed>-c<k>) is the same house."""
+    _g, c = gw
+    assert c.post("/v1/questions", json={**Q, "home": "flat"}, headers=A).status_code == 202
+    n = len(c.get("/v1/episodes", headers=A).json()["episodes"])
+    for path, body in (("/v1/questions", {**Q, "scene": "gen-00002", "home": "flat"}),
+                       ("/v1/tasks", {"instruction": "Find a mug", "scene": "gen-00002", "home": "flat"})):
+        r = c.post(path, json=body, headers=A)
+        assert r.status_code == 409 and "is the house gen-00001" in r.json()["detail"], r.text
+    assert len(c.get("/v1/episodes", headers=A).json()["episodes"]) == n
+    info = c.get("/v1/homes/flat", headers=A).json()
+    assert info["house"] == SCENE and info["episodes_submitted"] == 1
+    r = c.post("/v1/questions", json={**Q, "scene": "gen-00001-c2", "home": "flat"}, headers=A)
+    assert r.status_code == 202, r.text
+    assert c.get("/v1/homes/flat", headers=A).json()["episodes_submitted"] == 2
+    # a real robot's world (no scene) is a house of its own
+    r = c.post("/v1/questions", json={"question": "Where is it?", "robot": "robot1", "home": "flat"}, headers=A)
+    assert r.status_code == 409 and "no scene" in r.json()["detail"]
+
+
 def test_homes_belong_to_their_tenant(gw) -> None:
     g, c = gw
     r = c.post("/v1/questions", json={**Q, "home": "shared-name"}, headers=A)

@@ -821,6 +821,7 @@
     const dl = $("h-summary");
     dl.textContent = "";
     const m = h.memory;
+    term(dl, "house", h.house || "the robot's own world (no scene)");
     term(dl, "views", m ? String(m.views) : "none yet (no episode of it mapped)");
     term(dl, "size", m ? bytesText(m.bytes) : "0 B");
     term(dl, "episodes mapped", m ? String(m.episodes) : "0");
