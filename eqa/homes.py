@@ -9,12 +9,15 @@ service but the gateway needs to know about tenants.
 Store layout (every key of one home starts with :func:`prefix`):
 
 * ``eqa:home:{home}:summary``  JSON :class:`HomeSummary`, rewritten by the mapper whenever the home changes;
+* ``eqa:home:{home}:map.png``  optional: a PNG picture of the home's map, which the gateway serves and the
+  console shows as it is (``GET /v1/homes/{name}/map.png``);
 * ``eqa:home:{home}:*``        the mapper's parts of the home (its map and view memory).
 """
 
 from __future__ import annotations
 
 import hashlib
+import re
 import time
 
 from pydantic import BaseModel, ConfigDict, Field
@@ -23,6 +26,15 @@ from eqa import keys
 from eqa.store import Store
 
 PREFIX = "eqa:home:"
+# A generated house after k rounds of changes (services.sim.changes): the same house, so the same home.
+CHANGED_SCENE = re.compile(r"^(gen-\d{1,9})-c(\d{1,3})$")
+
+
+def house_of(scene: str) -> str:
+    """The house a scene id shows: ``gen-00042-c2`` (house gen-00042 after two rounds of changes) is
+    ``gen-00042``; any other id (``""``: a real robot's own world) is its own house. A home is one house."""
+    m = CHANGED_SCENE.match(scene)
+    return m.group(1) if m else scene
 
 
 def home_id(tenant: str, name: str) -> str:
@@ -39,6 +51,10 @@ def prefix(home: str) -> str:
 
 def summary_key(home: str) -> str:
     return prefix(home) + "summary"
+
+
+def map_png_key(home: str) -> str:
+    return prefix(home) + "map.png"
 
 
 class HomeSummary(BaseModel):

@@ -381,10 +381,25 @@ class Ros2Settings(SettingsGroup):
                                          "(docs/robots.md); empty: task episodes are refused on its robots")
 
 
+class HomeSettings(SettingsGroup):
+    """Homes: a house's memory across episodes, its bounds and retention (eqa/homes.py, gateway/homes.py)."""
+
+    # --- homes ---
+    homes_max_per_tenant: int = Field(
+        default=100, ge=1, le=100_000,
+        description="homes one tenant may hold (a question or task naming a new home past it gets 429; delete one "
+        "with DELETE /v1/homes/{name})",
+    )
+    homes_retention_days: float = Field(
+        default=90.0, gt=0,
+        description="a home no episode has used for this long is deleted with its memory (the gateway's watchdog)",
+    )
+
+
 class Settings(
     ProcessSettings, BusSettings, StoreSettings, FleetSettings, SimulatorSettings, ScorerSettings,
     SimulatedPerceptionSettings, PlannerSettings, StopperSettings, GatewaySettings, HeliosSettings,
-    ObjectLayerSettings, SimulatedDetectorSettings, MonitoringSettings, Ros2Settings,
+    ObjectLayerSettings, SimulatedDetectorSettings, MonitoringSettings, Ros2Settings, HomeSettings,
 ):
     """All settings: every group, one flat namespace (``settings.sim_width``), each ``EQA_*`` variable read once.
 

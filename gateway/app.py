@@ -37,7 +37,7 @@ from gateway.auth import Authenticator, authenticate_docs, retry_after
 from gateway.errors import GatewayError
 from gateway.limits import BODY_METHODS, BodyLimit
 from gateway.manager import PRUNE_BATCH, EpisodeManager, SceneArea
-from gateway.routers import console, episodes, health, labels, tasks
+from gateway.routers import console, episodes, health, homes, labels, tasks
 from gateway.schemas import Problem
 
 log = logging.getLogger(__name__)
@@ -137,6 +137,8 @@ async def lifespan(app: FastAPI) -> AsyncIterator[None]:
                     last_prune = loop.time()
                     while await asyncio.to_thread(manager.prune) >= PRUNE_BATCH:
                         await asyncio.sleep(0)  # a large backlog goes in batches, letting requests through
+                    while await asyncio.to_thread(manager.prune_homes) >= PRUNE_BATCH:
+                        await asyncio.sleep(0)
             except Exception:
                 log.exception("watchdog pass failed; going on")
 
@@ -248,6 +250,7 @@ def create_app(settings: Settings, scene_area: SceneArea | None = None) -> FastA
     app.include_router(episodes.router)
     app.include_router(labels.router)
     app.include_router(tasks.router)
+    app.include_router(homes.router)
     console.install(app)  # the web console at / and the routes it needs
     _add_docs(app)
     gateway_metrics.install(app)

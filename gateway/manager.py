@@ -16,6 +16,8 @@ Store layout (all keys under ``gw:``):
   indexes (score: creation time) of every stored episode, per tenant, per final state: the list route reads
   one page of one index and the records of that page (no scan of all records); ``gw:idx:active`` the queued
   and running ones (what a restarted gateway reconciles).
+* ``gw:home:{home}``, ``gw:homes:*`` - the homes of each tenant (:mod:`gateway.homes`); an episode naming a home
+  carries its internal id in ``EpisodeStart.home``.
 
 Retention: ended episodes past ``EQA_EPISODE_RETENTION_COUNT`` (the oldest first) or older than
 ``EQA_EPISODE_RETENTION_DAYS`` are deleted with their events and recordings (:meth:`EpisodeManager.prune`,
@@ -55,6 +57,7 @@ from pathlib import Path
 from typing import Any
 
 from eqa import dataflow, keys
+from eqa import homes as homes_layout
 from eqa.bus import Bus
 from eqa.event_log import JOURNAL_SERVICES, Identity, event_identity, missing_events
 from eqa.messages import (
@@ -84,6 +87,7 @@ from gateway.errors import (
     TooManyError,
 )
 from gateway.events import gateway_event, summarize
+from gateway.homes import HomeDeleted, HomeInfo, HomeList, HomeRecord, HomeRegistry
 from gateway.schemas import QuestionRequest, Submitted
 
 __all__ = [
@@ -235,6 +239,7 @@ class EpisodeManager:
         self._known_scenes: dict[str, None] = {}  # scenes loaded once (insertion order, bounded)
         self._new_scenes = RateLimiter(NEW_SCENES_PER_MIN / 60.0, burst=NEW_SCENES_PER_MIN)
         self._mean_episode_s = 60.0  # running mean of episode wall times (for Retry-After)
+        self.homes = HomeRegistry(store)
         self.started_at = time.time()
 
     # ---- startup ----------------------------------------------------------------------------------------
@@ -553,6 +558,7 @@ class EpisodeManager:
                         retry_after_s=wait,
                     )
                 position = len(queues[robot]) + 1
+            home = self._use_home(owner, req.home, req.scene or "") if req.home is not None else None
             start = EpisodeStart(
                 episode_id=episode_id,
                 robot=robot,
@@ -565,6 +571,7 @@ class EpisodeManager:
                 task=task,
                 ablation=ablation,
                 pick_limit=pick_limit,
+                home=home,
             )
             status = EpisodeStatus(
                 episode_id=episode_id,
@@ -598,6 +605,102 @@ class EpisodeManager:
                 "recording": f"/v1/episodes/{episode_id}/recording",
             },
         )
+
+    # ---- homes ------------------------------------------------------------------------------------------
+    def _use_home(self, owner: str, name: str, scene: str) -> str:
+        """The internal id of ``owner``'s home ``name`` for one more episode in ``scene`` (the home is made if
+        new). :class:`ConflictError` when the home is another house (its memory would mix two houses), or
+        :class:`TooManyError` when it is new and the tenant already holds ``EQA_HOMES_MAX_PER_TENANT`` homes; then
+        nothing is written."""
+        house = homes_layout.house_of(scene)
+        known = self.homes.get(owner, name)
+        if known is not None and known.house != house:
+            raise ConflictError(
+                f"home {name!r} is the house {known.house or 'of the robot (no scene)'}; this episode is in "
+                f"{house or 'the robot world (no scene)'}: name another home, or reset this one "
+                f"(DELETE /v1/homes/{name})")
+        cap = self.settings.homes_max_per_tenant
+        rec = self.homes.use(owner, name, house, cap)
+        if rec is None:
+            raise TooManyError(
+                f"this token holds {self.homes.count(owner)} homes, the most one tenant may "
+                f"(EQA_HOMES_MAX_PER_TENANT={cap}); name one of them, or delete one with DELETE /v1/homes/{{name}}",
+            )
+        return rec.home
+
+    def _home_episodes(self, home: str) -> list[str]:
+        """Queued and running episodes of the home with internal id ``home``."""
+        return sorted(eid for eid, r in self._active.items() if r.start.home == home)
+
+    def _home_info(self, rec: HomeRecord, summary: Any, now: float) -> HomeInfo:
+        with self._lock:  # only the active episodes need it: the store reads of the read routes go without
+            active = self._home_episodes(rec.home)
+        return HomeInfo(name=rec.name, house=rec.house, created_at=rec.created_at, last_used_at=rec.last_used_at,
+                        age_s=round(max(0.0, now - rec.created_at), 3), episodes_submitted=rec.episodes,
+                        active_episodes=active, memory=summary)
+
+    def _home_record(self, caller: Caller | None, name: str) -> HomeRecord:
+        keys.check_id(name, "home")
+        owner = caller.tenant if caller is not None else ANONYMOUS
+        rec = self.homes.get(owner, name)
+        if rec is None:
+            self._check_store_intact()
+            raise NotFoundError(f"no home {name!r}")
+        return rec
+
+    def home(self, name: str, caller: Caller | None = None) -> HomeInfo:
+        """The caller's home ``name`` (another tenant's home of that name is a different home: 404 here), with the
+        names of its stored parts."""
+        rec = self._home_record(caller, name)
+        info = self._home_info(rec, self.homes.summaries([rec])[0], time.time())
+        parts = self.homes.parts(rec)
+        has_map = homes_layout.map_png_key(rec.home) in [homes_layout.prefix(rec.home) + p for p in parts]
+        return info.model_copy(update={"parts": parts, "map_png": f"/v1/homes/{name}/map.png" if has_map else None})
+
+    def home_map_png(self, name: str, caller: Caller | None = None) -> bytes:
+        """The PNG picture of the caller's home's map; :class:`NotFoundError` when there is none."""
+        png = self.homes.map_png(self._home_record(caller, name))
+        if png is None:
+            raise NotFoundError(f"home {name!r} has no map picture (yet)")
+        return png
+
+    def list_homes(self, caller: Caller | None = None, limit: int = 50, offset: int = 0) -> HomeList:
+        """One page of the caller's homes, newest first."""
+        owner = caller.tenant if caller is not None else ANONYMOUS
+        limit, offset = max(1, min(int(limit), 1000)), max(0, int(offset))
+        recs = self.homes.page(owner, limit, offset)
+        now = time.time()
+        infos = [self._home_info(r, s, now) for r, s in zip(recs, self.homes.summaries(recs), strict=True)]
+        return HomeList(homes=infos, total=self.homes.count(owner), offset=offset, limit=limit)
+
+    def delete_home(self, name: str, caller: Caller | None = None) -> HomeDeleted:
+        """Reset the caller's home ``name``: its memory and record go. :class:`ConflictError` (409) while an
+        episode of it is queued or running (the mapper reads and writes the memory meanwhile)."""
+        with self._lock:
+            rec = self._home_record(caller, name)
+            busy = self._home_episodes(rec.home)
+            if busy:
+                raise ConflictError(f"home {name!r} has {len(busy)} queued or running episodes ({', '.join(busy[:5])}"
+                                    f"{' ...' if len(busy) > 5 else ''}); cancel them or wait for their end")
+            n = self.homes.delete(rec)
+        log.info("home %s of %s deleted (%d memory keys)", rec.home, rec.owner, n)
+        return HomeDeleted(name=name, deleted_keys=n)
+
+    def prune_homes(self, now: float | None = None, batch: int = PRUNE_BATCH) -> int:
+        """Delete up to ``batch`` homes no episode used for ``EQA_HOMES_RETENTION_DAYS`` (never one with a queued
+        or running episode); how many went."""
+        now = time.time() if now is None else now
+        cutoff = now - self.settings.homes_retention_days * 86400.0
+        n = 0
+        with self._lock:
+            for rec in self.homes.unused_since(cutoff, batch):
+                if self._home_episodes(rec.home):
+                    continue
+                self.homes.delete(rec)
+                n += 1
+        if n:
+            log.info("retention: %d homes unused for %g days deleted", n, self.settings.homes_retention_days)
+        return n
 
     def _start(self, rec: Record) -> None:
         now = time.time()

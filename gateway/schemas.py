@@ -26,6 +26,14 @@ from eqa.messages import (
 
 MAX_QUESTION_CHARS = 2000
 MAX_CHOICE_CHARS = 300
+HomeName = Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_-]+$")]
+HOME_DESCRIPTION = ("your name of the home (house) the robot is in: the episode reads and extends that home's memory "
+                    "(GET /v1/homes/{name}); a new name makes a new home of this token. Default: no memory")
+
+
+def check_home(value: str | None) -> str | None:
+    """A request's ``home`` name by the id rule (:func:`eqa.keys.check_id`), or None."""
+    return None if value is None else keys.check_id(value, "home")
 
 _EXAMPLE = {
     "question": "Where did I leave the black suitcase?",
@@ -106,6 +114,7 @@ class QuestionRequest(BaseModel):
         description="your id for this question (e.g. a benchmark question id); default: a new one. The oracle "
         "scorer seeds its draws with it, so the same id, scene and seed replay the same episode",
     )
+    home: HomeName | None = Field(default=None, description=HOME_DESCRIPTION)
 
     @field_validator("question")
     @classmethod
@@ -148,6 +157,11 @@ class QuestionRequest(BaseModel):
     @classmethod
     def _question_id(cls, v: str | None) -> str | None:
         return None if v is None else keys.check_id(v, "question_id")
+
+    @field_validator("home")
+    @classmethod
+    def _home(cls, v: str | None) -> str | None:
+        return check_home(v)
 
     @model_validator(mode="after")
     def _scene_or_robot(self) -> QuestionRequest:

@@ -126,10 +126,10 @@ def test_ask_with_the_keyboard_and_watch_live(browser: Any, gw: GatewayThread, c
         b.get(gw.url + "/")
         # Everything in the header by Tab, in reading order.
         order = []
-        for _ in range(6):
+        for _ in range(7):
             keys(b, Keys.TAB)
             order.append(focused(b))
-        assert order == ["skip", "nav-ask", "nav-watch", "nav-fleet", "token", "token-save"], order
+        assert order == ["skip", "nav-ask", "nav-watch", "nav-fleet", "nav-homes", "token", "token-save"], order
         # The token, once: back to its field, type, Enter.
         shift_tab(b)
         assert focused(b) == "token"
@@ -137,13 +137,13 @@ def test_ask_with_the_keyboard_and_watch_live(browser: Any, gw: GatewayThread, c
         wait_until(lambda: "token accepted" in b.find_element("id", "token-state").text, what="the token accepted")
         assert b.find_element("id", "banner").get_attribute("hidden") is not None
         # Enter on a view's link opens it and puts the focus on its title.
-        shift_tab(b)
+        shift_tab(b, 2)
         assert focused(b) == "nav-fleet"
         keys(b, Keys.ENTER)
         wait_until(lambda: focused(b) == "fleet-title" and b.find_element("id", "view-fleet").is_displayed(),
                    what="the fleet view by keyboard")
         wait_until(lambda: b.find_elements("css selector", "#f-robots tr[data-robot=robot0]"), what="fleet rows")
-        shift_tab(b, 5)
+        shift_tab(b, 6)
         assert focused(b) == "nav-ask"
         keys(b, Keys.ENTER)
         wait_until(lambda: focused(b) == "ask-title", what="the ask view by keyboard")
@@ -154,13 +154,13 @@ def test_ask_with_the_keyboard_and_watch_live(browser: Any, gw: GatewayThread, c
         keys(b, "\n".join(CHOICES).replace("\n", Keys.ENTER), Keys.TAB)
         keys(b, SCENE, Keys.TAB)  # scene
         order = [focused(b)]
-        for _ in range(5):
+        for _ in range(6):
             keys(b, Keys.TAB)
             order.append(focused(b))
-        assert order == ["q-strategy", "q-stop", "q-eps", "q-max-steps", "q-seed", "ask-submit"], order
+        assert order == ["q-strategy", "q-stop", "q-eps", "q-max-steps", "q-seed", "q-home", "ask-submit"], order
         # Back to T and the seed: a budget of 40 steps, start pose 1 (the set usually shrinks to the garage
         # after 20-30 steps; the scorer's draws differ from run to run).
-        shift_tab(b, 2)
+        shift_tab(b, 3)
         assert focused(b) == "q-max-steps"
         keys(b, "40", Keys.TAB, Keys.BACKSPACE, "1")
         shot(b, "console-ask.png")

@@ -144,6 +144,7 @@ def test_eqa_health_from_another_process(fleet: Fleet):
         (["q?", "--choice", "a", "--choice", "b", "--scene", "no-such-scene"], "unknown scene"),
         (["q?", "--choice", "a", "--choice", "b", "--scene", "gen-00001", "--pose", "1,x"], "pose must be numbers"),
         (["q?", "--choice", "a", "--choice", "b", "--scene", "gen-00001", "--eps", "1.5"], "--eps"),
+        (["q?", "--choice", "a", "--choice", "b", "--scene", "gen-00001", "--home", "my flat"], "--home"),
         # a fleet whose scorer could only answer errors is refused before it starts
         (["EQA_SCORER_BACKEND=hf", "EQA_HF_MODEL_PATH=/no/such/model"], "set EQA_HF_MODEL_PATH"),
         (["EQA_SCORER_BACKEND=remote"], "EQA_REMOTE_BASE_URL"),

@@ -70,6 +70,7 @@ BAD_BODIES: list[tuple[str, object, str]] = [
     ("eps NaN", '{"question": "q?", "scene": "gen-00001", "eps": NaN}', "eps"),
     ("path scene with a budget", {**Q, "scene": "../../etc/passwd"}, "scene"),
     ("unknown scene with a budget", {**Q, "scene": "no-such-scene"}, "scene"),
+    ("changed house past its rounds", {**Q, "scene": "gen-00001-c21"}, "scene"),
     ("scene with a trailing newline", {**Q, "scene": "gen-00001\n"}, "scene"),
     ("NUL in the question", {**Q, "question": "where\u0000is it?"}, "question"),
     ("NUL in a choice", {**Q, "choices": ["bed\u0000room", "hall"]}, "choices"),

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from eqa import keys
 from eqa.messages import MAX_CHOICES, Pose2D, Question, letters
 
 log = logging.getLogger(__name__)
@@ -137,6 +138,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--threshold", type=float, default=None, help="entropy/relevance threshold")
     p.add_argument("--max-steps", type=int, default=None, help="step budget (default 3*sqrt(floor area))")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--home", default=None,
+                   help="name of the home (house) the robot is in: the episode reads and extends its memory")
     p.add_argument("--url", default=None, help="use a running gateway (eqa up) instead of starting a fleet")
     p.add_argument("--token", default=None, help="bearer token for --url")
     p.add_argument("--scorers", type=int, default=1, help="scorer replicas to start (default 1)")
@@ -175,6 +178,11 @@ def _body(args: argparse.Namespace, scenes_dir: Path) -> tuple[dict[str, Any], Q
     if args.pose is not None:
         body["start_pose"] = args.pose.model_dump()
     body.update(strategy=args.strategy, stop_rule=args.stop_rule, eps=args.eps, seed=args.seed)
+    if args.home is not None:
+        try:
+            body["home"] = keys.check_id(args.home, "--home")
+        except ValueError as exc:
+            raise AskError(str(exc)) from None
     if args.threshold is not None:
         body["threshold"] = args.threshold
     return {k: v for k, v in body.items() if v is not None}, demo

@@ -1,4 +1,4 @@
-// EQA console: ask a question, watch an episode live, see the fleet. Plain JS, no library, no network but the
+// EQA console: ask a question, watch an episode live, see the fleet and the homes. Plain JS, no library, no network but the
 // gateway that served it. The token is kept in sessionStorage (this tab only) and sent as a bearer header.
 "use strict";
 
@@ -109,12 +109,13 @@
     $("token-state").textContent = token ? "token set for this tab" : "";
   }
 
-  // ---- views and routing (#ask, #watch, #watch/<episode id>, #fleet) ------------------------------------
+  // ---- views and routing (#ask, #watch, #watch/<episode id>, #fleet, #homes, #homes/<name>) -----------------
+  const VIEWS = ["ask", "watch", "fleet", "homes"];
   function route() {
     const hash = location.hash.replace(/^#/, "") || "ask";
     const [view, arg] = hash.split("/");
-    const name = ["ask", "watch", "fleet"].includes(view) ? view : "ask";
-    for (const v of ["ask", "watch", "fleet"]) {
+    const name = VIEWS.includes(view) ? view : "ask";
+    for (const v of VIEWS) {
       $("view-" + v).hidden = v !== name;
       const link = $("nav-" + v);
       if (v === name) link.setAttribute("aria-current", "page"); else link.removeAttribute("aria-current");
@@ -127,6 +128,7 @@
     }
     if (name !== "watch" || arg) stopRecent();
     if (name === "fleet") startFleet(); else stopFleet();
+    if (name === "homes") showHomes(arg ? decodeURIComponent(arg) : null);
   }
   window.addEventListener("hashchange", () => { route(); focusView(); });
   function focusView() {
@@ -156,6 +158,8 @@
     if (!Number.isNaN(maxSteps)) body.max_steps = maxSteps;
     const seed = parseInt($("q-seed").value, 10);
     if (!Number.isNaN(seed)) body.seed = seed;
+    const home = $("q-home").value.trim();
+    if (home) body.home = home;
     $("ask-submit").disabled = true;
     $("ask-state").textContent = "submitting ...";
     try {
@@ -182,6 +186,8 @@
     }
     const scene = $("t-scene").value.trim();
     if (scene) body.scene = scene;
+    const home = $("t-home").value.trim();
+    if (home) body.home = home;
     for (const [id, key] of [["t-pick-limit", "pick_limit"], ["t-max-steps", "max_steps"], ["t-seed", "seed"]]) {
       const v = parseInt($(id).value, 10);
       if (!Number.isNaN(v)) body[key] = v;
@@ -735,6 +741,144 @@
       fl.append(li);
     }
   }
+
+  // ---- homes: the token's homes and one home's memory ---------------------------------------------------
+  function bytesText(n) {
+    if (n < 1024) return n + " B";
+    if (n < 1024 * 1024) return (n / 1024).toFixed(1) + " KiB";
+    return (n / 1024 / 1024).toFixed(1) + " MiB";
+  }
+  function ageText(s) {
+    if (s < 120) return Math.round(s) + " s";
+    if (s < 7200) return Math.round(s / 60) + " min";
+    if (s < 172800) return Math.round(s / 3600) + " h";
+    return Math.round(s / 86400) + " days";
+  }
+  let homeShown = null;  // the name of the home on the page (a reset asks twice)
+
+  async function showHomes(name) {
+    $("homes-pick").hidden = !!name;
+    $("home-one").hidden = !name;
+    if (name) return showHome(name);
+    homeShown = null;
+    let list;
+    try {
+      list = await (await api("/v1/homes?limit=200")).json();
+    } catch (e) {
+      $("h-count").textContent = "not loaded: " + describe(e);
+      return;
+    }
+    $("h-count").textContent = list.total ? list.total + " homes of this token" :
+      "no homes yet: give a home name when you ask a question";
+    const tb = document.querySelector("#h-list tbody");
+    tb.textContent = "";
+    for (const h of list.homes) {
+      const tr = document.createElement("tr");
+      tr.dataset.home = h.name;
+      const a = document.createElement("a");
+      a.href = "#homes/" + encodeURIComponent(h.name);
+      a.textContent = h.name;
+      cell(tr, "").append(a);
+      cell(tr, h.memory ? String(h.memory.views) : "none yet");
+      cell(tr, h.memory ? bytesText(h.memory.bytes) : "");
+      cell(tr, String(h.episodes_submitted));
+      cell(tr, ageText(h.age_s));
+      cell(tr, h.active_episodes.length ? h.active_episodes.length + " running or queued" : "idle");
+      tb.append(tr);
+    }
+  }
+
+  function term(dl, name, value) {
+    const dt = document.createElement("dt");
+    dt.textContent = name;
+    const dd = document.createElement("dd");
+    dd.textContent = value;
+    dd.dataset.term = name;
+    dl.append(dt, dd);
+  }
+
+  async function showHome(name) {
+    if (homeShown !== name) {
+      $("h-reset").textContent = "Reset home";
+      $("h-reset").classList.remove("confirm");
+      $("h-reset-state").textContent = "";
+    }
+    homeShown = name;
+    $("h-name").textContent = "Home " + name;
+    let h;
+    try {
+      h = await (await api("/v1/homes/" + encodeURIComponent(name))).json();
+    } catch (e) {
+      $("h-summary").textContent = "";
+      $("h-name").textContent = e instanceof ApiError && e.status === 404 ? "No home " + name + " of this token"
+        : "Home " + name + " not loaded: " + describe(e);
+      $("h-active").textContent = "";
+      $("h-parts").textContent = "";
+      $("h-map-fig").hidden = true;
+      return;
+    }
+    if (homeShown !== name) return;
+    const dl = $("h-summary");
+    dl.textContent = "";
+    const m = h.memory;
+    term(dl, "house", h.house || "the robot's own world (no scene)");
+    term(dl, "views", m ? String(m.views) : "none yet (no episode of it mapped)");
+    term(dl, "size", m ? bytesText(m.bytes) : "0 B");
+    term(dl, "episodes mapped", m ? String(m.episodes) : "0");
+    term(dl, "episodes submitted", String(h.episodes_submitted));
+    term(dl, "age", ageText(h.age_s));
+    term(dl, "last used", new Date(h.last_used_at * 1000).toLocaleString());
+    if (m) term(dl, "scenes", m.scenes.join(", ") || "none");
+    const ul = $("h-active");
+    ul.textContent = "";
+    if (!h.active_episodes.length) ul.innerHTML = "<li>none</li>";
+    for (const eid of h.active_episodes) {
+      const li = document.createElement("li");
+      const a = document.createElement("a");
+      a.href = "#watch/" + eid;
+      a.textContent = eid;
+      li.append(a);
+      ul.append(li);
+    }
+    $("h-parts").textContent = h.parts && h.parts.length ? h.parts.join(", ") : "nothing stored yet";
+    $("h-map-fig").hidden = !h.map_png;
+    if (h.map_png) {
+      const r = await fetch(h.map_png, {headers: headers(), cache: "no-store"});
+      if (r.ok && homeShown === name) {
+        const img = $("h-map");
+        const old = img.src;
+        img.src = URL.createObjectURL(await r.blob());
+        if (old && old.startsWith("blob:")) URL.revokeObjectURL(old);
+      }
+    }
+  }
+
+  $("h-reset").addEventListener("click", async () => {
+    const name = homeShown;
+    const b = $("h-reset");
+    if (!name) return;
+    if (!b.classList.contains("confirm")) {  // the first press only asks
+      b.classList.add("confirm");
+      b.textContent = "Really reset " + name + "? Its memory is deleted";
+      $("h-reset-state").textContent = "press again to reset";
+      return;
+    }
+    b.classList.remove("confirm");
+    b.textContent = "Reset home";
+    try {
+      const r = await (await api("/v1/homes/" + encodeURIComponent(name), {method: "DELETE"})).json();
+      $("h-reset-state").textContent = "home " + r.name + " reset (" + r.deleted_keys + " stored parts deleted)";
+      homeShown = null;
+      $("home-one").hidden = true;
+      $("homes-pick").hidden = false;
+      history.replaceState(null, "", "#homes");
+      await showHomes(null);
+      $("h-count").textContent = "home " + r.name + " reset. " + $("h-count").textContent;
+    } catch (e) {
+      $("h-reset-state").textContent = e instanceof ApiError && e.status === 409 ? "not reset: " + e.message
+        : describe(e);
+    }
+  });
 
   // ---- start -----------------------------------------------------------------------------------------
   showTokenState();

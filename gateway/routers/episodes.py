@@ -41,7 +41,8 @@ _ERRORS: dict[int, tuple[str, object]] = {
           "body over the cap of 2097152 bytes (EQA_MAX_BODY_BYTES)"),
     422: ("invalid input: one entry per field saying what to change",
           [{"loc": ["body", "eps"], "msg": "Input should be less than 1", "type": "less_than"}]),
-    429: ("too many requests (rate limit, failed authentications, a full queue, too many open event streams); "
+    429: ("too many requests (rate limit, failed authentications, a full queue, too many open event streams, a "
+          "new home past EQA_HOMES_MAX_PER_TENANT); "
           "see Retry-After",
           "rate limit of 50 requests/s exceeded"),
     500: ("the recording could not be merged", "rerun rrd merge failed: ..."),

@@ -18,7 +18,7 @@ from eqa.messages import SCENE_ID, Ablation, Pose2D, Task, TaskKind, check_text
 from gateway.deps import ManagerDep, SettingsDep, SubmitterDep
 from gateway.errors import InvalidError
 from gateway.routers.episodes import errors
-from gateway.schemas import QuestionRequest, Submitted, strict_pose
+from gateway.schemas import HOME_DESCRIPTION, HomeName, QuestionRequest, Submitted, check_home, strict_pose
 
 log = logging.getLogger(__name__)
 router = APIRouter(prefix="/v1", tags=["tasks"])
@@ -44,11 +44,17 @@ class TaskRequest(BaseModel):
     max_steps: int | None = Field(default=None, ge=1, le=10_000)
     seed: int = Field(default=0, ge=0, le=2**31 - 1)
     record: StrictBool = True
+    home: HomeName | None = Field(default=None, description=HOME_DESCRIPTION)
 
     @field_validator("start_pose", mode="before")
     @classmethod
     def _pose_numbers(cls, v: object) -> object:
         return strict_pose(v)
+
+    @field_validator("home")
+    @classmethod
+    def _home(cls, v: str | None) -> str | None:
+        return check_home(v)
 
 
 def build_task(req: TaskRequest) -> Task:
@@ -84,7 +90,7 @@ async def submit_task(body: TaskRequest, manager: ManagerDep, caller: SubmitterD
     limit = body.pick_limit if body.pick_limit is not None else (settings.helios_pick_attempts or None)
     stand_in = QuestionRequest(question=body.instruction.strip(), scene=body.scene, robot=body.robot,
                                start_pose=body.start_pose, stop_rule="max_steps", max_steps=body.max_steps,
-                               seed=body.seed, record=body.record)
+                               seed=body.seed, record=body.record, home=body.home)
     return await run_in_threadpool(
         functools.partial(manager.submit, stand_in, caller, task=task, ablation=body.ablation, pick_limit=limit)
     )

@@ -1,4 +1,5 @@
-"""``eqa sim ...`` commands: render one view, draw a floor plan, write the benchmark, check HM-EQA files."""
+"""``eqa sim ...`` commands: render one view, draw a floor plan, write the benchmark, check HM-EQA files, list
+the changes of a changed house."""
 
 from __future__ import annotations
 
@@ -98,6 +99,38 @@ def cmd_benchmark(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_changes(args: argparse.Namespace) -> int:
+    """The changes of rounds 1..k of a generated house as JSON; with ``--questions``, which of the house's
+    generated questions they affect."""
+    from services.sim.change_impact import impact
+    from services.sim.changes import MAX_ROUNDS, changed_house
+    from services.sim.library import load_or_generate
+    from services.sim.scene import GEN_ID, SceneLoadError, SceneNotFound
+
+    if not GEN_ID.match(args.scene):
+        return _fail(f"--scene must be a generated house gen-<seed> (e.g. gen-00042), not {args.scene!r}")
+    if not 1 <= args.rounds <= MAX_ROUNDS:
+        return _fail(f"--rounds must be 1..{MAX_ROUNDS}")
+    try:
+        base = load_or_generate(args.scene, _scenes_dir(args))
+    except (SceneNotFound, SceneLoadError) as exc:
+        return _fail(_message(exc))
+    house, changes = changed_house(base, args.rounds)
+    out: dict[str, object] = {"scene": house.id, "changes": [c.to_json() for c in changes]}
+    if args.questions:
+        from services.sim.questions import generate_questions
+
+        rows = []
+        for q in generate_questions(base, np.random.default_rng([0, int(base.seed or 0), 11])):
+            im = impact(q, changes, house)
+            rows.append({"id": q.id, "text": q.text, "answer": q.answer, "affected": im.affected,
+                         "answer_changed": im.answer_changed, "evidence_changed": im.evidence_changed,
+                         "answer_now": im.question.answer if im.question else None, "touched": im.touched})
+        out["questions"] = rows
+    print(json.dumps(out, indent=1))
+    return 0
+
+
 def cmd_hmeqa(args: argparse.Namespace) -> int:
     from services.sim.hmeqa import HMEQAError, load_hmeqa, missing_scans
 
@@ -121,7 +154,7 @@ def cmd_hmeqa(args: argparse.Namespace) -> int:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    sim = subparsers.add_parser("sim", help="simulator tools: render, floorplan, benchmark, hmeqa")
+    sim = subparsers.add_parser("sim", help="simulator tools: render, floorplan, benchmark, hmeqa, changes")
     sub = sim.add_subparsers(dest="sim_command", required=True)
 
     p = sub.add_parser("render", help="render the robot's camera view at a pose to a PNG")
@@ -149,6 +182,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--scenes-dir", default=None)
     p.set_defaults(func=cmd_benchmark)
+
+    p = sub.add_parser("changes", help="list the seeded changes of house gen-<seed>-c<k> (moves, additions, "
+                       "removals, state switches) and the questions they affect")
+    p.add_argument("--scene", required=True, help="the base house, e.g. gen-00042")
+    p.add_argument("--rounds", type=int, default=1, help="k: rounds of changes (1..20)")
+    p.add_argument("--questions", action="store_true", help="also: the house's generated questions, affected or not")
+    p.add_argument("--scenes-dir", default=None)
+    p.set_defaults(func=cmd_changes)
 
     p = sub.add_parser("hmeqa", help="read the real HM-EQA files and say which HM3D scans are missing")
     p.add_argument("--data-dir", required=True, help="folder with questions.csv and scene_init_poses.csv")

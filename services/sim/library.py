@@ -1,7 +1,9 @@
 """The scene library: a scene id to its :class:`~services.sim.scene.Scene`.
 
 ``gen-<seed>`` is a generated house (:mod:`services.sim.housegen`), saved under ``scenes_dir/<id>/`` on first
-use and reloaded from there; any other id is a mesh file (:func:`services.sim.scene.load_mesh_scene`). This
+use and reloaded from there; ``gen-<seed>-c<k>`` is that house after ``k`` rounds of changes
+(:mod:`services.sim.changes`), made from it and saved the same way;
+any other id is a mesh file (:func:`services.sim.scene.load_mesh_scene`). This
 module sits above both the scene model and the generator, so neither imports the other's caller.
 """
 
@@ -9,6 +11,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from services.sim.changes import changed_scene_id, next_house, parse_changed_id
 from services.sim.housegen import generate_house
 from services.sim.scene import GEN_ID, MESH_SUFFIXES, Scene, SceneNotFound, load_mesh_scene
 
@@ -55,6 +58,19 @@ def load_or_generate(scene_id: str, scenes_dir: Path, hm3d_dir: Path | None = No
         scene = generate_house(int(m.group(1)))
         scene.save(directory)
         return scene
+    try:
+        changed = parse_changed_id(scene_id)
+    except ValueError as exc:
+        raise SceneNotFound(str(exc)) from exc
+    if changed is not None:
+        directory = scenes_dir / scene_id
+        if (directory / "scene.json").exists():
+            return Scene.load(directory)
+        base, k = changed
+        previous = load_or_generate(changed_scene_id(base, k - 1), scenes_dir)  # cached too: one round per house
+        scene, _ = next_house(previous, k)
+        scene.save(directory)
+        return scene
     dirs = [scenes_dir] + ([Path(hm3d_dir)] if hm3d_dir else [])
     found = _mesh_candidates(scene_id, dirs)
     if found:
@@ -70,5 +86,12 @@ def load_or_generate(scene_id: str, scenes_dir: Path, hm3d_dir: Path | None = No
 
 
 def floor_area(scene_id: str, scenes_dir: Path, hm3d_dir: Path | None = None) -> float:
-    """Floor area (m2) of the scene ``scene_id`` (the gateway's default step budget, ``3 * sqrt(area)``)."""
+    """Floor area (m2) of the scene ``scene_id`` (the gateway's default step budget, ``3 * sqrt(area)``). A changed
+    house has its base house's rooms, so its area is the base's (the changed house is built by the sim only)."""
+    try:
+        changed = parse_changed_id(scene_id)
+    except ValueError as exc:
+        raise SceneNotFound(str(exc)) from exc
+    if changed is not None:
+        scene_id = changed[0]
     return float(load_or_generate(scene_id, scenes_dir, hm3d_dir).floor_area_m2)

@@ -56,7 +56,7 @@ from services.sim.camera import camera_pose, intrinsics
 from services.sim.library import load_or_generate
 from services.sim.motion import START_CLEARANCE, pose_error, sample_start_pose
 from services.sim.render import Renderer
-from services.sim.scene import GEN_ID, Scene, SceneLoadError, SceneNotFound, load_mesh_scene
+from services.sim.scene import CHANGED_ID, GEN_ID, Scene, SceneLoadError, SceneNotFound, load_mesh_scene
 from services.sim.task_runner import SimTask
 
 log = logging.getLogger(__name__)
@@ -83,7 +83,7 @@ class _Episode:
 def load_scene(settings: Settings, scene_id: str, floor: int = 0) -> Scene:
     """A scene by id: generated houses from ``scenes_path``; HM3D scans from ``hm3d_dir`` (floor height
     from ``scene_init_poses.csv`` there when present); other meshes from ``scenes_path``."""
-    if not GEN_ID.match(scene_id) and settings.hm3d_dir is not None:
+    if not (GEN_ID.match(scene_id) or CHANGED_ID.match(scene_id)) and settings.hm3d_dir is not None:
         path = hmeqa.scan_path(settings.hm3d_dir, scene_id)
         if path is not None:
             floor_z = 0.0
