@@ -177,7 +177,8 @@ def test_existence_question_through_the_services_with_the_setting_on_and_off(
             (third,) = run_steps(bus, scores, renderer, views, "ep-on", range(2, 3))
             assert third.object_evidence is not None
             assert max(third.object_evidence.psi) > max(ev.psi)  # a third consistent view raised it
-            restored = mapper.question_objects.layers["ep-on"].om.history  # per instance: (step, Psi) of its updates
+            # per instance: (step, Psi) of its updates
+            restored = mapper.question_objects.layers["ep-on"].objects.history
             assert any(step < 2 for hist in restored.values() for step, _ in hist)  # from before the restart
             assert len(third.object_evidence.psi) <= len(ev.psi) + 1  # no duplicate of the restored chair
             assert errors.empty(), errors.get()

@@ -183,13 +183,13 @@ class QuestionObjects:
         self.rects = rects
         self.floor_area_m2 = floor_area_m2
         cfg = config or ObjectMapConfig()
-        self.om = ObjectMap([self.cls], [cfg.od_object], cfg)
+        self.objects = ObjectMap([self.cls], [cfg.od_object], cfg)
 
     def detect_request(self, frame: Frame, seed: int = 0) -> DetectRequest:
-        return self.om.detect_request(frame, seed)
+        return self.objects.detect_request(frame, seed)
 
     def integrate(self, frame: Frame, result: DetectResult) -> None:
-        self.om.integrate(frame, result)
+        self.objects.integrate(frame, result)
 
     def evidence(self, explored: np.ndarray | None, grid: GridSpec | None) -> ObjectEvidence:
         """The step's evidence: target-class instances in the region (best first, at most MAX_TRACKED) and
@@ -197,7 +197,7 @@ class QuestionObjects:
         mapper's 2D cells seen by the camera (``Maps2D.observed``: the detector sees the whole frame, not only
         Explore-EQA's narrow view)."""
         psi = []
-        for inst in self.om.layer.instances():
+        for inst in self.objects.layer.instances():
             if inst.cls != 0:  # believed "other"
                 continue
             x, y, _ = inst.centre
@@ -214,15 +214,15 @@ class QuestionObjects:
 
     # ---- persistence (the mapper's episode state) -------------------------------------------------------
     def snapshot(self) -> bytes:
-        return self.om.snapshot()
+        return self.objects.snapshot()
 
     @classmethod
     def restore(cls, question: Question, data: bytes, rects: list[Rect] | None, config: Any = None) -> QuestionObjects:
         from services.mapper.object_map import ObjectMap
 
-        qo = cls(question, rects, config=config)
-        qo.om = ObjectMap.restore(data, config)
-        return qo
+        layer = cls(question, rects, config=config)
+        layer.objects = ObjectMap.restore(data, config)
+        return layer
 
 
 class QuestionObjectsExtension(MapperExtension):

@@ -296,35 +296,35 @@ class MapperService(EpisodeService[EpisodeMap]):
 
     # ---- monitoring -------------------------------------------------------------------------------------
     def _record(self, em: EpisodeMap, frame: Frame) -> None:
-        rec = self.recorders.get(em.episode_id)
-        if rec is None or rec.stream is None:
+        recorder = self.recorders.get(em.episode_id)
+        if recorder is None or recorder.stream is None:
             return
-        self._record_map(em, frame, rec)
+        self._record_map(em, frame, recorder)
         for ext in self.extensions:
-            ext.record(em, frame, rec)
+            ext.record(em, frame, recorder)
 
     @staticmethod
-    def _record_map(em: EpisodeMap, frame: Frame, rec: EpisodeRecorder) -> None:
+    def _record_map(em: EpisodeMap, frame: Frame, recorder: EpisodeRecorder) -> None:
         if em.maps is None:
             return
         import rerun as rr
 
         m = em.maps
-        rec.set_step(frame.step)
+        recorder.set_step(frame.step)
         occ = np.zeros(m.free.shape, dtype=np.uint8)  # 0 unknown, 128 free, 255 occupied (y up)
         occ[m.free] = 128
         occ[m.occupied] = 255
-        rec.log("map/occupancy", rr.Image(np.flipud(occ)))
-        rec.log("map/explored", rr.Image(np.flipud(m.explored.astype(np.uint8) * 255)))
+        recorder.log("map/occupancy", rr.Image(np.flipud(occ)))
+        recorder.log("map/explored", rr.Image(np.flipud(m.explored.astype(np.uint8) * 255)))
         for name in em.layers:
-            rec.log(f"map/value/{name}", rr.Image(np.flipud(em.layer(name))))
+            recorder.log(f"map/value/{name}", rr.Image(np.flipud(em.layer(name))))
         ny = m.free.shape[0]
         res = em.resolution
         if em.frontiers:
             cells = [grid.fractional_cell(f.x, f.y, em.origin, res) for f in em.frontiers]
             pos = [(c, ny - r) for r, c in cells]
             w = np.array([f.weight for f in em.frontiers])
-            rec.log(
+            recorder.log(
                 "map/frontiers",
                 rr.Points2D(
                     pos,
@@ -333,7 +333,7 @@ class MapperService(EpisodeService[EpisodeMap]):
                 ),
             )
         if em.prompts:
-            rec.log(
+            recorder.log(
                 "camera/prompt_points",
                 rr.Points2D([(p.u, p.v) for p in em.prompts], labels=[p.label for p in em.prompts]),
             )
