@@ -31,14 +31,13 @@ from eqa.messages import (
     MAX_MEMORY_VIEW_SIDE,
     MAX_MEMORY_VIEWS,
     EpisodeStart,
-    ErrorReply,
     Frame,
     ScoreRequest,
     ScoreResult,
 )
 from eqa.scorer_client import ScorerError
 from services.mapper.episode_map import EpisodeMap
-from services.mapper.extension import MapperContext, MapperExtension, StepOutputs
+from services.mapper.extension import MapperContext, MapperExtension, StepOutputs, call_pool, failure
 
 log = logging.getLogger(__name__)
 
@@ -186,13 +185,10 @@ class AnswerViewsExtension(MapperExtension):
             question=em.start.question.without_ground_truth(),
             rgb=memory.images[-1], memory_views=list(memory.images), seed=em.start.seed,
         )
-        try:
-            reply: Any = self.context.score()(request)
-        except Exception as exc:
-            reply = exc
+        reply = call_pool(self.context.score(), request)
         if isinstance(reply, ScoreResult) and len(reply.answer_probs) == len(em.start.question.choices):
             return list(reply.answer_probs)
-        reason = reply.reason if isinstance(reply, ErrorReply) else f"{type(reply).__name__}: {reply}"
+        reason = failure(reply)
         if isinstance(reply, Exception) and not isinstance(reply, ScorerError):  # no answer in time: next step
             log.warning("episode %s step %d: no joint answer this step (%s); per-view answer", em.episode_id,
                         step, reason)

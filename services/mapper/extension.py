@@ -50,6 +50,7 @@ from eqa.messages import (
     DetectRequest,
     DetectResult,
     EpisodeStart,
+    ErrorReply,
     Frame,
     MapUpdate,
     ObjectEvidence,
@@ -91,6 +92,20 @@ def object_map_module() -> Any:
     if torch.get_num_threads() != TORCH_THREADS:
         torch.set_num_threads(TORCH_THREADS)
     return object_map
+
+
+def call_pool(call: Callable[[Any], Any], request: Any) -> Any:
+    """The pool's answer to ``request``, or the exception the call raised: an extension's worker never raises,
+    the caller reports the failure (:func:`failure`) and the step goes on without that answer."""
+    try:
+        return call(request)
+    except Exception as exc:
+        return exc
+
+
+def failure(reply: Any) -> str:
+    """Why ``reply`` (an :class:`~eqa.messages.ErrorReply` or an exception) is no answer."""
+    return reply.reason if isinstance(reply, ErrorReply) else f"{type(reply).__name__}: {reply}"
 
 
 class MapperContext:

@@ -29,7 +29,6 @@ import numpy as np
 from eqa.messages import (
     DetectResult,
     EpisodeStart,
-    ErrorReply,
     Frame,
     MapUpdate,
     ObjectInstance,
@@ -40,7 +39,14 @@ from eqa.messages import (
 from eqa.recording import EpisodeRecorder
 from services.mapper import fov_values
 from services.mapper.episode_map import EpisodeMap
-from services.mapper.extension import MapperContext, MapperExtension, StepOutputs, object_map_module
+from services.mapper.extension import (
+    MapperContext,
+    MapperExtension,
+    StepOutputs,
+    call_pool,
+    failure,
+    object_map_module,
+)
 
 if TYPE_CHECKING:
     from services.mapper.object_map import ObjectMap
@@ -140,17 +146,11 @@ class ObjectLayerExtension(MapperExtension):
     def _ask(self, objects: ObjectMap, em: EpisodeMap, frame: Frame) -> tuple[Any, Any, float]:
         detect, values = self.context.detect_and_values()
         t0 = time.perf_counter()
-        try:
-            det: Any = detect(objects.detect_request(frame, seed=em.start.seed))
-        except Exception as exc:
-            det = exc
-        try:
-            val: Any = values(ValueRequest(
-                episode_id=em.episode_id, step=frame.step, rgb=frame.rgb, targets=objects.task_classes,
-                instances=frame.instances, labels=frame.labels, depth=frame.depth, seed=em.start.seed,
-            ))
-        except Exception as exc:
-            val = exc
+        det = call_pool(detect, objects.detect_request(frame, seed=em.start.seed))
+        val = call_pool(values, ValueRequest(
+            episode_id=em.episode_id, step=frame.step, rgb=frame.rgb, targets=objects.task_classes,
+            instances=frame.instances, labels=frame.labels, depth=frame.depth, seed=em.start.seed,
+        ))
         return det, val, (time.perf_counter() - t0) * 1000.0
 
     def apply(self, robot: str, em: EpisodeMap, frame: Frame, pending: Future[Any] | None, out: StepOutputs,
@@ -175,8 +175,7 @@ class ObjectLayerExtension(MapperExtension):
                 log.exception("episode %s: object layer update failed", em.episode_id)
                 error(robot, em.episode_id, frame.step, f"object layer not updated: {type(exc).__name__}: {exc}")
         else:
-            reason = det.reason if isinstance(det, ErrorReply) else f"{type(det).__name__}: {det}"
-            error(robot, em.episode_id, frame.step, f"detector failed, frame not fused: {reason}")
+            error(robot, em.episode_id, frame.step, f"detector failed, frame not fused: {failure(det)}")
         if isinstance(val, ValueResult) and len(val.values) == len(objects.task_classes):
             rows, cols, conf = fov_values.fov_cells(frame.depth, frame.intrinsics, frame.camera_pose, em.origin,
                                                     em.resolution, em.layer(value_layer(objects.task_classes[0])).shape)
@@ -185,8 +184,7 @@ class ObjectLayerExtension(MapperExtension):
                 fov_values.fuse(em.layer(name), em.volume.add_plane(f"{CONFIDENCE_PREFIX}{name}", 0.0, np.float32),
                                 rows, cols, conf, float(v))
         elif not isinstance(val, ValueResult):
-            reason = val.reason if isinstance(val, ErrorReply) else f"{type(val).__name__}: {val}"
-            error(robot, em.episode_id, frame.step, f"value prompt failed: {reason}")
+            error(robot, em.episode_id, frame.step, f"value prompt failed: {failure(val)}")
         timing["objects_fuse"] = (time.perf_counter() - t0) * 1000.0
         assert em.start.task is not None  # an object map is kept for task episodes only
         out.frontier_layer = value_layer(frontier_class(em.start.task, objects.holding))

@@ -38,14 +38,13 @@ from eqa.messages import (
     DetectRequest,
     DetectResult,
     EpisodeStart,
-    ErrorReply,
     Frame,
     GridSpec,
     ObjectEvidence,
     Question,
 )
 from services.mapper.episode_map import EpisodeMap
-from services.mapper.extension import MapperContext, MapperExtension, StepOutputs
+from services.mapper.extension import MapperContext, MapperExtension, StepOutputs, call_pool, failure
 
 log = logging.getLogger(__name__)
 
@@ -303,10 +302,7 @@ class QuestionObjectsExtension(MapperExtension):
     def _detect(self, layer: QuestionObjects, em: EpisodeMap, frame: Frame) -> tuple[Any, float]:
         detect, _ = self.context.detect_and_values()
         t0 = time.perf_counter()
-        try:
-            det: Any = detect(layer.detect_request(frame, seed=em.start.seed))
-        except Exception as exc:
-            det = exc
+        det = call_pool(detect, layer.detect_request(frame, seed=em.start.seed))
         return det, (time.perf_counter() - t0) * 1000.0
 
     def apply(self, robot: str, em: EpisodeMap, frame: Frame, pending: Future[Any] | None, out: StepOutputs,
@@ -318,9 +314,8 @@ class QuestionObjectsExtension(MapperExtension):
         det, ask_ms = pending.result()
         timing["question_objects_ask"] = ask_ms
         if not isinstance(det, DetectResult):
-            reason = det.reason if isinstance(det, ErrorReply) else f"{type(det).__name__}: {det}"
             log.warning("episode %s step %d: detection failed, no object evidence this step: %s",
-                        em.episode_id, frame.step, reason)
+                        em.episode_id, frame.step, failure(det))
             return
         t0 = time.perf_counter()
         try:

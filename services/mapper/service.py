@@ -50,7 +50,16 @@ from eqa.store import Store
 from services.mapper import snapshots
 from services.mapper.answer_views import AnswerViewsExtension
 from services.mapper.episode_map import EpisodeMap, MapperConfig, Timer
-from services.mapper.extension import Detect, MapperContext, MapperExtension, Scorer, StepOutputs, Values
+from services.mapper.extension import (
+    Detect,
+    MapperContext,
+    MapperExtension,
+    Scorer,
+    StepOutputs,
+    Values,
+    call_pool,
+    failure,
+)
 from services.mapper.object_shell import ObjectLayerExtension
 from services.mapper.question_objects import QuestionObjectsExtension
 from services.mapper.semantic_map import QUESTION_LAYER
@@ -278,13 +287,9 @@ class MapperService(EpisodeService[EpisodeMap]):
             depth=frame.depth,
             seed=em.start.seed,
         )
-        try:
-            result = self.scorer()(request)
-        except Exception as exc:
-            self._error(robot, em.episode_id, frame.step, f"scorer failed: {type(exc).__name__}: {exc}")
-            return None
-        if isinstance(result, ErrorReply):
-            self._error(robot, em.episode_id, frame.step, f"scorer failed: {result.reason}")
+        result = call_pool(self.scorer(), request)
+        if isinstance(result, Exception | ErrorReply):
+            self._error(robot, em.episode_id, frame.step, f"scorer failed: {failure(result)}")
             return None
         return result
 
