@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 import pytest
-from objects_support import frame_of, ring_views
+from objects_support import ring_views, run_steps
 
 from eqa import keys
 from eqa.bus import Bus
@@ -73,16 +73,6 @@ class CountingScorer(ScorerService):
 def start(episode_id: str) -> EpisodeStart:
     return EpisodeStart(episode_id=episode_id, robot=ROBOT, question=Q, max_steps=20, record=False, seed=1,
                         stop=StopConfig(rule="max_steps"))
-
-
-def run_steps(bus: Bus, scores: queue.Queue, renderer, vs, episode_id: str, steps: range) -> list[StepScores]:
-    got = []
-    for step in steps:
-        bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), frame_of(vs[step % len(vs)], renderer, episode_id, step))
-        s = scores.get(timeout=60)
-        assert s.episode_id == episode_id and s.step == step
-        got.append(s)
-    return got
 
 
 def test_joint_answer_through_mapper_and_scorer(hub_settings: Settings, settings: Settings, backend: HFBackend,

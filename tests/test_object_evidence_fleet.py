@@ -13,7 +13,7 @@ import time
 
 import numpy as np
 import pytest
-from objects_support import frame_of, ring_views
+from objects_support import ring_views, run_steps
 
 from eqa import keys
 from eqa.bus import Bus
@@ -111,16 +111,6 @@ def start(episode_id: str, room: str, counting: bool = False) -> EpisodeStart:
     q = Question(text=text, choices=COUNT if counting else YESNO, scene="gen-5")
     return EpisodeStart(episode_id=episode_id, robot=ROBOT, question=q, max_steps=20, record=False, seed=1,
                         stop=StopConfig(rule="max_steps"))
-
-
-def run_steps(bus: Bus, scores: queue.Queue, renderer, views, episode_id: str, steps: range) -> list[StepScores]:
-    got = []
-    for step in steps:
-        bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), frame_of(views[step], renderer, episode_id, step))
-        s = scores.get(timeout=60)
-        assert s.episode_id == episode_id and s.step == step
-        got.append(s)
-    return got
 
 
 def test_existence_question_through_the_services_with_the_setting_on_and_off(
