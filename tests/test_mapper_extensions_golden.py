@@ -181,6 +181,9 @@ def test_mapper_outputs_with_every_extension_match_the_golden_digest(
     assert all(s.object_evidence is not None for s in got["ep-gq"] if isinstance(s, StepScores))
     maps = [u for u in got["ep-gt"] if isinstance(u, MapUpdate)]
     assert maps[-1].objects and "helios:chair" in maps[-1].values
+    # the order of the stored parts (the bytes of the envelope): the map, then the extensions in their order
+    order = {eid: list(unpackb(store.get(episode_state_key("mapper", eid)))["state"]) for eid in EPISODES}
+    assert order == {"ep-gq": ["map", "question_objects", "answer_views", "made"], "ep-gt": ["map", "objects", "made"]}
     digests = {eid: digest(msgs) for eid, msgs in got.items()}
     digests |= {f"state:{eid}": digest(stored_layout(store, eid)) for eid in got}
     assert digests == GOLDEN
