@@ -210,14 +210,9 @@ def ceiling_reason(ep: Episode, budget: float = 1.0) -> str:
 CEILING_REASONS = ("seen", "small", "near, faced", "near, not faced", "never near", "room")
 
 
-def sign_p(a: int, b: int) -> float:
-    n = a + b
-    if n == 0:
-        return 1.0
-    return min(1.0, 2.0 * sum(math.comb(n, k) for k in range(min(a, b) + 1)) / 2**n)
-
-
 def summarise(name: str, eps: list[Episode], base: list[Episode] | None) -> dict[str, Any]:
+    from eqa.app.evaluation import sign_test_p
+
     out: dict[str, Any] = {"variant": name, "n": len(eps)}
     for b in (0.5, 1.0):
         out[f"success@{b}"] = float(np.mean([answer_at(e, b) for e in eps]))
@@ -242,10 +237,10 @@ def summarise(name: str, eps: list[Episode], base: list[Episode] | None) -> dict
         for b in (0.5, 1.0):
             a_only = sum(answer_at(e, b) and not answer_at(byid[e.question_id], b) for e in eps)
             b_only = sum(answer_at(byid[e.question_id], b) and not answer_at(e, b) for e in eps)
-            out[f"vs_first@{b}"] = (a_only, b_only, sign_p(a_only, b_only))
+            out[f"vs_first@{b}"] = (a_only, b_only, sign_test_p(a_only, b_only))
         ea = sum(first_evidence(e) is not None and first_evidence(byid[e.question_id]) is None for e in eps)
         eb = sum(first_evidence(e) is None and first_evidence(byid[e.question_id]) is not None for e in eps)
-        out["evidence_vs_first"] = (ea, eb, sign_p(ea, eb))
+        out["evidence_vs_first"] = (ea, eb, sign_test_p(ea, eb))
     return out
 
 

@@ -4,13 +4,16 @@ free floor around it, rendered with open3d, detected by the simulated detector, 
 from __future__ import annotations
 
 import math
+import queue
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from eqa import grid as gridm
-from eqa.messages import DetectRequest, Frame, Pose2D
+from eqa import keys
+from eqa.bus import Bus
+from eqa.messages import DetectRequest, Frame, Pose2D, StepScores
 from services.mapper.objects.layer import ObjectLayer, camera_from_gaze, pixel_classes
 from services.sim.camera import CAMERA_HEIGHT, intrinsics
 from services.sim.render import Rendered, Renderer
@@ -98,3 +101,17 @@ def best_gaze(layer: ObjectLayer, instance_id: int, cls: int, views: list[View])
         opt = layer.optimistic(instance_id, cls, [torch.as_tensor(v.pose, dtype=torch.float32)])
         scored.append((opt.psi_prime, v))
     return sorted(scored, key=lambda t: -t[0])
+
+
+def run_steps(bus: Bus, scores: queue.Queue[StepScores], renderer: Renderer, views: list[View], episode_id: str,
+              steps: range, robot: str = "r0") -> list[StepScores]:
+    """Publish the frames of ``steps`` (view ``step`` of ``views``, cyclically) to the mapper of ``robot`` one by
+    one, each after the previous step's StepScores arrived on ``scores``; those StepScores."""
+    got = []
+    for step in steps:
+        bus.publish(keys.stream(robot, keys.SIM_FRAME), frame_of(views[step % len(views)], renderer, episode_id, step))
+        s = scores.get(timeout=60)
+        assert s.episode_id == episode_id and s.step == step
+        got.append(s)
+    return got
+

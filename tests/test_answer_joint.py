@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 import pytest
-from objects_support import frame_of, ring_views
+from objects_support import ring_views, run_steps
 
 from eqa import keys
 from eqa.bus import Bus
@@ -75,16 +75,6 @@ def start(episode_id: str) -> EpisodeStart:
                         stop=StopConfig(rule="max_steps"))
 
 
-def run_steps(bus: Bus, scores: queue.Queue, renderer, vs, episode_id: str, steps: range) -> list[StepScores]:
-    got = []
-    for step in steps:
-        bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), frame_of(vs[step % len(vs)], renderer, episode_id, step))
-        s = scores.get(timeout=60)
-        assert s.episode_id == episode_id and s.step == step
-        got.append(s)
-    return got
-
-
 def test_joint_answer_through_mapper_and_scorer(hub_settings: Settings, settings: Settings, backend: HFBackend,
                                                 views, redis_url: str) -> None:
     renderer, vs = views
@@ -106,7 +96,7 @@ def test_joint_answer_through_mapper_and_scorer(hub_settings: Settings, settings
             bus.publish(keys.stream(ROBOT, keys.EPISODE_START), start("ep-j"))
             got = run_steps(bus, scores, renderer, vs, "ep-j", range(4))
             assert errors.empty(), errors.get()
-            av = mapper.answer_views["ep-j"]
+            av = mapper.answer_memory.memories["ep-j"]
             assert len(av.steps) == 2  # the memory is full (K = 2)
             # one joint request per change of the kept set, the last one holding K images
             assert 1 <= len(scorer.joint) <= 4 and len(scorer.joint[-1].memory_views) == 2
@@ -140,7 +130,7 @@ def test_joint_answer_through_mapper_and_scorer(hub_settings: Settings, settings
             mapper.start()
             time.sleep(0.5)
             run_steps(bus, scores, renderer, vs, "ep-j", range(4, 5))
-            restored = mapper.answer_views["ep-j"]
+            restored = mapper.answer_memory.memories["ep-j"]
             assert len(restored.steps) == 2 and set(restored.steps) <= set(kept_steps) | {4}
             if 4 not in restored.steps:  # the view of step 4 did not enter: the stored images are the same
                 for a, b in zip(restored.images, kept_images, strict=True):
@@ -156,7 +146,7 @@ def test_joint_answer_through_mapper_and_scorer(hub_settings: Settings, settings
             bus.publish(keys.stream(ROBOT, keys.EPISODE_START), start("ep-f"))
             plain = run_steps(bus, scores, renderer, vs, "ep-f", range(3))
             assert len(scorer.joint) == n and all(not s.answer_views for s in plain)
-            assert "ep-f" not in mapper.answer_views
+            assert "ep-f" not in mapper.answer_memory.memories
         finally:
             mapper.stop()
             stopper.stop()
@@ -180,7 +170,7 @@ def test_one_image_backend_refuses_and_the_episode_keeps_the_per_view_answer(
             bus.publish(keys.stream(ROBOT, keys.EPISODE_START), start("ep-o"))
             got = run_steps(bus, scores, renderer, vs, "ep-o", range(3))
             assert len(scorer.joint) == 1  # refused once, then not asked again in this episode
-            assert "ep-o" not in mapper.answer_views and all(not s.answer_views for s in got)
+            assert "ep-o" not in mapper.answer_memory.memories and all(not s.answer_views for s in got)
             assert abs(sum(got[-1].answer_probs) - 1) < 1e-6
         finally:
             mapper.stop()

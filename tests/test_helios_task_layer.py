@@ -149,7 +149,8 @@ def test_the_mapper_values_frontiers_with_the_goal_layer_after_a_successful_pick
     from eqa.messages import EpisodeStart, Question, SkillReport, ValueRequest, ValueResult
     from eqa.settings import Settings
     from services.mapper.episode_map import EpisodeMap
-    from services.mapper.object_shell import ObjectLayerShell
+    from services.mapper.extension import MapperContext, StepOutputs
+    from services.mapper.object_shell import ObjectLayerExtension
 
     _scene, renderer, vs, det, _om, _grid, _occ = fused
 
@@ -161,23 +162,24 @@ def test_the_mapper_values_frontiers_with_the_goal_layer_after_a_successful_pick
         return ValueResult(request_id=req.request_id, episode_id=req.episode_id, step=req.step,
                            values=[0.2, 0.5, 0.9][: len(req.targets)], backend="constant")
 
-    shell = ObjectLayerShell()
-    shell.settings, shell.recorders, errors = Settings(), {}, []
-    shell.error = lambda *a: errors.append(a)
-    shell.objects_init(detect, values)
+    errors: list = []
+    ext = ObjectLayerExtension(MapperContext(Settings(), None, lambda *a: errors.append(a), detector=detect,
+                                             values=values))
     try:
         start = EpisodeStart(episode_id="ep-shell", robot="r", question=Question(
             id="q", scene="gen-5", text=TASK.text, max_steps=10), max_steps=10, task=TASK)
-        em = EpisodeMap(start, layers=shell.objects_layers(start))
+        em = EpisodeMap(start, layers=["question", *ext.start(start)])
         frames = [frame_of(vs[0], renderer, "ep-shell", 0),
                   frame_of(vs[1], renderer, "ep-shell", 1).model_copy(
                       update={"skill": SkillReport(skill="pick", success=True, target=25)})]
         got = []
         for f in frames:
             em.integrate(f)
-            got.append(shell.objects_apply("r", em, f, shell.objects_submit("r", em, f), {}))
+            out = StepOutputs()
+            ext.apply("r", em, f, ext.submit("r", em, f), out, {})
+            got.append(out.frontier_layer)
         assert got == ["helios:table", "helios:sofa"] and not errors
         sofa = em.layer("helios:sofa")
         assert sofa.max() == pytest.approx(0.9, abs=1e-6) and 0 < (sofa > 0).mean() < 1  # the cone, not everywhere
     finally:
-        shell.objects_close()
+        ext.close()

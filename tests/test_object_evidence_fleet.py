@@ -13,7 +13,7 @@ import time
 
 import numpy as np
 import pytest
-from objects_support import frame_of, ring_views
+from objects_support import ring_views, run_steps
 
 from eqa import keys
 from eqa.bus import Bus
@@ -113,16 +113,6 @@ def start(episode_id: str, room: str, counting: bool = False) -> EpisodeStart:
                         stop=StopConfig(rule="max_steps"))
 
 
-def run_steps(bus: Bus, scores: queue.Queue, renderer, views, episode_id: str, steps: range) -> list[StepScores]:
-    got = []
-    for step in steps:
-        bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), frame_of(views[step], renderer, episode_id, step))
-        s = scores.get(timeout=60)
-        assert s.episode_id == episode_id and s.step == step
-        got.append(s)
-    return got
-
-
 def test_existence_question_through_the_services_with_the_setting_on_and_off(
         hub_settings: Settings, settings: Settings, chair_views, redis_url: str) -> None:
     scene, renderer, views = chair_views
@@ -177,7 +167,8 @@ def test_existence_question_through_the_services_with_the_setting_on_and_off(
             (third,) = run_steps(bus, scores, renderer, views, "ep-on", range(2, 3))
             assert third.object_evidence is not None
             assert max(third.object_evidence.psi) > max(ev.psi)  # a third consistent view raised it
-            restored = mapper.qobjects["ep-on"].om.history  # per instance: (step, Psi) of its updates
+            # per instance: (step, Psi) of its updates
+            restored = mapper.question_objects.layers["ep-on"].objects.history
             assert any(step < 2 for hist in restored.values() for step, _ in hist)  # from before the restart
             assert len(third.object_evidence.psi) <= len(ev.psi) + 1  # no duplicate of the restored chair
             assert errors.empty(), errors.get()

@@ -20,6 +20,7 @@ import time
 from pathlib import Path
 
 from exactly_once import StepLedger
+from fleet_support import wait_for
 
 from eqa import keys
 from eqa.launcher import PIPELINE, Fleet
@@ -42,15 +43,6 @@ class Ends:
     def __call__(self, _key: str, msg: EpisodeEnd) -> None:
         with self.lock:
             self.ends.setdefault(msg.episode_id, msg)
-
-
-def _wait(pred, timeout: float) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(0.1)
-    return False
 
 
 def test_every_step_once_with_several_instances_through_kills_and_a_join(tmp_path: Path, redis_url: str):
@@ -87,12 +79,13 @@ def test_every_step_once_with_several_instances_through_kills_and_a_join(tmp_pat
             log.close()
             fleet.kill("sim", 1)
             ids = {s.episode_id for s in starts}
-            ok = _wait(lambda: ids <= set(watch.ends), 120)
+            ok = wait_for(lambda: ids <= set(watch.ends), 120, every=0.1)
             assert ok, f"ended: {sorted(watch.ends)} of {sorted(ids)}; restarts: " + str(
                 {c.instance: c.history for c in fleet.children if c.history})
             # the episodes may end before the launcher has restarted the last killed instance (backoff): wait
             # for it inside the fleet, so the check below sees the restarts and not a race with them
-            _wait(lambda: {c.service for c in fleet.children if c.restarts} >= {"mapper", "stopper", "sim"}, 30)
+            wait_for(lambda: {c.service for c in fleet.children if c.restarts} >= {"mapper", "stopper", "sim"}, 30,
+                     every=0.1)
         finally:
             if joined is not None and joined.poll() is None:
                 os.killpg(joined.pid, signal.SIGTERM)
@@ -107,7 +100,7 @@ def test_every_step_once_with_several_instances_through_kills_and_a_join(tmp_pat
         return [k for k in store.keys(CLAIM_PREFIX) if k.endswith(":holder") and any(e in k for e in ids)]
 
     try:
-        assert _wait(lambda: not left(), 10), left()[:20]
+        assert wait_for(lambda: not left(), 10, every=0.1), left()[:20]
     finally:
         store.close()
     problems = ledger.problems({eid: STEPS for eid in ids})

@@ -5,10 +5,9 @@ the episode goes on to its end. Real processes (the launcher restarts the killed
 
 from __future__ import annotations
 
-import time
-
 import httpx
 import pytest
+from fleet_support import wait_for
 
 from eqa.launcher import ALL_SERVICES, Fleet, free_port
 from eqa.settings import Settings
@@ -34,15 +33,6 @@ def _status(c: httpx.Client, eid: str) -> dict:
     return c.get(f"/v1/episodes/{eid}").json()
 
 
-def _wait(pred, timeout: float) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(0.05)
-    return False
-
-
 def _run_with_kill(fleet: Fleet, service: str) -> tuple[dict, int]:
     """Start an episode that runs to its step limit, kill ``service`` mid-episode, wait for the end; return
     the final status and the sim's resend log lines."""
@@ -54,10 +44,10 @@ def _run_with_kill(fleet: Fleet, service: str) -> tuple[dict, int]:
         r = c.post("/v1/questions", json=body)
         assert r.status_code == 202, r.text
         eid = r.json()["episode_id"]
-        assert _wait(lambda: _status(c, eid)["steps"] >= 3, 60), _status(c, eid)
+        assert wait_for(lambda: _status(c, eid)["steps"] >= 3, 60), _status(c, eid)
         before = fleet.child(service).proc.pid  # type: ignore[union-attr]
         fleet.kill(service)
-        assert _wait(lambda: _status(c, eid)["state"] not in ("running", "queued"), 90), _status(c, eid)
+        assert wait_for(lambda: _status(c, eid)["state"] not in ("running", "queued"), 90), _status(c, eid)
         child = fleet.child(service)
         assert child.proc is not None and child.proc.pid != before  # the launcher restarted it
         resends = log.read_text().count("frame sent again") - resends_before

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import pytest
 from exactly_once import StepLedger
+from fleet_support import wait_for
 from test_mapper_service import Collector, frame, start_msg
 
 from eqa import keys, sharding
@@ -102,15 +103,6 @@ def _alive(bus: Bus) -> set[str]:
     return {inst for _, inst in bus.alive(keys.alive_service("mapper"), timeout=0.5)}
 
 
-def _until(pred, timeout: float) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(0.05)
-    return bool(pred())
-
-
 @pytest.fixture(scope="module")
 def renderer(tmp_path_factory: pytest.TempPathFactory) -> Renderer:
     return Renderer(load_or_generate("gen-00007", Path(tmp_path_factory.mktemp("scenes"))))
@@ -132,7 +124,7 @@ def test_a_step_whose_mapper_dies_is_computed_once(point: str, successor: str, h
             if successor == "other":
                 mappers.start(other)
             want = {victim, other} if successor == "other" else {victim}
-            assert _until(lambda: _alive(bus) == want, 60), _alive(bus)
+            assert wait_for(lambda: _alive(bus) == want, 60), _alive(bus)
             time.sleep(0.5)  # their subscriptions reach this session
             bus.publish(keys.stream(ROBOT, keys.EPISODE_START), start_msg(eid))
             for k in range(STEPS):
@@ -146,9 +138,9 @@ def test_a_step_whose_mapper_dies_is_computed_once(point: str, successor: str, h
                         assert time.monotonic() < deadline, f"no map update of step {k}"
                         if k == KILL_STEP and doomed.poll() is not None and successor == "restarted" \
                                 and len(mappers.procs) == 1:
-                            assert _until(lambda: victim not in _alive(bus), 15)
+                            assert wait_for(lambda: victim not in _alive(bus), 15)
                             mappers.start(victim)  # the launcher restarts it under its name
-                            assert _until(lambda: victim in _alive(bus), 60)
+                            assert wait_for(lambda: victim in _alive(bus), 60)
                             time.sleep(0.5)
                         bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), f)
                         continue

@@ -21,14 +21,23 @@ bytes at most (9.6 MB); the default K = 4 at 640x480 frames keeps 4 x 448x336x3 
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from eqa.messages import MAX_MEMORY_VIEW_SIDE, MAX_MEMORY_VIEWS, EpisodeStart, ErrorReply, ScoreRequest, ScoreResult
+from eqa.messages import (
+    MAX_MEMORY_VIEW_SIDE,
+    MAX_MEMORY_VIEWS,
+    EpisodeStart,
+    Frame,
+    ScoreRequest,
+    ScoreResult,
+)
 from eqa.scorer_client import ScorerError
-from services.mapper import snapshots
+from services.mapper.episode_map import EpisodeMap
+from services.mapper.extension import MapperContext, MapperExtension, StepOutputs, call_pool, failure
 
 log = logging.getLogger(__name__)
 
@@ -91,102 +100,100 @@ class AnswerViews:
         """From :meth:`snapshot`; ``ValueError`` on anything malformed or over the bounds."""
         if not isinstance(data, dict):
             raise ValueError("answer views state is not a map")
-        av = cls(int(data["k"]))
+        memory = cls(int(data["k"]))
         steps, rel, images = list(data["steps"]), list(data["relevance"]), list(data["images"])
-        if not len(steps) == len(rel) == len(images) <= av.k:
+        if not len(steps) == len(rel) == len(images) <= memory.k:
             raise ValueError("answer views state: inconsistent or too many views")
         for s, r, im in zip(steps, rel, images, strict=True):
-            av.steps.append(int(s))
-            av.relevance.append(float(r))
-            av.images.append(shrink(np.asarray(im)))
+            memory.steps.append(int(s))
+            memory.relevance.append(float(r))
+            memory.images.append(shrink(np.asarray(im)))
         ans = data.get("answer")
-        av.answer = None if ans is None else [float(v) for v in ans]
-        av.last_step = int(data.get("last_step", -1))
-        return av
+        memory.answer = None if ans is None else [float(v) for v in ans]
+        memory.last_step = int(data.get("last_step", -1))
+        return memory
 
 
-class AnswerViewsShell:
-    """Mixin of :class:`services.mapper.service.MapperService` (module docstring). Needs ``self.settings`` and
-    ``self.scorer()`` (the pool's ScoreRequest -> ScoreResult)."""
+class AnswerViewsExtension(MapperExtension):
+    """The joint answer memory as a mapper extension (module docstring, :mod:`services.mapper.extension`):
+    per episode its :class:`AnswerViews` (``memories``)."""
 
-    settings: Any
+    state_key = STATE_KEY
 
-    def scorer(self) -> Any: ...  # provided by MapperService
+    def __init__(self, context: MapperContext) -> None:
+        self.context = context
+        self.memories: dict[str, AnswerViews] = {}
 
-    def views_init(self) -> None:
-        self.answer_views: dict[str, AnswerViews] = {}
-
-    def _views_wanted(self, start: EpisodeStart) -> bool:
-        return (self.settings.answer_memory_mode == "joint" and start.task is None
+    def _wanted(self, start: EpisodeStart) -> bool:
+        return (self.context.settings.answer_memory_mode == "joint" and start.task is None
                 and len(start.question.choices) >= 2)
 
-    def views_start(self, start: EpisodeStart) -> None:
-        if self._views_wanted(start):
-            self.answer_views[start.episode_id] = AnswerViews(self.settings.answer_memory_views)
-            log.info("episode %s: joint answer memory over the %d most relevant views", start.episode_id,
-                     self.settings.answer_memory_views)
+    def start(self, start: EpisodeStart) -> list[str]:
+        if self._wanted(start):
+            k = self.context.settings.answer_memory_views
+            self.memories[start.episode_id] = AnswerViews(k)
+            log.info("episode %s: joint answer memory over the %d most relevant views", start.episode_id, k)
+        return []
 
-    def views_finish(self, episode_id: str) -> None:
-        self.answer_views.pop(episode_id, None)
+    def finish(self, episode_id: str) -> None:
+        self.memories.pop(episode_id, None)
 
-    def views_dump(self, episode_id: str, state: Any) -> Any:
-        av = self.answer_views.get(episode_id)
-        return state if av is None else snapshots.with_state_part(state, STATE_KEY, av.snapshot())
+    def dump(self, episode_id: str) -> dict[str, Any] | None:
+        memory = self.memories.get(episode_id)
+        return None if memory is None else memory.snapshot()
 
-    @staticmethod
-    def views_split(data: Any) -> tuple[Any, Any]:
-        """Stored state -> (the rest, as the other loaders read it; this memory's snapshot or None)."""
-        return snapshots.without_state_part(data, STATE_KEY)
-
-    def views_restore(self, start: EpisodeStart, snapshot: Any) -> None:
-        if not self._views_wanted(start):
+    def restore(self, em: EpisodeMap, part: Any | None) -> None:
+        start = em.start
+        if not self._wanted(start):
             return
-        if snapshot is not None:
+        if part is not None:
             try:
-                self.answer_views[start.episode_id] = AnswerViews.restore(snapshot)
+                self.memories[start.episode_id] = AnswerViews.restore(part)
                 return
             except (ValueError, KeyError, TypeError) as exc:
                 log.warning("episode %s: stored answer views unusable (%s); starting an empty memory",
                             start.episode_id, exc)
-        self.views_start(start)
+        self.start(start)
 
-    def views_apply(self, em: Any, step: int, rgb: np.ndarray, result: ScoreResult) -> ScoreResult:
-        """The step's result with the joint answer when the memory is on (else ``result`` unchanged)."""
-        av = self.answer_views.get(em.episode_id)
-        if av is None:
+    def scores(self, em: EpisodeMap, frame: Frame, result: ScoreResult, out: StepOutputs,
+               timing: dict[str, float]) -> ScoreResult:
+        """The step's result with the joint answer when the memory is on (else ``result`` unchanged); the
+        steps it comes from go to ``out``."""
+        t0 = time.perf_counter()
+        result = self._joint(em, frame.step, frame.rgb, result)
+        memory = self.memories.get(em.episode_id)
+        out.answer_views = sorted(memory.steps) if memory is not None and memory.answer is not None else []
+        timing["answer_views"] = timing.get("answer_views", 0.0) + (time.perf_counter() - t0) * 1000.0
+        return result
+
+    def _joint(self, em: EpisodeMap, step: int, rgb: np.ndarray, result: ScoreResult) -> ScoreResult:
+        memory = self.memories.get(em.episode_id)
+        if memory is None:
             return result
-        if step > av.last_step:  # a step sent again is not offered twice
-            changed = av.offer(step, result.relevance, rgb)
-            if changed or av.answer is None:
-                av.answer = self._views_ask(em, step, av)
-        if av.answer is None:
+        if step > memory.last_step:  # a step sent again is not offered twice
+            changed = memory.offer(step, result.relevance, rgb)
+            if changed or memory.answer is None:
+                memory.answer = self._ask(em, step, memory)
+        if memory.answer is None:
             return result
         # the scorer's mode (logprobs / sampling) stays: the joint prompt is read the same way
-        return result.model_copy(update={"answer_probs": list(av.answer)})
+        return result.model_copy(update={"answer_probs": list(memory.answer)})
 
-    def views_steps(self, episode_id: str) -> list[int]:
-        """The steps the episode's current joint answer comes from (empty: no joint answer)."""
-        av = self.answer_views.get(episode_id)
-        return sorted(av.steps) if av is not None and av.answer is not None else []
-
-    def _views_ask(self, em: Any, step: int, av: AnswerViews) -> list[float] | None:
+    def _ask(self, em: EpisodeMap, step: int, memory: AnswerViews) -> list[float] | None:
         request = ScoreRequest(
             episode_id=em.episode_id, step=step,
             question=em.start.question.without_ground_truth(),
-            rgb=av.images[-1], memory_views=list(av.images), seed=em.start.seed,
+            rgb=memory.images[-1], memory_views=list(memory.images), seed=em.start.seed,
         )
-        try:
-            reply = self.scorer()(request)
-        except Exception as exc:
-            reply = exc
+        reply = call_pool(self.context.score(), request)
         if isinstance(reply, ScoreResult) and len(reply.answer_probs) == len(em.start.question.choices):
             return list(reply.answer_probs)
-        reason = reply.reason if isinstance(reply, ErrorReply) else f"{type(reply).__name__}: {reply}"
+        reason = failure(reply)
         if isinstance(reply, Exception) and not isinstance(reply, ScorerError):  # no answer in time: next step
             log.warning("episode %s step %d: no joint answer this step (%s); per-view answer", em.episode_id,
                         step, reason)
             return None
         log.warning("episode %s step %d: joint answer refused, the episode keeps the per-view answer "
                     "(single view, or the stopper's fusion): %s", em.episode_id, step, reason)
-        self.answer_views.pop(em.episode_id, None)  # once per episode: no joint request again
+        self.memories.pop(em.episode_id, None)  # once per episode: no joint request again
         return None

@@ -34,6 +34,7 @@ import numpy as np
 
 from eqa import robot as body
 from eqa.messages import DetectRequest, DetectResult, Frame, GazePoint, GridSpec, ObjectInstance, Task
+from eqa.recording import EpisodeRecorder
 from services.mapper.gaze import gaze_points
 from services.mapper.objects.config import OTHER, ObjectLayerConfig
 from services.mapper.objects.layer import ObjectLayer, UpdateStats, camera_from_gaze, pixel_classes
@@ -108,9 +109,9 @@ class ObjectMap:
         config = config or ObjectMapConfig()
         config = replace(config, layer=replace(config.layer, other_max_depth_m=config.miss_range_m))
         classes, th = task_classes(task, config)
-        om = cls(classes, th, config)
-        om.single_frame = single_frame
-        return om
+        objects = cls(classes, th, config)
+        objects.single_frame = single_frame
+        return objects
 
     @property
     def task_classes(self) -> list[str]:
@@ -219,11 +220,12 @@ class ObjectMap:
         if meta.get("miss_range_m") is not None:  # a task layer (for_task)
             config = replace(config, layer=replace(config.layer, other_max_depth_m=float(meta["miss_range_m"])))
             layer.config = config.layer
-        om = cls(layer.classes[:-1], meta["thresholds"], config)
-        om.layer = layer
-        om.history = OrderedDict((int(k), [(int(s), float(p)) for s, p in v]) for k, v in meta["history"])
-        om.single_frame, om.holding = bool(meta.get("single_frame", False)), bool(meta.get("holding", False))
-        return om
+        objects = cls(layer.classes[:-1], meta["thresholds"], config)
+        objects.layer = layer
+        objects.history = OrderedDict((int(k), [(int(s), float(p)) for s, p in v]) for k, v in meta["history"])
+        objects.single_frame = bool(meta.get("single_frame", False))
+        objects.holding = bool(meta.get("holding", False))
+        return objects
 
 
 def phase_classes(task: Task, holding: bool) -> list[str]:
@@ -260,7 +262,7 @@ def class_colours(n_task_classes: int) -> np.ndarray:
     return np.vstack([PALETTE[np.arange(n_task_classes) % len(PALETTE)], OTHER_RGB[None]])
 
 
-def log_rerun(rec: object, om: ObjectMap, objects: list[ObjectInstance]) -> None:
+def log_rerun(recorder: EpisodeRecorder, objects_map: ObjectMap, objects: list[ObjectInstance]) -> None:
     """Log the layer into an :class:`eqa.recording.EpisodeRecorder` (its step already set): the Gaussians as
     ellipsoids (1-sigma, coloured by most likely class, opacity = certainty 1 - 2 sqrt(Var) of that class,
     at most ``MAX_LOGGED_GAUSSIANS``), each instance's box with its class and Psi, and each instance's Psi."""
@@ -269,7 +271,7 @@ def log_rerun(rec: object, om: ObjectMap, objects: list[ObjectInstance]) -> None
 
     from services.mapper.objects import dirichlet
 
-    st = om.layer.store
+    st = objects_map.layer.store
     n = len(st)
     idx = torch.arange(n) if n <= MAX_LOGGED_GAUSSIANS else torch.linspace(0, n - 1, MAX_LOGGED_GAUSSIANS).long()
     gamma = st.gamma[idx].cpu()
@@ -277,18 +279,18 @@ def log_rerun(rec: object, om: ObjectMap, objects: list[ObjectInstance]) -> None
     cls = e.argmax(1)
     sd = dirichlet.variance(gamma).sqrt().gather(1, cls[:, None])[:, 0]
     alpha = (255 * (1.0 - 2.0 * sd).clamp(0.05, 1.0)).to(torch.uint8).numpy()
-    rgb = class_colours(len(om.task_classes))[cls.numpy()]
+    rgb = class_colours(len(objects_map.task_classes))[cls.numpy()]
     colours = np.concatenate([rgb, alpha[:, None]], axis=1)
     sigma = st.sigma[idx].cpu().numpy()
-    rec.log(GAUSSIANS_ENTITY, rr.Ellipsoids3D(  # type: ignore[attr-defined]
+    recorder.log(GAUSSIANS_ENTITY, rr.Ellipsoids3D(  # type: ignore[attr-defined]
         centers=st.means[idx].cpu().numpy(), half_sizes=np.repeat(sigma[:, None], 3, axis=1), colors=colours,
         fill_mode="solid",
     ))
     if objects:
-        rec.log(INSTANCES_ENTITY, rr.Boxes3D(  # type: ignore[attr-defined]
+        recorder.log(INSTANCES_ENTITY, rr.Boxes3D(  # type: ignore[attr-defined]
             centers=[o.centre for o in objects], sizes=[o.extent for o in objects],
             labels=[f"{o.instance_id} {o.cls} psi {o.psi:.2f}" for o in objects],
         ))
     for o in objects:
         best = max(o.scores.values(), key=lambda s: s[0], default=(o.S, o.U, o.psi))
-        rec.log(f"{PSI_ENTITY}/{o.instance_id}", rr.Scalars(best[2]))  # type: ignore[attr-defined]
+        recorder.log(f"{PSI_ENTITY}/{o.instance_id}", rr.Scalars(best[2]))  # type: ignore[attr-defined]

@@ -1,5 +1,5 @@
-"""The mapper shell's part for the HELIOS object layer (task episodes only), as a mixin of
-:class:`services.mapper.service.MapperService` so the service keeps one obvious home per idea.
+"""The HELIOS object layer (task episodes only): a mapper extension (:mod:`services.mapper.extension`) of
+:class:`services.mapper.service.MapperService`.
 
 Per task episode (``EpisodeStart.task`` set): an :class:`~services.mapper.object_map.ObjectMap` with the task's
 classes, and one value layer per task class, ``helios:<class>`` (paper 3.1.2). Per frame, while the mapper
@@ -14,60 +14,46 @@ candidates get the gaze points (:func:`services.mapper.object_map.phase_classes`
 (``EpisodeStart.ablation``) has no 3D layer: its object map holds each frame's detections alone. A detection
 that fails is reported on the mapper's error stream and the frame is not fused (no detection is not "nothing
 detected"). The object layer goes into the episode's stored state with the map, so a restarted mapper
-continues it. Question episodes are untouched: no request, no layer, the same state bytes as before.
+continues it. Question episodes are untouched: no request, no layer, no part in the stored state.
 """
 
 from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from eqa.messages import (
-    DetectRequest,
     DetectResult,
     EpisodeStart,
-    ErrorReply,
     Frame,
     MapUpdate,
+    ObjectInstance,
+    Task,
     ValueRequest,
     ValueResult,
 )
+from eqa.recording import EpisodeRecorder
 from services.mapper import fov_values
-from services.mapper.semantic_map import QUESTION_LAYER
+from services.mapper.episode_map import EpisodeMap
+from services.mapper.extension import (
+    MapperContext,
+    MapperExtension,
+    StepOutputs,
+    call_pool,
+    failure,
+    object_map_module,
+)
 
 if TYPE_CHECKING:
-    from services.mapper.object_map import ObjectMap, ObjectMapConfig
+    from services.mapper.object_map import ObjectMap
 
-
-TORCH_THREADS = 1  # torch intra-op threads of the mapper's object layer (see _object_map_module)
-
-
-def _object_map_module() -> Any:
-    """The object layer (torch) is imported on the first task episode, not when the mapper starts: question
-    episodes never need it, and importing torch made every mapper (re)start several seconds slower -- longer than
-    the sim's step resends wait for a restarted mapper.
-
-    Torch then runs on :data:`TORCH_THREADS` thread: the mapper shares the cores with the other services, and
-    torch's default (one thread per core, spinning while waiting) made the object layer 7-10x slower on the
-    loaded 2-core machine (6 updates + 36 optimistic views: 1.3-1.4 s CPU with 1 thread, 10-12 s with 2; issue
-    17), the same numbers either way."""
-    import torch
-
-    from services.mapper import object_map
-
-    if torch.get_num_threads() != TORCH_THREADS:
-        torch.set_num_threads(TORCH_THREADS)
-    return object_map
 
 log = logging.getLogger(__name__)
 
-Detect = Callable[[DetectRequest], DetectResult]
-Values = Callable[[ValueRequest], ValueResult]
 LAYER_PREFIX = "helios:"
 CONFIDENCE_PREFIX = "confidence/"  # the map plane with a task value layer's field-of-view confidence
 
@@ -76,7 +62,7 @@ def value_layer(cls: str) -> str:
     return f"{LAYER_PREFIX}{cls}"
 
 
-def frontier_class(task: Any, holding: bool) -> str:
+def frontier_class(task: Task, holding: bool) -> str:
     """The class whose value layer (paper 3.1.2: "one map layer for the pick location and one for the place
     location") values the frontiers: the pick location (start receptacle, else the object) until the object is
     held, then the place location (goal receptacle)."""
@@ -85,7 +71,7 @@ def frontier_class(task: Any, holding: bool) -> str:
     return str(task.start_receptacle or task.object)
 
 
-def obstacle_heights(em: Any) -> np.ndarray | None:
+def obstacle_heights(em: EpisodeMap) -> np.ndarray | None:
     """Height (m) of the highest occupied voxel of each map cell up to the camera height, 0 where none: the
     heights the gaze-point occlusion test compares with ``EQA_HELIOS_GAZE_OBSTACLE_M`` (occupied = observed
     and within the occupied band behind a surface, as the 2D occupancy map)."""
@@ -106,155 +92,124 @@ def obstacle_heights(em: Any) -> np.ndarray | None:
     return np.where(any_occ, z[sel][top] + v.config.voxel_size / 2, 0.0).astype(np.float32)
 
 
-class ObjectLayerShell:
-    """Mixin: needs ``self.settings``, ``self.bus``, ``self.error(robot, episode_id, step, reason)`` and
-    ``self.recorders`` of :class:`eqa.episode_service.EpisodeService`."""
+class ObjectLayerExtension(MapperExtension):
+    """The HELIOS object layer of task episodes as a mapper extension (module docstring): per episode its
+    :class:`~services.mapper.object_map.ObjectMap` (``maps``) and the instances of its last map update."""
 
-    settings: Any
-    bus: Any
-    recorders: dict[str, Any]
-    error: Callable[..., None]
+    state_key = "objects"
 
-    def objects_init(self, detector: Detect | None = None, values: Values | None = None) -> None:
-        self._objects_config: ObjectMapConfig | None = None
-        self.objects: dict[str, ObjectMap] = {}
-        self.last_objects: dict[str, list] = {}
-        self._detect, self._values = detector, values
-        self._objects_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mapper-objects")
+    def __init__(self, context: MapperContext) -> None:
+        self.context = context
+        self.maps: dict[str, ObjectMap] = {}
+        self.last_objects: dict[str, list[ObjectInstance]] = {}
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mapper-objects")
 
-    @property
-    def objects_config(self) -> ObjectMapConfig:
-        if self._objects_config is None:
-            self._objects_config = _object_map_module().ObjectMapConfig.from_settings(self.settings)
-        return self._objects_config
-
-    def objects_close(self) -> None:
-        self._objects_pool.shutdown(wait=True)
-
-    def _pool_client(self) -> tuple[Detect, Values]:
-        if self._detect is None or self._values is None:
-            from eqa.scorer_client import ScorerClient
-
-            client = ScorerClient(self.bus, self.settings)
-            self._detect = self._detect or client.detect
-            self._values = self._values or client.values
-        return self._detect, self._values
+    def close(self) -> None:
+        self._pool.shutdown(wait=True)
 
     # ---- episode lifecycle ------------------------------------------------------------------------------
-    def objects_layers(self, start: EpisodeStart) -> list[str] | None:
-        """The value layers of a new episode (None: the default question layer only) and, for a task episode,
-        its object map."""
-        if start.task is None:
-            return None
-        om_mod = _object_map_module()
-        self.objects[start.episode_id] = om_mod.ObjectMap.for_task(start.task, self.objects_config,
-                                                                   single_frame=start.ablation == "trusting")
-        classes, _ = om_mod.task_classes(start.task, self.objects_config)
-        return [QUESTION_LAYER, *(value_layer(c) for c in classes)]
+    def _new_map(self, start: EpisodeStart) -> ObjectMap:
+        assert start.task is not None
+        return object_map_module().ObjectMap.for_task(start.task, self.context.objects_config,
+                                                      single_frame=start.ablation == "trusting")
 
-    def objects_finish(self, episode_id: str) -> None:
-        self.objects.pop(episode_id, None)
+    def start(self, start: EpisodeStart) -> list[str]:
+        """A task episode: its object map, and one value layer per task class."""
+        if start.task is None:
+            return []
+        self.maps[start.episode_id] = self._new_map(start)
+        classes, _ = object_map_module().task_classes(start.task, self.context.objects_config)
+        return [value_layer(c) for c in classes]
+
+    def finish(self, episode_id: str) -> None:
+        self.maps.pop(episode_id, None)
         self.last_objects.pop(episode_id, None)
 
-    def objects_dump(self, episode_id: str, map_state: bytes) -> Any:
-        om = self.objects.get(episode_id)
-        return map_state if om is None else {"map": map_state, "objects": om.snapshot()}
+    def dump(self, episode_id: str) -> bytes | None:
+        objects = self.maps.get(episode_id)
+        return None if objects is None else objects.snapshot()
 
-    def objects_load(self, episode_id: str, data: Any, start_of: Callable[[bytes], Any]) -> Any:
-        """Restore: ``data`` is the map's bytes (question episodes, older states) or ``{"map", "objects"}``;
-        ``start_of`` restores the map from its bytes. Returns the map."""
-        if isinstance(data, dict):
-            em = start_of(data["map"])
-            self.objects[episode_id] = _object_map_module().ObjectMap.restore(data["objects"], self.objects_config)
-            return em
-        em = start_of(data)
-        if em.start.task is not None:  # a task episode saved before its layer existed: start a fresh one
-            self.objects[episode_id] = _object_map_module().ObjectMap.for_task(
-                em.start.task, self.objects_config, single_frame=em.start.ablation == "trusting")
-        return em
+    def restore(self, em: EpisodeMap, part: Any | None) -> None:
+        """The stored layer; a task episode stored without one starts a fresh layer."""
+        if part is not None:
+            self.maps[em.episode_id] = object_map_module().ObjectMap.restore(part, self.context.objects_config)
+        elif em.start.task is not None:
+            self.maps[em.episode_id] = self._new_map(em.start)
 
     # ---- per frame --------------------------------------------------------------------------------------
-    def objects_submit(self, robot: str, em: Any, frame: Frame) -> Future | None:
-        om = self.objects.get(em.episode_id)
-        if om is None:
+    def submit(self, robot: str, em: EpisodeMap, frame: Frame) -> Future[Any] | None:
+        objects = self.maps.get(em.episode_id)
+        if objects is None:
             return None
-        return self._objects_pool.submit(self._objects_ask, om, em, frame)
+        return self._pool.submit(self._ask, objects, em, frame)
 
-    def _objects_ask(self, om: ObjectMap, em: Any, frame: Frame) -> tuple[Any, Any, float]:
-        detect, values = self._pool_client()
+    def _ask(self, objects: ObjectMap, em: EpisodeMap, frame: Frame) -> tuple[Any, Any, float]:
+        detect, values = self.context.detect_and_values()
         t0 = time.perf_counter()
-        try:
-            det: Any = detect(om.detect_request(frame, seed=em.start.seed))
-        except Exception as exc:
-            det = exc
-        try:
-            val: Any = values(ValueRequest(
-                episode_id=em.episode_id, step=frame.step, rgb=frame.rgb, targets=om.task_classes,
-                instances=frame.instances, labels=frame.labels, depth=frame.depth, seed=em.start.seed,
-            ))
-        except Exception as exc:
-            val = exc
+        det = call_pool(detect, objects.detect_request(frame, seed=em.start.seed))
+        val = call_pool(values, ValueRequest(
+            episode_id=em.episode_id, step=frame.step, rgb=frame.rgb, targets=objects.task_classes,
+            instances=frame.instances, labels=frame.labels, depth=frame.depth, seed=em.start.seed,
+        ))
         return det, val, (time.perf_counter() - t0) * 1000.0
 
-    def objects_apply(self, robot: str, em: Any, frame: Frame, pending: Future | None,
-                      timing: dict[str, float]) -> str | None:
-        """Fuse the frame's detections and write its values; returns the layer the frontiers take their
-        values from in a task episode, or None: the current phase's search target (:func:`frontier_class`)."""
-        om = self.objects.get(em.episode_id)
-        if pending is None or om is None:
-            return None
-        skill = getattr(frame, "skill", None)
+    def apply(self, robot: str, em: EpisodeMap, frame: Frame, pending: Future[Any] | None, out: StepOutputs,
+              timing: dict[str, float]) -> None:
+        """Fuse the frame's detections and write its values; the frontiers of a task episode take their values
+        from the current phase's search target (:func:`frontier_class`)."""
+        objects = self.maps.get(em.episode_id)
+        if pending is None or objects is None:
+            return
+        error = self.context.error
+        skill = frame.skill
         if skill is not None and skill.skill == "pick" and skill.success:
-            om.holding = True
+            objects.holding = True
         det, val, ask_ms = pending.result()
         timing["objects_ask"] = ask_ms
         t0 = time.perf_counter()
         if isinstance(det, DetectResult):
             try:
-                stats = om.integrate(frame, det)
+                stats = objects.integrate(frame, det)
                 timing.update({f"objects_{k}": v for k, v in stats.timing_ms.items()})
             except Exception as exc:
                 log.exception("episode %s: object layer update failed", em.episode_id)
-                self.error(robot, em.episode_id, frame.step, f"object layer not updated: {type(exc).__name__}: {exc}")
+                error(robot, em.episode_id, frame.step, f"object layer not updated: {type(exc).__name__}: {exc}")
         else:
-            reason = det.reason if isinstance(det, ErrorReply) else f"{type(det).__name__}: {det}"
-            self.error(robot, em.episode_id, frame.step, f"detector failed, frame not fused: {reason}")
-        if isinstance(val, ValueResult) and len(val.values) == len(om.task_classes):
+            error(robot, em.episode_id, frame.step, f"detector failed, frame not fused: {failure(det)}")
+        if isinstance(val, ValueResult) and len(val.values) == len(objects.task_classes):
             rows, cols, conf = fov_values.fov_cells(frame.depth, frame.intrinsics, frame.camera_pose, em.origin,
-                                                    em.resolution, em.layer(value_layer(om.task_classes[0])).shape)
-            for cls, v in zip(om.task_classes, val.values, strict=True):
+                                                    em.resolution, em.layer(value_layer(objects.task_classes[0])).shape)
+            for cls, v in zip(objects.task_classes, val.values, strict=True):
                 name = value_layer(cls)
                 fov_values.fuse(em.layer(name), em.volume.add_plane(f"{CONFIDENCE_PREFIX}{name}", 0.0, np.float32),
                                 rows, cols, conf, float(v))
         elif not isinstance(val, ValueResult):
-            reason = val.reason if isinstance(val, ErrorReply) else f"{type(val).__name__}: {val}"
-            self.error(robot, em.episode_id, frame.step, f"value prompt failed: {reason}")
+            error(robot, em.episode_id, frame.step, f"value prompt failed: {failure(val)}")
         timing["objects_fuse"] = (time.perf_counter() - t0) * 1000.0
-        return value_layer(frontier_class(em.start.task, om.holding))
+        assert em.start.task is not None  # an object map is kept for task episodes only
+        out.frontier_layer = value_layer(frontier_class(em.start.task, objects.holding))
 
-    def objects_attach(self, em: Any, update: MapUpdate, frame: Frame | None, timing: dict[str, float]) -> None:
+    def attach(self, em: EpisodeMap, update: MapUpdate, frame: Frame) -> None:
         """Put the episode's instances (with gaze points on this update's map) into ``update``."""
-        om = self.objects.get(em.episode_id)
-        if om is None:
+        objects = self.maps.get(em.episode_id)
+        if objects is None:
             return
         t0 = time.perf_counter()
-        height = float(frame.camera_pose[2, 3]) if frame is not None else 1.5
+        height = float(frame.camera_pose[2, 3])
         # the robot's head camera has a fixed tilt: gaze points are scored for the view it really gets there
-        pitch = float(np.arcsin(np.clip(frame.camera_pose[2, 2], -1.0, 1.0))) if frame is not None else None
-        targets = _object_map_module().phase_classes(em.start.task, om.holding) if em.start.task else None
-        update.objects = om.summaries(update.grid, update.occupied, obstacle_heights(em), camera_height=height,
-                                      camera_pitch=pitch, targets=targets)
+        pitch = float(np.arcsin(np.clip(frame.camera_pose[2, 2], -1.0, 1.0)))
+        targets = object_map_module().phase_classes(em.start.task, objects.holding) if em.start.task else None
+        update.objects = objects.summaries(update.grid, update.occupied, obstacle_heights(em), camera_height=height,
+                                           camera_pitch=pitch, targets=targets)
         self.last_objects[em.episode_id] = update.objects
-        timing["objects_summary"] = (time.perf_counter() - t0) * 1000.0
-        update.timing_ms.update(timing)
+        update.timing_ms["objects_summary"] = (time.perf_counter() - t0) * 1000.0
 
-    def objects_record(self, em: Any, frame: Frame) -> None:
-        om = self.objects.get(em.episode_id)
-        rec = self.recorders.get(em.episode_id)
-        if om is None or rec is None or getattr(rec, "stream", None) is None:
+    def record(self, em: EpisodeMap, frame: Frame, recorder: EpisodeRecorder) -> None:
+        objects = self.maps.get(em.episode_id)
+        if objects is None:
             return
         try:
-            rec.set_step(frame.step)
-            _object_map_module().log_rerun(rec, om, self.last_objects.get(em.episode_id, []))
+            recorder.set_step(frame.step)
+            object_map_module().log_rerun(recorder, objects, self.last_objects.get(em.episode_id, []))
         except Exception:
             log.exception("episode %s: recording the object layer failed; going on", em.episode_id)

@@ -11,7 +11,7 @@ needs a room layout for that; here it is the scene's floor plan (:attr:`services
 the robot is assumed to know the floor plan (not the objects). That is a simplification: a real robot would
 segment rooms from its own map, with errors this evaluation does not have.
 
-In the product (the mapper service, :class:`QuestionObjectsShell`): a question typed by a user carries no
+In the product (the mapper service, :class:`QuestionObjectsExtension`): a question typed by a user carries no
 ``query``; :func:`parse_question` reads the target from the text ("How many chairs are there in the kitchen?",
 "Is there a mug in the office?", "Are there any towels in the bathroom?"). The detector is open-vocabulary
 (DETIC), so the class is the noun phrase itself (:func:`eqa.instructions.class_name`, singular). The mapper
@@ -27,7 +27,6 @@ from __future__ import annotations
 import logging
 import re
 import time
-from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
@@ -39,13 +38,13 @@ from eqa.messages import (
     DetectRequest,
     DetectResult,
     EpisodeStart,
-    ErrorReply,
     Frame,
     GridSpec,
     ObjectEvidence,
     Question,
 )
-from services.mapper import snapshots
+from services.mapper.episode_map import EpisodeMap
+from services.mapper.extension import MapperContext, MapperExtension, StepOutputs, call_pool, failure
 
 log = logging.getLogger(__name__)
 
@@ -183,13 +182,13 @@ class QuestionObjects:
         self.rects = rects
         self.floor_area_m2 = floor_area_m2
         cfg = config or ObjectMapConfig()
-        self.om = ObjectMap([self.cls], [cfg.od_object], cfg)
+        self.objects = ObjectMap([self.cls], [cfg.od_object], cfg)
 
     def detect_request(self, frame: Frame, seed: int = 0) -> DetectRequest:
-        return self.om.detect_request(frame, seed)
+        return self.objects.detect_request(frame, seed)
 
     def integrate(self, frame: Frame, result: DetectResult) -> None:
-        self.om.integrate(frame, result)
+        self.objects.integrate(frame, result)
 
     def evidence(self, explored: np.ndarray | None, grid: GridSpec | None) -> ObjectEvidence:
         """The step's evidence: target-class instances in the region (best first, at most MAX_TRACKED) and
@@ -197,7 +196,7 @@ class QuestionObjects:
         mapper's 2D cells seen by the camera (``Maps2D.observed``: the detector sees the whole frame, not only
         Explore-EQA's narrow view)."""
         psi = []
-        for inst in self.om.layer.instances():
+        for inst in self.objects.layer.instances():
             if inst.cls != 0:  # believed "other"
                 continue
             x, y, _ = inst.centre
@@ -214,136 +213,127 @@ class QuestionObjects:
 
     # ---- persistence (the mapper's episode state) -------------------------------------------------------
     def snapshot(self) -> bytes:
-        return self.om.snapshot()
+        return self.objects.snapshot()
 
     @classmethod
     def restore(cls, question: Question, data: bytes, rects: list[Rect] | None, config: Any = None) -> QuestionObjects:
         from services.mapper.object_map import ObjectMap
 
-        qo = cls(question, rects, config=config)
-        qo.om = ObjectMap.restore(data, config)
-        return qo
+        layer = cls(question, rects, config=config)
+        layer.objects = ObjectMap.restore(data, config)
+        return layer
 
 
-Detect = Callable[[DetectRequest], DetectResult]
-STATE_KEY = "question_objects"  # the layer's part of the mapper's episode state (a dict with "map")
+class QuestionObjectsExtension(MapperExtension):
+    """The object evidence of question episodes with ``EQA_OBJECT_EVIDENCE`` on, as a mapper extension
+    (:mod:`services.mapper.extension`): the episode's :class:`QuestionObjects` (``layers``), a detection per
+    frame through the scorer pool (on its own worker, while the mapper waits for the question's scores), the
+    step's :class:`~eqa.messages.ObjectEvidence`, and the layer in the episode's stored state. A failed
+    detection does not fail the question: logged, and that step carries no evidence (the stopper then uses the
+    VLM's distribution alone)."""
 
+    state_key = "question_objects"  # a dict with "map"
 
-class QuestionObjectsShell:
-    """Mixin of :class:`services.mapper.service.MapperService` for question episodes with
-    ``EQA_OBJECT_EVIDENCE`` on: the episode's :class:`QuestionObjects`, a detection per frame through the
-    scorer pool (on its own worker, while the mapper waits for the question's scores), the step's
-    :class:`~eqa.messages.ObjectEvidence`, and the layer in the episode's stored state. Needs
-    ``self.settings``, ``self.objects_config`` and ``self._pool_client()`` of
-    :class:`services.mapper.object_shell.ObjectLayerShell`. A failed detection does not fail the question:
-    logged, and that step carries no evidence (the stopper then uses the VLM's distribution alone)."""
+    def __init__(self, context: MapperContext) -> None:
+        self.context = context
+        self.layers: dict[str, QuestionObjects] = {}
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mapper-question-objects")
+        self._told: set[str] = set()
 
-    settings: Any
-    objects_config: Any
-    _pool_client: Callable[[], tuple[Detect, Any]]
+    def close(self) -> None:
+        self._pool.shutdown(wait=True)
 
-    def qobjects_init(self) -> None:
-        self.qobjects: dict[str, QuestionObjects] = {}
-        self._qobjects_pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mapper-question-objects")
-        self._qobjects_told: set[str] = set()
-
-    def qobjects_close(self) -> None:
-        self._qobjects_pool.shutdown(wait=True)
-
-    def _qobjects_target(self, start: EpisodeStart) -> bool:
-        if not self.settings.object_evidence or start.task is not None:
+    def _wanted(self, start: EpisodeStart) -> bool:
+        if not self.context.settings.object_evidence or start.task is not None:
             return False
-        if question_target(start.question) is None:
-            if start.episode_id not in self._qobjects_told:
-                self._qobjects_told.add(start.episode_id)
+        target = question_target(start.question)
+        if target is None:
+            if start.episode_id not in self._told:
+                self._told.add(start.episode_id)
                 log.info("episode %s: object evidence on, but the question names no class to count or find "
                          "(forms: 'How many <class> ...', 'Is there a <class> ...'); no evidence", start.episode_id)
             return False
-        category = question_target(start.question)[0]  # type: ignore[index]
-        if category not in WHOLE_MAP_CATEGORIES:
-            if start.episode_id not in self._qobjects_told:
-                self._qobjects_told.add(start.episode_id)
+        if target[0] not in WHOLE_MAP_CATEGORIES:
+            if start.episode_id not in self._told:
+                self._told.add(start.episode_id)
                 log.info("episode %s: no object evidence for a %s question without a floor plan (the whole map's "
-                         "count is not the asked room's; WHOLE_MAP_CATEGORIES)", start.episode_id, category)
+                         "count is not the asked room's; WHOLE_MAP_CATEGORIES)", start.episode_id, target[0])
             return False
         return True
 
-    def qobjects_start(self, start: EpisodeStart) -> None:
+    def _new_layer(self, start: EpisodeStart) -> None:
+        layer = QuestionObjects(start.question, None, config=self.context.objects_config)
+        self.layers[start.episode_id] = layer
+        log.info("episode %s: object evidence for %s '%s' (room %s: not narrowed, no floor plan)",
+                 start.episode_id, layer.category, layer.cls, layer.room_kind)
+
+    def start(self, start: EpisodeStart) -> list[str]:
         """A new question episode: its layer when the setting is on and the question has a target. No room
         layout is known to the mapper: the region is the whole map (module docstring)."""
-        if self._qobjects_target(start):
-            qo = QuestionObjects(start.question, None, config=self.objects_config)
-            self.qobjects[start.episode_id] = qo
-            log.info("episode %s: object evidence for %s '%s' (room %s: not narrowed, no floor plan)",
-                     start.episode_id, qo.category, qo.cls, qo.room_kind)
+        if self._wanted(start):
+            self._new_layer(start)
+        return []
 
-    def qobjects_finish(self, episode_id: str) -> None:
-        self.qobjects.pop(episode_id, None)
-        self._qobjects_told.discard(episode_id)
+    def finish(self, episode_id: str) -> None:
+        self.layers.pop(episode_id, None)
+        self._told.discard(episode_id)
 
-    def qobjects_dump(self, episode_id: str, state: Any) -> Any:
-        """``state`` (the map header, or the task episode's dict) with the layer's snapshot added."""
-        qo = self.qobjects.get(episode_id)
-        return state if qo is None else snapshots.with_state_part(state, STATE_KEY, qo.snapshot())
+    def dump(self, episode_id: str) -> bytes | None:
+        layer = self.layers.get(episode_id)
+        return None if layer is None else layer.snapshot()
 
-    @staticmethod
-    def qobjects_split(data: Any) -> tuple[Any, bytes | None]:
-        """Stored state -> (what the map's loader reads, the layer's snapshot or None)."""
-        return snapshots.without_state_part(data, STATE_KEY)
-
-    def qobjects_restore(self, em: Any, snapshot: bytes | None) -> None:
+    def restore(self, em: EpisodeMap, part: Any | None) -> None:
         """After a restart: continue the stored layer; a state saved without one starts a fresh layer."""
         start = em.start
-        if not self._qobjects_target(start):
+        if not self._wanted(start):
             return
-        if snapshot is None:
-            self.qobjects_start(start)
+        if part is None:
+            self._new_layer(start)
             return
-        self.qobjects[start.episode_id] = QuestionObjects.restore(start.question, snapshot, None,
-                                                                 config=self.objects_config)
+        self.layers[start.episode_id] = QuestionObjects.restore(start.question, part, None,
+                                                                config=self.context.objects_config)
 
-    def qobjects_submit(self, em: Any, frame: Frame) -> Future | None:
-        qo = self.qobjects.get(em.episode_id)
-        if qo is None:
+    def submit(self, robot: str, em: EpisodeMap, frame: Frame) -> Future[Any] | None:
+        layer = self.layers.get(em.episode_id)
+        if layer is None:
             return None
-        return self._qobjects_pool.submit(self._qobjects_detect, qo, em, frame)
+        return self._pool.submit(self._detect, layer, em, frame)
 
-    def _qobjects_detect(self, qo: QuestionObjects, em: Any, frame: Frame) -> tuple[Any, float]:
-        detect, _ = self._pool_client()
+    def _detect(self, layer: QuestionObjects, em: EpisodeMap, frame: Frame) -> tuple[Any, float]:
+        detect, _ = self.context.detect_and_values()
         t0 = time.perf_counter()
-        try:
-            det: Any = detect(qo.detect_request(frame, seed=em.start.seed))
-        except Exception as exc:
-            det = exc
+        det = call_pool(detect, layer.detect_request(frame, seed=em.start.seed))
         return det, (time.perf_counter() - t0) * 1000.0
 
-    def qobjects_apply(self, em: Any, frame: Frame, pending: Future | None,
-                       timing: dict[str, float]) -> ObjectEvidence | None:
-        """Fuse the frame's detections; the step's evidence, or None (no layer, or the detection failed)."""
-        qo = self.qobjects.get(em.episode_id)
-        if pending is None or qo is None:
-            return None
+    def apply(self, robot: str, em: EpisodeMap, frame: Frame, pending: Future[Any] | None, out: StepOutputs,
+              timing: dict[str, float]) -> None:
+        """Fuse the frame's detections; the step's evidence, or none (no layer, or the detection failed)."""
+        layer = self.layers.get(em.episode_id)
+        if pending is None or layer is None:
+            return
         det, ask_ms = pending.result()
         timing["question_objects_ask"] = ask_ms
         if not isinstance(det, DetectResult):
-            reason = det.reason if isinstance(det, ErrorReply) else f"{type(det).__name__}: {det}"
             log.warning("episode %s step %d: detection failed, no object evidence this step: %s",
-                        em.episode_id, frame.step, reason)
-            return None
+                        em.episode_id, frame.step, failure(det))
+            return
         t0 = time.perf_counter()
         try:
-            qo.integrate(frame, det)
+            layer.integrate(frame, det)
         except Exception:
             log.exception("episode %s step %d: object layer not updated, no object evidence this step",
                           em.episode_id, frame.step)
-            return None
+            return
         timing["question_objects_fuse"] = (time.perf_counter() - t0) * 1000.0
-        return self.qobjects_evidence(em)
+        out.object_evidence = self.evidence(em)
 
-    def qobjects_evidence(self, em: Any) -> ObjectEvidence | None:
-        """The layer's evidence on the episode's current map (also for a step sent again)."""
-        qo = self.qobjects.get(em.episode_id)
-        if qo is None:
+    def resent(self, em: EpisodeMap, frame: Frame, out: StepOutputs) -> None:
+        out.object_evidence = self.evidence(em)
+
+    def evidence(self, em: EpisodeMap) -> ObjectEvidence | None:
+        """The layer's evidence on the episode's current map."""
+        layer = self.layers.get(em.episode_id)
+        if layer is None:
             return None
         observed = em.maps.observed if em.maps is not None else None
-        return qo.evidence(observed, em.grid() if observed is not None else None)
+        return layer.evidence(observed, em.grid() if observed is not None else None)

@@ -3,8 +3,11 @@
 Per step (one :class:`Frame`): validate and integrate it, project to 2D, compute the prompt points, ask the
 scorer pool for the step's scores, write the semantic values (Eq. 3), compute the frontiers with their
 Eq. A6 weights, publish :class:`MapUpdate` and :class:`StepScores`.
-A task episode (``EpisodeStart.task``) also keeps the HELIOS object layer and per-target value layers,
-fed by detections and value prompts from the scorer pool (:mod:`services.mapper.object_shell`).
+Beside the map the service holds its extensions (:mod:`services.mapper.extension`: one protocol, one plain
+object each, called in the order of ``extensions``): the HELIOS object layer and per-target value layers of a
+task episode, fed by detections and value prompts from the scorer pool (:mod:`services.mapper.object_shell`),
+the object evidence of a question episode (:mod:`services.mapper.question_objects`) and the joint answer memory
+(:mod:`services.mapper.answer_views`).
 
 Per-episode state (:class:`eqa.episode_service.EpisodeService`, ``eqa:mapper:episode:{episode_id}``): the
 episode's map as an incremental snapshot (:mod:`services.mapper.snapshots`: a header there, a full part and the
@@ -23,8 +26,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -38,18 +40,28 @@ from eqa.messages import (
     EpisodeStart,
     ErrorReply,
     Frame,
-    ObjectEvidence,
     ScoreRequest,
     ScoreResult,
     StepScores,
 )
+from eqa.recording import EpisodeRecorder
 from eqa.settings import Settings
 from eqa.store import Store
 from services.mapper import snapshots
-from services.mapper.answer_views import AnswerViewsShell
+from services.mapper.answer_views import AnswerViewsExtension
 from services.mapper.episode_map import EpisodeMap, MapperConfig, Timer
-from services.mapper.object_shell import Detect, ObjectLayerShell, Values
-from services.mapper.question_objects import QuestionObjectsShell
+from services.mapper.extension import (
+    Detect,
+    MapperContext,
+    MapperExtension,
+    Scorer,
+    StepOutputs,
+    Values,
+    call_pool,
+    failure,
+)
+from services.mapper.object_shell import ObjectLayerExtension
+from services.mapper.question_objects import QuestionObjectsExtension
 from services.mapper.semantic_map import QUESTION_LAYER
 from services.mapper.tsdf import FrameError
 
@@ -58,10 +70,8 @@ log = logging.getLogger(__name__)
 EARLY_FRAME_TTL_S = 30.0
 MADE_KEY = "made"  # the stored state's part with the last map update's sent_at and timings
 
-Scorer = Callable[[ScoreRequest], ScoreResult]
 
-
-class MapperService(AnswerViewsShell, QuestionObjectsShell, ObjectLayerShell, EpisodeService[EpisodeMap]):
+class MapperService(EpisodeService[EpisodeMap]):
     """TSDF mapping, frontiers, prompt points and the semantic value map (Explore-EQA IV-B..D)."""
 
     name = "mapper"
@@ -77,10 +87,12 @@ class MapperService(AnswerViewsShell, QuestionObjectsShell, ObjectLayerShell, Ep
     def __init__(self, settings: Settings, bus: Bus | None = None, store: Store | None = None, *,
                  scorer: Scorer | None = None, detector: Detect | None = None, values: Values | None = None) -> None:
         super().__init__(settings, bus, store)
-        self._scorer = scorer
-        self.objects_init(detector, values)  # HELIOS object layer of task episodes (object_shell.py)
-        self.qobjects_init()  # object evidence of question episodes (question_objects.py)
-        self.views_init()  # joint answer memory (answer_views.py, EQA_ANSWER_MEMORY_MODE=joint)
+        self.context = MapperContext(settings, self.bus, self.error, scorer=scorer, detector=detector, values=values)
+        self.object_layer = ObjectLayerExtension(self.context)  # HELIOS object layer of task episodes
+        self.question_objects = QuestionObjectsExtension(self.context)  # object evidence of question episodes
+        self.answer_memory = AnswerViewsExtension(self.context)  # joint answer memory (EQA_ANSWER_MEMORY_MODE)
+        # the order of the calls and of the stored state's parts (a new extension goes at the end)
+        self.extensions: list[MapperExtension] = [self.object_layer, self.question_objects, self.answer_memory]
         self.config = MapperConfig(
             tau_lsv=settings.tau_lsv,
             tau_gsv=settings.tau_gsv,
@@ -98,37 +110,34 @@ class MapperService(AnswerViewsShell, QuestionObjectsShell, ObjectLayerShell, Ep
 
     def teardown(self) -> None:
         self._pool.shutdown(wait=True)
-        self.objects_close()
-        self.qobjects_close()
+        for ext in self.extensions:
+            ext.close()
         super().teardown()
 
     # ---- scorer -----------------------------------------------------------------------------------------
     def scorer(self) -> Scorer:
-        if self._scorer is None:
-            from eqa.scorer_client import ScorerClient  # written alongside; imported when first needed
-
-            self._scorer = ScorerClient(self.bus, self.settings).score
-        return self._scorer
+        return self.context.score()
 
     # ---- episode state ----------------------------------------------------------------------------------
     def start_episode(self, robot: str, start: EpisodeStart) -> EpisodeMap:
         log.info("episode %s: mapping for robot %s (strategy %s)", start.episode_id, robot, start.strategy)
-        self.qobjects_start(start)
-        self.views_start(start)
-        return EpisodeMap(start, self.config, layers=self.objects_layers(start))
+        extra = [layer for ext in self.extensions for layer in ext.start(start)]
+        return EpisodeMap(start, self.config, layers=[QUESTION_LAYER, *extra] if extra else None)
 
     def finish_episode(self, robot: str, msg: EpisodeCancel | EpisodeEnd, state: EpisodeMap) -> None:
-        self.objects_finish(msg.episode_id)
-        self.qobjects_finish(msg.episode_id)
-        self.views_finish(msg.episode_id)
+        for ext in self.extensions:
+            ext.finish(msg.episode_id)
         log.info("episode %s finished (%s); map dropped", msg.episode_id, msg.kind)
 
     def dump_state(self, state: EpisodeMap, **extra: Any) -> Any:
-        # a task episode's object layer rides along: {"map": ..., "objects": ...}; otherwise the map's bytes.
-        # The map is an incremental snapshot (snapshots.py): its header here, the full part and deltas as parts.
+        # The extensions' parts ride along ({"map": ..., "objects": ..., ...}); without any, the map's bytes. The
+        # map is an incremental snapshot (snapshots.py): its header here, the full part and deltas as parts.
         header, write, delete = snapshots.snapshot_step(state)
-        state_header = self.qobjects_dump(state.episode_id, self.objects_dump(state.episode_id, header))
-        state_header = self.views_dump(state.episode_id, state_header)
+        state_header: Any = header
+        for ext in self.extensions:
+            part = ext.dump(state.episode_id)
+            if part is not None:
+                state_header = snapshots.with_state_part(state_header, ext.state_key, part)
         if state.made is not None:
             state_header = snapshots.with_state_part(state_header, MADE_KEY, {
                 "step": state.step, "sent_at": state.made[0], "timing_ms": dict(state.made[1])})
@@ -136,12 +145,16 @@ class MapperService(AnswerViewsShell, QuestionObjectsShell, ObjectLayerShell, Ep
 
     def load_state(self, episode_id: str, data: Any) -> EpisodeMap:
         data, made = snapshots.without_state_part(data, MADE_KEY)
-        data, answer_views = self.views_split(data)
-        data, question_objects = self.qobjects_split(data)
-        em = self.objects_load(episode_id, data, lambda b: snapshots.restore(
-            b, lambda part: self.read_part(episode_id, part), self.config))
-        self.qobjects_restore(em, question_objects)
-        self.views_restore(em.start, answer_views)
+        parts: dict[str, Any] = {}
+        for ext in self.extensions:
+            data, parts[ext.state_key] = snapshots.without_state_part(data, ext.state_key)
+        if isinstance(data, dict):  # parts of an extension this mapper does not have
+            log.warning("episode %s: stored parts %s belong to no extension here; left aside", episode_id,
+                        sorted(k for k in data if k != "map"))
+            data = data["map"]
+        em = snapshots.restore(data, lambda part: self.read_part(episode_id, part), self.config)
+        for ext in self.extensions:
+            ext.restore(em, parts[ext.state_key])
         if isinstance(made, dict) and made.get("step") == em.step:
             em.made = (float(made["sent_at"]), {str(k): float(v) for k, v in dict(made["timing_ms"]).items()})
         log.info("episode %s: restored from snapshot at step %d", episode_id, em.step)
@@ -163,7 +176,6 @@ class MapperService(AnswerViewsShell, QuestionObjectsShell, ObjectLayerShell, Ep
     # ---- handlers ---------------------------------------------------------------------------------------
     def on_frame(self, robot: str, em: EpisodeMap, frame: Frame) -> None:
         t_start = time.perf_counter()
-        t_start = time.perf_counter()
         timer = Timer()
         try:
             em.integrate(frame, timer)
@@ -175,8 +187,9 @@ class MapperService(AnswerViewsShell, QuestionObjectsShell, ObjectLayerShell, Ep
         # step's work that does not depend on the scores: the frontier candidates. Same results, same order of
         # effects (snapshot saved before anything is published).
         pending = self._pool.submit(self._timed_score, robot, em, frame)
-        pending_objects = self.objects_submit(robot, em, frame)  # detections + value prompts (task episodes)
-        pending_question_objects = self.qobjects_submit(em, frame)  # detections of the question's class
+        # the extensions' own requests (detections, value prompts) on their workers meanwhile
+        pending_ext: list[Future[Any] | None] = [ext.submit(robot, em, frame) for ext in self.extensions]
+        out = StepOutputs()
         t0 = time.perf_counter()
         candidates = em.find_frontier_candidates()
         t0 = timer.lap("frontiers", t0)
@@ -184,10 +197,9 @@ class MapperService(AnswerViewsShell, QuestionObjectsShell, ObjectLayerShell, Ep
         result, score_ms = pending.result()
         timer.lap("score_wait", t0)
         timer.ms["score"] = score_ms
-        if result is not None:  # joint answer memory: the answer over the K most relevant views
-            t0 = time.perf_counter()
-            result = self.views_apply(em, frame.step, frame.rgb, result)
-            timer.lap("answer_views", t0)
+        if result is not None:  # e.g. the joint answer memory: the answer over the K most relevant views
+            for ext in self.extensions:
+                result = ext.scores(em, frame, result, out, timer.ms)
         t0 = time.perf_counter()
         if result is not None:
             try:
@@ -195,9 +207,9 @@ class MapperService(AnswerViewsShell, QuestionObjectsShell, ObjectLayerShell, Ep
             except ValueError as exc:
                 self._error(robot, em.episode_id, frame.step, f"semantic values not written: {exc}")
         t0 = timer.lap("semantic_values", t0)
-        frontier_layer = self.objects_apply(robot, em, frame, pending_objects, timer.ms)
-        evidence = self.qobjects_apply(em, frame, pending_question_objects, timer.ms)
-        em.compute_frontiers(frontier_layer or QUESTION_LAYER, timer=timer, candidates=candidates)
+        for ext, pending_one in zip(self.extensions, pending_ext, strict=True):
+            ext.apply(robot, em, frame, pending_one, out, timer.ms)
+        em.compute_frontiers(out.frontier_layer, timer=timer, candidates=candidates)
         # Persist before publishing: whatever a consumer has seen survives a crash of this process. The update's
         # time and timings are stored with the map, so one killed between the two is answered by its successor
         # with the same message, not a second one.
@@ -208,16 +220,16 @@ class MapperService(AnswerViewsShell, QuestionObjectsShell, ObjectLayerShell, Ep
         timer.ms["step"] = (time.perf_counter() - t_start) * 1000.0
         update = em.map_update()
         update.skill = frame.skill  # a task skill's outcome, passed on to the planner's state machine
-        self.objects_attach(em, update, frame, {})
+        for ext in self.extensions:
+            ext.attach(em, update, frame)
         if result is None:  # not kept as the step's answer: a resent step is scored again (answer_again)
             self.publish(robot, keys.MAPPER_MAP, update)
         else:
             self.publish_step(em.episode_id, keys.MAPPER_MAP, update, frame.step)
-            self.publish_step(em.episode_id, keys.MAPPER_SCORES, self._step_scores(
-                em, frame, result, evidence, self.views_steps(em.episode_id)), frame.step)
+            self.publish_step(em.episode_id, keys.MAPPER_SCORES, self._step_scores(em, frame, result, out),
+                              frame.step)
         t0 = time.perf_counter()
         self._record(em, frame)
-        self.objects_record(em, frame)
         timer.lap("record", t0)
         self.last_timing_ms = timer.ms
 
@@ -228,17 +240,20 @@ class MapperService(AnswerViewsShell, QuestionObjectsShell, ObjectLayerShell, Ep
         log.info("episode %s: frame %d sent again; its map update and scores re-published", em.episode_id, frame.step)
         update = em.map_update({})
         update.skill = frame.skill
-        self.objects_attach(em, update, frame, {})
+        for ext in self.extensions:
+            ext.attach(em, update, frame)
         self.publish(robot, keys.MAPPER_MAP, update)
         result = self._score(robot, em, frame)
         if result is not None:
-            result = self.views_apply(em, frame.step, frame.rgb, result)  # the stored joint answer
-            self.publish(robot, keys.MAPPER_SCORES, self._step_scores(em, frame, result, self.qobjects_evidence(em),
-                                                                      self.views_steps(em.episode_id)))
+            out = StepOutputs()
+            for ext in self.extensions:  # e.g. the stored joint answer
+                result = ext.scores(em, frame, result, out, {})
+            for ext in self.extensions:
+                ext.resent(em, frame, out)
+            self.publish(robot, keys.MAPPER_SCORES, self._step_scores(em, frame, result, out))
 
     @staticmethod
-    def _step_scores(em: EpisodeMap, frame: Frame, result: ScoreResult,
-                     evidence: ObjectEvidence | None = None, answer_views: list[int] | None = None) -> StepScores:
+    def _step_scores(em: EpisodeMap, frame: Frame, result: ScoreResult, out: StepOutputs) -> StepScores:
         return StepScores(
             episode_id=em.episode_id,
             step=frame.step,
@@ -250,8 +265,8 @@ class MapperService(AnswerViewsShell, QuestionObjectsShell, ObjectLayerShell, Ep
             mode=result.mode,  # logprobs / sampling: the stopper warns on a calibration mismatch
             # a question without choices: the ones the scorer proposed (Explore-EQA section VI-A)
             choices=em.start.question.choices or result.proposed_choices,
-            object_evidence=evidence,  # the question's object layer (EQA_OBJECT_EVIDENCE)
-            answer_views=answer_views or [],  # steps of the joint answer (EQA_ANSWER_MEMORY_MODE=joint)
+            object_evidence=out.object_evidence,  # the question's object layer (EQA_OBJECT_EVIDENCE)
+            answer_views=out.answer_views,  # steps of the joint answer (EQA_ANSWER_MEMORY_MODE=joint)
         )
 
     def _timed_score(self, robot: str, em: EpisodeMap, frame: Frame) -> tuple[ScoreResult | None, float]:
@@ -272,13 +287,9 @@ class MapperService(AnswerViewsShell, QuestionObjectsShell, ObjectLayerShell, Ep
             depth=frame.depth,
             seed=em.start.seed,
         )
-        try:
-            result = self.scorer()(request)
-        except Exception as exc:
-            self._error(robot, em.episode_id, frame.step, f"scorer failed: {type(exc).__name__}: {exc}")
-            return None
-        if isinstance(result, ErrorReply):
-            self._error(robot, em.episode_id, frame.step, f"scorer failed: {result.reason}")
+        result = call_pool(self.scorer(), request)
+        if isinstance(result, Exception | ErrorReply):
+            self._error(robot, em.episode_id, frame.step, f"scorer failed: {failure(result)}")
             return None
         return result
 
@@ -290,27 +301,35 @@ class MapperService(AnswerViewsShell, QuestionObjectsShell, ObjectLayerShell, Ep
 
     # ---- monitoring -------------------------------------------------------------------------------------
     def _record(self, em: EpisodeMap, frame: Frame) -> None:
-        rec = self.recorders.get(em.episode_id)
-        if rec is None or rec.stream is None or em.maps is None:
+        recorder = self.recorders.get(em.episode_id)
+        if recorder is None or recorder.stream is None:
+            return
+        self._record_map(em, frame, recorder)
+        for ext in self.extensions:
+            ext.record(em, frame, recorder)
+
+    @staticmethod
+    def _record_map(em: EpisodeMap, frame: Frame, recorder: EpisodeRecorder) -> None:
+        if em.maps is None:
             return
         import rerun as rr
 
         m = em.maps
-        rec.set_step(frame.step)
+        recorder.set_step(frame.step)
         occ = np.zeros(m.free.shape, dtype=np.uint8)  # 0 unknown, 128 free, 255 occupied (y up)
         occ[m.free] = 128
         occ[m.occupied] = 255
-        rec.log("map/occupancy", rr.Image(np.flipud(occ)))
-        rec.log("map/explored", rr.Image(np.flipud(m.explored.astype(np.uint8) * 255)))
+        recorder.log("map/occupancy", rr.Image(np.flipud(occ)))
+        recorder.log("map/explored", rr.Image(np.flipud(m.explored.astype(np.uint8) * 255)))
         for name in em.layers:
-            rec.log(f"map/value/{name}", rr.Image(np.flipud(em.layer(name))))
+            recorder.log(f"map/value/{name}", rr.Image(np.flipud(em.layer(name))))
         ny = m.free.shape[0]
         res = em.resolution
         if em.frontiers:
             cells = [grid.fractional_cell(f.x, f.y, em.origin, res) for f in em.frontiers]
             pos = [(c, ny - r) for r, c in cells]
             w = np.array([f.weight for f in em.frontiers])
-            rec.log(
+            recorder.log(
                 "map/frontiers",
                 rr.Points2D(
                     pos,
@@ -319,7 +338,7 @@ class MapperService(AnswerViewsShell, QuestionObjectsShell, ObjectLayerShell, Ep
                 ),
             )
         if em.prompts:
-            rec.log(
+            recorder.log(
                 "camera/prompt_points",
                 rr.Points2D([(p.u, p.v) for p in em.prompts], labels=[p.label for p in em.prompts]),
             )
