@@ -157,9 +157,9 @@ def test_the_figure_draws_every_strategy_of_the_results(tmp_path: Path) -> None:
     qids = [f"q{i}" for i in range(12)]
     sizes = {q: ev.SIZE_CLASSES[i % 3] for i, q in enumerate(qids)}
     # a strategy the plots have never heard of, better than both baselines
-    runs = {"fbe": [_trace(q, cats[i % 2], 8, 9 if i % 2 else None) for i, q in enumerate(qids)],
-            "semantic": [_trace(q, cats[i % 2], 6, 7 if i % 3 else None) for i, q in enumerate(qids)],
-            "someone_new": [_trace(q, cats[i % 2], 1, 2) for i, q in enumerate(qids)]}
+    runs = {"fbe": [_trace(q, cats[i % 2], 8, 8 if i % 2 else None) for i, q in enumerate(qids)],
+            "semantic": [_trace(q, cats[i % 2], 6, 6 if i % 3 else None) for i, q in enumerate(qids)],
+            "someone_new": [_trace(q, cats[i % 2], 1, 1) for i, q in enumerate(qids)]}
 
     def part(ts: list) -> dict:
         return {"n": len(ts), "success": ev.success_at_budgets(ts), "evidence_cdf": ev.evidence_cdf(ts, CDF_BUDGETS)}
@@ -190,10 +190,35 @@ def test_the_figure_draws_every_strategy_of_the_results(tmp_path: Path) -> None:
     succ = {ln.get_label().split(" ")[0]: ln for ln in axes[1].get_lines()}
     assert set(succ) == set(runs)
     new_label = succ["someone_new"].get_label()
-    assert "sem +" in new_label and "fbe +" in new_label  # its paired differences at T against both baselines
+    # its paired differences at T against both baselines: 12 right against semantic's 8 and fbe's 6
+    assert "sem +0.333" in new_label and "fbe +0.500" in new_label
     assert list(succ["someone_new"].get_ydata()) == results["strategies"]["someone_new"]["success"]
     colors = {ln.get_color() for ln in succ.values()}
     assert len(colors) == 3  # a colour of its own
     paths = plot_explore(results, tmp_path)
     assert (tmp_path / "explore_evidence_and_success.png") in paths
     assert all(p.is_file() and p.stat().st_size > 1000 for p in paths)
+
+
+def test_sets_read_from_other_result_directories_are_used_not_copied(settings, tmp_path: Path) -> None:
+    """``eqa bench explore --traces DIR``: stored runs kept elsewhere join the figures without being run again, and
+    are not exported into ``--out`` (one copy of each set); a set of ``--out`` itself is exported as before."""
+    import argparse
+
+    from eqa.app.bench_cli import _collect
+    from services.stopper.calibration import read_jsonl, write_jsonl
+
+    kept = tmp_path / "kept"
+    qs = [Question(id=f"q{i}", text="Is there a box?", choices=["Yes", "No"], scene="gen-00001", max_steps=10)
+          for i in range(3)]
+    write_jsonl(kept / "set-a.jsonl.gz", [_trace(q.id, "existence", 1, 1) for q in qs])
+    args = argparse.Namespace(out=str(tmp_path / "out"), traces=[str(kept)], no_progress=True, runner="cores",
+                              workers=1)
+    got = _collect(qs, settings, "fbe", "set-a", args)
+    assert [t.question_id for t in got] == ["q0", "q1", "q2"]
+    assert not (tmp_path / "out" / "traces" / "set-a.jsonl.gz").exists()
+    write_jsonl(tmp_path / "out" / "traces" / "set-b.jsonl.gz", [_trace(q.id, "existence", 1, 1) for q in qs[:2]])
+    write_jsonl(kept / "set-b.jsonl.gz", [_trace(qs[2].id, "existence", 2, 2)])
+    got = _collect(qs, settings, "fbe", "set-b", args)
+    assert len(got) == 3 and got[2].steps[2].relevance == 0.6  # the third from the other directory
+    assert len(list(read_jsonl(tmp_path / "out" / "traces" / "set-b.jsonl.gz"))) == 3  # --out's own set, exported

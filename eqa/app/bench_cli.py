@@ -163,11 +163,11 @@ def _collect(questions: list[Any], settings: Any, strategy: str, name: str, args
     export = trace_file(Path(args.out) / "traces", name)
     # --out's own traces first, then those of other result directories (--traces), e.g. the stored runs of the
     # strategies a new one is compared with, so that they are not run (or copied) again
-    elsewhere = False
-    for source in [export, *(trace_file(Path(d), name) for d in getattr(args, "traces", []))]:
+    kept = [trace_file(Path(d), name) for d in getattr(args, "traces", [])]
+    elsewhere = any(k.is_file() for k in kept)
+    for source in [export, *kept]:
         if (added := _import(source, name, settings)):
             log.info("%s: %d traces imported from %s", name, added, source)
-            elsewhere |= source != export
     with open_store(settings) as store:
         done = sum(TraceStore(store).has(name, q.id) for q in questions)
     t0 = time.monotonic()

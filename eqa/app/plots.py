@@ -50,7 +50,7 @@ def plot_evidence_and_success(results: dict[str, Any], out: Path) -> Path:
     """:func:`evidence_and_success_figure` saved as ``explore_evidence_and_success.png`` under ``out``."""
     fig = evidence_and_success_figure(results)
     path = out / "explore_evidence_and_success.png"
-    fig.savefig(path, dpi=90)
+    fig.savefig(path, dpi=72)
     plt.close(fig)
     return path
 
@@ -109,9 +109,9 @@ def evidence_and_success_figure(results: dict[str, Any]) -> Any:
                 ax.legend(fontsize=6, loc="lower right")
     seeds = results.get("seeds", [0])
     fig.suptitle(f"Exploration: first evidence and success per strategy, pooled over seeds "
-                 f"{' '.join(map(str, seeds))} ({results['scorer']}, {results['size']}, runner "
-                 f"{results.get('runner', 'fleet')}); paired sign tests at T", fontsize=9)
-    fig.tight_layout(rect=(0, 0, 1, 0.985))
+                 f"{' '.join(map(str, seeds))}; legend: paired success difference at T (exact sign-test p)\n"
+                 f"{results['scorer']}, {results['size']}, runner {results.get('runner', 'fleet')}", fontsize=9)
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.3 / len(rows)))
     return fig
 
 
