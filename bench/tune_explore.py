@@ -89,7 +89,7 @@ def configs(knobs: dict[str, Any]) -> tuple[Any, Any]:
 
 def run_episode(args: tuple[Any, str, dict[str, Any], int, int]) -> Episode:
     """One full-length episode with the pure cores in this process (:func:`eqa.app.core_runner.run_episode_loop`)."""
-    from eqa.app.benchmark_runner import question_seed
+    from eqa.app.benchmark_runner import question_seed, yardstick_paths
     from eqa.app.core_runner import EpisodeCores, StepHooks, run_episode_loop
     from eqa.messages import EpisodeStart
     from eqa.settings import Settings
@@ -107,7 +107,8 @@ def run_episode(args: tuple[Any, str, dict[str, Any], int, int]) -> Episode:
     oracle = OracleBackend.from_settings(settings)
     seed = question_seed(question.id)
     start = EpisodeStart(episode_id=f"tune-{question.id}", robot="r0", question=question, strategy=strategy,
-                         max_steps=question.max_steps, seed=seed)
+                         max_steps=question.max_steps, seed=seed,
+                         target_paths=yardstick_paths(question, strategy, settings.scenes_path, scene))
     target = parse_target(question)
     f: list[list[float]] = []
     rel: list[float] = []
@@ -344,6 +345,15 @@ def main(argv: list[str] | None = None) -> int:
                             for b in sorted({1.0, args.horizon})}
             for b, counts in r["ceiling"].items():
                 print(f"    within {b:g} T: " + ", ".join(f"{k} {c}" for k, c in counts.items()))
+    if args.ceiling:  # what any strategy could reach: eqa/app/ceiling.py (the same numbers as eqa bench --ceiling)
+        from eqa.app.ceiling import benchmark_ceilings, ceiling_cdf
+
+        ceilings = benchmark_ceilings(qs, Settings(), w, h)
+        shares = ceiling_cdf(ceilings, [0.25, 0.5, 1.0])
+        print(f"ceiling (evidence perceivable at all, {len(ceilings)} questions): within 0.25 / 0.5 / 1 T "
+              + " / ".join(f"{v:.2f}" for v in shares))
+        within = {f"evidence@{b}": v for b, v in zip((0.25, 0.5, 1.0), shares, strict=True)}
+        rows.append({"variant": "ceiling", "n": len(ceilings), **within})
     (outdir / f"summary-seed{args.seed}.json").write_text(json.dumps(rows, indent=1))
     return 0
 

@@ -306,6 +306,9 @@ class EpisodeStart(Message):
     # The internal id of the home whose memory the episode reads and extends (:func:`eqa.homes.home_id`);
     # None: the episode starts from an empty map and leaves no memory.
     home: str | None = None
+    # Ground truth for the target_oracle yardstick only (set by the benchmark runners, never by the gateway):
+    # the walked distance from every cell of the house to the nearest target (services/sim/paths.py).
+    target_paths: TargetPaths | None = None
 
     @field_validator("episode_id", "robot")
     @classmethod
@@ -316,6 +319,13 @@ class EpisodeStart(Message):
     @classmethod
     def _safe_home(cls, v: str | None) -> str | None:
         return None if v is None else keys.check_id(v, "home")
+
+    @model_validator(mode="after")
+    def _paths_only_for_the_yardstick(self) -> EpisodeStart:
+        if self.target_paths is not None and self.strategy != "target_oracle":
+            raise ValueError(f"target_paths (ground truth) is for the target_oracle yardstick only, not for "
+                             f"strategy {self.strategy!r}")
+        return self
 
 
 class EpisodeCancel(Message):
@@ -386,6 +396,34 @@ class GridSpec(BaseModel):
     resolution: float = Field(gt=0)
     rows: int = Field(ge=1)
     cols: int = Field(ge=1)
+
+
+MAX_TARGET_PATH_CELLS = 4_000_000  # a 200 m x 200 m house at 0.1 m per cell
+
+
+class TargetPaths(BaseModel):
+    """Benchmark-only ground truth of the ``target_oracle`` yardstick: ``distance_m[i, j]`` is the length (m)
+    of the shortest walk through the true house from cell ``(i, j)`` of ``grid`` to the nearest target of the
+    question (``inf``: none reachable). Made by the simulator side (services/sim/paths.py) from its navigable
+    grid; read by the mapper to weigh frontiers for that one strategy."""
+
+    model_config = ConfigDict(arbitrary_types_allowed=True, extra="forbid")
+    grid: GridSpec
+    distance_m: ZNDArray
+
+    @model_validator(mode="after")
+    def _shape(self) -> TargetPaths:
+        g, d = self.grid, self.distance_m
+        if g.rows * g.cols > MAX_TARGET_PATH_CELLS:
+            raise ValueError(f"target paths grid {g.rows}x{g.cols} exceeds {MAX_TARGET_PATH_CELLS} cells")
+        if not isinstance(d, np.ndarray) or d.dtype != np.float32 or d.shape != (g.rows, g.cols):
+            raise ValueError(f"distance_m must be a {g.rows}x{g.cols} float32 array")
+        if bool(np.isnan(d).any()) or bool((d < 0).any()):
+            raise ValueError("distance_m must hold non-negative distances or inf")
+        return self
+
+
+EpisodeStart.model_rebuild()
 
 
 class MapUpdate(Message):

@@ -60,6 +60,9 @@ def scorer_label(settings: Any) -> str:
 # Bumped when the exploration itself changes (planner, mapper value layers), so that traces of an earlier
 # behaviour are not resumed into new figures (version 2 was a withdrawn trial of a doorway fix).
 EXPLORATION_VERSION = 1
+# Strategies whose own behaviour has a later version than the rest: target_oracle 2 walks to the target through
+# the true house (services/sim/paths.py); its version-1 traces (straight-line distance) stay a separate set.
+STRATEGY_VERSIONS = {"target_oracle": 2}
 
 
 def set_name(strategy: str, settings: Any, seed: int = 0) -> str:
@@ -67,7 +70,7 @@ def set_name(strategy: str, settings: Any, seed: int = 0) -> str:
     id: the explore and the stop benchmarks read the same full-length runs. Seed 0 keeps the legacy names (and
     traces) of the first figures."""
     base = f"bench-{strategy}-{settings.scorer_backend}-{settings.sim_width}x{settings.sim_height}"
-    return base if seed == 0 else f"{base}-seed{seed}-x{EXPLORATION_VERSION}"
+    return base if seed == 0 else f"{base}-seed{seed}-x{STRATEGY_VERSIONS.get(strategy, EXPLORATION_VERSION)}"
 
 
 def _runner_suffix(args: argparse.Namespace) -> str:
@@ -158,8 +161,13 @@ def _collect(questions: list[Any], settings: Any, strategy: str, name: str, args
     from services.stopper.calibration import TraceStore
 
     export = trace_file(Path(args.out) / "traces", name)
-    if (added := _import(export, name, settings)):
-        log.info("%s: %d traces imported from %s", name, added, export)
+    # --out's own traces first, then those of other result directories (--traces), e.g. the stored runs of the
+    # strategies a new one is compared with, so that they are not run (or copied) again
+    kept = [trace_file(Path(d), name) for d in getattr(args, "traces", [])]
+    elsewhere = any(k.is_file() for k in kept)
+    for source in [export, *kept]:
+        if (added := _import(source, name, settings)):
+            log.info("%s: %d traces imported from %s", name, added, source)
     with open_store(settings) as store:
         done = sum(TraceStore(store).has(name, q.id) for q in questions)
     t0 = time.monotonic()
@@ -181,7 +189,8 @@ def _collect(questions: list[Any], settings: Any, strategy: str, name: str, args
                  ran / max(minutes, 1e-9), steps / max(minutes * 60, 1e-9))
     with open_store(settings) as store:
         everything = TraceStore(store).load(name)
-    _export(export, everything)
+    if ran or export.is_file() or not elsewhere:  # a set only read from --traces stays where it is kept
+        _export(export, everything)
     by_id = {t.question_id: t for t in everything}
     return [by_id[q.id] for q in questions if q.id in by_id]
 
@@ -262,6 +271,10 @@ def cmd_explore(args: argparse.Namespace) -> int:
     settings = _settings(args)
     setup_logging(settings.log_level, "eqa-bench")
     logging.getLogger("eqa.launcher").setLevel(logging.WARNING)
+    if len(args.traces) > 16:
+        from eqa.app.cli import UsageError
+
+        raise UsageError("--traces takes at most 16 directories")
     seeds = list(dict.fromkeys(args.seeds))
     roles = {s: seed_role(s) for s in seeds}
     for s, role in roles.items():
@@ -276,6 +289,9 @@ def cmd_explore(args: argparse.Namespace) -> int:
                                "seed_roles": {str(s): r for s, r in roles.items()},
                                "cdf_budgets": list(CDF_BUDGETS), "strategies": {}}
     areas = {k: v for s in seeds for k, v in _areas(questions[s], settings).items()}
+    cuts = ev.size_cuts(areas.values())
+    sizes = {q: ev.size_class(a, cuts) for q, a in areas.items()}
+    results["size_cuts_m2"] = list(cuts)
     runs: dict[str, dict[int, list[Any]]] = {}
     # (label, strategy, settings): the strategies, then semantic exploration at other temperatures (Fig. 7c)
     plan = [(s, s, settings) for s in args.strategies]
@@ -290,8 +306,12 @@ def cmd_explore(args: argparse.Namespace) -> int:
             **_summary(traces, ev),
             "bound": label in BOUNDS,
             "per_seed": {str(s): _summary(runs[label][s], ev) for s in seeds},
-            "by_category": {c: {"n": len(ts), "success": ev.success_at_budgets(ts)}
+            "by_category": {c: {"n": len(ts), "success": ev.success_at_budgets(ts),
+                                "evidence_cdf": ev.evidence_cdf(ts, CDF_BUDGETS)}
                             for c, ts in ev.by_group(traces, "category").items()},
+            "by_size": {c: {"n": len(ts), "success": ev.success_at_budgets(ts),
+                            "evidence_cdf": ev.evidence_cdf(ts, CDF_BUDGETS)}
+                        for c, ts in ev.by_group(traces, groups=sizes).items()},
             "by_area": {b: {"n": len(ts), "success_full_budget": ev.success_at_budgets(ts, (1.0,))[0]}
                         for b, ts in ev.by_group(traces, groups={q: ev.area_bin(a) for q, a in areas.items()}).items()},
         }
@@ -309,15 +329,30 @@ def cmd_explore(args: argparse.Namespace) -> int:
         return {"pooled": vars(pooled),
                 "per_seed": {str(s): vars(ev.paired_first_evidence(runs[a][s], runs[b][s])) for s in seeds}}
 
+    def paired_in(a: str, b: str, kind: str, group: str) -> list[dict[str, Any]]:
+        """The pooled paired comparison of a and b on the questions of one category or house-size class."""
+        def keep(ts: list[Any]) -> list[Any]:
+            return [t for t in ts if (t.category if kind == "category" else sizes.get(t.question_id)) == group]
+
+        return [vars(p) for p in ev.pool_paired([ev.paired_comparison(keep(runs[a][s]), keep(runs[b][s]),
+                                                                        PAIRED_BUDGETS) for s in seeds])]
+
+    groups = {"category": sorted({str(t.category) for r in runs.values() for ts in r.values() for t in ts}),
+              "size": [c for c in ev.SIZE_CLASSES if c in set(sizes.values())]}
     for base in ("semantic", "fbe"):
         if base not in runs:
             continue
         others = [k for k in runs if k != base]
+        results[f"paired_vs_{base}_by_group"] = {
+            kind: {g: {k: (paired_in(base, k, kind, g) if base == "semantic" else paired_in(k, base, kind, g))
+                       for k in others} for g in names} for kind, names in groups.items()}
         pairs = {k: (paired(base, k) if base == "semantic" else paired(k, base)) for k in others}
         results[f"paired_vs_{base}"] = {k: v[0] for k, v in pairs.items()}
         results[f"paired_vs_{base}_per_seed"] = {k: v[1] for k, v in pairs.items()}
         results[f"first_evidence_vs_{base}"] = {k: (sooner(base, k) if base == "semantic" else sooner(k, base))
                                                 for k in others}
+    if args.ceiling:
+        results["ceiling"] = _ceiling(questions, settings, out, sizes)
     (out / "explore.json").write_text(json.dumps(results, indent=2))
     from eqa.app.plots import plot_explore
 
@@ -325,6 +360,41 @@ def cmd_explore(args: argparse.Namespace) -> int:
     _print_explore(results)
     print(f"results: {out / 'explore.json'}; plots: {', '.join(str(p) for p in paths)}")
     return 0
+
+
+def _ceiling(questions: dict[int, list[Any]], settings: Any, out: Path, sizes: dict[str, str]) -> dict[str, Any]:
+    """The evidence ceiling of the questions (:mod:`eqa.app.ceiling`): per question the earliest normalised step
+    at which the evidence can be perceived, kept in ``<out>/ceiling.json`` (computed again only for questions it
+    lacks); pooled, per seed, per category and per house-size class, the share within each CDF budget."""
+    from eqa.app.ceiling import Ceiling, benchmark_ceilings, ceiling_cdf
+
+    path = out / "ceiling.json"
+    stored: dict[str, Any] = json.loads(path.read_text()) if path.is_file() else {}
+    todo = [q for qs in questions.values() for q in qs if q.id not in stored]
+    if todo:
+        t0 = time.monotonic()
+        for c in benchmark_ceilings(todo, settings, settings.sim_width, settings.sim_height):
+            stored[c.question_id] = vars(c)
+        log.info("evidence ceiling of %d questions in %.1f min", len(todo), (time.monotonic() - t0) / 60)
+        path.write_text(json.dumps(dict(sorted(stored.items())), indent=0))
+    every = {q.id: (q, Ceiling(**stored[q.id])) for qs in questions.values() for q in qs}
+
+    def summary(cs: list[Ceiling]) -> dict[str, Any]:
+        reasons: dict[str, int] = {}
+        for c in cs:
+            reasons[c.reason] = reasons.get(c.reason, 0) + 1
+        return {"n": len(cs), "cdf": ceiling_cdf(cs, CDF_BUDGETS),
+                "share_within": {f"{b:g}": ceiling_cdf(cs, [b])[0] for b in (0.25, 0.5, 1.0)}, "reasons": reasons}
+
+    def group(key: Any) -> dict[str, Any]:
+        names = sorted({str(key(q)) for q, _ in every.values()})
+        return {g: summary([c for q, c in every.values() if str(key(q)) == g]) for g in names}
+
+    return {**summary([c for _, c in every.values()]),
+            "what": "evidence perceivable (simulated perception model, quality > 0) from a pose reachable within the "
+                    "budget along the true house's shortest paths, max_step_m per step, any heading on arrival",
+            "per_seed": {str(s): summary([every[q.id][1] for q in qs]) for s, qs in questions.items()},
+            "by_category": group(lambda q: q.category), "by_size": group(lambda q: sizes.get(q.id))}
 
 
 def _areas(questions: list[Any], settings: Any) -> dict[str, float]:
@@ -349,6 +419,9 @@ def _print_explore(results: dict[str, Any]) -> None:
     for name, r in results["strategies"].items():
         print(f"{name:<{width}} {r['n']:<4} " + " ".join(f"{v:5.2f}" for v in r["success"])
               + f"  {r['evidence_share']:.3f} ({r['first_evidence_at']:.2f})")
+    if (c := results.get("ceiling")):
+        print(f"evidence ceiling (n {c['n']}): perceivable within 0.25 / 0.5 / 1 T "
+              + " / ".join(f"{c['share_within'][b]:.3f}" for b in ("0.25", "0.5", "1")))
     print("success at T among the episodes that saw the evidence within T / that did not (n):")
     for name, r in results["strategies"].items():
         s = r.get("success_by_evidence", {}).get("1")
@@ -474,6 +547,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     e.add_argument("--strategies", nargs="+", choices=STRATEGIES + BOUNDS, default=list(STRATEGIES),
                    help="strategies to run (default: the four of Fig. 7); target_oracle and perfect_sv are "
                         "benchmark-only yardsticks (upper bounds that read the ground-truth target positions)")
+    e.add_argument("--ceiling", action="store_true",
+                   help="also compute the evidence ceiling (eqa/app/ceiling.py): the share of questions whose evidence "
+                        "can be perceived at all within each budget (ground truth, kept in <--out>/ceiling.json)")
+    e.add_argument("--traces", nargs="*", default=[], metavar="DIR",
+                   help="also import stored trace sets from these directories (e.g. bench/results/explore-seeds/"
+                        "traces), so that runs stored elsewhere join the figures and paired tests without being run")
     e.add_argument("--seeds", nargs="+", type=int, default=[0], metavar="SEED",
                    help="benchmark seeds, pooled and per seed (default 0, the legacy seed; the evaluation seeds "
                         "are 1 2 3, the tuning seed 11: eqa.seeds); --limit applies per seed")

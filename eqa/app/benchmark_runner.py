@@ -45,6 +45,19 @@ def question_seed(question_id: str) -> int:
     return int.from_bytes(hashlib.sha256(question_id.encode()).digest()[:4], "little") & 0x7FFFFFFF
 
 
+def yardstick_paths(question: Question, strategy: str, scenes_path: Any, scene: Any = None) -> Any:
+    """The ground truth the ``target_oracle`` yardstick plans with (:func:`services.sim.paths.target_paths`:
+    walked distances to the question's targets through the true house), for its :class:`EpisodeStart`; None
+    for every other strategy. ``scene``: the loaded scene, if the caller has it."""
+    if strategy != "target_oracle" or not question.targets:
+        return None
+    from services.sim.library import load_or_generate
+    from services.sim.paths import target_paths
+
+    return target_paths(scene if scene is not None else load_or_generate(question.scene, scenes_path),
+                        question.targets)
+
+
 @dataclass
 class _Running:
     question: Question
@@ -144,6 +157,7 @@ class Runner:
             max_steps=question.max_steps,
             seed=question_seed(question.id),
             record=self.record,
+            target_paths=yardstick_paths(question, self.strategy, self.settings.scenes_path),
         )
         self.fleet.hub.publish(keys.stream(robot, keys.EPISODE_START), start)
         now = time.monotonic()

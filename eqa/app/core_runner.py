@@ -149,7 +149,7 @@ class _TraceSteps(StepHooks):
 def core_episode(args: tuple[Any, str, dict[str, Any]]) -> Any:
     """One full-length episode of ``question`` with ``strategy`` under ``settings`` (a ``model_dump``); returns a
     :class:`services.stopper.calibration.Trace` (its ``end_reason`` says why it ended)."""
-    from eqa.app.benchmark_runner import question_seed
+    from eqa.app.benchmark_runner import question_seed, yardstick_paths
     from eqa.messages import EpisodeStart
     from eqa.settings import Settings
     from services.mapper.episode_map import EpisodeMap, MapperConfig
@@ -164,7 +164,8 @@ def core_episode(args: tuple[Any, str, dict[str, Any]]) -> Any:
     scene = load_or_generate(question.scene, settings.scenes_path)
     seed = question_seed(question.id)
     start = EpisodeStart(episode_id=f"cores-{question.id}", robot="cores", question=question, strategy=strategy,
-                         max_steps=question.max_steps, seed=seed, record=False)
+                         max_steps=question.max_steps, seed=seed, record=False,
+                         target_paths=yardstick_paths(question, strategy, settings.scenes_path, scene))
     emap = EpisodeMap(start, MapperConfig(tau_lsv=settings.tau_lsv, tau_gsv=settings.tau_gsv, tau_sv=settings.tau_sv,
                                           tau_sv_normal=settings.tau_sv_normal, view_bins=settings.view_bins,
                                           view_agree=settings.view_agree))

@@ -329,3 +329,21 @@ def by_group(traces: Sequence[Trace], key: str | None = None, groups: dict[str, 
 def area_bin(area_m2: float, width: float = 100.0) -> str:
     lo = int(area_m2 // width * width)
     return f"{lo}-{lo + int(width)}"
+
+
+SIZE_CLASSES = ("small", "medium", "large")
+
+
+def size_cuts(areas: Iterable[float]) -> tuple[float, float]:
+    """Floor-area cut points (m²) of the small / medium / large house classes: the tertiles of the distinct
+    houses' areas, so that each class holds about a third of the houses of the benchmark at hand."""
+    vals = np.unique(np.asarray(list(areas), dtype=np.float64))
+    if vals.size == 0:
+        return (math.inf, math.inf)
+    lo, hi = np.quantile(vals, [1 / 3, 2 / 3])
+    return float(lo), float(hi)
+
+
+def size_class(area_m2: float, cuts: tuple[float, float]) -> str:
+    """``small`` up to the first cut, ``medium`` up to the second, ``large`` above (:func:`size_cuts`)."""
+    return SIZE_CLASSES[0] if area_m2 <= cuts[0] else SIZE_CLASSES[1] if area_m2 <= cuts[1] else SIZE_CLASSES[2]

@@ -15,6 +15,106 @@ COLORS = {"semantic": "tab:red", "fbe": "tab:blue", "no_lsv": "tab:orange", "no_
           "cp": "tab:red", "entropy": "tab:blue", "relevance": "tab:green"}
 
 
+EXTRA_COLORS = ("tab:brown", "tab:pink", "tab:olive", "tab:cyan", "tab:gray", "gold", "darkgreen", "navy",
+                "salmon", "teal")
+
+
+def strategy_colors(names: list[str]) -> dict[str, str]:
+    """A colour per strategy: the fixed ones of :data:`COLORS`, then distinct others for any further strategy
+    read from the results (a new strategy gets a colour no other line of the figure has)."""
+    used = {COLORS[n] for n in names if n in COLORS}
+    spare = iter([c for c in EXTRA_COLORS if c not in used])
+    return {n: COLORS[n] if n in COLORS else next(spare, "black") for n in names}
+
+
+def _paired_note(results: dict[str, Any], name: str, budget: float = 1.0, group: tuple[str, str] | None = None
+                 ) -> str:
+    """``vs semantic +0.050 (p 0.01), vs fbe ...`` at ``budget``: the pooled paired success differences of
+    ``name`` against the two baselines (over one category / size class when ``group`` = (kind, name))."""
+    parts = []
+    for base, short in (("semantic", "sem"), ("fbe", "fbe")):
+        if name == base:
+            continue
+        table = results.get(f"paired_vs_{base}", {}) if group is None else \
+            results.get(f"paired_vs_{base}_by_group", {}).get(group[0], {}).get(group[1], {})
+        row = next((r for r in table.get(name, []) if abs(r["budget"] - budget) < 1e-9), None)
+        if row is None or not row.get("n"):
+            continue
+        # paired_vs_semantic holds semantic - other; show other - base in both cases
+        d = (-row["diff"] if base == "semantic" else row["diff"]) + 0.0  # + 0.0: no "-0.000"
+        parts.append(f"{short} {d:+.3f} (p {row['p_value']:.2g})")
+    return ", ".join(parts)
+
+
+def plot_evidence_and_success(results: dict[str, Any], out: Path) -> Path:
+    """:func:`evidence_and_success_figure` saved as ``explore_evidence_and_success.png`` under ``out``."""
+    fig = evidence_and_success_figure(results)
+    path = out / "explore_evidence_and_success.png"
+    fig.savefig(path, dpi=72)
+    plt.close(fig)
+    return path
+
+
+def evidence_and_success_figure(results: dict[str, Any]) -> Any:
+    """The exploration figure: per strategy read from the results, the first-evidence CDF over normalised steps
+    (with the evidence ceiling when the results have it) and success vs normalised steps, pooled over the seeds;
+    one row for all questions, one per question category and one per house-size class (small / medium /
+    large), each strategy's legend entry with its paired success difference at T against semantic and fbe."""
+    strategies = {k: v for k, v in results["strategies"].items() if not k.startswith("semantic_tau")}
+    names = list(strategies)
+    colors = strategy_colors(names)
+    budgets, cdf_budgets = results["budgets"], results.get("cdf_budgets", [])
+    ceiling = results.get("ceiling")
+    rows: list[tuple[str, tuple[str, str] | None]] = [("all questions", None)]
+    for kind, key in (("category", "by_category"), ("size", "by_size")):
+        groups = sorted({g for r in strategies.values() for g in r.get(key, {})},
+                        key=lambda g: (["small", "medium", "large"].index(g) if g in ("small", "medium", "large")
+                                       else 0, g))
+        rows += [(f"{kind}: {g}", (kind, g)) for g in groups]
+    fig, axes = plt.subplots(len(rows), 2, figsize=(11, 3.1 * len(rows)), squeeze=False)
+    cuts = results.get("size_cuts_m2")
+    for (title, group), (ax_cdf, ax_succ) in zip(rows, axes, strict=True):
+        key = None if group is None else ("by_category" if group[0] == "category" else "by_size")
+        n_max = 0
+        for name in names:
+            r = strategies[name] if key is None else strategies[name].get(key, {}).get(group[1])  # type: ignore[index]
+            if not r:
+                continue
+            n_max = max(n_max, r["n"])
+            ls = "--" if strategies[name].get("bound") else "-"
+            note = _paired_note(results, name, 1.0, group)
+            label = f"{name}{' (bound)' if strategies[name].get('bound') else ''} n={r['n']}" + \
+                (f"; at T vs {note}" if note else "")
+            if r.get("evidence_cdf") and cdf_budgets:
+                ax_cdf.step([0.0, *cdf_budgets], [0.0, *r["evidence_cdf"]], where="post", color=colors[name], ls=ls,
+                            label=f"{name} n={r['n']}")
+            ax_succ.plot(budgets, r["success"], marker=".", color=colors[name], ls=ls, label=label)
+        if ceiling and cdf_budgets:
+            c = ceiling if group is None else ceiling.get(key, {}).get(group[1])  # type: ignore[arg-type]
+            if c:
+                ax_cdf.step([0.0, *cdf_budgets], [0.0, *c["cdf"]], where="post", color="gray", lw=2.5, alpha=0.6,
+                            label=f"ceiling: perceivable at all (n={c['n']})")
+        size_note = ""
+        if group is not None and group[0] == "size" and cuts:
+            size_note = {"small": f" (<= {cuts[0]:.0f} m²)", "medium": f" ({cuts[0]:.0f}-{cuts[1]:.0f} m²)",
+                         "large": f" (> {cuts[1]:.0f} m²)"}.get(group[1], "")
+        ax_cdf.set(title=f"{title}{size_note}: first evidence (Rel >= 0.3)", ylim=(0, 1.02), xlim=(0, 1.02),
+                   xlabel="normalised steps (fraction of T)", ylabel="share of episodes")
+        ax_succ.set(title=f"{title}{size_note}: success (n={n_max})", ylim=(0, 1.02),
+                    xlabel="normalised steps (fraction of T)", ylabel="success rate")
+        for ax in (ax_cdf, ax_succ):
+            ax.title.set_fontsize(8.5)
+            ax.grid(alpha=0.3)
+            if ax.get_legend_handles_labels()[0]:
+                ax.legend(fontsize=6, loc="lower right")
+    seeds = results.get("seeds", [0])
+    fig.suptitle(f"Exploration: first evidence and success per strategy, pooled over seeds "
+                 f"{' '.join(map(str, seeds))}; legend: paired success difference at T (exact sign-test p)\n"
+                 f"{results['scorer']}, {results['size']}, runner {results.get('runner', 'fleet')}", fontsize=9)
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.3 / len(rows)))
+    return fig
+
+
 def plot_explore(results: dict[str, Any], out: Path) -> list[Path]:
     """Fig. 7 (success vs normalised budget), Fig. A6 (per category) and Fig. A7 (by house size)."""
     budgets = results["budgets"]
@@ -30,7 +130,9 @@ def plot_explore(results: dict[str, Any], out: Path) -> list[Path]:
     def label(name: str, r: dict[str, Any]) -> str:
         return f"{name}{' (bound)' if r.get('bound') else ''} (n={r['n']})"
 
-    curves = [(label(name, r), r["success"], COLORS.get(name)) for name, r in results["strategies"].items()]
+    colors = strategy_colors(list(results["strategies"]))
+
+    curves = [(label(name, r), r["success"], colors[name]) for name, r in results["strategies"].items()]
     paths.append(_success_plot(budgets, curves, f"Exploration: success vs steps\n{sub}",
                                out / "explore_success_vs_steps.png",
                                [r.get("success_ci95") for r in results["strategies"].values()]))
@@ -39,7 +141,10 @@ def plot_explore(results: dict[str, Any], out: Path) -> list[Path]:
         fig, ax = plt.subplots(figsize=(6, 4.2))
         for name, r in results["strategies"].items():
             ax.step([0.0, *results["cdf_budgets"]], [0.0, *r["evidence_cdf"]], where="post", label=label(name, r),
-                    color=COLORS.get(name), ls="--" if r.get("bound") else "-")
+                    color=colors[name], ls="--" if r.get("bound") else "-")
+        if (c := results.get("ceiling")):
+            ax.step([0.0, *results["cdf_budgets"]], [0.0, *c["cdf"]], where="post", color="gray", lw=2.5, alpha=0.6,
+                    label=f"ceiling: evidence perceivable at all (n={c['n']})")
         ax.set(xlabel="normalised step budget (fraction of T)", ylabel="share of episodes that saw the evidence",
                ylim=(0, 1), xlim=(0, 1.02), title=f"First evidence (Rel >= 0.3) within the budget\n{sub}")
         ax.title.set_fontsize(7.5)
@@ -56,7 +161,7 @@ def plot_explore(results: dict[str, Any], out: Path) -> list[Path]:
             for name, r in results["strategies"].items():
                 ps = r["per_seed"].get(str(seed))
                 if ps:
-                    ax.plot(budgets, ps["success"], marker=".", label=f"{name} (n={ps['n']})", color=COLORS.get(name),
+                    ax.plot(budgets, ps["success"], marker=".", label=f"{name} (n={ps['n']})", color=colors[name],
                             ls="--" if r.get("bound") else "-")
             ax.set(title=f"seed {seed}", xlabel="normalised steps", ylim=(0, 1))
             ax.grid(alpha=0.3)
@@ -75,7 +180,7 @@ def plot_explore(results: dict[str, Any], out: Path) -> list[Path]:
             for name, r in results["strategies"].items():
                 c = r["by_category"].get(cat)
                 if c:
-                    ax.plot(budgets, c["success"], marker=".", label=name, color=COLORS.get(name))
+                    ax.plot(budgets, c["success"], marker=".", label=name, color=colors[name])
             n = max((r["by_category"].get(cat, {}).get("n", 0) for r in results["strategies"].values()), default=0)
             ax.set(title=f"{cat} (n={n})", xlabel="normalised steps", ylim=(0, 1))
             ax.grid(alpha=0.3)
@@ -94,7 +199,7 @@ def plot_explore(results: dict[str, Any], out: Path) -> list[Path]:
         for k, (name, r) in enumerate(results["strategies"].items()):
             xs = [i + k * width for i in range(len(bins))]
             ys = [r["by_area"].get(b, {}).get("success_full_budget", 0.0) for b in bins]
-            ax.bar(xs, ys, width=width, label=name, color=COLORS.get(name))
+            ax.bar(xs, ys, width=width, label=name, color=colors[name])
         ax.set_xticks([i + 0.4 - width / 2 for i in range(len(bins))], [f"{b} m²" for b in bins], fontsize=7)
         ax.set(ylabel="success at full budget", ylim=(0, 1), title=f"Success by house size\n{sub}")
         ax.title.set_fontsize(9)
@@ -103,6 +208,8 @@ def plot_explore(results: dict[str, Any], out: Path) -> list[Path]:
         paths.append(out / "explore_by_house_size.png")
         fig.savefig(paths[-1], dpi=110)
         plt.close(fig)
+
+    paths.append(plot_evidence_and_success(results, out))
 
     if tau_runs:
         by_label: dict[str, Any] = {}

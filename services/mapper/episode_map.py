@@ -199,7 +199,7 @@ class EpisodeMap:
             return []
         fr = self.find_frontier_candidates() if candidates is None else candidates
         if self.strategy == "target_oracle":  # yardstick: weights from the ground-truth targets
-            self.frontiers = target_weights(fr, list(self.start.question.targets))
+            self.frontiers = target_weights(fr, list(self.start.question.targets), self.start.target_paths)
             timer.lap("frontiers", t0)
             return self.frontiers
         semantic = temperatures(self.strategy, self.config.tau_lsv, self.config.tau_gsv) is not None

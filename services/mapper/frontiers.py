@@ -17,7 +17,7 @@ import numpy as np
 from scipy import ndimage
 
 from eqa import grid
-from eqa.messages import Frontier
+from eqa.messages import Frontier, TargetPaths
 
 _EIGHT = np.ones((3, 3), dtype=bool)
 _OFFSETS = [(dr, dc) for dr in (-1, 0, 1) for dc in (-1, 0, 1) if dr or dc]
@@ -147,18 +147,50 @@ def sv_normal(
     return float(value_at(layer, origin, resolution, f.x + s * f.nx, f.y + s * f.ny).mean())
 
 
-def target_weights(frontiers: list[Frontier], targets: list[tuple[float, float]]) -> list[Frontier]:
+def path_distances(paths: TargetPaths, x: np.ndarray, y: np.ndarray, radius: float = 0.3) -> np.ndarray:
+    """Walked distance (m) from world points to the nearest target (:class:`eqa.messages.TargetPaths`): the
+    smallest ``distance + offset`` over the true grid's cells within ``radius`` of each point, since a frontier
+    of the robot's own map may lie on a cell the true grid blocks (next to furniture); ``inf`` where none
+    reaches."""
+    g = paths.grid
+    origin = (g.origin_x, g.origin_y)
+    x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+    row, col = grid.cell_of(x, y, origin, g.resolution)
+    r = max(0, math.ceil(radius / g.resolution))
+    best = np.full(np.shape(x), np.inf)
+    for di in range(-r, r + 1):
+        for dj in range(-r, r + 1):
+            ii, jj = row + di, col + dj
+            cx, cy = grid.cell_center(ii, jj, origin, g.resolution)
+            off = np.hypot(cx - x, cy - y)
+            near = grid.inside(ii, jj, (g.rows, g.cols)) & (off <= radius + g.resolution)
+            val = np.full(np.shape(x), np.inf)
+            val[near] = paths.distance_m[ii[near], jj[near]] + off[near]
+            best = np.minimum(best, val)
+    return best
+
+
+def target_weights(frontiers: list[Frontier], targets: list[tuple[float, float]],
+                   paths: TargetPaths | None = None) -> list[Frontier]:
     """The ``target_oracle`` yardstick (benchmark-only upper bound): ``weight = 1 / (1 + d)`` with ``d`` the
-    straight-line distance (m) from the frontier to the nearest ground-truth target (``sv`` holds ``-d``); the
-    planner goes for the largest weight. Without targets every frontier weighs 1."""
+    distance (m) from the frontier to the nearest ground-truth target (``sv`` holds ``-d``). With ``paths`` (the
+    true house's walked distances, :class:`eqa.messages.TargetPaths`) ``d`` is the walk around walls and
+    furniture; a frontier from which the true house reaches no target, or any frontier without ``paths``, gets
+    the straight-line distance. The planner goes for the smallest robot-to-frontier plus frontier-to-target
+    distance (:func:`services.planner.sampling.choose`). Without targets every frontier weighs 1."""
     if not targets:
         return [f.model_copy(update={"sv": 0.0, "sv_normal": 0.0, "weight": 1.0}) for f in frontiers]
+    if not frontiers:
+        return []
     t = np.asarray(targets, dtype=np.float64)
-    out = []
-    for f in frontiers:
-        d = float(np.sqrt(((t - np.array([f.x, f.y])) ** 2).sum(-1)).min())
-        out.append(f.model_copy(update={"sv": -d, "sv_normal": 0.0, "weight": 1.0 / (1.0 + d)}))
-    return out
+    fx = np.array([f.x for f in frontiers])
+    fy = np.array([f.y for f in frontiers])
+    d = np.sqrt(((t[None, :, :] - np.stack([fx, fy], -1)[:, None, :]) ** 2).sum(-1)).min(axis=1)
+    if paths is not None:
+        walked = path_distances(paths, fx, fy)
+        d = np.where(np.isfinite(walked), np.maximum(walked, d), d)
+    return [f.model_copy(update={"sv": -float(di), "sv_normal": 0.0, "weight": 1.0 / (1.0 + float(di))})
+            for f, di in zip(frontiers, d, strict=True)]
 
 
 MAX_LOG_WEIGHT = 700.0  # exp(709.8) overflows a float64

@@ -7,9 +7,11 @@
 * ``nearest``: deterministic, the reachable frontier with the shortest geodesic distance.
 * ``perfect_sv`` (benchmark-only yardstick, an upper bound): sampled by Eq. A6 like ``semantic``, but the
   mapper wrote LSV / GSV computed from the ground-truth target positions instead of the scorer's.
-* ``target_oracle`` (benchmark-only yardstick, an upper bound): deterministic, the reachable frontier with
-  the largest weight, which the mapper sets from the frontier's distance to the nearest ground-truth
-  target (``1 / (1 + d)``); ties go to the shorter geodesic distance.
+* ``target_oracle`` (benchmark-only yardstick, an upper bound): deterministic, the reachable frontier on the
+  shortest way to a ground-truth target: geodesic distance robot -> frontier on the robot's map plus the
+  frontier's distance ``d`` to the nearest target, which the mapper walks through the true house when the
+  benchmark gave it the house's paths (:class:`eqa.messages.TargetPaths`) and encodes as the weight
+  ``1 / (1 + d)``; ties go to the shorter geodesic distance.
 
 The sampled strategies multiply the probabilities by a distance decay ``exp(-d / decay_m)`` of the geodesic
 distance (:func:`distance_decay`), the same for all of them, so with equal semantic values ``semantic``
@@ -105,12 +107,16 @@ def choose(
         if not cand.any():
             return None, p, "no candidate frontier"
         w = np.asarray(weights, dtype=np.float64)
-        w = np.where(cand & valid_weights(w), w, -np.inf)
+        ok = cand & valid_weights(w) & (w > 0)
         d = np.asarray(geodesic_m, dtype=np.float64)
-        best = np.flatnonzero(w == w.max()) if np.isfinite(w.max()) else np.flatnonzero(cand)
+        with np.errstate(divide="ignore"):
+            to_target = np.where(ok, 1.0 / np.where(ok, w, 1.0) - 1.0, np.inf)
+        total = np.where(cand, d + to_target, np.inf)
+        best = np.flatnonzero(total == total.min()) if np.isfinite(total.min()) else np.flatnonzero(cand)
         i = int(best[np.argmin(d[best])])
         p[i] = 1.0
-        return i, p, f"target_oracle (bound, ground truth): frontier nearest the target ({d[i]:.1f} m away)"
+        return i, p, (f"target_oracle (bound, ground truth): shortest way to the target, {d[i]:.1f} m to the "
+                      f"frontier + {to_target[i]:.1f} m on")
     if strategy == "nearest":
         p = np.zeros(cand.size)
         if not cand.any():

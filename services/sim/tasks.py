@@ -27,8 +27,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import dijkstra
 
 from eqa import grid as gridm
 from eqa.messages import Pose2D, Task
@@ -38,6 +36,7 @@ from services.sim.benchfile import load_json, save_json
 from services.sim.catalog import display_name
 from services.sim.library import load_or_generate
 from services.sim.motion import GRID_RES, START_CLEARANCE, reachable_map, sample_start_pose
+from services.sim.paths import geodesic_field
 from services.sim.scene import Scene
 from services.sim.skills import REACH_M, pick_poses
 
@@ -75,30 +74,8 @@ def instruction(obj: str, start: str | None = None, goal: str | None = None) -> 
 def geodesic_from(reach: np.ndarray, origin: tuple[float, float], start: Pose2D) -> np.ndarray:
     """Geodesic distance (m) from ``start`` to every cell of the boolean ``reach`` grid (8-connected, no corner
     cutting); ``inf`` where it cannot be reached."""
-    rows, cols = reach.shape
-    idx = np.full(reach.shape, -1, np.int64)
-    ii, jj = np.nonzero(reach)
-    idx[ii, jj] = np.arange(len(ii))
-    src, dst, w = [], [], []
-    for di, dj in ((0, 1), (1, 0), (1, 1), (1, -1)):
-        ni, nj = ii + di, jj + dj
-        ok = (ni < rows) & (nj >= 0) & (nj < cols)
-        ok[ok] = reach[ni[ok], nj[ok]]
-        if di and dj:  # diagonal: both side cells free (no corner cutting)
-            ok[ok] = reach[ni[ok], jj[ok]] & reach[ii[ok], nj[ok]]
-        src.append(idx[ii[ok], jj[ok]])
-        dst.append(idx[ni[ok], nj[ok]])
-        w.append(np.full(int(ok.sum()), GRID_RES * math.hypot(di, dj)))
-    s, d, ww = np.concatenate(src), np.concatenate(dst), np.concatenate(w)
-    graph = csr_matrix((np.concatenate([ww, ww]), (np.concatenate([s, d]), np.concatenate([d, s]))),
-                       shape=(len(ii), len(ii)))
     i0, j0 = gridm.cell_of_point(start.x, start.y, origin, GRID_RES)
-    out = np.full(reach.shape, np.inf)
-    if not gridm.inside(i0, j0, reach.shape) or idx[i0, j0] < 0:
-        return out
-    dist = dijkstra(graph, indices=int(idx[i0, j0]))
-    out[reach] = dist
-    return out
+    return geodesic_field(reach, GRID_RES, [(i0, j0, 0.0)])
 
 
 def _near_box_mask(shape: tuple[int, int], origin: tuple[float, float], centre: tuple[float, ...],
