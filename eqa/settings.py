@@ -300,6 +300,13 @@ class Settings(BaseSettings):
         "robots it now owns at once instead of waiting for EQA_STEP_RESEND_S",
     )
 
+    # --- warm standby processes (eqa/standby.py, eqa/launcher.py; docs/reliability.md) ---
+    standby: bool = Field(
+        default=True,
+        description="the launcher keeps one pre-started standby process per service (imports done, off the bus) "
+        "and promotes it the moment the active instance dies, instead of starting a new process",
+    )
+
     @field_validator("zenoh_listen", "zenoh_connect", "api_tokens", "cors_origins", "robots", "ros2_robots",
                      mode="before")
     @classmethod
