@@ -50,7 +50,7 @@ from exactly_once import StepLedger, wait_on
 from scorer_helpers import stop_process
 
 from eqa import keys, sharding
-from eqa.launcher import PIPELINE, Fleet, free_port
+from eqa.launcher import PIPELINE, STEADY_S, Fleet, free_port
 from eqa.messages import EpisodeCancel, EpisodeStart, Frame, Question, StopConfig
 from eqa.settings import Settings
 
@@ -126,6 +126,10 @@ def kill_rounds(fleet: Fleet, frames: Frames, ups: Ups, service: str, args: argp
     for r in range(args.rounds):
         fleet.wait_alive(timeout=args.timeout)
         fleet.wait_standbys(timeout=args.timeout)  # the kill finds a warm standby (no-op with standbys off)
+        # a process killed within STEADY_S of coming up counts as a crash loop and backs off: kill a steady one
+        for c in fleet.children:
+            if c.service == service and c.up_at is not None:
+                time.sleep(max(0.0, c.up_at + STEADY_S - time.monotonic()))
         eid = f"rec-{service}-{r}-{os.getpid()}-{time.time_ns()}"
         bus.publish(keys.stream("robot0", keys.EPISODE_START), _start("robot0", eid, args.steps, r))
         if not frames.wait(lambda eid=eid: frames.last(eid) >= args.warmup, args.timeout):

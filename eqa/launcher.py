@@ -44,7 +44,9 @@ log = logging.getLogger(__name__)
 
 PIPELINE = dataflow.PIPELINE
 SUPERVISE_S = 0.1  # how often the supervisor looks for exited children (a poll() each)
-STEADY_S = 10.0  # a child that ran this long before it exited restarts with the shortest backoff
+# a child that held its liveliness token this long before it exited restarts with the shortest backoff; one that
+# died before it was up (or right after) is in a crash loop and backs off
+STEADY_S = 2.0
 ALL_SERVICES = dataflow.SERVICES
 TOKEN_GONE_S = 3.0  # a dead child's liveliness token must be gone before its standby takes its name (bounded)
 STANDBY_AFTER_S = 10.0  # a new standby starts once the promoted one is up, or this long after the promotion
@@ -74,8 +76,9 @@ class Child:
     log_path: Path
     proc: subprocess.Popen[bytes] | None = None
     restarts: int = 0
-    streak: int = 0  # restarts in a row, each after less than STEADY_S of running (the backoff grows with it)
+    streak: int = 0  # restarts in a row, each after less than STEADY_S up (the backoff grows with it)
     started_at: float = 0.0
+    up_at: float | None = None  # when this process's liveliness token appeared
     history: list[str] = field(default_factory=list)
 
     @property
@@ -241,6 +244,9 @@ class Fleet:
         with self._alive_changed:
             if up:
                 self._alive.add((service, instance))
+                for child in self.children:
+                    if child.instance == instance and child.service == service and child.up_at is None:
+                        child.up_at = time.monotonic()
             else:
                 self._alive.discard((service, instance))
             self._alive_changed.notify_all()
@@ -256,6 +262,7 @@ class Fleet:
         )
         out.close()
         child.started_at = time.monotonic()
+        child.up_at = None
         port = int(child.env.get("EQA_METRICS_PORT", "0"))
         log.info("started %s (pid %d), log %s%s", child.instance, child.proc.pid, child.log_path,
                  f", metrics on port {port}" if port else "")
@@ -300,7 +307,8 @@ class Fleet:
                 child.restarts += 1
                 metrics.inc(metrics.CHILD_RESTARTS, child.service)
                 # a crash loop backs off; a child that ran steadily before it died is back at once
-                child.streak = child.streak + 1 if time.monotonic() - child.started_at < STEADY_S else 1
+                steady = child.up_at is not None and time.monotonic() - child.up_at >= STEADY_S
+                child.streak = 1 if steady else child.streak + 1
                 delay = min(0.2 * 2 ** (child.streak - 1), 5.0)
                 spare = self.standbys.get(child.service)
                 if spare is not None and spare.alive:
@@ -380,6 +388,7 @@ class Fleet:
             return False
         child.proc = spare.proc
         child.started_at = time.monotonic()
+        child.up_at = None
         child.history.append(f"standby pid {spare.proc.pid} promoted")
         self.promotions += 1
         metrics.inc(metrics.STANDBY_PROMOTIONS, child.service)
