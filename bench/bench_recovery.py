@@ -14,9 +14,15 @@ Exactly once is checked over every episode (tests/exactly_once.py: each step int
 once, none skipped). ``EQA_STEP_RESEND_S`` stays at its default (30 s): what is measured is the re-drive on
 membership changes, not the resend timer.
 
-    python bench/bench_recovery.py [--rounds 3] [--services sim,mapper,planner,stopper,vlm_scorer] [--no-join]
+``--standby on,off`` (the default) runs the whole measurement twice in one run, with the launcher's warm
+standbys (``EQA_STANDBY``, :mod:`eqa.standby`: a killed process is replaced by a pre-started, already imported
+one) and without them (a new process is started); with standbys a round starts only once every service has a
+ready standby again.
 
-Prints one line per round, then median/min/max per case, and writes ``bench/results/recovery.json``.
+    python bench/bench_recovery.py [--rounds 3] [--services sim,mapper,planner,stopper,vlm_scorer] [--no-join]
+                                   [--standby on,off]
+
+Prints one line per round, then median/p90/min/max per case and mode, and writes ``bench/results/recovery.json``.
 """
 
 from __future__ import annotations
@@ -34,6 +40,8 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
+
 os.environ.setdefault("RERUN_TELEMETRY_ENABLED", "false")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
@@ -42,7 +50,7 @@ from exactly_once import StepLedger, wait_on
 from scorer_helpers import stop_process
 
 from eqa import keys, sharding
-from eqa.launcher import PIPELINE, Fleet, free_port
+from eqa.launcher import PIPELINE, STEADY_S, Fleet, free_port
 from eqa.messages import EpisodeCancel, EpisodeStart, Frame, Question, StopConfig
 from eqa.settings import Settings
 
@@ -105,8 +113,8 @@ def _start(robot: str, eid: str, max_steps: int, seed: int) -> EpisodeStart:
 def _summary(xs: list[float]) -> dict[str, float | int]:
     if not xs:
         return {"n": 0}
-    return {"n": len(xs), "median_s": round(statistics.median(xs), 3), "min_s": round(min(xs), 3),
-            "max_s": round(max(xs), 3)}
+    return {"n": len(xs), "median_s": round(statistics.median(xs), 3),
+            "p90_s": round(float(np.percentile(xs, 90)), 3), "min_s": round(min(xs), 3), "max_s": round(max(xs), 3)}
 
 
 def kill_rounds(fleet: Fleet, frames: Frames, ups: Ups, service: str, args: argparse.Namespace,
@@ -117,6 +125,11 @@ def kill_rounds(fleet: Fleet, frames: Frames, ups: Ups, service: str, args: argp
     restarts: list[float] = []
     for r in range(args.rounds):
         fleet.wait_alive(timeout=args.timeout)
+        fleet.wait_standbys(timeout=args.timeout)  # the kill finds a warm standby (no-op with standbys off)
+        # a process killed within STEADY_S of coming up counts as a crash loop and backs off: kill a steady one
+        for c in fleet.children:
+            if c.service == service and c.up_at is not None:
+                time.sleep(max(0.0, c.up_at + STEADY_S - time.monotonic()))
         eid = f"rec-{service}-{r}-{os.getpid()}-{time.time_ns()}"
         bus.publish(keys.stream("robot0", keys.EPISODE_START), _start("robot0", eid, args.steps, r))
         if not frames.wait(lambda eid=eid: frames.last(eid) >= args.warmup, args.timeout):
@@ -235,11 +248,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--height", type=int, default=120)
     p.add_argument("--timeout", type=float, default=90.0, help="give up on a round after this long (default 90 s)")
     p.add_argument("--seed", type=int, default=11, help="random kill moments (default 11)")
+    p.add_argument("--standby", default="on,off",
+                   help="launcher warm standbys, one fleet per mode in this order (default on,off)")
     p.add_argument("--out", type=Path, default=RESULTS)
     args = p.parse_args(argv)
     services = [s for s in args.services.split(",") if s]
     if any(s not in SERVICES for s in services):
         p.error(f"--services: choose from {', '.join(SERVICES)}")
+    modes = [m.strip() for m in args.standby.split(",") if m.strip()]
+    if not modes or any(m not in ("on", "off") for m in modes) or len(set(modes)) != len(modes):
+        p.error("--standby: on, off or both (on,off)")
     if not (1 <= args.rounds <= 50 and 1 <= args.robots <= 32 and args.warmup + 5 <= args.steps <= 1000
             and 1 <= args.scorers <= 8 and 1 <= args.instances <= 4):
         p.error("1 <= rounds <= 50, 1 <= robots <= 32, warmup + 5 <= steps <= 1000, 1 <= scorers <= 8, "
@@ -252,7 +270,7 @@ def main(argv: list[str] | None = None) -> int:
 
     rng = random.Random(args.seed)
     load_start = os.getloadavg()
-    results: dict[str, list[float]] = {}
+    results: dict[str, dict[str, list[float]]] = {m: {} for m in modes}
     episodes: dict[str, int] = {}
     ledger = StepLedger()
     with tempfile.TemporaryDirectory(prefix="eqa-recovery-") as tmp:
@@ -265,27 +283,29 @@ def main(argv: list[str] | None = None) -> int:
                                 zenoh_connect=[], record=False, sim_width=args.width, sim_height=args.height,
                                 episode_timeout_s=600.0)
             load_or_generate(SCENE, settings.scenes_path)
-            print(f"starting the fleet ({args.instances} instance(s) of each stateful service, scorers {args.scorers}, "
-                  f"{args.width}x{args.height}, step resend "
-                  f"{settings.step_resend_s:g} s) ...", flush=True)
-            with Fleet(settings, services=PIPELINE, scorers=args.scorers,
-                       instances=dict.fromkeys(STATEFUL, args.instances),
-                       max_restarts=args.rounds * len(services) + 5) as fleet:
-                frames = Frames()
-                fleet.hub.subscribe(keys.any_robot(keys.SIM_FRAME), Frame, frames)
-                ledger.subscribe(fleet.hub)
-                ups = Ups()
-                fleet.hub.watch_alive(keys.ALIVE_ANY, ups)
-                time.sleep(0.5)
-                for service in services:
-                    print(f"kill -9 {service} ({args.rounds} rounds)", flush=True)
-                    results[f"kill {service}"], results[f"restart {service}"] = kill_rounds(
-                        fleet, frames, ups, service, args, rng, episodes)
-                if args.join:
-                    print(f"join of a {args.join_service} instance ({args.rounds} rounds, {args.robots} robots)",
-                          flush=True)
-                    results[f"join {args.join_service}"] = join_rounds(fleet, frames, args, episodes, root)
-                time.sleep(1.0)
+            for mode in modes:
+                print(f"starting the fleet ({args.instances} instance(s) of each stateful service, scorers "
+                      f"{args.scorers}, {args.width}x{args.height}, step resend {settings.step_resend_s:g} s, "
+                      f"standby {mode}) ...", flush=True)
+                with Fleet(settings, services=PIPELINE, scorers=args.scorers,
+                           instances=dict.fromkeys(STATEFUL, args.instances),
+                           max_restarts=args.rounds * len(services) + 5, standby=mode == "on") as fleet:
+                    out = results[mode]
+                    frames = Frames()
+                    fleet.hub.subscribe(keys.any_robot(keys.SIM_FRAME), Frame, frames)
+                    ledger.subscribe(fleet.hub)
+                    ups = Ups()
+                    fleet.hub.watch_alive(keys.ALIVE_ANY, ups)
+                    time.sleep(0.5)
+                    for service in services:
+                        print(f"kill -9 {service} ({args.rounds} rounds, standby {mode})", flush=True)
+                        out[f"kill {service}"], out[f"restart {service}"] = kill_rounds(
+                            fleet, frames, ups, service, args, rng, episodes)
+                    if args.join:
+                        print(f"join of a {args.join_service} instance ({args.rounds} rounds, {args.robots} robots)",
+                              flush=True)
+                        out[f"join {args.join_service}"] = join_rounds(fleet, frames, args, episodes, root)
+                    time.sleep(1.0)
         finally:
             rproc.terminate()
             rproc.wait(timeout=10)
@@ -295,20 +315,25 @@ def main(argv: list[str] | None = None) -> int:
         "instances": args.instances, "scorers": args.scorers, "size": [args.width, args.height],
         "cores": os.cpu_count(), "loadavg_at_start": [round(x, 2) for x in load_start],
         "loadavg_at_end": [round(x, 2) for x in os.getloadavg()], "step_resend_s": 30.0,
-        "cases": {k: {**_summary([x for x in v if x != float("inf")]), "lost_rounds": sum(x == float("inf") for x in v),
-                      "rounds_s": [round(x, 3) for x in v]} for k, v in results.items()},
+        "standby": {m: {k: {**_summary([x for x in v if x != float("inf")]),
+                            "lost_rounds": sum(x == float("inf") for x in v), "rounds_s": [round(x, 3) for x in v]}
+                        for k, v in cases.items()} for m, cases in results.items()},
         "exactly_once_problems": problems[:20], "n_problems": len(problems), "episodes": len(episodes),
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(summary, indent=2))
-    print(f"\n{'case':<18} {'n':>3} {'median':>8} {'min':>8} {'max':>8}  seconds (kill, join: to the episode's next "
-          "step; restart: from the kill to the restarted process's liveliness token)")
-    for case, s in summary["cases"].items():
-        if s["n"]:
-            print(f"{case:<18} {s['n']:>3} {s['median_s']:>8.2f} {s['min_s']:>8.2f} {s['max_s']:>8.2f}"
-                  + (f"  {s['lost_rounds']} round(s) without a new step" if s["lost_rounds"] else ""))
-        else:
-            print(f"{case:<18} {0:>3}  no round recovered")
+    print(f"\n{'case':<18} {'standby':>7} {'n':>3} {'median':>8} {'p90':>8} {'min':>8} {'max':>8}  seconds (kill, "
+          "join: to the episode's next step; restart: from the kill to the restarted process's liveliness token)")
+    first = summary["standby"][modes[0]]
+    for case in first:
+        for mode in modes:
+            s = summary["standby"][mode].get(case, {"n": 0, "lost_rounds": 0})
+            if s["n"]:
+                print(f"{case:<18} {mode:>7} {s['n']:>3} {s['median_s']:>8.2f} {s['p90_s']:>8.2f} {s['min_s']:>8.2f} "
+                      f"{s['max_s']:>8.2f}" + (f"  {s['lost_rounds']} round(s) without a new step"
+                                               if s["lost_rounds"] else ""))
+            else:
+                print(f"{case:<18} {mode:>7} {0:>3}  no round recovered")
     print(f"exactly once over {len(episodes)} episodes: {len(problems)} problem(s)" +
           (f": {problems[:5]}" if problems else ""))
     print(f"load average {summary['loadavg_at_start'][0]:.1f} at start, {summary['loadavg_at_end'][0]:.1f} at end "

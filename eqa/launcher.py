@@ -7,7 +7,11 @@ launcher's session is busy. Each child is ``python -m services.<name>`` (or ``py
 own ``EQA_INSTANCE``; output goes to ``{data_dir}/logs/<instance>.log``.
 
 A supervisor thread restarts a child that exits unexpectedly (with backoff, at most ``max_restarts`` times);
-the services restore their per-episode state from the store, so the episode goes on.
+the services restore their per-episode state from the store, so the episode goes on. With ``EQA_STANDBY`` (the
+default) the launcher keeps one warm standby per service (:mod:`eqa.standby`: imports done, off the bus): a
+child that dies is replaced by its service's standby once its pid is reaped and its liveliness token gone,
+without a new process's seconds of imports, and a new standby is started once the promoted one is up. The
+gateway has no standby (its entry point is not :func:`eqa.service.main`).
 
 One host's share of a fleet (``join``): the launcher's router also connects to an existing router
 (``eqa up --join tls/10.0.0.1:7447``) and the children are Zenoh *clients* of it, so all of this host's traffic
@@ -32,7 +36,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from eqa import dataflow, keys, metrics
+from eqa import dataflow, keys, metrics, standby
 from eqa.bus import Bus
 from eqa.settings import Settings
 
@@ -40,8 +44,13 @@ log = logging.getLogger(__name__)
 
 PIPELINE = dataflow.PIPELINE
 SUPERVISE_S = 0.1  # how often the supervisor looks for exited children (a poll() each)
-STEADY_S = 10.0  # a child that ran this long before it exited restarts with the shortest backoff
+# a child that held its liveliness token this long before it exited restarts with the shortest backoff; one that
+# died before it was up (or right after) is in a crash loop and backs off
+STEADY_S = 2.0
 ALL_SERVICES = dataflow.SERVICES
+TOKEN_GONE_S = 3.0  # a dead child's liveliness token must be gone before its standby takes its name (bounded)
+STANDBY_AFTER_S = 10.0  # a new standby starts once the promoted one is up, or this long after the promotion
+STANDBY_FAILURES_MAX = 3  # standbys of one service that died before being needed; then it gets no more
 
 
 class LaunchError(RuntimeError):
@@ -67,13 +76,31 @@ class Child:
     log_path: Path
     proc: subprocess.Popen[bytes] | None = None
     restarts: int = 0
-    streak: int = 0  # restarts in a row, each after less than STEADY_S of running (the backoff grows with it)
+    streak: int = 0  # restarts in a row, each after less than STEADY_S up (the backoff grows with it)
     started_at: float = 0.0
+    up_at: float | None = None  # when this process's liveliness token appeared
     history: list[str] = field(default_factory=list)
 
     @property
     def alive(self) -> bool:
         return self.proc is not None and self.proc.poll() is None
+
+
+@dataclass
+class Standby:
+    """A warm standby of one service (:mod:`eqa.standby`): imported, off the bus, waiting on its stdin."""
+
+    service: str
+    env: dict[str, str]
+    log_path: Path
+    proc: subprocess.Popen[bytes]
+    started_at: float
+    ready: threading.Event = field(default_factory=threading.Event)
+    ready_after_s: float | None = None  # from the spawn to its "ready"
+
+    @property
+    def alive(self) -> bool:
+        return self.proc.poll() is None
 
 
 class Fleet:
@@ -89,6 +116,7 @@ class Fleet:
         max_restarts: int = 5,
         join: list[str] | None = None,
         instances: dict[str, int] | None = None,
+        standby: bool | None = None,
     ) -> None:
         unknown = set(services) - set(ALL_SERVICES) - set(dataflow.STANDS_IN)
         if unknown:
@@ -106,6 +134,13 @@ class Fleet:
         if any(n < 1 for n in self.instances.values()):
             raise LaunchError("every service needs at least 1 instance")
         self.secured = settings.zenoh_tls_dir is not None or settings.zenoh_users_file is not None
+        # one warm standby per service that runs eqa.service.main (EQA_STANDBY; only when restarts are on)
+        self.standby_enabled = (settings.standby if standby is None else standby) and restart
+        self.standbys: dict[str, Standby] = {}
+        self._standby_due: dict[str, float] = {}  # service -> when to start its next standby
+        self._standby_wait_for: dict[str, Child] = {}  # service -> the promoted child whose token starts it early
+        self._standby_failures: dict[str, int] = {}
+        self.promotions = 0
         self.children: list[Child] = []
         self._hub: Bus | None = None
         self._alive: set[tuple[str, str]] = set()
@@ -196,6 +231,11 @@ class Fleet:
         except LaunchError:
             self.stop()
             raise
+        if self.standby_enabled:
+            # after the fleet is up: the standbys' imports do not slow the first start down
+            now = time.monotonic()
+            for service in dict.fromkeys(c.service for c in self.children if c.service != "gateway"):
+                self._standby_due[service] = now
         self._supervisor = threading.Thread(target=self._supervise, name="fleet-supervisor", daemon=True)
         self._supervisor.start()
         return self
@@ -204,6 +244,9 @@ class Fleet:
         with self._alive_changed:
             if up:
                 self._alive.add((service, instance))
+                for child in self.children:
+                    if child.instance == instance and child.service == service and child.up_at is None:
+                        child.up_at = time.monotonic()
             else:
                 self._alive.discard((service, instance))
             self._alive_changed.notify_all()
@@ -219,6 +262,7 @@ class Fleet:
         )
         out.close()
         child.started_at = time.monotonic()
+        child.up_at = None
         port = int(child.env.get("EQA_METRICS_PORT", "0"))
         log.info("started %s (pid %d), log %s%s", child.instance, child.proc.pid, child.log_path,
                  f", metrics on port {port}" if port else "")
@@ -263,12 +307,151 @@ class Fleet:
                 child.restarts += 1
                 metrics.inc(metrics.CHILD_RESTARTS, child.service)
                 # a crash loop backs off; a child that ran steadily before it died is back at once
-                child.streak = child.streak + 1 if time.monotonic() - child.started_at < STEADY_S else 1
+                steady = child.up_at is not None and time.monotonic() - child.up_at >= STEADY_S
+                child.streak = 1 if steady else child.streak + 1
                 delay = min(0.2 * 2 ** (child.streak - 1), 5.0)
+                spare = self.standbys.get(child.service)
+                if spare is not None and spare.alive:
+                    if child.streak > 1:
+                        log.warning("%s exited with %s; promoting its standby in %.1f s", child.instance, code,
+                                    delay)
+                        time.sleep(delay)
+                    if not self._stop.is_set() and self._promote(child, spare):
+                        continue
                 log.warning("%s exited with %s; restarting in %.1f s", child.instance, code, delay)
                 time.sleep(delay)
                 if not self._stop.is_set():
                     self._spawn(child)
+            if self.standby_enabled and not self._stop.is_set():
+                self._keep_standbys()
+
+    # ---- warm standbys (eqa.standby) ------------------------------------------------------------------------
+    def _spawn_standby(self, service: str) -> None:
+        env = self._child_env(service, f"{service.replace('_', '-')}-standby-{self.run_id}")
+        env["EQA_METRICS_PORT"] = "0"  # it serves the replaced instance's port once promoted
+        log_path = Path(self.settings.data_dir) / "logs" / f"{service}-standby.log"
+        read_fd, write_fd = os.pipe()
+        out = open(log_path, "ab")  # noqa: SIM115 - handed to the child, closed with it
+        try:
+            proc = subprocess.Popen(
+                [sys.executable, "-m", module_of(service), "--standby", str(write_fd)],
+                env=env, stdin=subprocess.PIPE, stdout=out, stderr=subprocess.STDOUT, pass_fds=(write_fd,),
+                start_new_session=True,
+            )
+        finally:
+            out.close()
+            os.close(write_fd)
+        spare = Standby(service, env, log_path, proc, time.monotonic())
+        self.standbys[service] = spare
+        threading.Thread(target=self._await_ready, args=(spare, read_fd), name=f"standby-{service}",
+                         daemon=True).start()
+        log.info("started a standby of %s (pid %d, off the bus until promoted), log %s", service, proc.pid, log_path)
+
+    def _await_ready(self, spare: Standby, read_fd: int) -> None:
+        with os.fdopen(read_fd, "rb") as pipe:
+            line = pipe.readline(64)
+        if line == standby.READY:
+            spare.ready_after_s = time.monotonic() - spare.started_at
+            spare.ready.set()
+            metrics.gauge_set(metrics.STANDBY_READY, 1.0, spare.service)
+            log.info("standby of %s (pid %d) is ready after %.1f s", spare.service, spare.proc.pid,
+                     spare.ready_after_s)
+
+    def _promote(self, child: Child, spare: Standby) -> bool:
+        """Hand ``child``'s place to its service's standby: only once the dead process's liveliness token is gone
+        (its pid is already reaped), so no two processes ever hold one instance's name. False: the standby
+        died meanwhile (the caller restarts the child the ordinary way)."""
+        deadline = time.monotonic() + TOKEN_GONE_S
+        with self._alive_changed:
+            while (child.service, child.instance) in self._alive and time.monotonic() < deadline:
+                self._alive_changed.wait(deadline - time.monotonic())
+            if (child.service, child.instance) in self._alive:
+                log.warning("%s: its liveliness token is still there %.0f s after its exit; promoting anyway (the "
+                            "process is gone)", child.instance, TOKEN_GONE_S)
+        env = {k: v for k, v in child.env.items() if spare.env.get(k) != v}
+        unset = [k for k in spare.env if k not in child.env]
+        line = standby.Promotion(env=env, unset=unset, log_path=child.log_path.resolve()).encode()
+        del self.standbys[child.service]
+        metrics.gauge_set(metrics.STANDBY_READY, 0.0, child.service)
+        stdin = spare.proc.stdin
+        try:
+            if stdin is None:
+                raise BrokenPipeError("no pipe")
+            stdin.write(line)
+            stdin.flush()
+            stdin.close()
+        except OSError as exc:
+            log.warning("the standby of %s (pid %d) could not be promoted (%s); restarting %s instead",
+                        child.service, spare.proc.pid, exc, child.instance)
+            _end(spare.proc)
+            self._standby_due[child.service] = time.monotonic()
+            return False
+        child.proc = spare.proc
+        child.started_at = time.monotonic()
+        child.up_at = None
+        child.history.append(f"standby pid {spare.proc.pid} promoted")
+        self.promotions += 1
+        metrics.inc(metrics.STANDBY_PROMOTIONS, child.service)
+        log.warning("%s is gone; its standby (pid %d, %s) takes its place", child.instance, spare.proc.pid,
+                    "warm" if spare.ready.is_set() else "still warming up")
+        self._standby_due[child.service] = time.monotonic() + STANDBY_AFTER_S
+        self._standby_wait_for[child.service] = child
+        return True
+
+    def _keep_standbys(self) -> None:
+        """Replace standbys that died, start the ones that are due (one per service)."""
+        now = time.monotonic()
+        for service, spare in list(self.standbys.items()):
+            if spare.alive:
+                continue
+            del self.standbys[service]
+            metrics.gauge_set(metrics.STANDBY_READY, 0.0, service)
+            failures = self._standby_failures[service] = self._standby_failures.get(service, 0) + 1
+            if failures >= STANDBY_FAILURES_MAX:
+                log.error("the standby of %s exited with %s (%d times); no more standbys for it, log %s", service,
+                          spare.proc.returncode, failures, spare.log_path)
+                continue
+            log.warning("the standby of %s exited with %s; starting another, log %s", service,
+                        spare.proc.returncode, spare.log_path)
+            self._standby_due[service] = now + min(0.2 * 2 ** failures, 5.0)
+        for service, due in list(self._standby_due.items()):
+            promoted = self._standby_wait_for.get(service)
+            with self._alive_changed:
+                up = promoted is not None and (promoted.service, promoted.instance) in self._alive
+            if now < due and not up:
+                continue  # the promoted standby first has the cores to itself while it joins the bus
+            del self._standby_due[service]
+            self._standby_wait_for.pop(service, None)
+            if service not in self.standbys and self._standby_failures.get(service, 0) < STANDBY_FAILURES_MAX:
+                self._spawn_standby(service)
+
+    def wait_standbys(self, timeout: float = 90.0) -> None:
+        """Block until every service that gets a standby has a ready one (tests, benches)."""
+        if not self.standby_enabled:
+            return
+        services = [s for s in dict.fromkeys(c.service for c in self.children if c.service != "gateway")
+                    if self._standby_failures.get(s, 0) < STANDBY_FAILURES_MAX]
+        deadline = time.monotonic() + timeout
+        while True:
+            pending = [s for s in services if s not in self.standbys or not self.standbys[s].ready.is_set()]
+            if not pending:
+                return
+            if time.monotonic() >= deadline:
+                raise LaunchError(f"no ready standby after {timeout:.0f} s for: {', '.join(pending)}")
+            time.sleep(0.05)
+
+    def status(self) -> list[dict[str, object]]:
+        """One row per process: service, instance, pid, role (``active`` or ``standby``), alive, ready."""
+        with self._alive_changed:
+            alive = set(self._alive)
+        rows: list[dict[str, object]] = [
+            {"service": c.service, "instance": c.instance, "pid": c.proc.pid if c.proc is not None else None,
+             "role": "active", "alive": (c.service, c.instance) in alive, "restarts": c.restarts}
+            for c in self.children
+        ]
+        rows += [{"service": s.service, "instance": None, "pid": s.proc.pid, "role": "standby", "alive": s.alive,
+                  "ready": s.ready.is_set()} for s in list(self.standbys.values())]
+        return rows
 
     def child(self, service: str, index: int = 0) -> Child:
         matches = [c for c in self.children if c.service == service]
@@ -288,7 +471,13 @@ class Fleet:
         self._stop.set()
         if self._supervisor is not None:
             self._supervisor.join(timeout=5)
+        for spare in list(self.standbys.values()):
+            if spare.proc.stdin is not None:
+                with contextlib.suppress(OSError):
+                    spare.proc.stdin.close()  # end of file: the standby exits
         procs = [c.proc for c in self.children if c.proc is not None and c.proc.poll() is None]
+        procs += [s.proc for s in self.standbys.values() if s.alive]
+        self.standbys.clear()
         for p in procs:
             with contextlib.suppress(ProcessLookupError):
                 os.killpg(p.pid, signal.SIGTERM)
@@ -360,6 +549,13 @@ def write_targets(path: Path, settings: Settings, children: list[Child]) -> None
             target = f"{host}:{child.env['EQA_METRICS_PORT']}"
         groups.append({"targets": [target], "labels": {"job": child.service, "eqa_instance": child.instance}})
     path.write_text(json.dumps(groups, indent=1))
+
+
+def _end(proc: subprocess.Popen[bytes]) -> None:
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(proc.pid, signal.SIGKILL)
+    with contextlib.suppress(subprocess.TimeoutExpired):
+        proc.wait(timeout=5)
 
 
 def _password_of(users_file: Path, user: str) -> str:

@@ -72,6 +72,11 @@ SERVICE_STARTED = Gauge(
     ["service"])
 CHILD_RESTARTS = Counter(
     "eqa_launcher_restarts_total", "Children the launcher restarted after they exited", ["service"])
+STANDBY_PROMOTIONS = Counter(
+    "eqa_launcher_standby_promotions_total", "Restarts done by promoting the service's warm standby", ["service"])
+STANDBY_READY = Gauge(
+    "eqa_launcher_standby_ready", "1 while the service has a warm standby ready to take a dead instance's place",
+    ["service"])
 
 
 class _State:
@@ -111,6 +116,11 @@ def inc(metric: Counter, *labels: str, amount: float = 1.0) -> None:
 def gauge_add(metric: Gauge, *labels: str, amount: float = 1.0) -> None:
     if _State.on:
         child(metric, labels).inc(amount)
+
+
+def gauge_set(metric: Gauge, value: float, *labels: str) -> None:
+    if _State.on:
+        child(metric, labels).set(value)
 
 
 def observe(metric: Histogram, value: float, *labels: str) -> None:

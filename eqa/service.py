@@ -21,7 +21,7 @@ import threading
 from collections.abc import Callable
 from typing import Any
 
-from eqa import keys, logs, metrics
+from eqa import keys, logs, metrics, standby
 from eqa.bus import Bus
 from eqa.event_log import encode_event, summarize
 from eqa.messages import STREAM_TYPES, Message
@@ -65,6 +65,11 @@ class Service:
         return self._store
 
     # ---- for subclasses ---------------------------------------------------------------------------------
+    @classmethod
+    def warm_up(cls) -> None:
+        """Work a warm standby (:mod:`eqa.standby`) does before it is needed, off the bus: imports or compiled
+        code a first step would otherwise load. Runs without settings, store or bus."""
+
     def setup(self) -> None:
         """Declare subscriptions / queryables. Called once the bus is open."""
 
@@ -198,12 +203,24 @@ def main(service_cls: type[Service], argv: list[str] | None = None) -> int:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--log-level", default=None, help="override EQA_LOG_LEVEL")
+    parser.add_argument("--standby", type=int, default=None, metavar="FD",
+                        help="start as a warm standby (eqa.standby): warm up, write 'ready' to the pipe FD, then "
+                        "wait off the bus for the launcher's promotion on standard input")
     args = parser.parse_args(argv)
     try:
         settings = Settings()
     except Exception as exc:
         print(f"error: invalid EQA_* settings: {exc}", file=sys.stderr)
         return 2
+    if args.standby is not None:
+        setup_logging(args.log_level or settings.log_level, service_cls.name, settings.log_format, "standby")
+        if standby.await_promotion(args.standby, service_cls.name, service_cls.warm_up) is None:
+            return 0
+        try:
+            settings = Settings()  # the environment of the instance this process now is
+        except Exception as exc:
+            print(f"error: invalid EQA_* settings: {exc}", file=sys.stderr)
+            return 2
     setup_logging(args.log_level or settings.log_level, service_cls.name, settings.log_format, settings.instance)
     try:
         metrics.serve(settings, service_cls.name)

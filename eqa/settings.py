@@ -86,7 +86,7 @@ class StoreSettings(SettingsGroup):
 
 
 class FleetSettings(SettingsGroup):
-    """Robots and step delivery: which robots the simulator drives, re-sending and re-driving a step."""
+    """Robots and step delivery: which robots the simulator drives, re-sending and re-driving a step, standbys."""
 
     # --- fleet ---
     robots: CsvList = Field(default_factory=lambda: ["robot0"])
@@ -101,6 +101,12 @@ class FleetSettings(SettingsGroup):
         default=True,
         description="when an instance of a stateful service (re)appears, the sim sends the current frame of the "
         "robots it now owns at once instead of waiting for EQA_STEP_RESEND_S",
+    )
+    # warm standby processes (eqa/standby.py, eqa/launcher.py; docs/reliability.md)
+    standby: bool = Field(
+        default=True,
+        description="the launcher keeps one pre-started standby process per service (imports done, off the bus) "
+        "and promotes it the moment the active instance dies, instead of starting a new process",
     )
 
 

@@ -46,6 +46,8 @@ from fastapi import HTTPException, Request, status
 
 from eqa.settings import Settings
 
+CALLER_STATE = "eqa_caller"  # request-state key of the caller gateway.limits.BodyLimit identified and admitted
+
 log = logging.getLogger(__name__)
 
 SCOPES = ("submit", "read", "admin")
@@ -300,8 +302,11 @@ def client_address(request: Request) -> str:
 
 def _caller(request: Request, allow_basic: bool, scope: str | None) -> Caller:
     auth: Authenticator = request.app.state.auth
-    caller = auth.identify(request.headers, client_address(request), allow_basic=allow_basic)
-    auth.admit(caller)
+    # identified and admitted (rate) already by gateway.limits.BodyLimit, before the router ran
+    caller: Caller | None = None if allow_basic else request.scope.get("state", {}).get(CALLER_STATE)
+    if caller is None:
+        caller = auth.identify(request.headers, client_address(request), allow_basic=allow_basic)
+        auth.admit(caller)
     if scope is not None and not caller.can(scope):
         raise HTTPException(
             status.HTTP_403_FORBIDDEN,

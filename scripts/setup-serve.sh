@@ -3,7 +3,11 @@
 # remote-scorer test drives (tests/test_scorer_serve.py). Separate because it needs torch==2.14.1 with
 # torchvision==0.29.1 (the Qwen2-VL processor loads a video processor that needs torchvision, and the only
 # torchvision wheels on the registries are CUDA builds matching a CUDA torch): about 5.5 GB, while the project's
-# .venv keeps the CPU torch 2.13.0. Guarded by a stamp: a second run takes a moment.
+# .venv keeps the CPU torch 2.13.0. The CPU torch 2.13.0 with torchvision 0.28.0 makes a 1.3 GB venv, but that
+# torchvision's _C.so needs libc10_cuda.so and libtorch_cuda.so, so `import torchvision` fails ("operator
+# torchvision::nms does not exist") and without torchvision transformers refuses Qwen2VLVideoProcessor; and the
+# CUDA torch's libtorch_cuda.so links cuBLAS, cuDNN, NCCL, cuFFT ... (about 2.2 GB of nvidia-* wheels).
+# Guarded by a stamp: a second run takes a moment.
 # Usage: bash scripts/setup-serve.sh   (VENV_SERVE=path to put it elsewhere; default var/venv-serve)
 set -euo pipefail
 cd "$(dirname "$0")/.."
