@@ -12,7 +12,9 @@ Per frame, in rotating order so that load drifts hit all alike:
 After each frame the baseline and our volumes (tsdf, weight, explored) and their 2D projections are compared
 bit for bit; the bench fails (exit 1) on the first difference. Then the whole mapper step of this tree
 (integrate, projection, prompt points, frontiers), the store snapshot (full, as before, and the step's
-incremental one when the tree has it) with its bytes, MapUpdate encoding and the Rerun logging are timed.
+incremental one when the tree has it) with its bytes, MapUpdate encoding and the Rerun logging are timed. The
+incremental snapshot's bytes are written both as the mapper writes them (one ``Store.set_many`` call: one Redis
+round trip) and key by key (a round trip per key), alternating which goes first.
 
     python bench/bench_mapper.py [--steps 30] [--width 640 --height 480] [--scene gen-00007] [--baseline REV]
 """
@@ -242,7 +244,7 @@ def main(argv: list[str] | None = None) -> int:
 
     core, rows = [], []
     extra: dict[str, list[float]] = {k: [] for k in ("semantic_values", "snapshot full", "snapshot step",
-                                                     "encode", "record")}
+                                                     "snapshot step, key by key", "encode", "record")}
     nbytes: dict[str, list[int]] = {"snapshot full": [], "snapshot step": []}
     differ = None
     build_ms: list[float] = []  # the incremental snapshot's own work, without the store write
@@ -275,13 +277,25 @@ def main(argv: list[str] | None = None) -> int:
         if snapshot_step is not None:  # incremental snapshot: the step's parts + header
             t0 = time.perf_counter()
             header, parts, obsolete = snapshot_step(em)
-            build_ms.append((time.perf_counter() - t0) * 1000)
-            for part, data in parts.items():
-                store.set(f"mapper/episode/bench:{part}", data)
-            store.set("mapper/episode/bench/step", header)
-            for part in obsolete:
-                store.delete(f"mapper/episode/bench:{part}")
-            extra["snapshot step"].append((time.perf_counter() - t0) * 1000)
+            built = (time.perf_counter() - t0) * 1000
+            build_ms.append(built)
+            # the same bytes written the two ways, in alternating order: one call (EpisodeService.save: one
+            # Redis round trip) and key by key (a round trip per part, the header, the deletes)
+            ways = [("", True), (", key by key", False)]
+            for suffix, together in ways if i % 2 else ways[::-1]:
+                prefix = f"mapper/episode/bench{suffix.replace(', ', '/').replace(' ', '-')}"
+                t0 = time.perf_counter()
+                if together and hasattr(store, "set_many"):
+                    store.set_many([*((f"{prefix}:{part}", data) for part, data in parts.items()),
+                                    (f"{prefix}/step", header)],
+                                   then_delete=[f"{prefix}:{part}" for part in obsolete])
+                else:
+                    for part, data in parts.items():
+                        store.set(f"{prefix}:{part}", data)
+                    store.set(f"{prefix}/step", header)
+                    for part in obsolete:
+                        store.delete(f"{prefix}:{part}")
+                extra["snapshot step" + suffix].append(built + (time.perf_counter() - t0) * 1000)
             nbytes["snapshot step"].append(len(header) + sum(len(d) for d in parts.values()))
         t0 = time.perf_counter()
         payload = encode(em.map_update(timer.ms))
@@ -338,7 +352,8 @@ def main(argv: list[str] | None = None) -> int:
     if build_ms:
         print(line("  of which building parts", build_ms, f"(the rest: the {args.store} store's write of the bytes)"))
     snap = "snapshot step" if extra["snapshot step"] else "snapshot full"
-    total = [c + sum(extra[k][i] for k in extra if (extra[k] and k != "snapshot full") or k == snap)
+    total = [c + sum(extra[k][i] for k in extra
+                     if (extra[k] and k not in ("snapshot full", "snapshot step, key by key")) or k == snap)
              for i, c in enumerate(core)]
     print(line("whole step (all)", total, f"core + values + {snap} + encode + record"))
     first, last = rows[0], rows[-1]

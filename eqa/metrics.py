@@ -187,7 +187,7 @@ def timed_step(service: str, input_kind: str) -> Callable[[F], F]:
 
 
 STORE_OPS = ("get", "set", "delete", "keys", "set_if_absent", "append", "read", "stream_len", "get_many",
-             "delete_many", "index_add", "index_remove", "index_page", "index_below", "index_len")
+             "delete_many", "set_many", "index_add", "index_remove", "index_page", "index_below", "index_len")
 _store_depth = threading.local()
 
 

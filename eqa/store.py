@@ -156,6 +156,17 @@ class Store(ABC):
         for k in keys:
             self.delete(k)
 
+    def set_many(self, items: list[tuple[str, bytes]], ttl_s: float | None = None,
+                 then_delete: list[str] | None = None) -> None:
+        """Set ``items`` in their order, then delete ``then_delete``: what one write of several keys needs (a
+        state whose parts must be stored before the envelope naming them, and the old parts removed after it).
+        Redis sends it all in one pipeline: one round trip, executed in this order (not atomic: a failure part
+        way leaves the earlier keys written, as the calls one by one would)."""
+        for key, value in items:
+            self.set(key, value, ttl_s)
+        if then_delete:
+            self.delete_many(then_delete)
+
     # ---- sorted indexes (Redis sorted sets): list and prune without scanning every key ------------------
     @abstractmethod
     def index_add(self, index: str, member: str, score: float) -> None:
@@ -242,6 +253,16 @@ class RedisStore(Store):
     def delete_many(self, keys: list[str]) -> None:
         if keys:
             self._r.delete(*keys)
+
+    def set_many(self, items: list[tuple[str, bytes]], ttl_s: float | None = None,
+                 then_delete: list[str] | None = None) -> None:
+        pipe = self._r.pipeline(transaction=False)
+        px = int(ttl_s * 1000) if ttl_s else None
+        for key, value in items:
+            pipe.set(key, value, px=px)
+        if then_delete:
+            pipe.delete(*then_delete)
+        pipe.execute()
 
     def index_add(self, index: str, member: str, score: float) -> None:
         self._r.zadd(index, {member: score})

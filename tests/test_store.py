@@ -27,6 +27,22 @@ def test_kv_roundtrip_prefix_and_expiry(store):
     assert store.get("eqa:tmp") is None
 
 
+def test_set_many_writes_in_order_with_expiry_then_deletes(store):
+    store.set("eqa:part:old", b"old")
+    store.set("eqa:part:keep", b"keep")
+    # a key given twice ends with its last value (the items are written in order), the deletes come after
+    store.set_many([("eqa:part:new", b"1"), ("eqa:env", b"first"), ("eqa:env", b"second")], ttl_s=0.3,
+                   then_delete=["eqa:part:old", "eqa:part:new-never-written"])
+    assert store.get("eqa:env") == b"second" and store.get("eqa:part:new") == b"1"
+    assert store.get("eqa:part:old") is None and store.get("eqa:part:keep") == b"keep"
+    store.set_many([("eqa:gone", b"x")], then_delete=["eqa:gone"])  # deleted after it was set
+    assert store.get("eqa:gone") is None
+    store.set_many([], then_delete=[])
+    time.sleep(0.45)
+    assert store.get("eqa:env") is None and store.get("eqa:part:new") is None  # ttl_s applies to every item
+    assert store.get("eqa:part:keep") == b"keep"
+
+
 def test_set_if_absent_is_a_lock(store):
     assert store.set_if_absent("eqa:lock", b"a")
     assert not store.set_if_absent("eqa:lock", b"b")

@@ -77,16 +77,16 @@ def _columns(em: EpisodeMap, idx: np.ndarray) -> dict[str, Any]:
     """Voxel columns ``idx`` (flat ``row * cols + col``) as stored: observed mask, tsdf and weight of the
     observed voxels, explored mask."""
     v = em.volume
-    nz = v.nz
-    tsdf = v.tsdf.reshape(-1, nz)[idx]
-    weight = v.weight.reshape(-1, nz)[idx]
+    r, c = np.divmod(idx, v.shape2d[1])  # indexed, not reshaped: the volume's arrays are views (no copy)
+    tsdf = v.tsdf[r, c]
+    weight = v.weight[r, c]
     seen = weight > 0
     return {
         "cols": packed_array(idx.astype(np.int32), compress=False),
         "observed": packed_array(np.packbits(seen, axis=None), compress=False),
         "tsdf": packed_array(tsdf[seen], compress=False),
         "weight": packed_array(weight[seen].astype(np.uint16), compress=False),
-        "explored": packed_array(np.packbits(v.explored.reshape(-1, nz)[idx], axis=None), compress=False),
+        "explored": packed_array(np.packbits(v.explored[r, c], axis=None), compress=False),
     }
 
 
@@ -240,10 +240,11 @@ def _apply(em: EpisodeMap, data: bytes) -> None:
     weight = np.zeros((cols.size, nz), np.float32)
     tsdf[seen] = tsdf_obs
     weight[seen] = weight_obs
-    v.tsdf.reshape(-1, nz)[cols] = tsdf
-    v.weight.reshape(-1, nz)[cols] = weight
+    r, c = np.divmod(cols, v.shape2d[1])  # indexed (the arrays may be views of larger buffers)
+    v.tsdf[r, c] = tsdf
+    v.weight[r, c] = weight
     explored = np.unpackbits(_arr(body["explored"], np.uint8, "explored"), count=n).astype(bool)
-    v.explored.reshape(-1, nz)[cols] = explored.reshape(-1, nz)
+    v.explored[r, c] = explored.reshape(-1, nz)
     for name, change in body["planes"].items():
         if "all" in change:
             arr = change["all"]

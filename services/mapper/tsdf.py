@@ -2,9 +2,13 @@
 
 The volume covers ``z in [z_min, z_max]`` (-0.2 m .. 3.5 m: the floor plus one storey, ``H`` of section IV-B)
 and, horizontally, the bounding box of everything seen so far: when a frame's view frustum leaves the
-current box the arrays are padded by whole chunks, so memory follows the explored area, never the number
-of steps. Arrays are indexed ``[row (y), col (x), layer (z)]`` with the same rows/cols as the 2D maps
-(:class:`eqa.messages.GridSpec`), so the 2D projection is a reduction over the last axis.
+current box the grid grows by whole chunks, so memory follows the explored area, never the number
+of steps. The arrays are views of larger zeroed buffers with room on every side (a quarter of the grid's
+extent, at least a chunk): most growth only widens the views, and a buffer is copied into a larger one
+(room again on every side) only when the grid outgrows it, so the cost of growth is amortised, not paid by
+every frame that sees new territory. The grid itself (origin, shape) and every value are what padding the
+arrays by the same chunks gives. Arrays are indexed ``[row (y), col (x), layer (z)]`` with the same rows/cols
+as the 2D maps (:class:`eqa.messages.GridSpec`), so the 2D projection is a reduction over the last axis.
 
 Each voxel keeps
 
@@ -169,6 +173,10 @@ class TSDFVolume:
         self.col_stamp = np.zeros((0, 0), dtype=np.int64)  # per column: the stamp of its last change
         # derived state kept by readers (projection.py), dropped whenever the arrays are replaced
         self.caches: dict[object, object] = {}
+        # the buffers the arrays above are views of, and where the views start in them (see the module doc)
+        self._bufs: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._at = (0, 0)
+        self._views: tuple[np.ndarray, ...] | None = None
 
     # ---- grid ------------------------------------------------------------------------------------------
     @property
@@ -210,10 +218,8 @@ class TSDFVolume:
             cy1 = math.ceil(ymax / (res * chunk)) * chunk
             self.origin_x, self.origin_y = cx0 * res, cy0 * res
             ny, nx = max(cy1 - cy0, chunk), max(cx1 - cx0, chunk)
-            self.tsdf = np.zeros((ny, nx, self.nz), dtype=np.float32)
-            self.weight = np.zeros((ny, nx, self.nz), dtype=np.float32)
-            self.explored = np.zeros((ny, nx, self.nz), dtype=bool)
-            self.col_stamp = np.zeros((ny, nx), dtype=np.int64)
+            self._bufs = None
+            self._place((ny, nx), (0, 0), copy=False)
             self.caches.clear()
             for name, arr in self.planes.items():
                 self.planes[name] = np.zeros((ny, nx), dtype=arr.dtype)
@@ -228,10 +234,7 @@ class TSDFVolume:
         if not (top or left or bottom or right):
             return
         pad3 = ((top, bottom), (left, right), (0, 0))
-        self.tsdf = np.pad(self.tsdf, pad3)
-        self.weight = np.pad(self.weight, pad3)
-        self.explored = np.pad(self.explored, pad3)
-        self.col_stamp = np.pad(self.col_stamp, pad3[:2])
+        self._place((ny + top + bottom, nx + left + right), (top, left), copy=True)
         # readers' caches that can grow with the grid (a ``grow(pad, volume)`` method) do; others are dropped
         for key, cache in list(self.caches.items()):
             grow = getattr(cache, "grow", None)
@@ -243,6 +246,38 @@ class TSDFVolume:
         self.origin_y -= top * res
         for cache in self.caches.values():
             cache.grow(pad3[:2], self)  # type: ignore[attr-defined]
+
+    def _owned(self) -> bool:
+        """Whether the arrays are still the views of this volume's buffers (a restore replaces them)."""
+        return self._views is not None and all(
+            a is v for a, v in zip((self.tsdf, self.weight, self.explored, self.col_stamp), self._views, strict=True))
+
+    def _place(self, shape: tuple[int, int], shift: tuple[int, int], copy: bool) -> None:
+        """Make the arrays views of ``shape`` (rows, cols) whose cell ``(i, j)`` is the current cell
+        ``(i - shift[0], j - shift[1])``, zero where there was none: within the buffers when they have room on
+        the sides the grid grows to, else in new buffers with room on every side, the values copied over."""
+        ny, nx = shape
+        top, left = shift
+        old = (self.tsdf, self.weight, self.explored, self.col_stamp) if copy else None
+        owned = self._owned()
+        r0, c0 = self._at[0] - top, self._at[1] - left
+        if not (owned and self._bufs is not None and r0 >= 0 and c0 >= 0
+                and r0 + ny <= self._bufs[0].shape[0] and c0 + nx <= self._bufs[0].shape[1]):
+            chunk = self.config.chunk
+            mr = max(chunk, -(-ny // 4 // chunk) * chunk)  # room on each side, whole chunks
+            mc = max(chunk, -(-nx // 4 // chunk) * chunk)
+            bufs = (np.zeros((ny + 2 * mr, nx + 2 * mc, self.nz), dtype=np.float32),
+                    np.zeros((ny + 2 * mr, nx + 2 * mc, self.nz), dtype=np.float32),
+                    np.zeros((ny + 2 * mr, nx + 2 * mc, self.nz), dtype=bool),
+                    np.zeros((ny + 2 * mr, nx + 2 * mc), dtype=np.int64))
+            if old is not None:  # the current cells, at their place in the grown grid
+                oy, ox = old[0].shape[:2]
+                for buf, a in zip(bufs, old, strict=True):
+                    buf[mr + top: mr + top + oy, mc + left: mc + left + ox] = a
+            self._bufs, r0, c0 = bufs, mr, mc
+        self._at = (r0, c0)
+        self.tsdf, self.weight, self.explored, self.col_stamp = self._views = tuple(  # type: ignore[assignment]
+            b[r0: r0 + ny, c0: c0 + nx] for b in self._bufs)
 
     # ---- fusion ----------------------------------------------------------------------------------------
     def integrate(self, depth: np.ndarray, intrinsics: np.ndarray, cam_pose: np.ndarray) -> int:
@@ -324,18 +359,13 @@ class TSDFVolume:
         return int(n)
 
     def _contiguous(self) -> None:
-        """The kernel's array layout (C order, float32 / bool / int64); restored arrays may differ."""
-        self.tsdf = np.ascontiguousarray(self.tsdf, dtype=np.float32)
-        self.weight = np.ascontiguousarray(self.weight, dtype=np.float32)
-        self.explored = np.ascontiguousarray(self.explored, dtype=bool)
-        self.col_stamp = np.ascontiguousarray(self.col_stamp, dtype=np.int64)
+        """The kernel's arrays: views of this volume's buffers (float32 / bool / int64, each voxel column
+        contiguous); arrays put in their place (a restore) are copied into new buffers."""
+        if not self._owned():
+            self._place(self.shape2d, (0, 0), copy=True)
 
     # ---- memory ----------------------------------------------------------------------------------------
     def nbytes(self) -> int:
-        return int(
-            self.tsdf.nbytes
-            + self.weight.nbytes
-            + self.explored.nbytes
-            + sum(a.nbytes for a in self.planes.values())
-            + self.col_stamp.nbytes
-        )
+        """Bytes held: the buffers (room for growth included) or the arrays, and the planes."""
+        arrays = self._bufs if self._owned() else (self.tsdf, self.weight, self.explored, self.col_stamp)
+        return int(sum(a.nbytes for a in arrays) + sum(a.nbytes for a in self.planes.values()))

@@ -84,10 +84,11 @@ _SIG = numba.int64(
     numba.float32,  # max_weight
     numba.float64,  # tan of half the explored HFOV
     numba.float64,  # tan of the explored VFOV's upper limit
-    numba.float32[:, :, ::1],  # tsdf (ny, nx, nz), updated in place
-    numba.float32[:, :, ::1],  # weight
-    numba.boolean[:, :, ::1],  # explored
-    numba.int64[:, ::1],  # col_stamp (ny, nx)
+    # the volume's arrays are views of larger buffers (TSDFVolume: room for growth), so any layout
+    numba.types.Array(numba.float32, 3, "A"),  # tsdf (ny, nx, nz), updated in place
+    numba.types.Array(numba.float32, 3, "A"),  # weight
+    numba.types.Array(numba.boolean, 3, "A"),  # explored
+    numba.types.Array(numba.int64, 2, "A"),  # col_stamp (ny, nx)
     numba.int64,  # stamp to write into the changed columns
 )
 
@@ -207,7 +208,6 @@ def integrate_reference(
     it can stand in for it (``TSDFVolume.kernel``); arrays updated in place; returns the voxels updated."""
     h, w = dimg.shape
     nz = zc.shape[0]
-    nx = tsdf.shape[1]
     X = a[:, 0, None] + zc[None, :] * b[0]
     Y = a[:, 1, None] + zc[None, :] * b[1]
     Z = a[:, 2, None] + zc[None, :] * b[2]
@@ -227,16 +227,14 @@ def integrate_reference(
         return 0
     ci, ki = np.divmod(sel, nz)
     obs = np.minimum(np.float32(1.0), sdf.reshape(-1)[sel] / trunc)
-    flat = (rows[ci] * nx + cols[ci]) * nz + ki
-    tsdf_f = tsdf.reshape(-1)
-    w_f = weight.reshape(-1)
-    w_old = w_f[flat]
+    vox = (rows[ci], cols[ci], ki)  # indexed, not flat: the arrays may be views of larger buffers
+    w_old = weight[vox]
     w_new = np.minimum(w_old + 1.0, max_weight)
-    tsdf_f[flat] = (tsdf_f[flat] * w_old + obs) / w_new
-    w_f[flat] = w_new
+    tsdf[vox] = (tsdf[vox] * w_old + obs) / w_new
+    weight[vox] = w_new
     col_stamp[rows[ci], cols[ci]] = stamp
     u_rel = (uf.reshape(-1)[sel] - np.float64(cx64)) / np.float64(fx64)
     v_rel = (vf.reshape(-1)[sel] - np.float64(cy64)) / np.float64(fy64)
     narrow = (np.abs(u_rel) <= tan_h) & (v_rel >= tan_v)
-    explored.reshape(-1)[flat[narrow]] = True
+    explored[rows[ci][narrow], cols[ci][narrow], ki[narrow]] = True
     return int(ci.size)
