@@ -38,6 +38,7 @@ from eqa.messages import (
     EpisodeStart,
     ErrorReply,
     Frame,
+    MemoryScore,
     ObjectEvidence,
     ScoreRequest,
     ScoreResult,
@@ -48,6 +49,7 @@ from eqa.store import Store
 from services.mapper import snapshots
 from services.mapper.answer_views import AnswerViewsShell
 from services.mapper.episode_map import EpisodeMap, MapperConfig, Timer
+from services.mapper.home_shell import HomeMemory
 from services.mapper.object_shell import Detect, ObjectLayerShell, Values
 from services.mapper.question_objects import QuestionObjectsShell
 from services.mapper.semantic_map import QUESTION_LAYER
@@ -90,6 +92,7 @@ class MapperService(AnswerViewsShell, QuestionObjectsShell, ObjectLayerShell, Ep
             view_agree=settings.view_agree,
         )
         self.last_timing_ms: dict[str, float] = {}
+        self.homes = HomeMemory(settings, lambda: self.store, self.scorer)  # home memory and warm start (home_shell.py)
         # runs the scorer round trip of a step while the handler thread does the score-independent work
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mapper-score")
 
@@ -115,12 +118,15 @@ class MapperService(AnswerViewsShell, QuestionObjectsShell, ObjectLayerShell, Ep
         log.info("episode %s: mapping for robot %s (strategy %s)", start.episode_id, robot, start.strategy)
         self.qobjects_start(start)
         self.views_start(start)
-        return EpisodeMap(start, self.config, layers=self.objects_layers(start))
+        em = EpisodeMap(start, self.config, layers=self.objects_layers(start))
+        self.homes.start(start, em)  # an episode in a home starts from its map (home_shell.py)
+        return em
 
     def finish_episode(self, robot: str, msg: EpisodeCancel | EpisodeEnd, state: EpisodeMap) -> None:
         self.objects_finish(msg.episode_id)
         self.qobjects_finish(msg.episode_id)
         self.views_finish(msg.episode_id)
+        self.homes.finish(state)  # the episode's map and views written back to its home
         log.info("episode %s finished (%s); map dropped", msg.episode_id, msg.kind)
 
     def dump_state(self, state: EpisodeMap, **extra: Any) -> Any:
@@ -129,6 +135,7 @@ class MapperService(AnswerViewsShell, QuestionObjectsShell, ObjectLayerShell, Ep
         header, write, delete = snapshots.snapshot_step(state)
         state_header = self.qobjects_dump(state.episode_id, self.objects_dump(state.episode_id, header))
         state_header = self.views_dump(state.episode_id, state_header)
+        state_header = self.homes.dump(state.episode_id, state_header)
         if state.made is not None:
             state_header = snapshots.with_state_part(state_header, MADE_KEY, {
                 "step": state.step, "sent_at": state.made[0], "timing_ms": dict(state.made[1])})
@@ -136,12 +143,14 @@ class MapperService(AnswerViewsShell, QuestionObjectsShell, ObjectLayerShell, Ep
 
     def load_state(self, episode_id: str, data: Any) -> EpisodeMap:
         data, made = snapshots.without_state_part(data, MADE_KEY)
+        data, home = self.homes.split(data)
         data, answer_views = self.views_split(data)
         data, question_objects = self.qobjects_split(data)
         em = self.objects_load(episode_id, data, lambda b: snapshots.restore(
             b, lambda part: self.read_part(episode_id, part), self.config))
         self.qobjects_restore(em, question_objects)
         self.views_restore(em.start, answer_views)
+        self.homes.restore(episode_id, home)
         if isinstance(made, dict) and made.get("step") == em.step:
             em.made = (float(made["sent_at"]), {str(k): float(v) for k, v in dict(made["timing_ms"]).items()})
         log.info("episode %s: restored from snapshot at step %d", episode_id, em.step)
@@ -170,6 +179,10 @@ class MapperService(AnswerViewsShell, QuestionObjectsShell, ObjectLayerShell, Ep
         except FrameError as exc:
             self._error(robot, frame.episode_id, frame.step, f"frame rejected, map unchanged: {exc}")
             return
+        self.homes.observe(em, frame)  # a candidate keyframe of the home's view memory
+        t0 = time.perf_counter()
+        memory = self.homes.warm(em, frame)  # first frame in a known home: the view memory re-scored
+        timer.lap("home_warm", t0)
 
         # The scorer round trip is mostly waiting (another process, the bus): meanwhile this thread does the
         # step's work that does not depend on the scores: the frontier candidates. Same results, same order of
@@ -214,7 +227,7 @@ class MapperService(AnswerViewsShell, QuestionObjectsShell, ObjectLayerShell, Ep
         else:
             self.publish_step(em.episode_id, keys.MAPPER_MAP, update, frame.step)
             self.publish_step(em.episode_id, keys.MAPPER_SCORES, self._step_scores(
-                em, frame, result, evidence, self.views_steps(em.episode_id)), frame.step)
+                em, frame, result, evidence, self.views_steps(em.episode_id), memory), frame.step)
         t0 = time.perf_counter()
         self._record(em, frame)
         self.objects_record(em, frame)
@@ -234,11 +247,14 @@ class MapperService(AnswerViewsShell, QuestionObjectsShell, ObjectLayerShell, Ep
         if result is not None:
             result = self.views_apply(em, frame.step, frame.rgb, result)  # the stored joint answer
             self.publish(robot, keys.MAPPER_SCORES, self._step_scores(em, frame, result, self.qobjects_evidence(em),
-                                                                      self.views_steps(em.episode_id)))
+                                                                      self.views_steps(em.episode_id),
+                                                                      self.homes.memory(em.episode_id)
+                                                                      if frame.step == 0 else []))
 
     @staticmethod
     def _step_scores(em: EpisodeMap, frame: Frame, result: ScoreResult,
-                     evidence: ObjectEvidence | None = None, answer_views: list[int] | None = None) -> StepScores:
+                     evidence: ObjectEvidence | None = None, answer_views: list[int] | None = None,
+                     memory: list[MemoryScore] | None = None) -> StepScores:
         return StepScores(
             episode_id=em.episode_id,
             step=frame.step,
@@ -252,6 +268,7 @@ class MapperService(AnswerViewsShell, QuestionObjectsShell, ObjectLayerShell, Ep
             choices=em.start.question.choices or result.proposed_choices,
             object_evidence=evidence,  # the question's object layer (EQA_OBJECT_EVIDENCE)
             answer_views=answer_views or [],  # steps of the joint answer (EQA_ANSWER_MEMORY_MODE=joint)
+            memory=memory or [],  # warm start: the home's views re-scored for this question (step 0)
         )
 
     def _timed_score(self, robot: str, em: EpisodeMap, frame: Frame) -> tuple[ScoreResult | None, float]:
