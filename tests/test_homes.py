@@ -311,3 +311,11 @@ def test_home_carried_over_warm_started_through_a_scorer_replica_and_continued_e
                 other.stop()
             mapper.stop()
             scorer.stop()
+
+
+def test_bench_sequences_are_one_house_round_robin_over_categories(tmp_path: Path) -> None:
+    from eqa.app.home_bench import sequence
+
+    qs = sequence(11, 0, 5, tmp_path)
+    assert len(qs) == 5 and len({q.scene for q in qs}) == 1 and len({q.category for q in qs}) == 5
+    assert [q.id for q in sequence(11, 0, 7, tmp_path)][:5] == [q.id for q in qs]  # the same order, longer
