@@ -36,7 +36,7 @@ import logging
 import math
 import tempfile
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
 
@@ -173,21 +173,23 @@ def _houses(seeds: list[int], cal: int, test: int) -> list[tuple[int, int, str]]
     return [(s, i, "calibration" if i < cal else "test") for s in seeds for i in range(cal + test)]
 
 
-def _map(fn: Any, jobs: list[Any], workers: int) -> list[Any]:
+def _run_all(fn: Any, jobs: list[Any], paths: list[Path], workers: int) -> None:
+    """Run ``fn`` on every job, writing each result to its path as soon as it is done (an interrupted run, run
+    again, does only what is missing)."""
+
+    def write(path: Path, value: Any) -> None:
+        tmp = path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(value))
+        tmp.replace(path)
+
     if workers <= 1 or len(jobs) <= 1:
-        return [fn(j) for j in jobs]
+        for job, path in zip(jobs, paths, strict=True):
+            write(path, fn(job))
+        return
     with ProcessPoolExecutor(max_workers=workers) as pool:
-        return list(pool.map(fn, jobs))
-
-
-def _cached(path: Path, make: Any) -> Any:
-    if path.is_file():
-        return json.loads(path.read_text())
-    value = make()
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(value))
-    tmp.replace(path)
-    return value
+        futures = {pool.submit(fn, job): path for job, path in zip(jobs, paths, strict=True)}
+        for fut in as_completed(futures):
+            write(futures[fut], fut.result())
 
 
 def _table(traces: list[Any], grid: tuple[float, ...], name: str, eps: float) -> Any:
@@ -219,8 +221,8 @@ def run(args: argparse.Namespace, settings: Any) -> dict[str, Any]:
     # 1. cold traces of every question
     cold_jobs = [(q, args.strategy, dump) for (s, i, _) in houses for q in seqs[(s, i)]
                  if not (runs / f"cold-{args.strategy}-{size}-{q.id}.json").is_file()]
-    for q, trace in zip([j[0] for j in cold_jobs], _map(run_cold, cold_jobs, args.workers), strict=True):
-        (runs / f"cold-{args.strategy}-{size}-{q.id}.json").write_text(json.dumps(trace))
+    _run_all(run_cold, cold_jobs, [runs / f"cold-{args.strategy}-{size}-{j[0].id}.json" for j in cold_jobs],
+             args.workers)
     cold = {q.id: Trace.model_validate_json((runs / f"cold-{args.strategy}-{size}-{q.id}.json").read_text())
             for (s, i, _) in houses for q in seqs[(s, i)]}
 
@@ -237,8 +239,7 @@ def run(args: argparse.Namespace, settings: Any) -> dict[str, Any]:
         paths = {h: runs / f"warm-{role}-s{h[0]}-h{h[1]}-{tag}.json" for h in todo}
         jobs = [(s, i, args.questions, args.strategy, args.eps, warm_q_hat, dump, repr(cold_q[args.eps]))
                 for (s, i) in todo if not paths[(s, i)].is_file()]
-        for job, result in zip(jobs, _map(run_house, jobs, args.workers), strict=True):
-            paths[(job[0], job[1])].write_text(json.dumps(result))
+        _run_all(run_house, jobs, [paths[(j[0], j[1])] for j in jobs], args.workers)
         return {h: json.loads(paths[h].read_text()) for h in todo}
 
     # 3.-4. warm calibration sequences (homes written at the cold table's stops) and the warm table
