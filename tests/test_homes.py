@@ -294,6 +294,9 @@ def test_home_carried_over_warm_started_through_a_scorer_replica_and_continued_e
             bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), frame_at(renderer, "ep-h2", 1, turn(q.start_pose, 4)))
             m1, s1 = out.step(1)
             assert s1.memory == [] and m1.explored_area_m2 >= m0.explored_area_m2
+            # the candidate keyframe of step 0 came over with the episode's state (cells read back from the store)
+            pool = other.homes.episodes["ep-h2"].pool.views
+            assert {v.view_id for v in pool} == {"ep-h2-0", "ep-h2-1"} and all(len(v.cells) for v in pool)
             bus.publish(keys.stream(ROBOT, keys.EPISODE_END), end("ep-h2", 2))
             deadline = time.time() + 20
             while (mapper_index := other.homes.read_index(home)) is not None and mapper_index.version < 2 \
