@@ -528,6 +528,20 @@ class ObjectEvidence(BaseModel):
     explored: float = Field(default=0.0, ge=0.0, le=1.0)
 
 
+MAX_HOME_VIEWS = 256  # a home's view memory: keyframes kept (EQA_HOME_MAX_VIEWS is at most this)
+
+
+class MemoryScore(BaseModel):
+    """One remembered view of the episode's home re-scored for this question: a warm start's "memory step",
+    decided on by the stopper before the robot's first move and kept in the episode's trace."""
+
+    model_config = ConfigDict(extra="forbid")
+    answer_probs: list[float] = Field(max_length=26)
+    relevance: float
+    view_step: int = Field(default=0, ge=0)  # the step of its own episode the view was taken at
+    seen_at: float = 0.0  # when the view was taken (unix seconds)
+
+
 class StepScores(Message):
     """What the stopper needs of one step: the answer distribution and the relevance."""
 
@@ -545,6 +559,9 @@ class StepScores(Message):
     # joint answer memory: the steps whose views answer_probs was answered from in one prompt
     # (empty: answer_probs is this step's own view)
     answer_views: list[Annotated[int, Field(ge=0)]] = Field(default_factory=list, max_length=MAX_MEMORY_VIEWS)
+    # warm start (a question in a known home, step 0 only): the home's remembered views re-scored for this
+    # question, oldest first; the stopper takes them as steps before this one (services/stopper/state.py)
+    memory: list[MemoryScore] = Field(default_factory=list, max_length=MAX_HOME_VIEWS)
 
 
 class Decision(Message):

@@ -400,6 +400,47 @@ class HomeSettings(SettingsGroup):
         default=90.0, gt=0,
         description="a home no episode has used for this long is deleted with its memory (the gateway's watchdog)",
     )
+    # the mapper's home memory and warm start (services/mapper/home_memory.py, home_shell.py)
+    home_max_views: int = Field(
+        default=24, ge=0, le=256,
+        description="view memory of a home: keyframes kept (greedy max-coverage of observed floor cells); 0 = "
+        "a home keeps its map only",
+    )
+    home_max_bytes: int = Field(
+        default=64 * 1024 * 1024, ge=1024, le=4 * 1024 * 1024 * 1024,
+        description="bytes of a home's stored parts (map and views) at most; views that do not fit are not kept, a "
+        "map that alone does not fit is not stored",
+    )
+    home_warm_views: int = Field(
+        default=24, ge=0, le=256,
+        description="warm start: remembered views re-scored for a new question in a known home (the most covering "
+        "first); 0 = the map is carried over but no memory steps",
+    )
+    home_memory_steps: int = Field(
+        default=0, ge=0, le=256,
+        description="warm start: of the re-scored views, the stopper gets this many as memory steps, the most "
+        "relevant ones (Rel, Eq. 5; every re-scored view still writes its semantic values); 0 = all of them",
+    )
+    home_warm_timeout_s: float = Field(
+        default=20.0, gt=0, le=600,
+        description="warm start: the re-scoring of the view memory waits this long at most; views not scored by "
+        "then are left out of the episode's memory steps",
+    )
+    home_warm_parallel: int = Field(
+        default=4, ge=1, le=32,
+        description="warm start: score requests of remembered views in flight at once (the scorer pool batches "
+        "concurrent requests)",
+    )
+    home_ttl_s: float = Field(
+        default=90 * 24 * 3600.0, gt=0,
+        description="a home's stored parts expire this long after the last episode that updated it (keep it at "
+        "least EQA_HOMES_RETENTION_DAYS, after which the gateway deletes an unused home)",
+    )
+    home_calibration_name: str = Field(
+        default="",
+        description="CP calibration table of episodes in a home (warm starts: memory steps in their traces); "
+        "empty = EQA_CALIBRATION_NAME",
+    )
 
 
 class Settings(

@@ -590,3 +590,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     from eqa.app import task_bench  # HELIOS Tables 1, 2
 
     task_bench.register(sub)
+    from eqa.app import home_bench  # questions in a known house: cold vs warm
+
+    home_bench.register(sub)

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from eqa.messages import StepScores, StopConfig, letters
+from eqa.messages import MemoryScore, StepScores, StopConfig, letters
 from services.stopper.calibration import CalibrationTable, Trace, calibrate
 from services.stopper.conformal import fallback_answer
 from services.stopper.state import CalibrationChoice, EpisodeRecord, decide
@@ -262,13 +262,17 @@ def replay(trace: Trace, stop: StopConfig, calibration: CalibrationChoice | None
         calibration=calibration,
         threshold=stop.threshold,
     )
-    for t, s in enumerate(trace.steps):
-        d = decide(rec, StepScores(episode_id="replay", step=t, answer_probs=s.answer_probs, relevance=s.relevance))
+    # a warm trace's memory steps reach the stopper with step 0, as the mapper sends them (StepScores.memory)
+    m = trace.memory_steps
+    memory = [MemoryScore(answer_probs=s.answer_probs, relevance=s.relevance) for s in trace.steps[:m]]
+    for t, s in enumerate(trace.steps[m:]):
+        d = decide(rec, StepScores(episode_id="replay", step=t, answer_probs=s.answer_probs, relevance=s.relevance,
+                                   memory=memory if t == 0 else []))
         if d is not None and d.stop:
             return Replay(d.answer, t + 1, trace.max_steps, d.answer == trace.answer, tuple(d.prediction_set))
     # The run ended before the stop rule fired (the planner found nothing left to explore): fallback answer.
     answer = rec.fallback()
-    return Replay(answer, len(trace.steps), trace.max_steps, answer == trace.answer, tuple(rec.running or ()))
+    return Replay(answer, len(trace.steps) - m, trace.max_steps, answer == trace.answer, tuple(rec.running or ()))
 
 
 @dataclass(frozen=True)

@@ -53,6 +53,7 @@ from eqa.messages import (
     ErrorReply,
     Frame,
     MapUpdate,
+    MemoryScore,
     ObjectEvidence,
     ScoreRequest,
     ScoreResult,
@@ -155,6 +156,7 @@ class StepOutputs:
     frontier_layer: str = QUESTION_LAYER  # the value layer the frontiers take their Eq. A6 values from
     object_evidence: ObjectEvidence | None = None  # StepScores.object_evidence
     answer_views: list[int] = field(default_factory=list)  # StepScores.answer_views
+    memory: list[MemoryScore] = field(default_factory=list)  # StepScores.memory (the home's warm start)
 
 
 class MapperExtension(Protocol):

@@ -60,6 +60,7 @@ from services.mapper.extension import (
     call_pool,
     failure,
 )
+from services.mapper.home_shell import HomeMemory
 from services.mapper.object_shell import ObjectLayerExtension
 from services.mapper.question_objects import QuestionObjectsExtension
 from services.mapper.semantic_map import QUESTION_LAYER
@@ -102,6 +103,9 @@ class MapperService(EpisodeService[EpisodeMap]):
             view_agree=settings.view_agree,
         )
         self.last_timing_ms: dict[str, float] = {}
+        # home memory and warm start (home_shell.py): it needs the episode's map itself at start and end and the
+        # first frame before the step's scoring, so it is called at those points rather than as an extension
+        self.homes = HomeMemory(settings, lambda: self.store, self.scorer)
         # runs the scorer round trip of a step while the handler thread does the score-independent work
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mapper-score")
 
@@ -122,11 +126,14 @@ class MapperService(EpisodeService[EpisodeMap]):
     def start_episode(self, robot: str, start: EpisodeStart) -> EpisodeMap:
         log.info("episode %s: mapping for robot %s (strategy %s)", start.episode_id, robot, start.strategy)
         extra = [layer for ext in self.extensions for layer in ext.start(start)]
-        return EpisodeMap(start, self.config, layers=[QUESTION_LAYER, *extra] if extra else None)
+        em = EpisodeMap(start, self.config, layers=[QUESTION_LAYER, *extra] if extra else None)
+        self.homes.start(start, em)  # an episode in a home starts from its map
+        return em
 
     def finish_episode(self, robot: str, msg: EpisodeCancel | EpisodeEnd, state: EpisodeMap) -> None:
         for ext in self.extensions:
             ext.finish(msg.episode_id)
+        self.homes.finish(state)  # the episode's map and views written back to its home
         log.info("episode %s finished (%s); map dropped", msg.episode_id, msg.kind)
 
     def dump_state(self, state: EpisodeMap, **extra: Any) -> Any:
@@ -138,6 +145,7 @@ class MapperService(EpisodeService[EpisodeMap]):
             part = ext.dump(state.episode_id)
             if part is not None:
                 state_header = snapshots.with_state_part(state_header, ext.state_key, part)
+        state_header = self.homes.dump(state.episode_id, state_header)
         if state.made is not None:
             state_header = snapshots.with_state_part(state_header, MADE_KEY, {
                 "step": state.step, "sent_at": state.made[0], "timing_ms": dict(state.made[1])})
@@ -145,6 +153,7 @@ class MapperService(EpisodeService[EpisodeMap]):
 
     def load_state(self, episode_id: str, data: Any) -> EpisodeMap:
         data, made = snapshots.without_state_part(data, MADE_KEY)
+        data, home = self.homes.split(data)
         parts: dict[str, Any] = {}
         for ext in self.extensions:
             data, parts[ext.state_key] = snapshots.without_state_part(data, ext.state_key)
@@ -155,6 +164,7 @@ class MapperService(EpisodeService[EpisodeMap]):
         em = snapshots.restore(data, lambda part: self.read_part(episode_id, part), self.config)
         for ext in self.extensions:
             ext.restore(em, parts[ext.state_key])
+        self.homes.restore(episode_id, home)
         if isinstance(made, dict) and made.get("step") == em.step:
             em.made = (float(made["sent_at"]), {str(k): float(v) for k, v in dict(made["timing_ms"]).items()})
         log.info("episode %s: restored from snapshot at step %d", episode_id, em.step)
@@ -182,6 +192,10 @@ class MapperService(EpisodeService[EpisodeMap]):
         except FrameError as exc:
             self._error(robot, frame.episode_id, frame.step, f"frame rejected, map unchanged: {exc}")
             return
+        self.homes.observe(em, frame)  # a candidate keyframe of the home's view memory
+        t0 = time.perf_counter()
+        memory = self.homes.warm(em, frame)  # first frame in a known home: the view memory re-scored
+        timer.lap("home_warm", t0)
 
         # The scorer round trip is mostly waiting (another process, the bus): meanwhile this thread does the
         # step's work that does not depend on the scores: the frontier candidates. Same results, same order of
@@ -189,7 +203,7 @@ class MapperService(EpisodeService[EpisodeMap]):
         pending = self._pool.submit(self._timed_score, robot, em, frame)
         # the extensions' own requests (detections, value prompts) on their workers meanwhile
         pending_ext: list[Future[Any] | None] = [ext.submit(robot, em, frame) for ext in self.extensions]
-        out = StepOutputs()
+        out = StepOutputs(memory=memory)
         t0 = time.perf_counter()
         candidates = em.find_frontier_candidates()
         t0 = timer.lap("frontiers", t0)
@@ -245,7 +259,7 @@ class MapperService(EpisodeService[EpisodeMap]):
         self.publish(robot, keys.MAPPER_MAP, update)
         result = self._score(robot, em, frame)
         if result is not None:
-            out = StepOutputs()
+            out = StepOutputs(memory=self.homes.memory(em.episode_id) if frame.step == 0 else [])
             for ext in self.extensions:  # e.g. the stored joint answer
                 result = ext.scores(em, frame, result, out, {})
             for ext in self.extensions:
@@ -267,6 +281,7 @@ class MapperService(EpisodeService[EpisodeMap]):
             choices=em.start.question.choices or result.proposed_choices,
             object_evidence=out.object_evidence,  # the question's object layer (EQA_OBJECT_EVIDENCE)
             answer_views=out.answer_views,  # steps of the joint answer (EQA_ANSWER_MEMORY_MODE=joint)
+            memory=out.memory,  # warm start: the home's views re-scored for this question (step 0)
         )
 
     def _timed_score(self, robot: str, em: EpisodeMap, frame: Frame) -> tuple[ScoreResult | None, float]:

@@ -112,13 +112,15 @@ class Trace(BaseModel):
     episode_id: str | None = None
     end_reason: str | None = None
     stop_rule: str | None = None  # the episode's stop rule (calibration needs max_steps: full-length runs)
+    # warm start: the first memory_steps steps are the home's remembered views re-scored before step 0
+    memory_steps: int = Field(default=0, ge=0, le=256)
 
     @property
     def full_length(self) -> bool:
         """Whether the trace holds a whole run: its stop rule was ``max_steps`` (it ended at the step limit or
         with nothing left to explore), or it has all ``max_steps`` steps. A run cut short by a stopping rule
         has a smaller ``kappa`` (its min over fewer steps) and would make ``q_hat`` too small."""
-        return self.stop_rule == "max_steps" or len(self.steps) >= self.max_steps
+        return self.stop_rule == "max_steps" or len(self.steps) - self.memory_steps >= self.max_steps
 
     @field_validator("choices")
     @classmethod
@@ -132,8 +134,10 @@ class Trace(BaseModel):
     def _consistent(self) -> Trace:
         if self.answer is not None and self.answer not in letters(len(self.choices)):
             raise ValueError(f"answer {self.answer!r} is not one of the choice letters")
-        if len(self.steps) > self.max_steps:
-            raise ValueError(f"trace has {len(self.steps)} steps but max_steps is {self.max_steps}")
+        if len(self.steps) - self.memory_steps > self.max_steps:
+            raise ValueError(f"trace has {len(self.steps) - self.memory_steps} steps but max_steps is {self.max_steps}")
+        if self.memory_steps > len(self.steps):
+            raise ValueError(f"trace has {self.memory_steps} memory steps but only {len(self.steps)} steps")
         for t, step in enumerate(self.steps):
             try:
                 check_scores(step.answer_probs, step.relevance, len(self.choices))

@@ -126,6 +126,8 @@ class StopperService(EpisodeService[EpisodeRecord]):
             return None
         if start.stop.rule == "cp":
             name = self.settings.calibration_name
+            if start.home is not None and self.settings.home_calibration_name:
+                name = self.settings.home_calibration_name  # warm episodes' own table (memory steps in the traces)
             try:
                 table, where = load_table(self.store, name)
             except ValueError as exc:  # bad table name in settings

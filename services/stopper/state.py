@@ -162,6 +162,9 @@ class EpisodeRecord(BaseModel):
     # pool the object layer's evidence (StepScores.object_evidence) into f; None = off
     object_evidence: tuple[float, float] | None = None  # (psi_min, weight)
     task: bool = False  # a task episode: the planner ends it, there is no answer to give
+    # warm start: the leading entries of probs / relevance are the home's re-scored views (StepScores.memory),
+    # decided on before step 0 and not counted as steps
+    memory_steps: int = Field(default=0, ge=0)
 
     @property
     def answer_rule(self) -> AnswerRule:
@@ -206,6 +209,7 @@ class EpisodeRecord(BaseModel):
             episode_id=self.episode_id,
             end_reason=end_reason,
             stop_rule=self.stop.rule,
+            memory_steps=self.memory_steps,
         )
 
     def fallback(self) -> str | None:
@@ -359,8 +363,9 @@ STOP_RULES: dict[str, StopRuleFn] = {
 }
 
 
-def _record_step(episode: EpisodeRecord, scores: StepScores) -> RuleStep:
-    """Check the step's scores and record them in ``episode`` (unchanged when they are invalid)."""
+def _record_step(episode: EpisodeRecord, scores: StepScores, memory: bool = False) -> RuleStep:
+    """Check the step's scores and record them in ``episode`` (unchanged when they are invalid); a ``memory``
+    step (a remembered view of the home, before step 0) is recorded in the scores but not as a step."""
     if not episode.choices:  # a question without choices: the scorer proposed them (Explore-EQA section VI-A)
         n = len(scores.choices) or len(scores.answer_probs)
         choices = list(scores.choices) or [f"option {c}" for c in letters(max(2, n))]
@@ -373,6 +378,12 @@ def _record_step(episode: EpisodeRecord, scores: StepScores) -> RuleStep:
         # stopper's traces covers the combined score) pools the VLM's with the object layer's
         params = EvidenceParams(psi_min=episode.object_evidence[0], weight=episode.object_evidence[1])
         f = combine(f, layer_distribution(scores.object_evidence, choices, params), params.weight)
+    if memory:
+        episode.choices = choices
+        episode.memory_steps += 1
+        episode.probs.append([float(v) for v in f])
+        episode.relevance.append(rel)
+        return RuleStep(episode, scores, f, rel)
     if scores.step != episode.last_step + 1:
         log.warning("episode %s: step %d follows step %d (steps missing)", episode.episode_id, scores.step,
                     episode.last_step)
@@ -392,7 +403,20 @@ def decide(episode: EpisodeRecord, scores: StepScores) -> Decision | None:
     """
     if scores.step <= episode.last_step:
         return None
-    return STOP_RULES[episode.stop.rule](_record_step(episode, scores))
+    rule = STOP_RULES[episode.stop.rule]
+    if scores.memory and not episode.probs:
+        # Warm start: the home's remembered views re-scored for this question are the episode's first steps
+        # (the same rule, the same running intersection of Eq. 9), so a question the memory already answers
+        # stops before the first move. The trace keeps them (Trace.memory_steps): a table calibrated on warm
+        # traces covers exactly this sequence.
+        for m in scores.memory:
+            mem = scores.model_copy(update={"answer_probs": m.answer_probs, "relevance": m.relevance, "memory": [],
+                                            "object_evidence": None})
+            decision = rule(_record_step(episode, mem, memory=True))
+            if decision.stop:  # decided at step 0 on the memory alone; step 0's scores are kept in the trace
+                _record_step(episode, scores)
+                return decision
+    return rule(_record_step(episode, scores))
 
 
 def end_message(

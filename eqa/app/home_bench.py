@@ -1,0 +1,414 @@
+"""``eqa bench home``: sequences of questions in one house, asked cold (every episode from an empty map) and warm
+(each question starts from the home's memory of the ones before it: :mod:`services.mapper.home_shell`).
+
+Per benchmark seed, house ``i`` of the seed's generated houses (``gen-{seed*10000+i}``) gives a sequence of
+``--questions`` questions (round-robin over the five categories, :func:`services.sim.questions.benchmark_candidates`);
+houses ``0 .. --cal-houses - 1`` are the seed's calibration houses, the next ``--test-houses`` its test houses.
+
+Every episode runs full length with the services' step functions in one process
+(:func:`eqa.app.core_runner.run_episode_loop`, the ``cores`` runner of ``eqa bench``), so its trace serves both
+calibration and the coverage check; the *home* of a warm sequence is written back at the step where the
+stopper's own rule (:func:`services.stopper.state.decide`, CP at ``--eps``) stops it, through the mapper's
+:class:`~services.mapper.home_shell.HomeMemory` on a store of its own: the next question sees what the robot had
+seen when it answered, not what a full-length run saw. Steps to stop and success are the stopper's replay of
+each trace (:func:`eqa.app.evaluation.replay`, memory steps included and not counted as steps).
+
+Passes (each episode's result is a JSON file under ``--out/runs``; a run again skips those that exist):
+
+1. cold traces of every question of every house (their own seed per question, as ``eqa bench``);
+2. the cold CP table from the calibration houses' cold traces (pooled over ``--seeds``);
+3. warm sequences of the calibration houses, homes written back at the cold table's stops;
+4. the warm CP table from their warm traces of positions 2.. (the memory steps in them);
+5. warm sequences of the test houses, homes written back at the warm table's stops.
+
+Reported (``home.json``): steps to stop and success per position, cold vs warm on the same test questions,
+paired (sign tests on steps and on success, with the success difference's interval), the steps ratio of
+positions 2..N, CP coverage per eps on warm test episodes against 1 - eps (Wilson intervals), memory size.
+SIMULATED PERCEPTION MODEL (the oracle scorer), not a VLM, unless ``--scorer`` says otherwise.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import logging
+import math
+import tempfile
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
+from typing import Any
+
+from eqa.app.core_runner import StepHooks
+
+log = logging.getLogger(__name__)
+
+EPS_GRID = (0.1, 0.2, 0.3)  # CP tables of the bench (0.1 needs >= 9 calibration episodes)
+
+
+def sequence(seed: int, index: int, n: int, scenes_dir: Path) -> list[Any]:
+    """The ``n`` questions asked in house ``index`` of benchmark ``seed``: the house's candidates, one category
+    after the other in the benchmark's category order, the first question of each category first."""
+    from services.sim.questions import CATEGORIES, benchmark_candidates
+
+    cands = benchmark_candidates(seed, index, scenes_dir)
+    out: list[Any] = []
+    depth = 0
+    while len(out) < n and any(len(cands[c]) > depth for c in CATEGORIES):
+        out += [cands[c][depth] for c in CATEGORIES if len(cands[c]) > depth][: n - len(out)]
+        depth += 1
+    return out
+
+
+def _calibration(q_hat: float | None, eps: float) -> Any:
+    from services.stopper.state import CalibrationChoice
+
+    return None if q_hat is None else CalibrationChoice(q_hat=q_hat, eps=eps, asked_eps=eps, n=0, source="bench home")
+
+
+class _Warm(StepHooks):
+    """The mapper's home hooks in the in-process loop (the service's order: candidate keyframe, then at the first
+    frame the warm start, then the frame's own values), the trace, and the stopper deciding online when the
+    home is written back."""
+
+    def __init__(self, memory: Any, emap: Any, record: Any) -> None:
+        from services.stopper.calibration import TraceStep
+
+        self.step_type = TraceStep
+        self.memory, self.emap, self.record = memory, emap, record
+        self.steps: list[Any] = []
+        self.memory_steps = 0
+        self.stop_step: int | None = None
+        self.committed: Any = None
+
+    def scored(self, step: int, frame: Any, request: Any, scores: Any) -> None:
+        from eqa.messages import StepScores
+        from services.stopper.state import decide
+
+        self.memory.observe(self.emap, frame)
+        mem = self.memory.warm(self.emap, frame) if step == 0 else []
+        if step == 0:
+            self.memory_steps = len(mem)
+            self.steps += [self.step_type(answer_probs=m.answer_probs, relevance=m.relevance) for m in mem]
+        self.steps.append(self.step_type(answer_probs=list(scores.answer_probs), relevance=float(scores.relevance)))
+        if self.stop_step is None and self.record is not None:
+            d = decide(self.record, StepScores(episode_id=self.emap.episode_id, step=step,
+                                               answer_probs=scores.answer_probs, relevance=scores.relevance,
+                                               memory=mem))
+            if d is not None and d.stop:
+                self.stop_step = step
+                self.committed = self.memory.finish(self.emap)  # the home as the robot had it when it answered
+
+
+def run_house(args: tuple[int, int, int, str, float, float | None, dict[str, Any], str]) -> list[dict[str, Any]]:
+    """The warm sequence of one house: per question its trace (memory steps first) and the home after it."""
+    from eqa.app.benchmark_runner import question_seed
+    from eqa.app.core_runner import EpisodeCores, run_episode_loop
+    from eqa.messages import EpisodeStart, StopConfig
+    from eqa.settings import Settings
+    from eqa.store import EmbeddedStore
+    from services.mapper.episode_map import EpisodeMap, MapperConfig
+    from services.mapper.home_shell import HomeMemory
+    from services.planner.step import PlannerParams
+    from services.sim.library import load_or_generate
+    from services.sim.render import Renderer
+    from services.stopper.calibration import Trace
+    from services.stopper.state import EpisodeRecord
+    from services.vlm_scorer.backends import make_backend
+
+    seed, index, n, strategy, eps, warm_q_hat, settings_dump, cold_q_hat_text = args
+    cold_q_hat = float(cold_q_hat_text)
+    settings = Settings.model_validate(settings_dump)
+    questions = sequence(seed, index, n, settings.scenes_path)
+    scene = load_or_generate(questions[0].scene, settings.scenes_path)
+    renderer, scorer = Renderer(scene), make_backend(settings)
+    home = f"h-bench-{seed}-{index}"
+    out = []
+    with tempfile.TemporaryDirectory() as tmp:
+        store = EmbeddedStore(Path(tmp) / "home.sqlite")
+        memory = HomeMemory(settings, lambda: store, lambda: scorer.score)
+        try:
+            for pos, q in enumerate(questions):
+                qseed = question_seed(q.id)
+                start = EpisodeStart(episode_id=f"home-{q.id}", robot="cores", question=q, strategy=strategy,
+                                     max_steps=q.max_steps, seed=qseed, record=False, home=home,
+                                     stop=StopConfig(rule="cp", eps=eps))
+                emap = EpisodeMap(start, MapperConfig(tau_lsv=settings.tau_lsv, tau_gsv=settings.tau_gsv,
+                                                      tau_sv=settings.tau_sv, tau_sv_normal=settings.tau_sv_normal,
+                                                      view_bins=settings.view_bins, view_agree=settings.view_agree))
+                memory.start(start, emap)
+                loaded = memory.episodes[start.episode_id].loaded_cells
+                record = EpisodeRecord.from_start(start, "cores")
+                q_hat = cold_q_hat if pos == 0 or warm_q_hat is None else warm_q_hat
+                record.calibration = _calibration(q_hat, eps)
+                hooks = _Warm(memory, emap, record)
+                t0 = time.perf_counter()
+                reason = run_episode_loop(q, strategy, EpisodeCores(scene, renderer, scorer, emap, PlannerParams(),
+                                                                    settings.sim_width, settings.sim_height),
+                                          episode_id=start.episode_id, seed=qseed, hooks=hooks)
+                if hooks.stop_step is None:
+                    hooks.committed = memory.finish(emap)
+                trace = Trace(question_id=q.id, scene=q.scene, category=q.category, choices=q.choices, answer=q.answer,
+                              max_steps=q.max_steps, strategy=strategy, steps=hooks.steps, episode_id=start.episode_id,
+                              end_reason=reason, stop_rule="max_steps", memory_steps=hooks.memory_steps)
+                index_after = hooks.committed
+                out.append({"position": pos + 1, "trace": trace.model_dump(mode="json"), "loaded_cells": loaded,
+                            "views": 0 if index_after is None else len(index_after.views),
+                            "bytes": 0 if index_after is None else index_after.map_bytes + index_after.view_bytes,
+                            "seconds": time.perf_counter() - t0})
+        finally:
+            store.close()
+    return out
+
+
+def run_cold(args: tuple[Any, str, dict[str, Any]]) -> dict[str, Any]:
+    from eqa.app.core_runner import core_episode
+
+    return core_episode(args).model_dump(mode="json")
+
+
+# ---- the passes ---------------------------------------------------------------------------------------------
+def _houses(seeds: list[int], cal: int, test: int) -> list[tuple[int, int, str]]:
+    return [(s, i, "calibration" if i < cal else "test") for s in seeds for i in range(cal + test)]
+
+
+def _run_all(fn: Any, jobs: list[Any], paths: list[Path], workers: int) -> None:
+    """Run ``fn`` on every job, writing each result to its path as soon as it is done (an interrupted run, run
+    again, does only what is missing)."""
+
+    def write(path: Path, value: Any) -> None:
+        tmp = path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(value))
+        tmp.replace(path)
+
+    if workers <= 1 or len(jobs) <= 1:
+        for job, path in zip(jobs, paths, strict=True):
+            write(path, fn(job))
+        return
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        futures = {pool.submit(fn, job): path for job, path in zip(jobs, paths, strict=True)}
+        for fut in as_completed(futures):
+            write(futures[fut], fut.result())
+
+
+def _table(traces: list[Any], grid: tuple[float, ...], name: str, eps: float) -> Any:
+    """The CP table of ``traces`` at the eps of ``grid`` (and ``eps``) whose quantile ``traces`` define."""
+    from eqa.app.bench_cli import _quantile_defined
+    from services.stopper.calibration import calibrate
+
+    usable = sorted({e for e in (*grid, eps) if _quantile_defined(len(traces), e)})
+    if eps not in usable:
+        raise ValueError(f"{len(traces)} calibration episodes for {name} do not define q_hat at eps={eps:g}: "
+                         f"use more calibration houses or a larger --eps")
+    return calibrate(traces, usable, name=name)
+
+
+def run(args: argparse.Namespace, settings: Any) -> dict[str, Any]:
+    from eqa.app import evaluation as ev
+    from eqa.messages import StopConfig
+    from eqa.seeds import seed_role
+    from services.stopper.calibration import Trace
+
+    out = Path(args.out)
+    runs = out / "runs"
+    runs.mkdir(parents=True, exist_ok=True)
+    dump = settings.model_dump(mode="json")
+    houses = _houses(args.seeds, args.cal_houses, args.test_houses)
+    seqs = {(s, i): sequence(s, i, args.questions, settings.scenes_path) for s, i, _ in houses}
+    size = f"{settings.sim_width}x{settings.sim_height}"
+
+    # 1. cold traces of every question
+    cold_jobs = [(q, args.strategy, dump) for (s, i, _) in houses for q in seqs[(s, i)]
+                 if not (runs / f"cold-{args.strategy}-{size}-{q.id}.json").is_file()]
+    _run_all(run_cold, cold_jobs, [runs / f"cold-{args.strategy}-{size}-{j[0].id}.json" for j in cold_jobs],
+             args.workers)
+    cold = {q.id: Trace.model_validate_json((runs / f"cold-{args.strategy}-{size}-{q.id}.json").read_text())
+            for (s, i, _) in houses for q in seqs[(s, i)]}
+
+    # 2. the cold table
+    cal_cold = [cold[q.id] for (s, i, role) in houses if role == "calibration" for q in seqs[(s, i)]]
+    cold_table = _table(cal_cold, EPS_GRID, "home-cold", args.eps)
+    cold_q = {e.eps: e.q_hat for e in cold_table.entries}
+
+    def warm_runs(role: str, warm_q_hat: float | None) -> dict[tuple[int, int], list[dict[str, Any]]]:
+        knobs = [cold_q[args.eps], warm_q_hat, size, args.questions, args.strategy, settings.home_max_views,
+                 settings.home_warm_views, settings.home_memory_steps]
+        tag = hashlib.sha256(json.dumps(knobs).encode()).hexdigest()[:10]
+        todo = [(s, i) for (s, i, r) in houses if r == role]
+        paths = {h: runs / f"warm-{role}-s{h[0]}-h{h[1]}-{tag}.json" for h in todo}
+        jobs = [(s, i, args.questions, args.strategy, args.eps, warm_q_hat, dump, repr(cold_q[args.eps]))
+                for (s, i) in todo if not paths[(s, i)].is_file()]
+        _run_all(run_house, jobs, [paths[(j[0], j[1])] for j in jobs], args.workers)
+        return {h: json.loads(paths[h].read_text()) for h in todo}
+
+    # 3.-4. warm calibration sequences (homes written at the cold table's stops) and the warm table
+    warm_cal = warm_runs("calibration", None)
+    cal_warm = [Trace.model_validate(r["trace"]) for seq in warm_cal.values() for r in seq if r["position"] > 1]
+    warm_table = _table(cal_warm, EPS_GRID, "home-warm", args.eps)
+    warm_q = {e.eps: e.q_hat for e in warm_table.entries}
+
+    # 5. warm test sequences (homes written at the warm table's stops)
+    warm_test = warm_runs("test", warm_q[args.eps])
+
+    cold_cal = _calibration(cold_q[args.eps], args.eps)
+    warm_cal_choice = _calibration(warm_q[args.eps], args.eps)
+    stop = StopConfig(rule="cp", eps=args.eps)
+    rows = []
+    for (s, i), seq in sorted(warm_test.items()):
+        for r in seq:
+            wt = Trace.model_validate(r["trace"])
+            ct = cold[wt.question_id]
+            w = ev.replay(wt, stop, cold_cal if r["position"] == 1 else warm_cal_choice)
+            c = ev.replay(ct, stop, cold_cal)
+            rows.append({"seed": s, "house": i, "position": r["position"], "question": wt.question_id,
+                         "category": wt.category, "cold_steps": c.steps, "warm_steps": w.steps,
+                         "cold_correct": c.correct, "warm_correct": w.correct, "memory_steps": wt.memory_steps,
+                         "max_steps": wt.max_steps, "views": r["views"], "bytes": r["bytes"],
+                         "loaded_cells": r["loaded_cells"]})
+    results = summarise(rows, args, settings, cold_table, warm_table,
+                        [Trace.model_validate(r["trace"]) for seq in warm_test.values() for r in seq
+                         if r["position"] > 1])
+    results["seed_roles"] = {str(s): seed_role(s) for s in args.seeds}
+    results["n_calibration"] = {"cold": len(cal_cold), "warm": len(cal_warm)}
+    (out / "home.json").write_text(json.dumps(results, indent=2))
+    (out / "rows.json").write_text(json.dumps(rows, indent=1))
+    return results
+
+
+def summarise(rows: list[dict[str, Any]], args: argparse.Namespace, settings: Any, cold_table: Any, warm_table: Any,
+              warm_traces: list[Any]) -> dict[str, Any]:
+    import numpy as np
+
+    from eqa.app import evaluation as ev
+    from eqa.app.bench_cli import scorer_label
+    from eqa.messages import letters
+    from services.stopper.conformal import relevance_weighted_confidence, sequence_set
+
+    def paired(sel: list[dict[str, Any]]) -> dict[str, Any]:
+        n = len(sel)
+        if n == 0:
+            return {"n": 0}
+        cs = np.array([r["cold_steps"] for r in sel], dtype=float)
+        ws = np.array([r["warm_steps"] for r in sel], dtype=float)
+        fewer, more = int((ws < cs).sum()), int((ws > cs).sum())
+        a_only = sum(1 for r in sel if r["warm_correct"] and not r["cold_correct"])
+        b_only = sum(1 for r in sel if r["cold_correct"] and not r["warm_correct"])
+        diff, lo, hi = ev.paired_diff_ci(a_only, b_only, n)
+        idx = ev.bootstrap_indices(n, 2000, seed=0)
+        ratio_boot = ws[idx].sum(axis=1) / np.maximum(cs[idx].sum(axis=1), 1e-9)
+        kw, kc = sum(r["warm_correct"] for r in sel), sum(r["cold_correct"] for r in sel)
+        return {
+            "n": n, "cold_steps_mean": float(cs.mean()), "warm_steps_mean": float(ws.mean()),
+            "steps_ratio": float(ws.sum() / max(cs.sum(), 1e-9)),
+            "steps_ratio_ci": [float(np.quantile(ratio_boot, 0.025)), float(np.quantile(ratio_boot, 0.975))],
+            "steps_sign_test": {"warm_fewer": fewer, "warm_more": more, "p_value": ev.sign_test_p(fewer, more)},
+            "cold_success": kc / n, "warm_success": kw / n,
+            "cold_success_ci": list(ev.wilson_ci(kc, n)), "warm_success_ci": list(ev.wilson_ci(kw, n)),
+            "success_paired": {"warm_only": a_only, "cold_only": b_only, "p_value": ev.sign_test_p(a_only, b_only),
+                               "diff": diff, "ci_low": lo, "ci_high": hi},
+            "memory_steps_mean": float(np.mean([r["memory_steps"] for r in sel])),
+        }
+
+    per_position = {str(p): paired([r for r in rows if r["position"] == p])
+                    for p in sorted({r["position"] for r in rows})}
+    later = paired([r for r in rows if r["position"] > 1])
+    coverage = []
+    for entry in warm_table.entries:
+        hits = []
+        for t in warm_traces:
+            f, rel = t.arrays()
+            rhos = np.stack([relevance_weighted_confidence(f[i], rel[i]) for i in range(len(rel))])
+            hits.append(bool(sequence_set(rhos, entry.q_hat)[letters(len(t.choices)).index(t.answer)]))
+        k, n = sum(hits), len(hits)
+        p = k / n if n else math.nan
+        coverage.append({"eps": entry.eps, "q_hat": entry.q_hat, "target": 1 - entry.eps, "coverage": p, "n": n,
+                         "se": math.sqrt(p * (1 - p) / n) if n else math.nan, "wilson": list(ev.wilson_ci(k, n))})
+    sizes = [r for r in rows if r["views"]]
+    return {
+        "scorer": scorer_label(settings),
+        "runner": "cores (in-process step functions; the mapper's HomeMemory on an embedded store)",
+        "seeds": list(args.seeds), "cal_houses": args.cal_houses, "test_houses": args.test_houses,
+        "questions_per_house": args.questions, "eps": args.eps, "strategy": args.strategy,
+        "size": f"{settings.sim_width}x{settings.sim_height}",
+        "home_max_views": settings.home_max_views, "home_warm_views": settings.home_warm_views,
+        "home_memory_steps": settings.home_memory_steps,
+        "q_hat": {"cold": {f"{e.eps:g}": e.q_hat for e in cold_table.entries},
+                  "warm": {f"{e.eps:g}": e.q_hat for e in warm_table.entries}},
+        "positions": per_position, "positions_2_on": later, "warm_coverage": coverage,
+        "memory": {"views_mean": float(np.mean([r["views"] for r in sizes])) if sizes else 0.0,
+                   "bytes_mean": float(np.mean([r["bytes"] for r in sizes])) if sizes else 0.0,
+                   "bytes_max": int(max((r["bytes"] for r in sizes), default=0))},
+        "done_bar": {
+            "steps_at_most_half": bool(later.get("steps_ratio", math.inf) <= 0.5),
+            "success_not_worse": bool(later.get("n", 0) and later["success_paired"]["ci_high"] >= 0),
+            "coverage_within_se": all(c["coverage"] + c["se"] >= c["target"] for c in coverage if c["n"]),
+        },
+    }
+
+
+def print_results(res: dict[str, Any]) -> None:
+    print(f"home sequences: seeds {res['seeds']}, {res['test_houses']} test houses per seed, "
+          f"{res['questions_per_house']} questions each, eps {res['eps']} ({res['scorer']})")
+    print("position  n   cold steps  warm steps  ratio  cold succ  warm succ  memory steps")
+    for pos, p in res["positions"].items():
+        if p.get("n"):
+            print(f"{pos:>8}  {p['n']:<3} {p['cold_steps_mean']:<11.2f} {p['warm_steps_mean']:<11.2f} "
+                  f"{p['steps_ratio']:<6.2f} {p['cold_success']:<10.3f} {p['warm_success']:<10.3f} "
+                  f"{p['memory_steps_mean']:.1f}")
+    later = res["positions_2_on"]
+    if later.get("n"):
+        print(f"positions 2..: steps ratio {later['steps_ratio']:.3f} {later['steps_ratio_ci']}, sign test p "
+              f"{later['steps_sign_test']['p_value']:.3g}; success warm-cold {later['success_paired']['diff']:+.3f} "
+              f"[{later['success_paired']['ci_low']:+.3f}, {later['success_paired']['ci_high']:+.3f}] p "
+              f"{later['success_paired']['p_value']:.3g}")
+    for c in res["warm_coverage"]:
+        print(f"warm coverage eps {c['eps']:g}: {c['coverage']:.3f} +- {c['se']:.3f} vs {c['target']:.2f} (n {c['n']})")
+    print(f"memory: {res['memory']['views_mean']:.1f} views, {res['memory']['bytes_mean'] / 1e6:.2f} MB mean per home")
+
+
+def cmd_home(args: argparse.Namespace) -> int:
+    from eqa.app.bench_cli import _settings
+    from eqa.app.cli import UsageError
+    from eqa.service import setup_logging
+
+    if not (1 <= args.cal_houses <= 100 and 1 <= args.test_houses <= 100 and 1 <= args.questions <= 10):
+        raise UsageError("--cal-houses and --test-houses must be 1..100, --questions 1..10")
+    if not 0 < args.eps < 1 or not 1 <= args.workers <= 16:
+        raise UsageError("--eps must be in (0, 1), --workers 1..16")
+    for name in ("home_views", "memory_steps"):
+        if getattr(args, name) is not None and not 0 <= getattr(args, name) <= 256:
+            raise UsageError(f"--{name.replace('_', '-')} must be 0..256")
+    settings = _settings(args)
+    if args.home_views is not None:
+        settings = settings.model_copy(update={"home_max_views": args.home_views, "home_warm_views": args.home_views})
+    if args.memory_steps is not None:
+        settings = settings.model_copy(update={"home_memory_steps": args.memory_steps})
+    setup_logging(settings.log_level, "eqa-bench")
+    logging.getLogger("services.mapper.home_shell").setLevel(logging.WARNING)
+    res = run(args, settings)
+    print_results(res)
+    print(f"results: {Path(args.out) / 'home.json'}")
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("home", help="questions in a known house: cold vs warm start from the home's memory",
+                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--seeds", nargs="+", type=int, default=[1, 2, 3], metavar="SEED",
+                   help="benchmark seeds (evaluation 1 2 3, tuning 11: eqa.seeds); default 1 2 3")
+    p.add_argument("--cal-houses", type=int, default=3, help="calibration houses per seed (default 3)")
+    p.add_argument("--test-houses", type=int, default=4, help="test houses per seed (default 4)")
+    p.add_argument("--questions", type=int, default=5, help="questions per house (default 5)")
+    p.add_argument("--eps", type=float, default=0.2, help="CP eps the stopper runs at (default 0.2)")
+    p.add_argument("--strategy", default="semantic", choices=("semantic", "fbe"), help="exploration strategy")
+    p.add_argument("--home-views", type=int, default=None,
+                   help="view memory size (EQA_HOME_MAX_VIEWS and EQA_HOME_WARM_VIEWS; default from the environment)")
+    p.add_argument("--memory-steps", type=int, default=None,
+                   help="memory steps given to the stopper (EQA_HOME_MEMORY_STEPS; default from the environment)")
+    p.add_argument("--size", default="160x120", help="camera image size WxH (default 160x120)")
+    p.add_argument("--scorer", choices=("oracle", "hf", "remote"), default=None,
+                   help="scorer backend (default EQA_SCORER_BACKEND, normally oracle)")
+    p.add_argument("--workers", type=int, default=1, help="processes (default 1)")
+    p.add_argument("--out", default="var/bench-home", help="directory for home.json and the per-episode runs")
+    p.set_defaults(func=cmd_home, runner="cores", limit=None, robots=1, scorers=1)

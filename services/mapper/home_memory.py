@@ -1,0 +1,354 @@
+"""A home's memory in the mapper, without I/O: the question-free map and the view memory of keyframes.
+
+A home (:mod:`eqa.homes`) keeps what its episodes observed so that the next question in the same house does not
+start from an empty map:
+
+* the **home map** (:class:`HomeMap`): the question-free part of an episode's map, i.e. the TSDF volume
+  (observed voxels' distances and weights, the explored mask) and the ``traversed`` plane. The 2D maps
+  (free / occupied / explored) and the frontiers are functions of the volume and the robot's pose
+  (:func:`services.mapper.projection.project`, :func:`services.mapper.frontiers.find_frontiers`), so they are
+  recomputed from it at the first frame; the semantic value layers are not kept: they are about one question
+  (Eq. 3's LSV / GSV are answers to that question's prompts), the view memory is what gives them back;
+* the **view memory** (:class:`Keyframe`): a bounded set of the frames the episodes saw (image, depth, camera
+  pose, time, the region it covers), chosen for *coverage, not recency*: :func:`select_views` is the greedy
+  maximum-coverage rule over the floor cells each view observes (each pick adds the view that covers the most
+  cells not yet covered; ties go to the newer view), under a count and a byte budget. Greedy max-coverage is
+  within ``1 - 1/e`` of the best choice of that size (Nemhauser, Wolsey, Fisher 1978); it is the set-cover step
+  of 3D-Mem's snapshot selection (there over the objects each snapshot shows; here over observed floor cells,
+  which needs no detector and keeps empty rooms too).
+
+Merging two maps of the same home (:meth:`HomeMap.merge`: two episodes in one home at once) is TSDF fusion's
+own weighted average on the common voxel grid (every grid is aligned to whole chunks of voxels at the world
+origin, so two grids differ only by whole-cell offsets), the union of the explored and traversed masks.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from eqa.codec import packb, packed_array, unpackb
+from eqa.messages import InstanceLabel, Pose2D
+
+HOME_MAP_VERSION = 1
+KEYFRAME_VERSION = 1
+COVER_STRIDE = 4  # every 4th pixel in each direction back-projected for a view's covered cells
+MAX_DECODED_HOME = 1 << 30  # decode bound of one home part (the per-home byte budget is checked before)
+
+
+# ---- view memory --------------------------------------------------------------------------------------------
+def covered_cells(depth: np.ndarray, intrinsics: np.ndarray, camera_pose: np.ndarray, resolution: float,
+                  max_depth: float = 10.0, stride: int = COVER_STRIDE) -> np.ndarray:
+    """The world floor cells (``floor(x / res)``, ``floor(y / res)``), int32 ``(n, 2)``, unique, of the surface
+    points a depth image sees (every ``stride``-th pixel back-projected with the pinhole model the mapper uses:
+    camera ``p_c = R^T (p_w - t)``, ``u = f_x x_c / z_c + c_x``)."""
+    d = np.asarray(depth, dtype=np.float64)[::stride, ::stride]
+    h, w = d.shape
+    vv, uu = np.mgrid[0:h, 0:w]
+    uu = uu * stride
+    vv = vv * stride
+    ok = np.isfinite(d) & (d > 0.05) & (d <= max_depth)
+    z = d[ok]
+    K = np.asarray(intrinsics, dtype=np.float64)
+    pc = np.stack([(uu[ok] - K[0, 2]) * z / K[0, 0], (vv[ok] - K[1, 2]) * z / K[1, 1], z], axis=1)
+    T = np.asarray(camera_pose, dtype=np.float64)
+    pw = pc @ T[:3, :3].T + T[:3, 3]
+    cells = np.floor(pw[:, :2] / resolution).astype(np.int64)
+    if len(cells) == 0:
+        return np.zeros((0, 2), dtype=np.int32)
+    return np.unique(cells, axis=0).astype(np.int32)
+
+
+def cell_keys(cells: np.ndarray) -> set[int]:
+    """One int per cell (for set algebra in :func:`select_views`)."""
+    c = np.asarray(cells, dtype=np.int64).reshape(-1, 2)
+    return set(((c[:, 0] << 32) ^ (c[:, 1] & 0xFFFFFFFF)).tolist())
+
+
+@dataclass
+class ViewInfo:
+    """What the selection needs of one keyframe (the image stays in the store)."""
+
+    view_id: str
+    t: float  # when it was seen (unix seconds)
+    nbytes: int  # stored size of the keyframe
+    cells: np.ndarray  # covered floor cells, int32 (n, 2)
+    episode_id: str = ""
+    step: int = 0
+
+    def to_json(self) -> dict[str, Any]:
+        return {"view_id": self.view_id, "t": self.t, "nbytes": self.nbytes, "episode_id": self.episode_id,
+                "step": self.step, "cells": packed_array(np.ascontiguousarray(self.cells, dtype=np.int32))}
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> ViewInfo:
+        cells = np.asarray(d["cells"], dtype=np.int32).reshape(-1, 2)
+        return cls(view_id=str(d["view_id"]), t=float(d["t"]), nbytes=int(d["nbytes"]), cells=cells,
+                   episode_id=str(d.get("episode_id", "")), step=int(d.get("step", 0)))
+
+
+def select_views(views: Sequence[ViewInfo], max_views: int, max_bytes: int) -> list[ViewInfo]:
+    """Greedy maximum coverage: repeatedly take the view covering the most floor cells no chosen view covers
+    (ties: the newer view, then the id), while the count stays <= ``max_views`` and the bytes <= ``max_bytes``;
+    a view that adds no cell is not taken. Returned in the order picked (most covering first)."""
+    if max_views <= 0 or max_bytes <= 0:
+        return []
+    remaining = sorted(views, key=lambda v: (-v.t, v.view_id))  # newest first: ties go to the newer view
+    sets = {v.view_id: cell_keys(v.cells) for v in remaining}
+    covered: set[int] = set()
+    chosen: list[ViewInfo] = []
+    used = 0
+    while remaining and len(chosen) < max_views:
+        best, best_gain = None, 0
+        for v in remaining:
+            if used + v.nbytes > max_bytes:
+                continue
+            gain = len(sets[v.view_id] - covered)
+            if gain > best_gain:
+                best, best_gain = v, gain
+        if best is None:
+            break
+        chosen.append(best)
+        used += best.nbytes
+        covered |= sets[best.view_id]
+        remaining = [v for v in remaining if v.view_id != best.view_id]
+    return chosen
+
+
+def coverage(views: Sequence[ViewInfo]) -> int:
+    """Floor cells covered by the union of ``views``."""
+    out: set[int] = set()
+    for v in views:
+        out |= cell_keys(v.cells)
+    return len(out)
+
+
+@dataclass
+class Keyframe:
+    """One remembered view: everything a scorer request needs (image, depth, camera, the simulator's instance
+    ids and labels when there are any), with its time and covered cells."""
+
+    view_id: str
+    episode_id: str
+    step: int
+    t: float
+    pose: Pose2D
+    camera_pose: np.ndarray
+    intrinsics: np.ndarray
+    rgb: np.ndarray
+    depth: np.ndarray
+    instances: np.ndarray | None = None
+    labels: list[InstanceLabel] = field(default_factory=list)
+    cells: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int32))
+
+    @classmethod
+    def from_frame(cls, frame: Any, view_id: str, resolution: float, t: float | None = None,
+                   max_depth: float = 10.0) -> Keyframe:
+        return cls(view_id=view_id, episode_id=frame.episode_id, step=int(frame.step),
+                   t=time.time() if t is None else float(t), pose=frame.pose,
+                   camera_pose=np.asarray(frame.camera_pose, dtype=np.float64),
+                   intrinsics=np.asarray(frame.intrinsics, dtype=np.float64),
+                   rgb=np.asarray(frame.rgb, dtype=np.uint8), depth=np.asarray(frame.depth, dtype=np.float32),
+                   instances=None if frame.instances is None else np.asarray(frame.instances, dtype=np.int32),
+                   labels=list(frame.labels),
+                   cells=covered_cells(frame.depth, frame.intrinsics, frame.camera_pose, resolution, max_depth))
+
+    def to_bytes(self) -> bytes:
+        body = {
+            "version": KEYFRAME_VERSION, "view_id": self.view_id, "episode_id": self.episode_id, "step": self.step,
+            "t": self.t, "pose": self.pose.model_dump(), "camera_pose": packed_array(self.camera_pose),
+            "intrinsics": packed_array(self.intrinsics), "rgb": packed_array(self.rgb),
+            "depth": packed_array(self.depth), "cells": packed_array(self.cells),
+            "instances": None if self.instances is None else packed_array(self.instances),
+            "labels": [lb.model_dump() for lb in self.labels],
+        }
+        return packb(body)
+
+    @classmethod
+    def from_bytes(cls, data: bytes) -> Keyframe:
+        b = unpackb(data, max_decoded=MAX_DECODED_HOME)
+        if not isinstance(b, dict) or b.get("version") != KEYFRAME_VERSION:
+            raise ValueError(f"not a keyframe of version {KEYFRAME_VERSION}")
+        return cls(view_id=str(b["view_id"]), episode_id=str(b["episode_id"]), step=int(b["step"]), t=float(b["t"]),
+                   pose=Pose2D.model_validate(b["pose"]), camera_pose=np.array(b["camera_pose"]),
+                   intrinsics=np.array(b["intrinsics"]), rgb=np.array(b["rgb"]), depth=np.array(b["depth"]),
+                   instances=None if b["instances"] is None else np.array(b["instances"]),
+                   labels=[InstanceLabel.model_validate(lb) for lb in b["labels"]],
+                   cells=np.array(b["cells"], dtype=np.int32).reshape(-1, 2))
+
+    def info(self, nbytes: int) -> ViewInfo:
+        return ViewInfo(self.view_id, self.t, nbytes, self.cells, self.episode_id, self.step)
+
+
+class ViewPool:
+    """The candidate keyframes of one running episode, kept at most ``max_views`` by :func:`select_views` as
+    frames arrive (an online greedy: the new frame competes with the kept ones). :meth:`offer` says which
+    views to write and which to delete, so only chosen frames reach the store."""
+
+    def __init__(self, max_views: int, max_bytes: int, views: Sequence[ViewInfo] = ()) -> None:
+        self.max_views = max_views
+        self.max_bytes = max_bytes
+        self.views: list[ViewInfo] = list(views)
+
+    def offer(self, view: ViewInfo) -> tuple[bool, list[str]]:
+        """Offer a new view: ``(kept, ids of views it evicted)``."""
+        if any(v.view_id == view.view_id for v in self.views):
+            return False, []
+        chosen = select_views([*self.views, view], self.max_views, self.max_bytes)
+        ids = {v.view_id for v in chosen}
+        evicted = [v.view_id for v in self.views if v.view_id not in ids]
+        kept = view.view_id in ids
+        self.views = [v for v in [*self.views, view] if v.view_id in ids]
+        return kept, evicted
+
+
+# ---- home map -----------------------------------------------------------------------------------------------
+@dataclass
+class HomeMap:
+    """The question-free map of a home: the TSDF volume's arrays on its grid and the traversed plane."""
+
+    resolution: float
+    origin_x: float
+    origin_y: float
+    tsdf: np.ndarray  # (ny, nx, nz) float32
+    weight: np.ndarray  # (ny, nx, nz) float32
+    explored: np.ndarray  # (ny, nx, nz) bool
+    traversed: np.ndarray  # (ny, nx) bool
+
+    @property
+    def shape2d(self) -> tuple[int, int]:
+        return (int(self.tsdf.shape[0]), int(self.tsdf.shape[1]))
+
+    def explored_cells(self) -> int:
+        """Floor cells with any explored voxel."""
+        return int(self.explored.any(axis=2).sum()) if self.explored.size else 0
+
+    @classmethod
+    def from_episode(cls, em: Any) -> HomeMap:
+        v = em.volume
+        traversed = v.planes.get("traversed")
+        if traversed is None:
+            traversed = np.zeros(v.shape2d, dtype=bool)
+        return cls(float(em.resolution), float(v.origin_x), float(v.origin_y), v.tsdf.copy(), v.weight.copy(),
+                   v.explored.copy(), np.asarray(traversed, dtype=bool).copy())
+
+    def apply_to(self, em: Any) -> None:
+        """Start ``em`` (a fresh :class:`services.mapper.episode_map.EpisodeMap`) from this map: its volume and
+        traversed plane; its value layers start neutral on the same grid (the view memory fills them)."""
+        v = em.volume
+        if abs(float(em.resolution) - self.resolution) > 1e-9:
+            raise ValueError(f"home map at {self.resolution} m voxels, the mapper uses {em.resolution} m")
+        if self.tsdf.shape[2] != v.nz:
+            raise ValueError(f"home map has {self.tsdf.shape[2]} voxel layers, the mapper {v.nz}")
+        v.origin_x, v.origin_y = self.origin_x, self.origin_y
+        v.tsdf = self.tsdf.copy()
+        v.weight = self.weight.copy()
+        v.explored = self.explored.copy()
+        fresh = {}
+        for name, plane in v.planes.items():
+            fill = plane.flat[0] if plane.size else (False if plane.dtype == bool else 0.0)
+            fresh[name] = np.full(self.shape2d, fill, dtype=plane.dtype)
+        fresh["traversed"] = self.traversed.copy()
+        v.planes = fresh
+
+    def merge(self, other: HomeMap) -> HomeMap:
+        """The fusion of two maps of the same home: the union grid; on voxels both observed the weighted mean of
+        the distances (TSDF fusion, Curless & Levoy 1996) with the weights added; the explored and traversed
+        masks OR-ed."""
+        if abs(other.resolution - self.resolution) > 1e-9 or other.tsdf.shape[2] != self.tsdf.shape[2]:
+            raise ValueError("home maps of different voxel grids cannot be merged")
+        res = self.resolution
+        if other.tsdf.size == 0:
+            return self
+        if self.tsdf.size == 0:
+            return other
+        x0 = min(self.origin_x, other.origin_x)
+        y0 = min(self.origin_y, other.origin_y)
+
+        def offset(m: HomeMap) -> tuple[int, int]:
+            return round((m.origin_y - y0) / res), round((m.origin_x - x0) / res)
+
+        (ra, ca), (rb, cb) = offset(self), offset(other)
+        ny = max(ra + self.shape2d[0], rb + other.shape2d[0])
+        nx = max(ca + self.shape2d[1], cb + other.shape2d[1])
+        nz = self.tsdf.shape[2]
+        wsum = np.zeros((ny, nx, nz), dtype=np.float64)
+        dsum = np.zeros((ny, nx, nz), dtype=np.float64)
+        explored = np.zeros((ny, nx, nz), dtype=bool)
+        traversed = np.zeros((ny, nx), dtype=bool)
+        for m, (r, c) in ((self, (ra, ca)), (other, (rb, cb))):
+            sl = (slice(r, r + m.shape2d[0]), slice(c, c + m.shape2d[1]))
+            wsum[sl] += m.weight
+            dsum[sl] += m.weight.astype(np.float64) * m.tsdf
+            explored[sl] |= m.explored
+            traversed[sl] |= m.traversed
+        tsdf = np.where(wsum > 0, dsum / np.where(wsum > 0, wsum, 1.0), 0.0).astype(np.float32)
+        return HomeMap(res, x0, y0, tsdf, wsum.astype(np.float32), explored, traversed)
+
+    def to_bytes(self) -> bytes:
+        seen = self.weight > 0
+        return packb({
+            "version": HOME_MAP_VERSION, "resolution": self.resolution, "origin": [self.origin_x, self.origin_y],
+            "shape": list(self.tsdf.shape), "observed": packed_array(np.packbits(seen, axis=None)),
+            "tsdf": packed_array(self.tsdf[seen], compress=False),
+            "weight": packed_array(self.weight[seen].astype(np.float32)),
+            "explored": packed_array(np.packbits(self.explored, axis=None)),
+            "traversed": packed_array(np.packbits(self.traversed, axis=None)),
+        })
+
+    @classmethod
+    def from_bytes(cls, data: bytes) -> HomeMap:
+        b = unpackb(data, max_decoded=MAX_DECODED_HOME)
+        if not isinstance(b, dict) or b.get("version") != HOME_MAP_VERSION:
+            raise ValueError(f"not a home map of version {HOME_MAP_VERSION}")
+        shape = tuple(int(s) for s in b["shape"])
+        if len(shape) != 3 or math.prod(shape) > MAX_DECODED_HOME:
+            raise ValueError(f"bad home map shape {shape}")
+        size = math.prod(shape)
+        seen = np.unpackbits(np.asarray(b["observed"]), count=size).astype(bool).reshape(shape)
+        tsdf = np.zeros(shape, dtype=np.float32)
+        tsdf[seen] = np.asarray(b["tsdf"])
+        weight = np.zeros(shape, dtype=np.float32)
+        weight[seen] = np.asarray(b["weight"])
+        explored = np.unpackbits(np.asarray(b["explored"]), count=size).astype(bool).reshape(shape)
+        traversed = np.unpackbits(np.asarray(b["traversed"]), count=shape[0] * shape[1]).astype(bool).reshape(
+            shape[:2])
+        return cls(float(b["resolution"]), float(b["origin"][0]), float(b["origin"][1]), tsdf, weight, explored,
+                   traversed)
+
+
+# ---- the home's index ---------------------------------------------------------------------------------------
+@dataclass
+class HomeIndex:
+    """The home's small index part: its version (bumped by every commit: the optimistic check of concurrent
+    episodes), the committed views' selection data, the number of episodes that updated it."""
+
+    version: int = 0
+    views: list[ViewInfo] = field(default_factory=list)
+    episodes: int = 0
+    scenes: list[str] = field(default_factory=list)
+    map_bytes: int = 0
+    created_at: float = field(default_factory=time.time)
+
+    @property
+    def view_bytes(self) -> int:
+        return sum(v.nbytes for v in self.views)
+
+    def to_bytes(self) -> bytes:
+        return packb({"version": self.version, "views": [v.to_json() for v in self.views],
+                      "episodes": self.episodes, "scenes": self.scenes, "map_bytes": self.map_bytes,
+                      "created_at": self.created_at})
+
+    @classmethod
+    def from_bytes(cls, data: bytes) -> HomeIndex:
+        b = unpackb(data, max_decoded=MAX_DECODED_HOME)
+        if not isinstance(b, dict):
+            raise ValueError("not a home index")
+        return cls(version=int(b["version"]), views=[ViewInfo.from_json(v) for v in b["views"]],
+                   episodes=int(b["episodes"]), scenes=[str(s) for s in b["scenes"]],
+                   map_bytes=int(b.get("map_bytes", 0)), created_at=float(b.get("created_at", time.time())))

@@ -1,0 +1,341 @@
+"""The mapper's home memory over the store: load a home into an episode, keep its candidate keyframes, warm
+start a question from the view memory, write the home back when the episode ends.
+
+Store layout (under :func:`eqa.homes.prefix`, every key with ``EQA_HOME_TTL_S``):
+
+* ``index``          :class:`~services.mapper.home_memory.HomeIndex` (version, the kept views' covered cells);
+* ``map``            :class:`~services.mapper.home_memory.HomeMap` (TSDF volume, traversed plane);
+* ``view:{id}``      one :class:`~services.mapper.home_memory.Keyframe` each (the kept views, and the candidates
+  of running episodes: a frame is written when its episode's pool keeps it, so a mapper that dies mid-episode
+  loses nothing its successor needs);
+* ``summary``        :class:`eqa.homes.HomeSummary` for the gateway; ``lock`` while a commit runs.
+
+**One home, any mapper instance.** Nothing of a home lives in a mapper's memory between episodes: the next
+episode, on whichever instance, reads the store. A running episode's own part (which home, the version it
+started from, its candidate views, its memory steps) is a part of the mapper's episode state
+(:data:`STATE_KEY`), so a restarted mapper or the instance its robot moves to continues it and commits it.
+
+**Concurrent episodes in one home** (optimistic version check, the last writer merges): an episode remembers the
+home's ``version`` it started from. At its end it takes the home's lock (``set_if_absent``, a TTL so a dead
+holder does not block it) and reads the index: still that version, its map replaces the stored one (it
+started from it and only added observations); a newer version (another episode committed meanwhile), the
+stored map and its map are fused (:meth:`HomeMap.merge`, both keep the other's observations). Either way the
+views are chosen again from the stored ones and the episode's candidates together (:func:`select_views`), the
+version goes up by one, and the views left out are deleted.
+
+**Warm start** (:meth:`HomeMemory.warm`): at the first frame of an episode in a home with views, the mapper
+re-scores up to ``EQA_HOME_WARM_VIEWS`` remembered views for the new question (the most covering first),
+``EQA_HOME_WARM_PARALLEL`` requests in flight at once through the scorer pool (whose replicas batch concurrent
+requests), waiting ``EQA_HOME_WARM_TIMEOUT_S`` at most. Their LSV / GSV are written into the question's layer
+(Eq. 3) before the frontiers are weighed (Eq. A6), so the planner heads where the memory points; the answer
+distributions and relevances of all of them, or of the ``EQA_HOME_MEMORY_STEPS`` most relevant, go to the stopper
+with step 0 (:attr:`eqa.messages.StepScores.memory`).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+import zlib
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor, wait
+from dataclasses import dataclass, field
+from typing import Any
+
+from eqa import homes
+from eqa.messages import EpisodeStart, ErrorReply, Frame, MemoryScore, ScoreRequest, ScoreResult
+from eqa.settings import Settings
+from eqa.store import Store
+from services.mapper import snapshots
+from services.mapper.home_memory import HomeIndex, HomeMap, Keyframe, ViewInfo, ViewPool, select_views
+from services.mapper.prompt_points import prompt_points
+
+log = logging.getLogger(__name__)
+
+STATE_KEY = "home"  # this memory's part of the mapper's episode state
+LOCK_TTL_S = 30.0
+LOCK_WAIT_S = 20.0
+
+
+def index_key(home: str) -> str:
+    return homes.prefix(home) + "index"
+
+
+def map_key(home: str) -> str:
+    return homes.prefix(home) + "map"
+
+
+def view_key(home: str, view_id: str) -> str:
+    return homes.prefix(home) + "view:" + view_id
+
+
+def lock_key(home: str) -> str:
+    return homes.prefix(home) + "lock"
+
+
+def memory_seed(seed: int, view_id: str) -> int:
+    """The scorer seed of a remembered view's request: the episode's seed and the view, so two views never share
+    the draws of a seeded (simulated) perception model and the same view gets the same ones again."""
+    return (int(seed) * 1_000_003 + zlib.crc32(view_id.encode())) % (2**31)
+
+
+@dataclass
+class EpisodeHome:
+    """The home part of one running episode."""
+
+    home: str
+    base_version: int
+    pool: ViewPool
+    warm_ids: list[str] = field(default_factory=list)  # committed views to re-score at the first frame
+    memory: list[MemoryScore] | None = None  # the memory steps, once scored (None: not yet)
+    loaded_cells: int = 0  # floor cells explored in the home map it started from
+
+    def dump(self) -> dict[str, Any]:
+        return {"home": self.home, "base_version": self.base_version,
+                "pool": [{"view_id": v.view_id, "t": v.t, "nbytes": v.nbytes, "step": v.step} for v in self.pool.views],
+                "warm_ids": self.warm_ids, "loaded_cells": self.loaded_cells,
+                "memory": None if self.memory is None else [m.model_dump() for m in self.memory]}
+
+
+class HomeMemory:
+    """The home memory of the mapper's episodes (held by :class:`services.mapper.service.MapperService`)."""
+
+    def __init__(self, settings: Settings, store: Callable[[], Store],
+                 scorer: Callable[[], Callable[[ScoreRequest], Any]]) -> None:
+        self.settings = settings
+        self._store = store  # the service's store, opened when first used
+        self.scorer = scorer
+        self.episodes: dict[str, EpisodeHome] = {}
+
+    @property
+    def store(self) -> Store:
+        return self._store()
+
+    # ---- reading a home ---------------------------------------------------------------------------------
+    def read_index(self, home: str) -> HomeIndex | None:
+        raw = self.store.get(index_key(home))
+        if raw is None:
+            return None
+        try:
+            return HomeIndex.from_bytes(raw)
+        except (ValueError, KeyError, TypeError) as exc:
+            log.error("home %s: stored index unusable (%s); the home starts over", home, exc)
+            return None
+
+    def read_map(self, home: str) -> HomeMap | None:
+        raw = self.store.get(map_key(home))
+        if raw is None:
+            return None
+        try:
+            return HomeMap.from_bytes(raw)
+        except (ValueError, KeyError, TypeError) as exc:
+            log.error("home %s: stored map unusable (%s); ignored", home, exc)
+            return None
+
+    def read_view(self, home: str, view_id: str) -> Keyframe | None:
+        raw = self.store.get(view_key(home, view_id))
+        if raw is None:
+            return None
+        try:
+            return Keyframe.from_bytes(raw)
+        except (ValueError, KeyError, TypeError) as exc:
+            log.warning("home %s: view %s unusable (%s); skipped", home, view_id, exc)
+            return None
+
+    # ---- an episode -------------------------------------------------------------------------------------
+    def _pool(self, views: list[ViewInfo] | None = None) -> ViewPool:
+        return ViewPool(self.settings.home_max_views, self.settings.home_max_bytes, views or [])
+
+    def start(self, start: EpisodeStart, em: Any) -> None:
+        """An episode in a home starts from the home's map (``em`` is fresh); None home: nothing happens."""
+        if start.home is None:
+            return
+        index = self.read_index(start.home)
+        ep = EpisodeHome(start.home, index.version if index else 0, self._pool())
+        if index is not None:
+            home_map = self.read_map(start.home)
+            if home_map is not None:
+                try:
+                    home_map.apply_to(em)
+                    ep.loaded_cells = home_map.explored_cells()
+                except ValueError as exc:
+                    log.error("episode %s: home %s map not used: %s", start.episode_id, start.home, exc)
+            ep.warm_ids = [v.view_id for v in index.views[: self.settings.home_warm_views]]
+        self.episodes[start.episode_id] = ep
+        log.info("episode %s: home %s (version %d): %d explored cells, %d views to re-score", start.episode_id,
+                 start.home, ep.base_version, ep.loaded_cells, len(ep.warm_ids))
+
+    def observe(self, em: Any, frame: Frame) -> None:
+        """A frame just integrated: a candidate keyframe of the episode's pool (written when kept)."""
+        ep = self.episodes.get(em.episode_id)
+        if ep is None or self.settings.home_max_views == 0:
+            return
+        kf = Keyframe.from_frame(frame, f"{em.episode_id}-{frame.step}", em.resolution,
+                                 max_depth=em.config.volume.max_depth)
+        blob = kf.to_bytes()
+        kept, evicted = ep.pool.offer(kf.info(len(blob)))
+        ttl = self.settings.home_ttl_s
+        if kept:
+            self.store.set(view_key(ep.home, kf.view_id), blob, ttl_s=ttl)
+        if evicted:
+            self.store.delete_many([view_key(ep.home, v) for v in evicted])
+
+    def memory(self, episode_id: str) -> list[MemoryScore]:
+        ep = self.episodes.get(episode_id)
+        return [] if ep is None or ep.memory is None else list(ep.memory)
+
+    def warm(self, em: Any, frame: Frame) -> list[MemoryScore]:
+        """At the episode's first frame (integrated, before its own scores are applied): re-score the remembered
+        views for this question, write their semantic values, return the memory steps (oldest view first)."""
+        ep = self.episodes.get(em.episode_id)
+        if ep is None or ep.memory is not None:  # not a home episode, or warmed at its first frame
+            return []
+        ep.memory = []
+        if not ep.warm_ids or em.maps is None:
+            return []
+        views = [kf for kf in (self.read_view(ep.home, v) for v in ep.warm_ids) if kf is not None]
+        blind = em.start.question.without_ground_truth()
+        requests = []
+        for kf in views:
+            points = prompt_points(em.maps.free, em.origin, em.resolution, kf.depth, kf.intrinsics, kf.camera_pose,
+                                   em.config.prompt)
+            requests.append((kf, points, ScoreRequest(
+                episode_id=em.episode_id, step=frame.step, question=blind, rgb=kf.rgb, prompt_points=points,
+                instances=kf.instances, labels=kf.labels, depth=kf.depth, seed=memory_seed(em.start.seed, kf.view_id))))
+        score = self.scorer()
+        deadline = time.monotonic() + self.settings.home_warm_timeout_s
+        pool = ThreadPoolExecutor(max_workers=self.settings.home_warm_parallel, thread_name_prefix="home-warm")
+        try:
+            futures = [pool.submit(score, req) for _, _, req in requests]
+            wait(futures, timeout=max(0.0, deadline - time.monotonic()))
+        finally:
+            pool.shutdown(wait=False, cancel_futures=True)
+        scored: list[tuple[Keyframe, Any, ScoreResult]] = []
+        for (kf, points, _), fut in zip(requests, futures, strict=True):
+            if not fut.done() or fut.cancelled() or fut.exception() is not None:
+                why = "not scored in time" if not fut.done() or fut.cancelled() else repr(fut.exception())
+                log.warning("episode %s: remembered view %s left out: %s", em.episode_id, kf.view_id, why)
+                continue
+            result = fut.result()
+            if isinstance(result, ErrorReply):
+                log.warning("episode %s: remembered view %s left out: %s", em.episode_id, kf.view_id, result.reason)
+                continue
+            scored.append((kf, points, result))
+        for kf, points, result in scored:  # every scored view's Eq. 3 values guide the exploration
+            try:
+                em.apply_scores(result.lsv, result.gsv, points=points)
+            except ValueError as exc:
+                log.warning("episode %s: values of remembered view %s not written: %s", em.episode_id, kf.view_id,
+                            exc)
+        if 0 < self.settings.home_memory_steps < len(scored):
+            # the stopper gets the most relevant views only: each memory step is one more term of Eq. 9's running
+            # intersection (and of the calibration's min over steps), so views that do not bear on the question
+            # would only make q_hat larger; a warm table is calibrated with the same rule
+            scored = sorted(scored, key=lambda s: (-float(s[2].relevance), s[0].view_id))
+            scored = scored[: self.settings.home_memory_steps]
+        scored.sort(key=lambda s: (s[0].t, s[0].view_id))  # oldest first: the order they were seen in
+        out = []
+        for kf, _, result in scored:
+            out.append(MemoryScore(answer_probs=list(result.answer_probs), relevance=float(result.relevance),
+                                   view_step=kf.step, seen_at=kf.t))
+        ep.memory = out
+        log.info("episode %s: warm start from %d of %d remembered views", em.episode_id, len(out), len(views))
+        return list(out)
+
+    # ---- persistence within the episode -----------------------------------------------------------------
+    def dump(self, episode_id: str, state: Any) -> Any:
+        ep = self.episodes.get(episode_id)
+        return state if ep is None else snapshots.with_state_part(state, STATE_KEY, ep.dump())
+
+    @staticmethod
+    def split(data: Any) -> tuple[Any, Any]:
+        return snapshots.without_state_part(data, STATE_KEY)
+
+    def restore(self, episode_id: str, part: Any) -> None:
+        """The home part of a restored episode; its candidate views' cells are read back from their keyframes."""
+        if not isinstance(part, dict):
+            return
+        home = str(part["home"])
+        views = []
+        for v in part.get("pool", []):
+            kf = self.read_view(home, str(v["view_id"]))
+            if kf is not None:
+                views.append(ViewInfo(kf.view_id, kf.t, int(v["nbytes"]), kf.cells, kf.episode_id, kf.step))
+        memory = part.get("memory")
+        self.episodes[episode_id] = EpisodeHome(
+            home=home, base_version=int(part["base_version"]), pool=self._pool(views),
+            warm_ids=[str(v) for v in part.get("warm_ids", [])], loaded_cells=int(part.get("loaded_cells", 0)),
+            memory=None if memory is None else [MemoryScore.model_validate(m) for m in memory])
+
+    # ---- the end: write the home back -------------------------------------------------------------------
+    def finish(self, em: Any) -> HomeIndex | None:
+        """Commit the episode's map and views to its home (see the module's doc); the new index."""
+        ep = self.episodes.pop(em.episode_id, None)
+        if ep is None:
+            return None
+        if em.step < 0:  # no frame integrated: nothing new to remember
+            self.store.delete_many([view_key(ep.home, v.view_id) for v in ep.pool.views])
+            return None
+        if not self._lock(ep.home):
+            log.error("home %s: lock not obtained in %.0f s; episode %s not remembered", ep.home, LOCK_WAIT_S,
+                      em.episode_id)
+            return None
+        try:
+            return self._commit(ep, em)
+        finally:
+            self.store.delete(lock_key(ep.home))
+
+    def _lock(self, home: str) -> bool:
+        deadline = time.monotonic() + LOCK_WAIT_S
+        while True:
+            if self.store.set_if_absent(lock_key(home), self.settings.instance.encode(), ttl_s=LOCK_TTL_S):
+                return True
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.05)
+
+    def _commit(self, ep: EpisodeHome, em: Any) -> HomeIndex:
+        s = self.settings
+        index = self.read_index(ep.home) or HomeIndex()
+        mine = HomeMap.from_episode(em)
+        if index.version != ep.base_version:
+            stored = self.read_map(ep.home)
+            if stored is not None:
+                log.info("home %s: version %d since episode %s started at %d; maps merged", ep.home, index.version,
+                         em.episode_id, ep.base_version)
+                mine = stored.merge(mine)
+        map_bytes = mine.to_bytes()
+        budget = s.home_max_bytes - len(map_bytes)
+        if budget < 0:
+            log.warning("home %s: map of %d bytes exceeds EQA_HOME_MAX_BYTES=%d; the map is not stored",
+                        ep.home, len(map_bytes), s.home_max_bytes)
+            budget = s.home_max_bytes
+        candidates = {v.view_id: v for v in [*index.views, *ep.pool.views]}
+        chosen = select_views(list(candidates.values()), s.home_max_views, budget)
+        chosen_ids = {v.view_id for v in chosen}
+        ttl = s.home_ttl_s
+        if len(map_bytes) <= s.home_max_bytes:
+            self.store.set(map_key(ep.home), map_bytes, ttl_s=ttl)
+        else:
+            self.store.delete(map_key(ep.home))
+        scene = em.start.question.scene
+        new = HomeIndex(version=index.version + 1, views=chosen, episodes=index.episodes + 1,
+                        scenes=(index.scenes + ([scene] if scene not in index.scenes else []))[-64:],
+                        map_bytes=len(map_bytes) if len(map_bytes) <= s.home_max_bytes else 0,
+                        created_at=index.created_at)
+        self.store.set(index_key(ep.home), new.to_bytes(), ttl_s=ttl)
+        # every kept view's TTL runs from now; the views left out go
+        for v in chosen:
+            raw = self.store.get(view_key(ep.home, v.view_id))
+            if raw is not None:
+                self.store.set(view_key(ep.home, v.view_id), raw, ttl_s=ttl)
+        gone = [view_key(ep.home, vid) for vid in candidates if vid not in chosen_ids]
+        if gone:
+            self.store.delete_many(gone)
+        summary = homes.HomeSummary(home=ep.home, episodes=new.episodes, views=len(chosen),
+                                    bytes=new.map_bytes + new.view_bytes, created_at=new.created_at,
+                                    updated_at=time.time(), scenes=new.scenes)
+        homes.write_summary(self.store, summary, ttl_s=ttl)
+        log.info("home %s: version %d after episode %s: %d views, %d bytes", ep.home, new.version, em.episode_id,
+                 len(chosen), summary.bytes)
+        return new

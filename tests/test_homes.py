@@ -1,0 +1,324 @@
+"""Homes in the mapper: the home map carried over, the view memory bounded and chosen for coverage, the warm
+start scored through a real scorer replica over Zenoh with its memory steps decided on by the stopper, a home
+continued by a restarted mapper and by a second instance, concurrent episodes in one home merged, and an
+episode without a home unchanged."""
+
+from __future__ import annotations
+
+import math
+import queue
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from eqa import homes, keys
+from eqa.app.evaluation import replay
+from eqa.bus import Bus
+from eqa.messages import (
+    EpisodeEnd,
+    EpisodeStart,
+    ErrorReply,
+    Frame,
+    MapUpdate,
+    MemoryScore,
+    Pose2D,
+    StepScores,
+    StopConfig,
+)
+from eqa.settings import Settings
+from eqa.store import Store
+from services.mapper.episode_map import EpisodeMap
+from services.mapper.home_memory import HomeMap, ViewInfo, ViewPool, coverage, select_views
+from services.mapper.home_shell import HomeMemory, index_key, view_key
+from services.mapper.service import MapperService
+from services.sim import camera
+from services.sim.library import load_or_generate
+from services.sim.questions import generate_questions
+from services.sim.render import Renderer
+from services.stopper.state import CalibrationChoice, EpisodeRecord, decide
+from services.vlm_scorer.service import ScorerService
+
+ROBOT = "r0"
+W, H = 160, 120
+SCENE = "gen-00007"
+
+
+@pytest.fixture(scope="module")
+def house(tmp_path_factory: pytest.TempPathFactory):
+    scene = load_or_generate(SCENE, Path(tmp_path_factory.mktemp("scenes")))
+    question = generate_questions(scene, np.random.default_rng([7, 0, 11]))[0]
+    return scene, Renderer(scene), question
+
+
+def frame_at(renderer: Renderer, episode_id: str, step: int, pose: Pose2D) -> Frame:
+    K = camera.intrinsics(W, H)
+    T = camera.camera_pose(pose)
+    r = renderer.render(T, K, W, H)
+    return Frame(episode_id=episode_id, step=step, pose=pose, camera_pose=T, intrinsics=K, rgb=r.rgb, depth=r.depth,
+                 instances=r.instances, labels=renderer.labels(r.instances), scene=SCENE)
+
+
+def turn(pose: Pose2D, step: int) -> Pose2D:
+    return Pose2D(x=pose.x, y=pose.y, yaw=pose.yaw + step * math.pi / 3)
+
+
+def start_of(question, episode_id: str, home: str | None) -> EpisodeStart:
+    return EpisodeStart(episode_id=episode_id, robot=ROBOT, question=question, max_steps=20, record=False, seed=3,
+                        home=home)
+
+
+def view(vid: str, cells: list[tuple[int, int]], t: float, nbytes: int = 100) -> ViewInfo:
+    return ViewInfo(vid, t, nbytes, np.array(cells, dtype=np.int32).reshape(-1, 2))
+
+
+# ---- the pure parts -----------------------------------------------------------------------------------------
+def test_views_are_chosen_for_coverage_not_recency_within_count_and_bytes() -> None:
+    wide = view("wide", [(i, 0) for i in range(10)], t=1.0)
+    other_room = view("other", [(i, 5) for i in range(6)], t=2.0)
+    # the three newest views all see the same corner of the wide one
+    recent = [view(f"new{k}", [(0, 0), (1, 0), (2, 0)], t=10.0 + k) for k in range(3)]
+    chosen = select_views([wide, other_room, *recent], max_views=2, max_bytes=10_000)
+    assert [v.view_id for v in chosen] == ["wide", "other"]
+    assert coverage(chosen) == 16 > coverage(recent[-2:])
+    # a third pick adds nothing: not taken even with room left
+    assert [v.view_id for v in select_views([wide, other_room, *recent], 5, 10_000)] == ["wide", "other"]
+    # ties go to the newer view
+    assert select_views(recent, 1, 10_000)[0].view_id == "new2"
+    # the byte budget holds: the wide view does not fit, the best that does is taken
+    big = view("big", [(i, 0) for i in range(10)], t=1.0, nbytes=500)
+    assert [v.view_id for v in select_views([big, other_room], 2, 300)] == ["other"]
+    assert select_views([wide], 0, 10_000) == []
+
+
+def test_view_pool_stays_bounded_and_keeps_the_covering_set() -> None:
+    pool = ViewPool(max_views=3, max_bytes=1_000)
+    evicted_all: list[str] = []
+    for k in range(12):  # a robot turning on the spot: views of overlapping arcs, one wider every 4th
+        cells = [(k + i, 0) for i in range(2)] + ([(i, 9) for i in range(8)] if k % 4 == 0 else [])
+        _kept, evicted = pool.offer(view(f"v{k}", cells, t=float(k)))
+        evicted_all += evicted
+        assert len(pool.views) <= 3 and sum(v.nbytes for v in pool.views) <= 1_000
+    best = select_views([view(f"v{k}", [(k + i, 0) for i in range(2)] + ([(i, 9) for i in range(8)] if k % 4 == 0
+                                                                            else []), float(k)) for k in range(12)],
+                        3, 1_000)
+    assert coverage(pool.views) >= 0.8 * coverage(best)
+    assert len(set(evicted_all)) == len(evicted_all)
+
+
+def test_home_map_round_trip_and_merge(house) -> None:
+    _scene, renderer, q = house
+    a = EpisodeMap(start_of(q, "ep-a", "h-a"))
+    b = EpisodeMap(start_of(q, "ep-b", "h-a"))
+    for k in range(3):
+        a.integrate(frame_at(renderer, "ep-a", k, turn(q.start_pose, k)))
+        b.integrate(frame_at(renderer, "ep-b", k, turn(q.start_pose, k + 3)))
+    ha, hb = HomeMap.from_episode(a), HomeMap.from_episode(b)
+    back = HomeMap.from_bytes(ha.to_bytes())
+    assert np.array_equal(back.tsdf[back.weight > 0], ha.tsdf[ha.weight > 0])
+    assert np.array_equal(back.explored, ha.explored) and np.array_equal(back.traversed, ha.traversed)
+    merged = ha.merge(hb)
+    assert merged.explored_cells() >= max(ha.explored_cells(), hb.explored_cells())
+    assert merged.explored_cells() > ha.explored_cells()  # b looked the other way
+    # a fresh episode started from the merged map sees every cell either one explored
+    c = EpisodeMap(start_of(q, "ep-c", "h-a"))
+    merged.apply_to(c)
+    c.integrate(frame_at(renderer, "ep-c", 0, q.start_pose))
+    assert c.explored_area_m2() >= max(a.explored_area_m2(), b.explored_area_m2())
+    assert c.layer().max() == 0.0  # no question's values carried over
+
+
+def test_memory_steps_are_decided_before_the_first_move_and_kept_in_the_trace() -> None:
+    q = {"text": "Which color?", "choices": ["red", "blue", "green"], "scene": SCENE, "answer": "B"}
+    cal = CalibrationChoice(q_hat=1.5, eps=0.2, asked_eps=0.2, n=50, source="test")
+
+    def record() -> EpisodeRecord:
+        start = EpisodeStart(episode_id="e", robot=ROBOT, question=q, max_steps=10, stop=StopConfig(rule="cp", eps=0.2),
+                             home="h-x")
+        rec = EpisodeRecord.from_start(start, ROBOT)
+        rec.calibration = cal
+        return rec
+
+    vague = MemoryScore(answer_probs=[0.34, 0.33, 0.33], relevance=0.1)
+    sure = MemoryScore(answer_probs=[0.02, 0.96, 0.02], relevance=0.95)
+    step0 = StepScores(episode_id="e", step=0, answer_probs=[0.4, 0.3, 0.3], relevance=0.2, memory=[vague, sure])
+    rec = record()
+    d = decide(rec, step0)
+    assert d is not None and d.stop and d.answer == "B" and d.step == 0
+    assert rec.memory_steps == 2 and rec.last_step == 0
+    trace = rec.trace()
+    assert trace is not None and trace.memory_steps == 2 and len(trace.steps) == 3
+    r = replay(trace, StopConfig(rule="cp", eps=0.2), cal)
+    assert r.answer == "B" and r.steps == 1
+    # memory that leaves doubt: recorded, then the episode goes on from step 0
+    rec = record()
+    d = decide(rec, step0.model_copy(update={"memory": [vague]}))
+    assert d is not None and not d.stop and rec.memory_steps == 1 and len(rec.probs) == 2
+    # memory on a later step is not memory steps (the warm start is the first step only)
+    assert decide(rec, StepScores(episode_id="e", step=1, answer_probs=[0.4, 0.3, 0.3], relevance=0.2,
+                                  memory=[sure])) is not None and rec.memory_steps == 1
+    # an episode without memory: as before
+    rec = record()
+    decide(rec, step0.model_copy(update={"memory": []}))
+    assert rec.memory_steps == 0 and rec.trace().memory_steps == 0
+
+
+def fake_scorer(calls: list):
+    from eqa.messages import ScoreResult
+
+    def score(req):
+        calls.append(req)
+        return ScoreResult(request_id=req.request_id, episode_id=req.episode_id, step=req.step,
+                           answer_probs=[0.25] * 4, relevance=0.3, lsv=[0.5] * len(req.prompt_points), gsv=0.5,
+                           backend="test")
+
+    return score
+
+
+def test_concurrent_episodes_in_one_home_merge(house, store: Store, tmp_path: Path) -> None:
+    _scene, renderer, q = house
+    settings = Settings(data_dir=tmp_path / "var", home_max_views=4)
+    calls: list = []
+    memory = HomeMemory(settings, lambda: store, lambda: fake_scorer(calls))
+    maps = {}
+    for eid in ("ep-x", "ep-y"):  # both start before either ends: base version 0
+        em = EpisodeMap(start_of(q, eid, "h-c"))
+        memory.start(em.start, em)
+        maps[eid] = em
+    for k in range(3):
+        for eid, offset in (("ep-x", 0), ("ep-y", 3)):
+            f = frame_at(renderer, eid, k, turn(q.start_pose, k + offset))
+            maps[eid].integrate(f)
+            memory.observe(maps[eid], f)
+    first = memory.finish(maps["ep-x"])
+    second = memory.finish(maps["ep-y"])
+    assert first is not None and second is not None and (first.version, second.version) == (1, 2)
+    stored = memory.read_map("h-c")
+    assert stored is not None
+    x, y = HomeMap.from_episode(maps["ep-x"]), HomeMap.from_episode(maps["ep-y"])
+    assert stored.explored_cells() == x.merge(y).explored_cells() > max(x.explored_cells(), y.explored_cells())
+    assert len(second.views) <= 4 and {v.episode_id for v in second.views} == {"ep-x", "ep-y"}
+    # only the kept views are stored; the summary says what the home holds
+    stored_views = [k for k in store.keys(homes.prefix("h-c") + "view:")]
+    assert sorted(stored_views) == sorted(view_key("h-c", v.view_id) for v in second.views)
+    summary = homes.read_summary(store, "h-c")
+    assert summary is not None and summary.episodes == 2 and summary.views == len(second.views)
+    assert summary.bytes == second.map_bytes + second.view_bytes and summary.scenes == [SCENE]
+    assert calls == []  # nothing scored: neither episode started warm
+    assert homes.delete_home(store, "h-c") >= 3 and memory.read_index("h-c") is None
+
+
+# ---- the service over Zenoh ---------------------------------------------------------------------------------
+class Outputs:
+    def __init__(self, bus: Bus) -> None:
+        self.maps: queue.Queue[MapUpdate] = queue.Queue()
+        self.scores: queue.Queue[StepScores] = queue.Queue()
+        self.errors: queue.Queue[ErrorReply] = queue.Queue()
+        bus.subscribe(keys.stream(ROBOT, keys.MAPPER_MAP), MapUpdate, lambda k, m: self.maps.put(m))
+        bus.subscribe(keys.stream(ROBOT, keys.MAPPER_SCORES), StepScores, lambda k, m: self.scores.put(m))
+        bus.subscribe(keys.stream(ROBOT, keys.MAPPER_ERROR), ErrorReply, lambda k, m: self.errors.put(m))
+
+    def step(self, step: int) -> tuple[MapUpdate, StepScores]:
+        m, s = self.maps.get(timeout=60), self.scores.get(timeout=60)
+        assert m.step == step and s.step == step, (m.step, s.step)
+        return m, s
+
+
+def end(episode_id: str, steps: int) -> EpisodeEnd:
+    return EpisodeEnd(episode_id=episode_id, robot=ROBOT, state="stopped", reason="test", steps=steps)
+
+
+def test_home_carried_over_warm_started_through_a_scorer_replica_and_continued_elsewhere(
+        hub_settings: Settings, settings: Settings, house, redis_url: str) -> None:
+    _scene, renderer, q = house
+    settings = settings.model_copy(update={"redis_url": redis_url, "scorer_replica": "homes", "home_max_views": 3})
+    home = homes.home_id("tenant-a", "kitchen-house")
+    with Bus(hub_settings, "gateway") as bus:
+        out = Outputs(bus)
+        scorer = ScorerService(settings)  # the oracle backend: simulated perception model, not a VLM
+        scorer.start()
+        mapper = MapperService(settings)
+        mapper.start()
+        other: MapperService | None = None
+        try:
+            store = mapper.store
+            homes.delete_home(store, home)
+            time.sleep(0.5)
+            # episode 1 in the home: four views turning on the spot, then its end writes the home
+            bus.publish(keys.stream(ROBOT, keys.EPISODE_START), start_of(q, "ep-h1", home))
+            for k in range(4):
+                bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), frame_at(renderer, "ep-h1", k, turn(q.start_pose, k)))
+                m, s = out.step(k)
+                assert s.memory == []  # nothing to remember yet
+            first_area = m.explored_area_m2
+            bus.publish(keys.stream(ROBOT, keys.EPISODE_END), end("ep-h1", 4))
+            deadline = time.time() + 20
+            while store.get(index_key(home)) is None and time.time() < deadline:
+                time.sleep(0.05)
+            index = mapper.homes.read_index(home)
+            assert index is not None and index.version == 1 and 1 <= len(index.views) <= 3
+            summary = homes.read_summary(store, home)
+            assert summary is not None and summary.views == len(index.views) and summary.episodes == 1
+
+            # episode 2 in the home: step 0 starts from the stored map and re-scores the memory through the replica
+            bus.publish(keys.stream(ROBOT, keys.EPISODE_START), start_of(q, "ep-h2", home))
+            bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), frame_at(renderer, "ep-h2", 0, q.start_pose))
+            m0, s0 = out.step(0)
+            assert m0.explored_area_m2 == pytest.approx(first_area, rel=0.02)
+            assert len(s0.memory) == len(index.views) and s0.backend == "oracle"
+            assert all(len(mm.answer_probs) == len(q.choices) and 0 <= mm.relevance <= 1 for mm in s0.memory)
+            assert [mm.seen_at for mm in s0.memory] == sorted(mm.seen_at for mm in s0.memory)
+            assert out.errors.empty(), out.errors.get()
+
+            # the cold reference: the same frame without a home sees only itself, no memory steps, no home keys
+            before = sorted(store.keys(homes.PREFIX))
+            bus.publish(keys.stream(ROBOT, keys.EPISODE_START), start_of(q, "ep-cold", None))
+            bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), frame_at(renderer, "ep-cold", 0, q.start_pose))
+            c0, cs0 = out.step(0)
+            ref = EpisodeMap(start_of(q, "ep-ref", None))
+            ref.integrate(frame_at(renderer, "ep-ref", 0, q.start_pose))
+            assert c0.explored_area_m2 == pytest.approx(ref.explored_area_m2())
+            assert c0.explored_area_m2 < m0.explored_area_m2
+            assert cs0.memory == []
+            bus.publish(keys.stream(ROBOT, keys.EPISODE_END), end("ep-cold", 1))
+            assert mapper.drain()
+            time.sleep(0.3)
+            assert sorted(store.keys(homes.PREFIX)) == before
+
+            # the mapper dies mid-episode; a new instance continues episode 2 from the store and commits it
+            mapper.stop()
+            other = MapperService(settings.model_copy(update={"instance": "mapper-b"}))
+            other.start()
+            time.sleep(0.5)
+            bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), frame_at(renderer, "ep-h2", 1, turn(q.start_pose, 4)))
+            m1, s1 = out.step(1)
+            assert s1.memory == [] and m1.explored_area_m2 >= m0.explored_area_m2
+            # the candidate keyframe of step 0 came over with the episode's state (cells read back from the store)
+            pool = other.homes.episodes["ep-h2"].pool.views
+            assert {v.view_id for v in pool} == {"ep-h2-0", "ep-h2-1"} and all(len(v.cells) for v in pool)
+            bus.publish(keys.stream(ROBOT, keys.EPISODE_END), end("ep-h2", 2))
+            deadline = time.time() + 20
+            while (mapper_index := other.homes.read_index(home)) is not None and mapper_index.version < 2 \
+                    and time.time() < deadline:
+                time.sleep(0.05)
+            index2 = other.homes.read_index(home)
+            assert index2 is not None and index2.version == 2 and len(index2.views) <= 3
+            assert index2.episodes == 2
+            stored = other.homes.read_map(home)
+            assert stored is not None and stored.explored_cells() >= HomeMap.from_bytes(
+                store.get(homes.prefix(home) + "map")).explored_cells()
+            assert out.errors.empty(), out.errors.get()
+        finally:
+            if other is not None:
+                other.stop()
+            mapper.stop()
+            scorer.stop()
+
+
+def test_bench_sequences_are_one_house_round_robin_over_categories(tmp_path: Path) -> None:
+    from eqa.app.home_bench import sequence
+
+    qs = sequence(11, 0, 5, tmp_path)
+    assert len(qs) == 5 and len({q.scene for q in qs}) == 1 and len({q.category for q in qs}) == 5
+    assert [q.id for q in sequence(11, 0, 7, tmp_path)][:5] == [q.id for q in qs]  # the same order, longer
