@@ -39,6 +39,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from eqa.app.bench_common import _quantile_defined, _settings, scorer_label
+
 log = logging.getLogger(__name__)
 
 STRATEGIES = ("fbe", "semantic", "no_lsv", "no_gsv")
@@ -50,11 +52,6 @@ PAIRED_BUDGETS = (0.5, 0.7, 1.0)
 EPS_SWEEP = (0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.5, 0.6, 0.7, 0.8)
 
 
-def scorer_label(settings: Any) -> str:
-    if settings.scorer_backend == "oracle":
-        return "scorer: oracle (simulated perception model, not a VLM)"
-    model = settings.hf_model_path if settings.scorer_backend == "hf" else settings.remote_model
-    return f"scorer: {settings.scorer_backend} ({model})"
 
 
 # Bumped when the exploration itself changes (planner, mapper value layers), so that traces of an earlier
@@ -223,26 +220,6 @@ def _collect_cores(questions: list[Any], settings: Any, strategy: str, name: str
             pool.shutdown(wait=True, cancel_futures=True)
 
 
-def _settings(args: argparse.Namespace) -> Any:
-    from eqa.app.cli import UsageError, check_scorer, load_settings
-
-    settings = load_settings()
-    try:
-        w, h = (int(v) for v in args.size.lower().split("x"))
-    except ValueError:
-        raise UsageError(f"--size must look like 640x480, got {args.size!r}") from None
-    if not (16 <= w <= 4096 and 12 <= h <= 4096):
-        raise UsageError(f"--size {args.size} is out of range")
-    if args.limit is not None and args.limit < 1:
-        raise UsageError("--limit must be at least 1")
-    update: dict[str, Any] = {"sim_width": w, "sim_height": h, "record": False}
-    if args.scorer is not None:
-        update["scorer_backend"] = args.scorer
-    settings = settings.model_copy(update=update)
-    check_scorer(settings)
-    if args.robots < 1 or args.scorers < 1:
-        raise UsageError("--robots and --scorers must be at least 1")
-    return settings
 
 
 def _summary(traces: list[Any], ev: Any) -> dict[str, Any]:
@@ -505,14 +482,6 @@ def cmd_stop(args: argparse.Namespace) -> int:
     return 0
 
 
-def _quantile_defined(n: int, eps: float) -> bool:
-    from services.stopper.conformal import CalibrationError, quantile_rank
-
-    try:
-        quantile_rank(n, eps)
-    except CalibrationError:
-        return False
-    return True
 
 
 def _common(p: argparse.ArgumentParser) -> None:

@@ -194,7 +194,7 @@ def _run_all(fn: Any, jobs: list[Any], paths: list[Path], workers: int) -> None:
 
 def _table(traces: list[Any], grid: tuple[float, ...], name: str, eps: float) -> Any:
     """The CP table of ``traces`` at the eps of ``grid`` (and ``eps``) whose quantile ``traces`` define."""
-    from eqa.app.bench_cli import _quantile_defined
+    from eqa.app.bench_common import _quantile_defined
     from services.stopper.calibration import calibrate
 
     usable = sorted({e for e in (*grid, eps) if _quantile_defined(len(traces), e)})
@@ -281,7 +281,7 @@ def summarise(rows: list[dict[str, Any]], args: argparse.Namespace, settings: An
     import numpy as np
 
     from eqa.app import evaluation as ev
-    from eqa.app.bench_cli import scorer_label
+    from eqa.app.bench_common import scorer_label
     from eqa.messages import letters
     from services.stopper.conformal import relevance_weighted_confidence, sequence_set
 
@@ -368,7 +368,7 @@ def print_results(res: dict[str, Any]) -> None:
 
 
 def cmd_home(args: argparse.Namespace) -> int:
-    from eqa.app.bench_cli import _settings
+    from eqa.app.bench_common import _settings
     from eqa.app.cli import UsageError
     from eqa.service import setup_logging
 
