@@ -93,7 +93,9 @@ def fleet(tmp_path_factory: pytest.TempPathFactory):
         }
         ups = {}
         for host, (services, scorers, instances) in shares.items():
-            env = {**base_env, "EQA_DATA_DIR": str(data)}
+            # no warm standbys: the test finds the processes it kills by their command line, which a waiting
+            # standby shares (tests/test_standby.py covers the standbys' take-over)
+            env = {**base_env, "EQA_DATA_DIR": str(data), "EQA_STANDBY": "false"}
             argv = [PY, "-m", "eqa", "up", "--join", endpoint, "--services", services, "--scorers", str(scorers),
                     "--instances", str(instances), "--timeout", "120"]
             ups[host] = hosts.run(host, argv, env, logs / f"up-{host}.log")
