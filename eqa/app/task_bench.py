@@ -44,11 +44,8 @@ from eqa.app.evaluation import sign_test_p as sign_test
 from eqa.messages import (
     EpisodeCancel,
     EpisodeEnd,
-    EpisodeStart,
     ErrorReply,
     Goal,
-    Question,
-    StopConfig,
     Task,
     new_id,
 )
@@ -130,10 +127,13 @@ Job = tuple[Task, str, int] | tuple[Task, str, int, int | None]
 
 def run_tasks(settings: Settings, jobs: list[Job], robots: int = 2, scorers: int = 1,
               step_timeout_s: float = 300.0, progress: bool = True,
-              on_result: Callable[[TaskResult], None] | None = None) -> list[TaskResult]:
+              on_result: Callable[[TaskResult], None] | None = None,
+              episode_ids: list[str] | None = None) -> list[TaskResult]:
     """Run ``(task, variant, max_steps[, pick_limit])`` jobs through a fleet over ``robots`` simulated robots,
     each with its pick limit enforced (module doc); every result carries the run's trace from the store.
-    ``on_result`` is called as each one ends (so an interrupted benchmark keeps what it ran)."""
+    ``on_result`` is called as each one ends (so an interrupted benchmark keeps what it ran). ``episode_ids``:
+    one per job (default: fresh ids)."""
+    from eqa.app.task_cores import task_start
     from eqa.launcher import PIPELINE, Fleet
     from eqa.store import open_store, task_trace_key
 
@@ -167,11 +167,8 @@ def run_tasks(settings: Settings, jobs: list[Job], robots: int = 2, scorers: int
             while free and pending:
                 robot = free.pop(0)
                 task, variant, steps, limit = pending.pop()
-                eid = new_id("task")
-                q = Question(text=task.text, scene=task.scene, start_pose=task.start_pose, max_steps=steps)
-                start = EpisodeStart(episode_id=eid, robot=robot, question=q, stop=StopConfig(rule="max_steps"),
-                                     max_steps=steps, seed=task_seed(task.id), record=False, task=task,
-                                     ablation=variant, pick_limit=limit)  # type: ignore[arg-type]
+                eid = episode_ids[len(jobs4) - len(pending) - 1] if episode_ids is not None else new_id("task")
+                start = task_start(task, variant, steps, limit, eid, robot, task_seed(task.id))
                 bus.publish(keys.stream(robot, keys.EPISODE_START), start)
                 now = time.monotonic()
                 running[eid] = (robot, task, variant, steps, limit, now, now)
@@ -450,7 +447,11 @@ def cmd(args: argparse.Namespace) -> int:
                     f.write(json.dumps(r.__dict__) + "\n")
                 done[r.key()] = r
 
-            if not args.summary_only:
+            if not args.summary_only and args.runner == "cores":
+                from eqa.app.task_cores import run_tasks_cores
+
+                run_tasks_cores(settings, jobs, progress=not args.no_progress, on_result=keep)
+            elif not args.summary_only:
                 run_tasks(settings, jobs, robots=args.robots, scorers=args.scorers, progress=not args.no_progress,
                           on_result=keep)
             results = [r for k, r in done.items() if k in wanted]
@@ -510,6 +511,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                        help="agent variants (default: all of the table)")
         p.add_argument("--max-steps", type=int, default=None,
                        help="cap on each task's step budget (default: the task's own, 6*sqrt(floor area))")
+        p.add_argument("--runner", choices=("fleet", "cores"), default="fleet",
+                       help="fleet: every service as its own process over Zenoh (default); cores: the services' "
+                            "step functions in this process, one episode after the other (eqa.app.task_cores: the "
+                            "same trace for the same episode id, several times cheaper)")
         p.add_argument("--robots", type=int, default=2, help="simulated robots run in parallel (default 2)")
         p.add_argument("--scorers", type=int, default=1, help="scorer replicas (default 1)")
         p.add_argument("--out", default="var/bench/tasks", help="results directory (default var/bench/tasks)")

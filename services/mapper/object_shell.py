@@ -183,70 +183,30 @@ class ObjectLayerShell:
     def _objects_ask(self, om: ObjectMap, em: Any, frame: Frame) -> tuple[Any, Any, float]:
         detect, values = self._pool_client()
         t0 = time.perf_counter()
-        try:
-            det: Any = detect(om.detect_request(frame, seed=em.start.seed))
-        except Exception as exc:
-            det = exc
-        try:
-            val: Any = values(ValueRequest(
-                episode_id=em.episode_id, step=frame.step, rgb=frame.rgb, targets=om.task_classes,
-                instances=frame.instances, labels=frame.labels, depth=frame.depth, seed=em.start.seed,
-            ))
-        except Exception as exc:
-            val = exc
+        det, val = ask_objects(om, em, frame, detect, values)
         return det, val, (time.perf_counter() - t0) * 1000.0
 
     def objects_apply(self, robot: str, em: Any, frame: Frame, pending: Future | None,
                       timing: dict[str, float]) -> str | None:
-        """Fuse the frame's detections and write its values; returns the layer the frontiers take their
-        values from in a task episode, or None: the current phase's search target (:func:`frontier_class`)."""
+        """Fuse the frame's detections and write its values (:func:`fuse_frame`); returns the layer the
+        frontiers take their values from in a task episode, or None."""
         om = self.objects.get(em.episode_id)
         if pending is None or om is None:
             return None
-        skill = getattr(frame, "skill", None)
-        if skill is not None and skill.skill == "pick" and skill.success:
-            om.holding = True
         det, val, ask_ms = pending.result()
         timing["objects_ask"] = ask_ms
-        t0 = time.perf_counter()
-        if isinstance(det, DetectResult):
-            try:
-                stats = om.integrate(frame, det)
-                timing.update({f"objects_{k}": v for k, v in stats.timing_ms.items()})
-            except Exception as exc:
-                log.exception("episode %s: object layer update failed", em.episode_id)
-                self.error(robot, em.episode_id, frame.step, f"object layer not updated: {type(exc).__name__}: {exc}")
-        else:
-            reason = det.reason if isinstance(det, ErrorReply) else f"{type(det).__name__}: {det}"
-            self.error(robot, em.episode_id, frame.step, f"detector failed, frame not fused: {reason}")
-        if isinstance(val, ValueResult) and len(val.values) == len(om.task_classes):
-            rows, cols, conf = fov_values.fov_cells(frame.depth, frame.intrinsics, frame.camera_pose, em.origin,
-                                                    em.resolution, em.layer(value_layer(om.task_classes[0])).shape)
-            for cls, v in zip(om.task_classes, val.values, strict=True):
-                name = value_layer(cls)
-                fov_values.fuse(em.layer(name), em.volume.add_plane(f"{CONFIDENCE_PREFIX}{name}", 0.0, np.float32),
-                                rows, cols, conf, float(v))
-        elif not isinstance(val, ValueResult):
-            reason = val.reason if isinstance(val, ErrorReply) else f"{type(val).__name__}: {val}"
-            self.error(robot, em.episode_id, frame.step, f"value prompt failed: {reason}")
-        timing["objects_fuse"] = (time.perf_counter() - t0) * 1000.0
-        return value_layer(frontier_class(em.start.task, om.holding))
+        layer, errors = fuse_frame(om, em, frame, det, val, timing)
+        for reason in errors:
+            self.error(robot, em.episode_id, frame.step, reason)
+        return layer
 
     def objects_attach(self, em: Any, update: MapUpdate, frame: Frame | None, timing: dict[str, float]) -> None:
         """Put the episode's instances (with gaze points on this update's map) into ``update``."""
         om = self.objects.get(em.episode_id)
         if om is None:
             return
-        t0 = time.perf_counter()
-        height = float(frame.camera_pose[2, 3]) if frame is not None else 1.5
-        # the robot's head camera has a fixed tilt: gaze points are scored for the view it really gets there
-        pitch = float(np.arcsin(np.clip(frame.camera_pose[2, 2], -1.0, 1.0))) if frame is not None else None
-        targets = _object_map_module().phase_classes(em.start.task, om.holding) if em.start.task else None
-        update.objects = om.summaries(update.grid, update.occupied, obstacle_heights(em), camera_height=height,
-                                      camera_pitch=pitch, targets=targets)
+        attach_objects(om, em, update, frame, timing)
         self.last_objects[em.episode_id] = update.objects
-        timing["objects_summary"] = (time.perf_counter() - t0) * 1000.0
-        update.timing_ms.update(timing)
 
     def objects_record(self, em: Any, frame: Frame) -> None:
         om = self.objects.get(em.episode_id)
@@ -258,3 +218,71 @@ class ObjectLayerShell:
             _object_map_module().log_rerun(rec, om, self.last_objects.get(em.episode_id, []))
         except Exception:
             log.exception("episode %s: recording the object layer failed; going on", em.episode_id)
+
+
+def ask_objects(om: ObjectMap, em: Any, frame: Frame, detect: Detect, values: Values) -> tuple[Any, Any]:
+    """The frame's detections and per-target value prompts (HELIOS 3.1.2) from the scorer pool; each reply is
+    the result, or the exception its request raised."""
+    try:
+        det: Any = detect(om.detect_request(frame, seed=em.start.seed))
+    except Exception as exc:
+        det = exc
+    try:
+        val: Any = values(ValueRequest(
+            episode_id=em.episode_id, step=frame.step, rgb=frame.rgb, targets=om.task_classes,
+            instances=frame.instances, labels=frame.labels, depth=frame.depth, seed=em.start.seed,
+        ))
+    except Exception as exc:
+        val = exc
+    return det, val
+
+
+def fuse_frame(om: ObjectMap, em: Any, frame: Frame, det: Any, val: Any,
+               timing: dict[str, float]) -> tuple[str, list[str]]:
+    """One frame's object-layer step of a task episode (the mapper service's and the in-process runner's,
+    :mod:`eqa.app.task_cores`): the phase from the frame's skill report, the detections fused into the 3D
+    layer, each target's value fused into its layer over the field-of-view cone by confidence. ``det`` /
+    ``val``: the scorer pool's replies (or the exception a request raised). Returns the layer the frontiers
+    take their values from (:func:`frontier_class`) and the reasons of what was not fused (for the error
+    stream)."""
+    errors: list[str] = []
+    skill = getattr(frame, "skill", None)
+    if skill is not None and skill.skill == "pick" and skill.success:
+        om.holding = True
+    t0 = time.perf_counter()
+    if isinstance(det, DetectResult):
+        try:
+            stats = om.integrate(frame, det)
+            timing.update({f"objects_{k}": v for k, v in stats.timing_ms.items()})
+        except Exception as exc:
+            log.exception("episode %s: object layer update failed", em.episode_id)
+            errors.append(f"object layer not updated: {type(exc).__name__}: {exc}")
+    else:
+        reason = det.reason if isinstance(det, ErrorReply) else f"{type(det).__name__}: {det}"
+        errors.append(f"detector failed, frame not fused: {reason}")
+    if isinstance(val, ValueResult) and len(val.values) == len(om.task_classes):
+        rows, cols, conf = fov_values.fov_cells(frame.depth, frame.intrinsics, frame.camera_pose, em.origin,
+                                                em.resolution, em.layer(value_layer(om.task_classes[0])).shape)
+        for cls, v in zip(om.task_classes, val.values, strict=True):
+            name = value_layer(cls)
+            fov_values.fuse(em.layer(name), em.volume.add_plane(f"{CONFIDENCE_PREFIX}{name}", 0.0, np.float32),
+                            rows, cols, conf, float(v))
+    elif not isinstance(val, ValueResult):
+        reason = val.reason if isinstance(val, ErrorReply) else f"{type(val).__name__}: {val}"
+        errors.append(f"value prompt failed: {reason}")
+    timing["objects_fuse"] = (time.perf_counter() - t0) * 1000.0
+    return value_layer(frontier_class(em.start.task, om.holding)), errors
+
+
+def attach_objects(om: ObjectMap, em: Any, update: MapUpdate, frame: Frame | None, timing: dict[str, float]) -> None:
+    """Put the instances of ``om`` (with gaze points on this update's map, for the current phase's targets)
+    into ``update``."""
+    t0 = time.perf_counter()
+    height = float(frame.camera_pose[2, 3]) if frame is not None else 1.5
+    # the robot's head camera has a fixed tilt: gaze points are scored for the view it really gets there
+    pitch = float(np.arcsin(np.clip(frame.camera_pose[2, 2], -1.0, 1.0))) if frame is not None else None
+    targets = _object_map_module().phase_classes(em.start.task, om.holding) if em.start.task else None
+    update.objects = om.summaries(update.grid, update.occupied, obstacle_heights(em), camera_height=height,
+                                  camera_pitch=pitch, targets=targets)
+    timing["objects_summary"] = (time.perf_counter() - t0) * 1000.0
+    update.timing_ms.update(timing)
