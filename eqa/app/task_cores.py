@@ -211,12 +211,23 @@ def run_task_episode(cores: TaskCores, start: EpisodeStart) -> tuple[str, str, d
     return "stopped", reason, sim.metrics(), sim.episode.trace_doc()
 
 
+def cores_episode_id(task_id: str, max_steps: int) -> str:
+    """The episode id of an in-process run of a task: a function of the task and its step budget, the same for
+    every variant and pick limit. The simulated detector draws from (seed, episode id, step, instance), so a run
+    gives the same trace every time, and the variants of a task meet the same detector draws (common random
+    numbers for their paired comparison). The fleet takes fresh ids: its store keys and the services'
+    ended-episode records are per id."""
+    import hashlib
+
+    return "task-" + hashlib.sha256(f"{task_id}|{max_steps}".encode()).hexdigest()[:12]
+
+
 def run_tasks_cores(settings: Settings, jobs: list[Any], progress: bool = True,
                     on_result: Any = None, episode_ids: list[str] | None = None) -> list[TaskResult]:
     """Run ``(task, variant, max_steps, pick_limit)`` jobs in process, one after the other (the same contract
-    as :func:`eqa.app.task_bench.run_tasks`). ``episode_ids``: one per job (default: fresh ids, as the fleet)."""
+    as :func:`eqa.app.task_bench.run_tasks`). ``episode_ids``: one per job (default: :func:`cores_episode_id`, so a
+    run of the same job gives the same trace)."""
     from eqa.app.task_bench import TaskResult, task_seed
-    from eqa.messages import new_id
 
     out: list[TaskResult] = []
     cores = TaskCores.from_settings(settings)
@@ -229,7 +240,7 @@ def run_tasks_cores(settings: Settings, jobs: list[Any], progress: bool = True,
         for i, job in enumerate(jobs):
             task, variant, steps = job[0], job[1], job[2]
             limit = job[3] if len(job) > 3 else None
-            eid = episode_ids[i] if episode_ids is not None else new_id("task")
+            eid = episode_ids[i] if episode_ids is not None else cores_episode_id(task.id, steps)
             start = task_start(task, variant, steps, limit, eid, "cores", task_seed(task.id))
             t0 = time.monotonic()
             try:
