@@ -96,7 +96,7 @@ def run_task_episode(cores: TaskCores, start: EpisodeStart) -> tuple[str, str, d
     from services.mapper.episode_map import EpisodeMap, MapperConfig
     from services.mapper.object_map import ObjectMap, ObjectMapConfig
     from services.mapper.object_map import task_classes as object_classes
-    from services.mapper.object_shell import ask_objects, attach_objects, fuse_frame, value_layer
+    from services.mapper.object_shell import ask_objects, attach_objects, fuse_frame, task_map_config, value_layer
     from services.mapper.semantic_map import QUESTION_LAYER
     from services.planner.refusals import Refusals
     from services.planner.sampling import step_rng
@@ -128,9 +128,9 @@ def run_task_episode(cores: TaskCores, start: EpisodeStart) -> tuple[str, str, d
     om_config = ObjectMapConfig.from_settings(s)
     om = ObjectMap.for_task(task, om_config, single_frame=start.ablation == "trusting")
     classes, _ = object_classes(task, om_config)
-    emap = EpisodeMap(start, MapperConfig(tau_lsv=s.tau_lsv, tau_gsv=s.tau_gsv, tau_sv=s.tau_sv,
-                                          tau_sv_normal=s.tau_sv_normal, view_bins=s.view_bins,
-                                          view_agree=s.view_agree),
+    emap = EpisodeMap(start, task_map_config(MapperConfig(tau_lsv=s.tau_lsv, tau_gsv=s.tau_gsv, tau_sv=s.tau_sv,
+                                                          tau_sv_normal=s.tau_sv_normal, view_bins=s.view_bins,
+                                                          view_agree=s.view_agree)),
                       layers=[QUESTION_LAYER, *(value_layer(c) for c in classes)])
 
     def detect(req: Any) -> Any:

@@ -72,6 +72,24 @@ LAYER_PREFIX = "helios:"
 CONFIDENCE_PREFIX = "confidence/"  # the map plane with a task value layer's field-of-view confidence
 
 
+def task_map_config(config: Any) -> Any:
+    """The mapper's configuration for a task episode: ``config`` with the 2D obstacle band starting at the voxel
+    layer that holds the robot's obstacle height (:data:`eqa.robot.OBSTACLE_MIN_Z_M`, where the sim's
+    collisions start) instead of the question map's floor clearance. With the question map's 0.1 m, the voxel
+    layer 0-0.1 m was left out and objects lower than about 0.15 m (shoes, 0.12 m) were never mapped: the task
+    paths drove over them and the sim counted the collisions (every collision of the first evaluation runs was
+    with shoes on the floor). Question episodes keep their map (their figures are made with it)."""
+    import dataclasses
+
+    from eqa import robot as body
+
+    # the band takes the voxel layers whose centre is at or above floor_clearance: from the layer that reaches
+    # above the obstacle height (a layer's centre lies half a voxel above its bottom)
+    low = body.OBSTACLE_MIN_Z_M - config.volume.voxel_size / 2
+    return dataclasses.replace(config, projection=dataclasses.replace(
+        config.projection, floor_clearance=min(config.projection.floor_clearance, low)))
+
+
 def value_layer(cls: str) -> str:
     return f"{LAYER_PREFIX}{cls}"
 
@@ -165,10 +183,12 @@ class ObjectLayerShell:
         ``start_of`` restores the map from its bytes. Returns the map."""
         if isinstance(data, dict):
             em = start_of(data["map"])
+            em.config = task_map_config(em.config)
             self.objects[episode_id] = _object_map_module().ObjectMap.restore(data["objects"], self.objects_config)
             return em
         em = start_of(data)
         if em.start.task is not None:  # a task episode saved before its layer existed: start a fresh one
+            em.config = task_map_config(em.config)
             self.objects[episode_id] = _object_map_module().ObjectMap.for_task(
                 em.start.task, self.objects_config, single_frame=em.start.ablation == "trusting")
         return em

@@ -48,7 +48,7 @@ from eqa.store import Store
 from services.mapper import snapshots
 from services.mapper.answer_views import AnswerViewsShell
 from services.mapper.episode_map import EpisodeMap, MapperConfig, Timer
-from services.mapper.object_shell import Detect, ObjectLayerShell, Values
+from services.mapper.object_shell import Detect, ObjectLayerShell, Values, task_map_config
 from services.mapper.question_objects import QuestionObjectsShell
 from services.mapper.semantic_map import QUESTION_LAYER
 from services.mapper.tsdf import FrameError
@@ -115,7 +115,8 @@ class MapperService(AnswerViewsShell, QuestionObjectsShell, ObjectLayerShell, Ep
         log.info("episode %s: mapping for robot %s (strategy %s)", start.episode_id, robot, start.strategy)
         self.qobjects_start(start)
         self.views_start(start)
-        return EpisodeMap(start, self.config, layers=self.objects_layers(start))
+        config = self.config if start.task is None else task_map_config(self.config)
+        return EpisodeMap(start, config, layers=self.objects_layers(start))
 
     def finish_episode(self, robot: str, msg: EpisodeCancel | EpisodeEnd, state: EpisodeMap) -> None:
         self.objects_finish(msg.episode_id)
