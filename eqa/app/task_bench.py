@@ -285,11 +285,14 @@ def summarise(kind: str, results: list[TaskResult], variants: tuple[str, ...]) -
                 if limit not in by_limit:
                     continue
                 h, o = by_limit[limit]["helios"], by_limit[limit][v]
-                wins = sum(1 for t in common if h[t].get("SR", 0.0) > o[t].get("SR", 0.0))
-                losses = sum(1 for t in common if h[t].get("SR", 0.0) < o[t].get("SR", 0.0))
-                cmp.append({"helios_vs": v, "picks": limit or "unlimited", "helios_wins": wins, "helios_losses": losses,
-                            "sign_test_p": sign_test(wins, losses)})
-    table["paired_SR"] = cmp
+                for k in (OVMM_METRICS if kind == "pick_place" else ("SR",)):
+                    wins = sum(1 for t in common if h[t].get(k, 0.0) > o[t].get(k, 0.0))
+                    losses = sum(1 for t in common if h[t].get(k, 0.0) < o[t].get(k, 0.0))
+                    row = {"helios_vs": v, "picks": limit or "unlimited", "metric": k, "helios_wins": wins,
+                           "helios_losses": losses, "sign_test_p": sign_test(wins, losses)}
+                    cmp.append(row)
+    table["paired"] = cmp  # every phase metric (pick and place) or SR
+    table["paired_SR"] = [c for c in cmp if c["metric"] == "SR"]
     return table
 
 
@@ -311,9 +314,10 @@ def format_table(kind: str, table: dict[str, Any], seed: int | str, max_steps: i
         for row in table["rows"]:
             lines.append(f"{row['variant']:<10} {100 * row['SR'][0]:6.1f} ± {100 * row['SR'][1]:4.1f} "
                          f"{100 * row['SPL'][0]:6.1f} ± {100 * row['SPL'][1]:4.1f}")
-    for c in table["paired_SR"]:
-        lines.append(f"paired SR, helios vs {c['helios_vs']} ({c['picks']} picks): helios better on "
-                     f"{c['helios_wins']}, worse on {c['helios_losses']} tasks, sign test p = {c['sign_test_p']:.3f}")
+    for c in table.get("paired", table["paired_SR"]):
+        lines.append(f"paired {c.get('metric', 'SR')}, helios vs {c['helios_vs']} ({c['picks']} picks): helios "
+                     f"better on {c['helios_wins']}, worse on {c['helios_losses']} tasks, "
+                     f"sign test p = {c['sign_test_p']:.3f}")
     return "\n".join(lines)
 
 
