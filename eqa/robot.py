@@ -5,7 +5,9 @@
 * :data:`MAP_MARGIN_M` -- the margin the planner keeps on top of that radius on its *mapped* occupancy (the map
   is built from depth and misses or misplaces obstacle edges by about a voxel, 0.05 m): paths, gaze points and
   skill poses of task episodes keep :func:`mapped_clearance_m` from mapped occupied cells;
-* :data:`REACH_M` -- the oracle pick's reach, from the base centre to the object's box, horizontally.
+* :data:`REACH_M` -- the oracle pick's reach, from the base centre to the object's box, horizontally;
+* :data:`OBSTACLE_MIN_Z_M` -- what rises above this height is an obstacle the base collides with (lower is
+  floor: rugs, thresholds): the sim's navigable grid and the task mapper's obstacle band both start here.
 
 What counts as a collision against OVMM's definition is written in ``docs/results/helios-collisions.md``.
 """
@@ -15,6 +17,7 @@ from __future__ import annotations
 COLLISION_RADIUS_M = 0.15  # robot body with a margin for the arm
 MAP_MARGIN_M = 0.05  # one voxel of the mapper's occupancy
 REACH_M = 0.9  # arm reach of a mobile manipulator base
+OBSTACLE_MIN_Z_M = 0.05
 
 
 def mapped_clearance_m() -> float:

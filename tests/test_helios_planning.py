@@ -258,3 +258,19 @@ def test_find_object_looks_from_a_gaze_point_before_stopping() -> None:
     assert m3.step((2.0, 1.0, math.pi), [], [box]).kind == "stop"
     t = TaskMachine("find_object", "box", ablation="trusting")
     assert t.step((5.0, 5.0, 0.0), [], [box]).kind == "stop"  # the trusting agent stops at once
+
+
+def test_choose_keeps_the_committed_frontier_but_a_better_candidate_wins() -> None:
+    """Eq. 10 with a frontier the robot is on its way to (``committed``): the committed frontier is kept while
+    a frontier ranks first; a candidate that ranks first is chosen at once."""
+    from services.planner import helios as h
+
+    fr = [h.FrontierOption(0, 5.0, 0.0, 0.9), h.FrontierOption(1, -5.0, 0.0, 0.4)]
+    assert h.choose((0.0, 0.0), fr, [], h.SearchMemory(), 0.001, 0.3).ref == 0
+    mem = h.SearchMemory()
+    kept = h.choose((0.0, 0.0), fr, [], mem, 0.001, 0.3, committed=1)
+    assert (kept.kind, kept.ref) == ("frontier", 1) and mem.chosen[-1].F0 == 0.4  # F' stores the one gone to
+    # a candidate with S IG = 0.8 * 2 = 1.6 > 0.9 F0 (F0 = 1: no previous frontier): the candidate
+    cand = [h.CandidateObservation(7, 0.8, 2.0, 1.0, 1.0)]
+    won = h.choose((0.0, 0.0), fr, cand, h.SearchMemory(), 0.001, 0.3, committed=1)
+    assert (won.kind, won.ref) == ("candidate", 7)

@@ -66,3 +66,58 @@ def test_sim_task_episode_pick_metrics_and_restart(hub_settings, settings) -> No
             svc2.stop()
         m2 = store.get_json(task_metrics_key("ep-task"))
         assert m2["Pick"] == 1.0 and m2["pick_attempts"] == 1.0
+
+
+def test_question_and_task_episodes_count_collisions_alike(hub_settings, settings) -> None:
+    """One collision model: the same goal, a straight path through an obstacle, counts one collision in a
+    question episode (the sim's episode state) and in a task episode (its metrics); a clear path counts none."""
+    from eqa.messages import Pose2D
+    from services.sim.motion import pose_error
+    from services.sim.skills import motion_path, path_collides
+
+    scene = generate_house(115002)
+    task = next(t for t in generate_tasks(scene, np.random.default_rng(115002)) if t.kind == "pick_place")
+    here = task.start_pose
+    reach, ox, oy = reachable_map(scene, here)
+    rows, cols = np.nonzero(reach)
+    rng = np.random.default_rng(0)
+    hit = clear = None
+    for k in rng.permutation(len(rows))[:4000]:
+        p = Pose2D(x=float(ox + (cols[k] + 0.5) * 0.05), y=float(oy + (rows[k] + 0.5) * 0.05))
+        if pose_error(scene, p) is not None or not 1.0 < np.hypot(p.x - here.x, p.y - here.y) < 3.0:
+            continue
+        if path_collides(scene, motion_path((here.x, here.y), [], (p.x, p.y))):
+            hit = hit or p
+        else:
+            clear = clear or p
+        if hit and clear:
+            break
+    assert hit is not None and clear is not None
+    frames: list[Frame] = []
+    with Bus(hub_settings, "gateway", "test") as bus:
+        bus.subscribe(keys.any_robot(keys.SIM_FRAME), Frame, lambda k, m: frames.append(m))
+        svc = SimService(settings)
+        svc.start()
+        try:
+            time.sleep(0.5)
+            q = Question(text=task.text, scene=task.scene, start_pose=here)
+            for eid, t in (("ep-q", None), ("ep-t", task)):
+                bus.publish(keys.stream("r0" if t is None else "r1", keys.EPISODE_START),
+                            EpisodeStart(episode_id=eid, robot="r0" if t is None else "r1", question=q,
+                                         max_steps=10, record=False, task=t))
+            assert wait_for(lambda: {f.episode_id for f in frames if f.step == 0} == {"ep-q", "ep-t"}, timeout=20)
+            home = Pose2D(x=here.x, y=here.y, yaw=here.yaw)
+            eps = (("ep-q", "r0"), ("ep-t", "r1"))
+            for step, pose in enumerate((clear, home, hit)):  # out and back along a clear line, then the hit
+                for eid, robot in eps:
+                    bus.publish(keys.stream(robot, keys.PLANNER_GOAL), Goal(episode_id=eid, step=step, pose=pose))
+                assert wait_for(lambda s=step: {f.episode_id for f in frames if f.step == s + 1} == {"ep-q", "ep-t"},
+                                timeout=20)
+                want = 1 if pose is hit else 0
+                assert svc.episodes["ep-q"].collisions == want and svc.episodes["ep-t"].collisions == want, step
+        finally:
+            svc.stop()
+        store = open_store(settings)
+        assert store.get_json(task_metrics_key("ep-t"))["collisions"] == 1.0
+        svc2 = SimService(settings)  # the count is part of the stored state
+        assert svc2.episode("ep-q").collisions == 1

@@ -40,6 +40,11 @@ def test_summarise_pairs_variants_on_common_tasks() -> None:
     assert rows[("helios", "unlimited")]["SR"][0] == 0.5 and rows[("helios", 1)]["SR"][0] == 0.0
     unl = next(c for c in t["paired_SR"] if c["picks"] == "unlimited")
     assert (unl["helios_wins"], unl["helios_losses"]) == (1, 0)
+    # every phase is paired too: Pick helios 1 / 0 on a, 0 / 0 on b -> one win; FindObj ties everywhere
+    by = {(c["metric"], c["picks"]): c for c in t["paired"]}
+    assert (by[("Pick", "unlimited")]["helios_wins"], by[("Pick", "unlimited")]["helios_losses"]) == (1, 0)
+    assert (by[("FindObj", "unlimited")]["helios_wins"], by[("FindObj", "unlimited")]["helios_losses"]) == (0, 0)
+    assert {m for m, _ in by} == {"FindObj", "Pick", "FindRec", "Place", "SR"}
 
 
 def test_a_limit_run_enforced_is_read_from_its_runs_else_derived_post_hoc() -> None:

@@ -64,3 +64,34 @@ def test_unreachable_gaze_rules_the_instance_out_and_falls_back_to_a_frontier() 
     st = task_step(m, GRID, ~behind, behind, Pose2D(x=1.0, y=1.0), [frontier], [mug], None, Memory(),
                    np.random.default_rng(0), PlannerParams())
     assert st.phase == "searching" and st.plan.kind == "move" and m.fails[20] >= 2
+
+
+def test_the_frontier_on_the_way_stays_the_choice_until_reached() -> None:
+    """Eq. 10 read as a choice that holds until the robot gets there (services/planner/helios.py choose): the
+    frontier values change while the robot moves, and a robot that re-chose the highest value every step went back
+    and forth across a room (tuning seed 11). Here the robot heads for frontier A (6 m away, more than one 3 m
+    step); on the next step frontier B's value has risen above A's: the robot keeps going to A, and only after
+    arriving there does it choose B."""
+    free = np.ones((100, 100), bool)
+    occ = np.zeros((100, 100), bool)
+    occ[0, :] = occ[-1, :] = occ[:, 0] = occ[:, -1] = True
+    free &= ~occ
+    a = Frontier(x=8.0, y=2.0, nx=1.0, ny=0.0, size=5, sv=0.6)
+    b = Frontier(x=2.0, y=8.0, nx=0.0, ny=1.0, size=5, sv=0.5)
+    m = TaskMachine("pick_place", "mug", "table", "counter", ablation="trusting")
+    rng = np.random.default_rng(0)
+    first = task_step(m, GRID, free, occ, Pose2D(x=2.0, y=2.0), [a, b], [], None, Memory(), rng)
+    assert first.plan.frontier is not None and first.plan.frontier.x == 8.0  # A: the highest value
+    assert first.memory.target is not None  # on the way, not there yet
+    b_up = b.model_copy(update={"sv": 0.9})
+    second = task_step(m, GRID, free, occ, first.plan.pose, [a, b_up], [], None, first.memory, rng)
+    assert second.plan.frontier is not None and second.plan.frontier.x == 8.0, second.plan.reason
+    pose, mem = second.plan.pose, second.memory
+    for _ in range(3):
+        if mem.target is None:
+            break
+        st = task_step(m, GRID, free, occ, pose, [a, b_up], [], None, mem, rng)
+        pose, mem = st.plan.pose, st.memory
+    assert mem.target is None and math.hypot(pose.x - 8.0, pose.y - 2.0) < 0.6  # A reached
+    after = task_step(m, GRID, free, occ, pose, [b_up], [], None, mem, rng)
+    assert after.plan.frontier is not None and after.plan.frontier.y == 8.0  # then B

@@ -28,27 +28,23 @@ file per benchmark and seed and reused when the same task, variant and step budg
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import logging
 import math
 import queue
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from eqa import keys
 from eqa.app.evaluation import sign_test_p as sign_test
+from eqa.app.task_results import TaskResult, task_seed
 from eqa.messages import (
     EpisodeCancel,
     EpisodeEnd,
-    EpisodeStart,
     ErrorReply,
     Goal,
-    Question,
-    StopConfig,
     Task,
     new_id,
 )
@@ -57,11 +53,9 @@ from eqa.settings import Settings
 from eqa.task_traces import (
     FIND_CAUSES,
     PICK_PLACE_CAUSES,
-    Failure,
     TraceError,
     breakdown,
     collision_phases,
-    failure_cause,
     format_breakdown,
     replay_metrics,
 )
@@ -77,34 +71,6 @@ SIMULATED = ("simulated perception model (oracle detector reading ground-truth l
 GROUND_TRUTH = ("ground-truth detections (HELIOS Table 4 yardstick: the oracle detector with every visible pixel of "
                 "a requested class, score 1, no miss, confusion or false positive; EQA_DETECTOR_GROUND_TRUTH), "
                 "not a detector")
-
-
-def task_seed(task_id: str) -> int:
-    return int.from_bytes(hashlib.sha256(task_id.encode()).digest()[:4], "little") & 0x7FFFFFFF
-
-
-@dataclass
-class TaskResult:
-    task_id: str
-    kind: str
-    variant: str
-    max_steps: int
-    metrics: dict[str, float]
-    state: str
-    reason: str
-    seconds: float
-    pick_limit: int | None = None  # enforced during the run (None: unlimited)
-    trace: dict[str, Any] | None = None  # the sim's task trace (exported apart from the results)
-
-    def key(self) -> tuple[str, str, int, int | None]:
-        return (self.task_id, self.variant, self.max_steps, self.pick_limit)
-
-    def row(self) -> dict[str, Any]:
-        """The results line (without the trace)."""
-        return {k: v for k, v in self.__dict__.items() if k != "trace"}
-
-    def failure(self) -> Failure:
-        return failure_cause(self.kind, self.trace, self.metrics, self.state, self.reason, self.max_steps)
 
 
 def limited(m: dict[str, float], limit: int | None) -> dict[str, float]:
@@ -130,10 +96,13 @@ Job = tuple[Task, str, int] | tuple[Task, str, int, int | None]
 
 def run_tasks(settings: Settings, jobs: list[Job], robots: int = 2, scorers: int = 1,
               step_timeout_s: float = 300.0, progress: bool = True,
-              on_result: Callable[[TaskResult], None] | None = None) -> list[TaskResult]:
+              on_result: Callable[[TaskResult], None] | None = None,
+              episode_ids: list[str] | None = None) -> list[TaskResult]:
     """Run ``(task, variant, max_steps[, pick_limit])`` jobs through a fleet over ``robots`` simulated robots,
     each with its pick limit enforced (module doc); every result carries the run's trace from the store.
-    ``on_result`` is called as each one ends (so an interrupted benchmark keeps what it ran)."""
+    ``on_result`` is called as each one ends (so an interrupted benchmark keeps what it ran). ``episode_ids``:
+    one per job (default: fresh ids)."""
+    from eqa.app.task_cores import task_start
     from eqa.launcher import PIPELINE, Fleet
     from eqa.store import open_store, task_trace_key
 
@@ -167,11 +136,8 @@ def run_tasks(settings: Settings, jobs: list[Job], robots: int = 2, scorers: int
             while free and pending:
                 robot = free.pop(0)
                 task, variant, steps, limit = pending.pop()
-                eid = new_id("task")
-                q = Question(text=task.text, scene=task.scene, start_pose=task.start_pose, max_steps=steps)
-                start = EpisodeStart(episode_id=eid, robot=robot, question=q, stop=StopConfig(rule="max_steps"),
-                                     max_steps=steps, seed=task_seed(task.id), record=False, task=task,
-                                     ablation=variant, pick_limit=limit)  # type: ignore[arg-type]
+                eid = episode_ids[len(jobs4) - len(pending) - 1] if episode_ids is not None else new_id("task")
+                start = task_start(task, variant, steps, limit, eid, robot, task_seed(task.id))
                 bus.publish(keys.stream(robot, keys.EPISODE_START), start)
                 now = time.monotonic()
                 running[eid] = (robot, task, variant, steps, limit, now, now)
@@ -288,11 +254,14 @@ def summarise(kind: str, results: list[TaskResult], variants: tuple[str, ...]) -
                 if limit not in by_limit:
                     continue
                 h, o = by_limit[limit]["helios"], by_limit[limit][v]
-                wins = sum(1 for t in common if h[t].get("SR", 0.0) > o[t].get("SR", 0.0))
-                losses = sum(1 for t in common if h[t].get("SR", 0.0) < o[t].get("SR", 0.0))
-                cmp.append({"helios_vs": v, "picks": limit or "unlimited", "helios_wins": wins, "helios_losses": losses,
-                            "sign_test_p": sign_test(wins, losses)})
-    table["paired_SR"] = cmp
+                for k in (OVMM_METRICS if kind == "pick_place" else ("SR",)):
+                    wins = sum(1 for t in common if h[t].get(k, 0.0) > o[t].get(k, 0.0))
+                    losses = sum(1 for t in common if h[t].get(k, 0.0) < o[t].get(k, 0.0))
+                    row = {"helios_vs": v, "picks": limit or "unlimited", "metric": k, "helios_wins": wins,
+                           "helios_losses": losses, "sign_test_p": sign_test(wins, losses)}
+                    cmp.append(row)
+    table["paired"] = cmp  # every phase metric (pick and place) or SR
+    table["paired_SR"] = [c for c in cmp if c["metric"] == "SR"]
     return table
 
 
@@ -314,9 +283,10 @@ def format_table(kind: str, table: dict[str, Any], seed: int | str, max_steps: i
         for row in table["rows"]:
             lines.append(f"{row['variant']:<10} {100 * row['SR'][0]:6.1f} ± {100 * row['SR'][1]:4.1f} "
                          f"{100 * row['SPL'][0]:6.1f} ± {100 * row['SPL'][1]:4.1f}")
-    for c in table["paired_SR"]:
-        lines.append(f"paired SR, helios vs {c['helios_vs']} ({c['picks']} picks): helios better on "
-                     f"{c['helios_wins']}, worse on {c['helios_losses']} tasks, sign test p = {c['sign_test_p']:.3f}")
+    for c in table.get("paired", table["paired_SR"]):
+        lines.append(f"paired {c.get('metric', 'SR')}, helios vs {c['helios_vs']} ({c['picks']} picks): helios "
+                     f"better on {c['helios_wins']}, worse on {c['helios_losses']} tasks, "
+                     f"sign test p = {c['sign_test_p']:.3f}")
     return "\n".join(lines)
 
 
@@ -450,7 +420,11 @@ def cmd(args: argparse.Namespace) -> int:
                     f.write(json.dumps(r.__dict__) + "\n")
                 done[r.key()] = r
 
-            if not args.summary_only:
+            if not args.summary_only and args.runner == "cores":
+                from eqa.app.task_cores import run_tasks_cores
+
+                run_tasks_cores(settings, jobs, progress=not args.no_progress, on_result=keep)
+            elif not args.summary_only:
                 run_tasks(settings, jobs, robots=args.robots, scorers=args.scorers, progress=not args.no_progress,
                           on_result=keep)
             results = [r for k, r in done.items() if k in wanted]
@@ -510,6 +484,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                        help="agent variants (default: all of the table)")
         p.add_argument("--max-steps", type=int, default=None,
                        help="cap on each task's step budget (default: the task's own, 6*sqrt(floor area))")
+        p.add_argument("--runner", choices=("fleet", "cores"), default="fleet",
+                       help="fleet: every service as its own process over Zenoh (default); cores: the services' "
+                            "step functions in this process, one episode after the other (eqa.app.task_cores: the "
+                            "same trace for the same episode id, several times cheaper)")
         p.add_argument("--robots", type=int, default=2, help="simulated robots run in parallel (default 2)")
         p.add_argument("--scorers", type=int, default=1, help="scorer replicas (default 1)")
         p.add_argument("--out", default="var/bench/tasks", help="results directory (default var/bench/tasks)")

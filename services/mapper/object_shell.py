@@ -40,9 +40,11 @@ from eqa.recording import EpisodeRecorder
 from services.mapper import fov_values
 from services.mapper.episode_map import EpisodeMap
 from services.mapper.extension import (
+    Detect,
     MapperContext,
     MapperExtension,
     StepOutputs,
+    Values,
     call_pool,
     failure,
     object_map_module,
@@ -56,6 +58,23 @@ log = logging.getLogger(__name__)
 
 LAYER_PREFIX = "helios:"
 CONFIDENCE_PREFIX = "confidence/"  # the map plane with a task value layer's field-of-view confidence
+
+
+def task_map_config(config: Any) -> Any:
+    """The mapper's configuration for a task episode: ``config`` with the 2D obstacle band starting at the voxel
+    layer that holds the robot's obstacle height (:data:`eqa.robot.OBSTACLE_MIN_Z_M`, where the sim's
+    collisions start) instead of the question map's floor clearance: with the question map's 0.1 m, objects
+    lower than about 0.15 m (shoes, 0.12 m) were never mapped, and task paths drove over them. Question episodes
+    keep their map (their figures are made with it)."""
+    import dataclasses
+
+    from eqa import robot as body
+
+    # the band takes the voxel layers whose centre is at or above floor_clearance: from the layer that reaches
+    # above the obstacle height (a layer's centre lies half a voxel above its bottom)
+    low = body.OBSTACLE_MIN_Z_M - config.volume.voxel_size / 2
+    return dataclasses.replace(config, projection=dataclasses.replace(
+        config.projection, floor_clearance=min(config.projection.floor_clearance, low)))
 
 
 def value_layer(cls: str) -> str:
@@ -130,7 +149,10 @@ class ObjectLayerExtension(MapperExtension):
         return None if objects is None else objects.snapshot()
 
     def restore(self, em: EpisodeMap, part: Any | None) -> None:
-        """The stored layer; a task episode stored without one starts a fresh layer."""
+        """The stored layer; a task episode stored without one starts a fresh layer. A task episode's map
+        gets the task map's configuration back (:func:`task_map_config`)."""
+        if em.start.task is not None:
+            em.config = task_map_config(em.config)
         if part is not None:
             self.maps[em.episode_id] = object_map_module().ObjectMap.restore(part, self.context.objects_config)
         elif em.start.task is not None:
@@ -146,63 +168,29 @@ class ObjectLayerExtension(MapperExtension):
     def _ask(self, objects: ObjectMap, em: EpisodeMap, frame: Frame) -> tuple[Any, Any, float]:
         detect, values = self.context.detect_and_values()
         t0 = time.perf_counter()
-        det = call_pool(detect, objects.detect_request(frame, seed=em.start.seed))
-        val = call_pool(values, ValueRequest(
-            episode_id=em.episode_id, step=frame.step, rgb=frame.rgb, targets=objects.task_classes,
-            instances=frame.instances, labels=frame.labels, depth=frame.depth, seed=em.start.seed,
-        ))
+        det, val = ask_objects(objects, em, frame, detect, values)
         return det, val, (time.perf_counter() - t0) * 1000.0
 
     def apply(self, robot: str, em: EpisodeMap, frame: Frame, pending: Future[Any] | None, out: StepOutputs,
               timing: dict[str, float]) -> None:
-        """Fuse the frame's detections and write its values; the frontiers of a task episode take their values
-        from the current phase's search target (:func:`frontier_class`)."""
+        """Fuse the frame's detections and write its values (:func:`fuse_frame`); the frontiers of a task
+        episode take their values from the current phase's search target (:func:`frontier_class`)."""
         objects = self.maps.get(em.episode_id)
         if pending is None or objects is None:
             return
-        error = self.context.error
-        skill = frame.skill
-        if skill is not None and skill.skill == "pick" and skill.success:
-            objects.holding = True
         det, val, ask_ms = pending.result()
         timing["objects_ask"] = ask_ms
-        t0 = time.perf_counter()
-        if isinstance(det, DetectResult):
-            try:
-                stats = objects.integrate(frame, det)
-                timing.update({f"objects_{k}": v for k, v in stats.timing_ms.items()})
-            except Exception as exc:
-                log.exception("episode %s: object layer update failed", em.episode_id)
-                error(robot, em.episode_id, frame.step, f"object layer not updated: {type(exc).__name__}: {exc}")
-        else:
-            error(robot, em.episode_id, frame.step, f"detector failed, frame not fused: {failure(det)}")
-        if isinstance(val, ValueResult) and len(val.values) == len(objects.task_classes):
-            rows, cols, conf = fov_values.fov_cells(frame.depth, frame.intrinsics, frame.camera_pose, em.origin,
-                                                    em.resolution, em.layer(value_layer(objects.task_classes[0])).shape)
-            for cls, v in zip(objects.task_classes, val.values, strict=True):
-                name = value_layer(cls)
-                fov_values.fuse(em.layer(name), em.volume.add_plane(f"{CONFIDENCE_PREFIX}{name}", 0.0, np.float32),
-                                rows, cols, conf, float(v))
-        elif not isinstance(val, ValueResult):
-            error(robot, em.episode_id, frame.step, f"value prompt failed: {failure(val)}")
-        timing["objects_fuse"] = (time.perf_counter() - t0) * 1000.0
-        assert em.start.task is not None  # an object map is kept for task episodes only
-        out.frontier_layer = value_layer(frontier_class(em.start.task, objects.holding))
+        out.frontier_layer, errors = fuse_frame(objects, em, frame, det, val, timing)
+        for reason in errors:
+            self.context.error(robot, em.episode_id, frame.step, reason)
 
     def attach(self, em: EpisodeMap, update: MapUpdate, frame: Frame) -> None:
         """Put the episode's instances (with gaze points on this update's map) into ``update``."""
         objects = self.maps.get(em.episode_id)
         if objects is None:
             return
-        t0 = time.perf_counter()
-        height = float(frame.camera_pose[2, 3])
-        # the robot's head camera has a fixed tilt: gaze points are scored for the view it really gets there
-        pitch = float(np.arcsin(np.clip(frame.camera_pose[2, 2], -1.0, 1.0)))
-        targets = object_map_module().phase_classes(em.start.task, objects.holding) if em.start.task else None
-        update.objects = objects.summaries(update.grid, update.occupied, obstacle_heights(em), camera_height=height,
-                                           camera_pitch=pitch, targets=targets)
+        attach_objects(objects, em, update, frame)
         self.last_objects[em.episode_id] = update.objects
-        update.timing_ms["objects_summary"] = (time.perf_counter() - t0) * 1000.0
 
     def record(self, em: EpisodeMap, frame: Frame, recorder: EpisodeRecorder) -> None:
         objects = self.maps.get(em.episode_id)
@@ -213,3 +201,66 @@ class ObjectLayerExtension(MapperExtension):
             object_map_module().log_rerun(recorder, objects, self.last_objects.get(em.episode_id, []))
         except Exception:
             log.exception("episode %s: recording the object layer failed; going on", em.episode_id)
+
+
+def ask_objects(objects: ObjectMap, em: EpisodeMap, frame: Frame, detect: Detect, values: Values) -> tuple[Any, Any]:
+    """The frame's detections and per-target value prompts (HELIOS 3.1.2) from the scorer pool; each reply is
+    the result, or the exception its request raised (:func:`call_pool`)."""
+    det = call_pool(detect, objects.detect_request(frame, seed=em.start.seed))
+    val = call_pool(values, ValueRequest(
+        episode_id=em.episode_id, step=frame.step, rgb=frame.rgb, targets=objects.task_classes,
+        instances=frame.instances, labels=frame.labels, depth=frame.depth, seed=em.start.seed,
+    ))
+    return det, val
+
+
+def fuse_frame(objects: ObjectMap, em: EpisodeMap, frame: Frame, det: Any, val: Any,
+               timing: dict[str, float]) -> tuple[str, list[str]]:
+    """One frame's object-layer step of a task episode (the mapper's and the in-process runner's,
+    :mod:`eqa.app.task_cores`): the phase from the frame's skill report, the detections fused into the 3D
+    layer, each target's value fused into its layer over the field-of-view cone by confidence. ``det`` /
+    ``val``: the scorer pool's replies (or the exception a request raised). Returns the layer the frontiers
+    take their values from (:func:`frontier_class`) and the reasons of what was not fused (for the error
+    stream)."""
+    errors: list[str] = []
+    skill = frame.skill
+    if skill is not None and skill.skill == "pick" and skill.success:
+        objects.holding = True
+    t0 = time.perf_counter()
+    if isinstance(det, DetectResult):
+        try:
+            stats = objects.integrate(frame, det)
+            timing.update({f"objects_{k}": v for k, v in stats.timing_ms.items()})
+        except Exception as exc:
+            log.exception("episode %s: object layer update failed", em.episode_id)
+            errors.append(f"object layer not updated: {type(exc).__name__}: {exc}")
+    else:
+        errors.append(f"detector failed, frame not fused: {failure(det)}")
+    if isinstance(val, ValueResult) and len(val.values) == len(objects.task_classes):
+        rows, cols, conf = fov_values.fov_cells(frame.depth, frame.intrinsics, frame.camera_pose, em.origin,
+                                                em.resolution, em.layer(value_layer(objects.task_classes[0])).shape)
+        for cls, v in zip(objects.task_classes, val.values, strict=True):
+            name = value_layer(cls)
+            fov_values.fuse(em.layer(name), em.volume.add_plane(f"{CONFIDENCE_PREFIX}{name}", 0.0, np.float32),
+                            rows, cols, conf, float(v))
+    elif not isinstance(val, ValueResult):
+        errors.append(f"value prompt failed: {failure(val)}")
+    timing["objects_fuse"] = (time.perf_counter() - t0) * 1000.0
+    assert em.start.task is not None  # an object map is kept for task episodes only
+    return value_layer(frontier_class(em.start.task, objects.holding)), errors
+
+
+def attach_objects(objects: ObjectMap, em: EpisodeMap, update: MapUpdate, frame: Frame,
+                   timing: dict[str, float] | None = None) -> None:
+    """Put the instances of ``objects`` (with gaze points on this update's map, for the current phase's
+    targets) into ``update``; ``timing``: the step's timings so far, added to the update's."""
+    t0 = time.perf_counter()
+    height = float(frame.camera_pose[2, 3])
+    # the robot's head camera has a fixed tilt: gaze points are scored for the view it really gets there
+    pitch = float(np.arcsin(np.clip(frame.camera_pose[2, 2], -1.0, 1.0)))
+    targets = object_map_module().phase_classes(em.start.task, objects.holding) if em.start.task else None
+    update.objects = objects.summaries(update.grid, update.occupied, obstacle_heights(em), camera_height=height,
+                                       camera_pitch=pitch, targets=targets)
+    if timing is not None:
+        update.timing_ms.update(timing)
+    update.timing_ms["objects_summary"] = (time.perf_counter() - t0) * 1000.0

@@ -61,7 +61,7 @@ from services.mapper.extension import (
     failure,
 )
 from services.mapper.home_shell import HomeMemory
-from services.mapper.object_shell import ObjectLayerExtension
+from services.mapper.object_shell import ObjectLayerExtension, task_map_config
 from services.mapper.question_objects import QuestionObjectsExtension
 from services.mapper.semantic_map import QUESTION_LAYER
 from services.mapper.tsdf import FrameError
@@ -126,7 +126,9 @@ class MapperService(EpisodeService[EpisodeMap]):
     def start_episode(self, robot: str, start: EpisodeStart) -> EpisodeMap:
         log.info("episode %s: mapping for robot %s (strategy %s)", start.episode_id, robot, start.strategy)
         extra = [layer for ext in self.extensions for layer in ext.start(start)]
-        em = EpisodeMap(start, self.config, layers=[QUESTION_LAYER, *extra] if extra else None)
+        # a task episode's map sees low obstacles (task_map_config); a question's keeps the figures' map
+        config = self.config if start.task is None else task_map_config(self.config)
+        em = EpisodeMap(start, config, layers=[QUESTION_LAYER, *extra] if extra else None)
         self.homes.start(start, em)  # an episode in a home starts from its map
         return em
 

@@ -160,9 +160,16 @@ def values(robot_xy: tuple[float, float], frontiers: Sequence[FrontierOption],
 
 def choose(robot_xy: tuple[float, float], frontiers: Sequence[FrontierOption],
            observed: Sequence[CandidateObservation], memory: SearchMemory, alpha_d: float, cs_a: float,
-           ablation: Ablation = "helios") -> Choice | None:
+           ablation: Ablation = "helios", committed: int | None = None) -> Choice | None:
     """The next global-search target under ``ablation`` (module doc); None when there is nothing to go to.
-    Stores first detections in ``memory`` (and the chosen frontier, when one is chosen)."""
+    Stores first detections in ``memory`` (and the chosen frontier, when one is chosen).
+
+    ``committed``: the index of the frontier the robot is on its way to (chosen at an earlier step, not reached
+    yet). Eq. 10 says the robot goes to the ``r`` of highest ``V``; we read it as a choice of where to go that
+    holds until the robot gets there, as a frontier waypoint does in VLFM, on which HELIOS builds: while a
+    frontier ranks first, the committed one is kept, so the frontier values changing under a moving robot do
+    not send it back and forth between frontiers (tuning seed 11: the first task's robot crossed the same room
+    for ten steps and never reached the next room). A candidate that ranks first still wins at once."""
     if ablation not in ABLATIONS:
         raise ValueError(f"ablation must be one of {ABLATIONS}, got {ablation!r}")
     cands = [] if ablation == "trusting" else candidates_of(observed, cs_a, memory.visited)
@@ -174,6 +181,8 @@ def choose(robot_xy: tuple[float, float], frontiers: Sequence[FrontierOption],
     best = ranked[0]
     if ablation == "no_global":
         best = next((c for c in ranked if c.kind == "candidate"), best)
+    if best.kind == "frontier" and committed is not None:
+        best = next((c for c in ranked if c.kind == "frontier" and c.ref == committed), best)
     if best.kind == "frontier":
         f = next(f for f in frontiers if f.index == best.ref)
         memory.choose_frontier(f)

@@ -170,6 +170,8 @@ class TaskMachine:
     pending: Action | None = None  # the pick / place / stop action waiting for its outcome
     finished: Action | None = None
     checking: int | None = None  # find_object: the candidate the robot went to see from a gaze point before stopping
+    # the frontier the robot is on its way to, given with each step (an argument of step, not kept state)
+    committed: int | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if self.kind == "pick_place" and (not self.start_receptacle or not self.goal_receptacle):
@@ -179,7 +181,12 @@ class TaskMachine:
 
     # ---- the step ---------------------------------------------------------------------------------------
     def step(self, robot: tuple[float, float, float], frontiers: Sequence[FrontierOption],
-             objects: Sequence[SeenObject], outcome: SkillOutcome | None = None) -> Action:
+             objects: Sequence[SeenObject], outcome: SkillOutcome | None = None,
+             committed: int | None = None) -> Action:
+        """The next action (module doc). ``committed``: the index of the frontier the robot is on its way to;
+        it stays the frontier of choice while a frontier is what the machine goes to
+        (:func:`services.planner.helios.choose`)."""
+        self.committed = committed
         if self.finished is not None:
             return self.finished
         if outcome is not None:
@@ -303,7 +310,8 @@ class TaskMachine:
                 return last
             return self._finish(False, f"{reason}; no frontier left to explore")
         self.phase = "searching"
-        return Action("frontier", "searching", ranked[0].ref, reason=reason)
+        ref = self.committed if any(c.ref == self.committed for c in ranked) else ranked[0].ref
+        return Action("frontier", "searching", ref, reason=reason)
 
     def _last_resort(self, robot: tuple[float, float, float], objects: Sequence[SeenObject]) -> Action | None:
         """Nothing left to explore but candidates of the phase's class are known: rather than end the episode
@@ -373,7 +381,7 @@ class TaskMachine:
             if s is not None and o.cls == start:
                 observed.append(CandidateObservation(o.instance_id, s[0], o.ig, o.x, o.y))
         choice = helios.choose(robot[:2], frontiers, observed, self.memory, self.th.alpha_d, self.th.cs_a,
-                               self.ablation)
+                               self.ablation, self.committed)
         if choice is None:
             return self._last_resort(robot, objects) or self._finish(
                 False, "nothing left to search: no frontier and no candidate start receptacle")

@@ -208,6 +208,18 @@ def frontier_options(frontiers: list[Frontier]) -> list[FrontierOption]:
             if all(math.isfinite(v) for v in (f.x, f.y, f.sv))]
 
 
+def committed_option(memory: Memory, options: list[FrontierOption], params: PlannerParams) -> int | None:
+    """The frontier option the robot is on its way to: the one nearest the committed target of
+    :class:`~services.planner.step.Memory`, within ``commit_radius_m``, while the commitment lasts
+    (``max_commit_steps``) -- :func:`services.planner.step.plan_step`'s rule 4, applied to the machine's choice
+    so that it holds across steps (:func:`services.planner.helios.choose`). None: no commitment."""
+    t = memory.target
+    if t is None or memory.committed_steps >= params.max_commit_steps or not options:
+        return None
+    d, idx = min((math.hypot(o.x - t.x, o.y - t.y), o.index) for o in options)
+    return idx if d <= params.commit_radius_m else None
+
+
 def task_step(machine: TaskMachine, grid: GridSpec, free: np.ndarray, occupied: np.ndarray, pose: Pose2D,
               frontiers: list[Frontier], objects: list[SeenObject], outcome: SkillOutcome | None,
               memory: Memory, rng: np.random.Generator, params: PlannerParams | None = None,
@@ -225,7 +237,7 @@ def task_step(machine: TaskMachine, grid: GridSpec, free: np.ndarray, occupied: 
                if not any(math.hypot(o.x - vx, o.y - vy) <= params.visited_radius_m for vx, vy in memory.visited)]
     turn: TaskStep | None = None  # plan_step's turn in place (it counts the turns) for an unreachable frontier
     for _ in range(max_tries):
-        act: Action = machine.step(robot, options, objects, outcome)
+        act: Action = machine.step(robot, options, objects, outcome, committed_option(memory, options, params))
         outcome = None  # consumed
         if act.kind == "done":
             if turn is not None:

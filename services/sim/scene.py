@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from eqa import robot as body
 from eqa.homes import CHANGED_SCENE
 
 log = logging.getLogger(__name__)
@@ -31,7 +32,7 @@ GEN_ID = re.compile(r"^gen-(\d{1,9})$")
 CHANGED_ID = CHANGED_SCENE  # a generated house after k rounds of changes (services.sim.changes)
 MESH_SUFFIXES = (".glb", ".gltf", ".ply", ".obj")
 SCENE_FORMAT = 1
-OBSTACLE_MIN_Z = 0.05  # lower than this is floor (rugs, thresholds)
+OBSTACLE_MIN_Z = body.OBSTACLE_MIN_Z_M  # lower than this is floor (rugs, thresholds)
 OBSTACLE_MAX_Z = 1.5  # up to the camera height
 
 

@@ -51,7 +51,7 @@ from eqa.store import (
     task_metrics_key,
     task_trace_key,
 )
-from services.sim import hmeqa
+from services.sim import hmeqa, skills
 from services.sim.camera import camera_pose, intrinsics
 from services.sim.library import load_or_generate
 from services.sim.motion import START_CLEARANCE, pose_error, sample_start_pose
@@ -78,6 +78,7 @@ class _Episode:
     resends: int = 0  # of the current step
     task: SimTask | None = None  # a task episode's skills and metrics
     skill: SkillReport | None = None  # the skill outcome of the current step (on its frame, resends too)
+    collisions: int = 0  # base motions that hit an obstacle (services.sim.skills.path_collides), every episode
 
 
 def load_scene(settings: Settings, scene_id: str, floor: int = 0) -> Scene:
@@ -168,7 +169,7 @@ class SimService(EpisodeService[_Episode]):
     def dump_state(self, state: _Episode, **extra: Any) -> Any:
         data: dict[str, Any] = {"start": state.start.model_dump(mode="json"), "pose": state.pose.model_dump(),
                                 "step": state.step, "trajectory": [list(p) for p in state.trajectory],
-                                "saved_at": time.time()}
+                                "collisions": state.collisions, "saved_at": time.time()}
         if state.task is not None:
             data["task"] = state.task.to_json()
             data["skill"] = state.skill.model_dump(mode="json") if state.skill is not None else None
@@ -182,7 +183,8 @@ class SimService(EpisodeService[_Episode]):
             renderer = self.renderer(start.question.scene, start.question.floor)
             ep = _Episode(episode_id, renderer.scene, renderer, Pose2D.model_validate(data["pose"]),
                           start.max_steps, start, step=int(data["step"]),
-                          trajectory=[(float(p[0]), float(p[1])) for p in data["trajectory"]])
+                          trajectory=[(float(p[0]), float(p[1])) for p in data["trajectory"]],
+                          collisions=int(data.get("collisions", 0)))
             if data.get("task"):
                 ep.task = SimTask.from_json(data["task"])
                 ep.skill = SkillReport.model_validate(data["skill"]) if data.get("skill") else None
@@ -409,6 +411,8 @@ class SimService(EpisodeService[_Episode]):
                     log.info("episode %s step %d: %s %s (%s)", ep.episode_id, ep.step, ep.skill.skill,
                              "succeeded" if ep.skill.success else "failed", ep.skill.reason)
             ep.task.observe(ep.scene, ep.pose, frame.instances)
+        if goal is not None and before is not None:
+            self._count_collision(ep, before, goal)
         ep.emitted_at, ep.resends = time.monotonic(), 0
         ep.trajectory.append((ep.pose.x, ep.pose.y))
         if ep.task is not None:
@@ -418,6 +422,22 @@ class SimService(EpisodeService[_Episode]):
         self.save(ep.episode_id)
         self.publish(robot, keys.SIM_FRAME, frame)
         self._log_step(ep, frame)
+
+    def _count_collision(self, ep: _Episode, before: Pose2D, goal: Goal) -> None:
+        """One collision model for question and task episodes (docs/results/helios-collisions.md): a base
+        motion counts one collision when its path passes closer than the robot's collision radius to the true
+        scene. A task episode's count is its TaskEpisode's (the same test, made in ``after_goal``); a question
+        episode's is made here. Questions have no collision metric (EQA): the count is kept with the episode's
+        state and logged, and their planner keeps its own clearances."""
+        if ep.task is not None:
+            ep.collisions = ep.task.episode.collisions
+            return
+        assert goal.pose is not None
+        if skills.path_collides(ep.scene, skills.motion_path((before.x, before.y), goal.path,
+                                                             (goal.pose.x, goal.pose.y))):
+            ep.collisions += 1
+            log.warning("episode %s step %d: the motion hit an obstacle (%d collisions)", ep.episode_id, ep.step,
+                        ep.collisions)
 
     def _log_static(self, ep: _Episode) -> None:
         rec = self.recorders.get(ep.episode_id)

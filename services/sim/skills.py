@@ -255,6 +255,14 @@ def place(scene: Scene, pose: Pose2D, object_size: tuple[float, float, float], g
 # ---- collisions -------------------------------------------------------------------------------------------
 
 
+def motion_path(before: tuple[float, float], path: list[tuple[float, float]],
+                goal: tuple[float, float]) -> list[tuple[float, float]]:
+    """The polyline of one base motion as the sim judges it (question and task episodes alike): from the pose
+    before the step, along the goal's path, to the goal pose."""
+    return [(float(before[0]), float(before[1])), *[(float(x), float(y)) for x, y in path],
+            (float(goal[0]), float(goal[1]))]
+
+
 def path_collides(scene: Scene, points: list[tuple[float, float]], radius: float = COLLISION_RADIUS_M) -> bool:
     """Whether the polyline ``points`` passes closer than ``radius`` to an obstacle (module doc)."""
     ok, ox, oy = clearance_map(scene, radius)

@@ -43,8 +43,10 @@ class SimTask:
         """Count the motion ``before -> goal.path -> goal.pose`` and run ``goal.skill`` with the per-pixel
         ``instances`` of the frame rendered at ``goal.pose``."""
         assert goal.pose is not None
-        pts = [(before.x, before.y), *[(float(x), float(y)) for x, y in goal.path], (goal.pose.x, goal.pose.y)]
-        self.collided = self.episode.move(scene, pts)
+        from services.sim.skills import motion_path
+
+        self.collided = self.episode.move(scene, motion_path((before.x, before.y), goal.path,
+                                                             (goal.pose.x, goal.pose.y)))
         if goal.skill == "pick":
             r = self.episode.pick(scene, goal.pose, instances)
             return SkillReport(skill="pick", success=r.success, target=goal.target, reason=r.reason[:300])
