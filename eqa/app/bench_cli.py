@@ -473,7 +473,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     e.add_argument("--split", choices=("test", "all"), default="all",
                    help="questions: the 200 test ones or all 500 (default all)")
     e.add_argument("--strategies", nargs="+", choices=STRATEGIES + RULES + BOUNDS, default=list(STRATEGIES),
-                   help="strategies to run (default: the four of Fig. 7); target_oracle and perfect_sv are "
+                   help="strategies to run (default: the four of Fig. 7; vlfm, gain and topo are the deterministic "
+                        "frontier rules of docs/results/exploration-strategies.md); target_oracle and perfect_sv are "
                         "benchmark-only yardsticks (upper bounds that read the ground-truth target positions)")
     e.add_argument("--seeds", nargs="+", type=int, default=[0], metavar="SEED",
                    help="benchmark seeds, pooled and per seed (default 0, the legacy seed; the evaluation seeds "
