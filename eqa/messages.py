@@ -46,7 +46,8 @@ MAX_CHOICES = len(LETTERS)
 PADDING_CHOICE = "(Do not choose this option)"
 NOT_LISTED_CHOICE = "An option not listed here"
 
-Strategy = Literal["fbe", "semantic", "no_lsv", "no_gsv", "nearest", "target_oracle", "perfect_sv", "cp_guided"]
+Strategy = Literal["fbe", "semantic", "no_lsv", "no_gsv", "nearest", "target_oracle", "perfect_sv", "cp_guided",
+                   "vlfm", "gain", "topo"]
 # Benchmark-only yardsticks (upper bounds, never product behaviour): they read the question's ground truth
 # (``Question.targets``). The gateway and the CLI refuse them; only ``eqa bench`` runs them.
 BOUND_STRATEGIES: frozenset[str] = frozenset({"target_oracle", "perfect_sv"})

@@ -3,7 +3,8 @@
 Tuning-seed (11) questions run through a real fleet (sim, mapper, planner, stopper and an oracle scorer as
 separate processes over Zenoh, real Redis; :class:`eqa.app.benchmark_runner.Runner`) and through the
 in-process loop; every step's answer distribution and relevance must agree within 1e-6 (float32 rounding of
-the bus). The three fbe questions are ones where the simulator refuses goals within their 20 steps, so the
+the bus), for the Eq. A6 strategies and the deterministic rules vlfm / gain / topo. The three fbe questions are
+ones where the simulator refuses goals within their 20 steps, so the
 planner service's refusal handling and the loop's (:mod:`services.planner.refusals`) are compared where they
 act; the oracle scorer is a simulated perception model, not a VLM.
 """
@@ -26,6 +27,11 @@ STEPS = 20
 CASES = {
     "fbe": [(1, "counting"), (1, "location"), (1, "state")],  # the simulator refuses a goal in each
     "semantic": [(0, "existence")],
+    # the deterministic frontier rules (services/planner/frontier_rules.py): the same maps must give the same
+    # choices, commitments and refusal handling in both runners
+    "vlfm": [(0, "existence")],
+    "gain": [(1, "location")],
+    "topo": [(1, "counting")],
 }
 
 
@@ -66,5 +72,5 @@ def test_in_process_loop_gives_the_fleets_traces(tmp_path: Path, redis_url: str,
                 assert np.allclose(f_core, f_fleet, rtol=0, atol=1e-6), (q.id, strategy, t, f_core, f_fleet)
                 assert abs(r_core - r_fleet) <= 1e-6, (q.id, strategy, t, r_core, r_fleet)
             compared += 1
-    assert compared == 4
+    assert compared == sum(len(c) for c in CASES.values())
     assert refusals, "no goal was refused: the cases no longer exercise the refusal policy"

@@ -45,6 +45,7 @@ log = logging.getLogger(__name__)
 
 STRATEGIES = ("fbe", "semantic", "no_lsv", "no_gsv")
 BOUNDS = ("target_oracle", "perfect_sv")  # benchmark-only yardsticks (upper bounds reading ground truth)
+RULES = ("vlfm", "gain", "topo")  # deterministic frontier rules beyond Eq. A6 (services/planner/frontier_rules.py)
 CDF_BUDGETS = tuple(round(0.05 * k, 2) for k in range(1, 21))
 ENTROPY_SWEEP = (0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 0.9, 1.1, 1.3)
 RELEVANCE_SWEEP = (0.9, 0.8, 0.7, 0.6, 0.5, 0.4, 0.3, 0.2, 0.175, 0.15, 0.125, 0.1)
@@ -513,8 +514,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _common(e)
     e.add_argument("--split", choices=("test", "all"), default="all",
                    help="questions: the 200 test ones or all 500 (default all)")
-    e.add_argument("--strategies", nargs="+", choices=STRATEGIES + BOUNDS, default=list(STRATEGIES),
-                   help="strategies to run (default: the four of Fig. 7); target_oracle and perfect_sv are "
+    e.add_argument("--strategies", nargs="+", choices=STRATEGIES + RULES + BOUNDS, default=list(STRATEGIES),
+                   help="strategies to run (default: the four of Fig. 7; vlfm, gain and topo are the deterministic "
+                        "frontier rules of docs/results/exploration-strategies.md); target_oracle and perfect_sv are "
                         "benchmark-only yardsticks (upper bounds that read the ground-truth target positions)")
     e.add_argument("--ceiling", action="store_true",
                    help="also compute the evidence ceiling (eqa/app/ceiling.py): the share of questions whose evidence "

@@ -11,7 +11,8 @@ order in which the robot happened to look at a region. Never-scored cells hold 0
 (``SV >= 1`` whenever the temperatures are non-negative).
 
 Strategies (``EpisodeStart.strategy``): ``semantic`` uses both terms, ``no_lsv`` treats ``tau_LSV`` as 0,
-``no_gsv`` treats ``tau_GSV`` as 0, ``fbe`` / ``nearest`` write nothing (every frontier weighs 1).
+``no_gsv`` treats ``tau_GSV`` as 0, ``fbe`` / ``nearest`` write nothing (every frontier weighs 1); ``vlfm``,
+``gain`` and ``topo`` use both terms (the planner ranks the frontiers by value instead of sampling Eq. A6).
 ``perfect_sv`` (benchmark-only yardstick) uses both terms with LSV / GSV from the ground truth
 (:func:`ground_truth_scores`) instead of the scorer's.
 """
@@ -25,13 +26,14 @@ import numpy as np
 
 from eqa import grid
 
-SEMANTIC_STRATEGIES = ("semantic", "no_lsv", "no_gsv", "perfect_sv", "cp_guided")
+# vlfm / gain / topo (services/planner/frontier_rules.py) read the same values as semantic, by other rules
+SEMANTIC_STRATEGIES = ("semantic", "no_lsv", "no_gsv", "perfect_sv", "cp_guided", "vlfm", "gain", "topo")
 QUESTION_LAYER = "question"
 
 
 def temperatures(strategy: str, tau_lsv: float, tau_gsv: float) -> tuple[float, float] | None:
     """(tau_LSV, tau_GSV) of a strategy, or None when the strategy uses no semantic values."""
-    if strategy in ("semantic", "perfect_sv", "cp_guided"):  # cp_guided: the planner re-tempers
+    if strategy in ("semantic", "perfect_sv", "cp_guided", "vlfm", "gain", "topo"):  # cp_guided: the planner re-tempers
         return tau_lsv, tau_gsv
     if strategy == "no_lsv":
         return 0.0, tau_gsv

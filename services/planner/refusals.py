@@ -79,7 +79,7 @@ def plan_attempt(step_map: MapUpdate, strategy: Strategy, refusals: Refusals, rn
     """Plan attempt ``refusals.attempt`` of a question episode's step on ``step_map`` (the step's map, re-weighted
     for ``cp_guided``): :func:`services.planner.step.plan_step` without the step's refused goals."""
     return plan_step(step_map.grid, step_map.free, step_map.occupied, step_map.pose, step_map.frontiers, strategy,
-                     refusals.memory(), rng, params, exclude=refusals.excluded)
+                     refusals.memory(), rng, params, exclude=refusals.excluded, explored=step_map.explored)
 
 
 def plan_until_accepted(refusals: Refusals, plan: Callable[[Refusals], StepPlan],

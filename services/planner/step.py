@@ -12,7 +12,9 @@ Rules, in order:
    its *approach point* (the reachable point nearest the frontier).
 4. The committed far target of earlier steps is kept while a candidate lies within ``commit_radius_m`` of
    it; otherwise a new frontier is chosen by the strategy (:mod:`services.planner.sampling`), its weight
-   multiplied by ``exp(-geodesic distance / distance_decay_m)`` for every strategy.
+   multiplied by ``exp(-geodesic distance / distance_decay_m)`` for every strategy. The deterministic rules
+   ``vlfm``, ``gain`` and ``topo`` rank the frontiers by value and distance instead and also drop a commitment
+   whose value fell (:mod:`services.planner.frontier_rules`).
 5. The robot moves along the path at most ``max_step_m`` (3 m). On arrival at the approach point it faces
    along the frontier normal (into the unknown) and the frontier is marked visited; on the way it faces
    along the path.
@@ -32,7 +34,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from eqa import grid as gridm
 from eqa.messages import Frontier, GridSpec, Pose2D, Strategy
-from services.planner import sampling
+from services.planner import frontier_rules, sampling
 from services.planner.paths import MapError, PlanningGrid, check_map, path_length, planning_grid, truncate
 
 
@@ -56,6 +58,18 @@ class PlannerParams(BaseModel):
     # exp(-geodesic / decay) on the sampling weight of every strategy (the reference code's dist_T, 10 m there);
     # 3 m: fbe observes 94 % of the reachable floor of 20 generated houses within T (92 % with 10 m, 91 % off)
     distance_decay_m: float | None = Field(default=3.0, ge=0)
+    # the deterministic rules vlfm / gain / topo (services.planner.frontier_rules), chosen on the tuning seed 11
+    # (bench/tune_explore.py; docs/results/exploration-strategies.md): value units (ln SV) per metre of path
+    rule_cost_per_m: float = Field(default=0.1, ge=0, le=10)
+    rule_commit_margin: float = Field(default=0.1, ge=0, le=10)  # value units
+    gain_weight: float = Field(default=0.5, ge=0, le=100)  # value units for a fully unknown disk
+    gain_radius_m: float = Field(default=2.0, gt=0, le=10)
+    topo_core_m: float = Field(default=0.5, gt=0, le=5)  # a room's core is farther than this from walls
+    topo_hop_cost: float = Field(default=0.3, ge=0, le=100)  # value units per doorway
+
+    def rule_params(self) -> frontier_rules.RuleParams:
+        return frontier_rules.RuleParams(self.rule_cost_per_m, self.rule_commit_margin, self.gain_weight,
+                                         self.gain_radius_m, self.topo_core_m, self.topo_hop_cost)
 
 
 @dataclass
@@ -260,11 +274,23 @@ def _look_around(why: str, pose: Pose2D, n: int, mem: Memory, params: PlannerPar
 
 
 def _choose(frontiers: list[Frontier], reached: _Reach, strategy: Strategy, mem: Memory, rng: np.random.Generator,
-            params: PlannerParams) -> tuple[int, np.ndarray, str, bool]:
+            params: PlannerParams, maps: tuple[GridSpec, np.ndarray, np.ndarray, np.ndarray | None],
+            pose: Pose2D) -> tuple[int, np.ndarray, str, bool]:
     """Rule 4: the committed target if a candidate is still near it, else the strategy's pick; returns the
-    frontier's index, the per-frontier probabilities, a note and whether the strategy sampled it."""
+    frontier's index, the per-frontier probabilities, a note and whether the strategy sampled it. The
+    deterministic rules (``vlfm``, ``gain``, ``topo``) keep or drop their commitment by value
+    (:mod:`services.planner.frontier_rules`); ``maps``: (grid, free, occupied, explored) for them."""
     n = len(frontiers)
     probs = np.zeros(n)
+    if strategy in frontier_rules.RULES:
+        committed = mem.target if mem.committed_steps < params.max_commit_steps else None
+        idx_r, probs, note, fresh = frontier_rules.choose(
+            strategy, frontiers, reached.reachable, reached.geodesic, *maps, (pose.x, pose.y),
+            params.rule_params(), committed, params.commit_radius_m)
+        assert idx_r is not None
+        if fresh:
+            mem.committed_steps = 0
+        return idx_r, probs, note, fresh
     if mem.target is not None and mem.committed_steps < params.max_commit_steps:
         target = mem.target
         d = np.array([math.hypot(f.x - target.x, f.y - target.y) if reached.reachable[i] else np.inf
@@ -292,9 +318,11 @@ def plan_step(
     rng: np.random.Generator,
     params: PlannerParams | None = None,
     exclude: list[tuple[float, float]] | None = None,
+    explored: np.ndarray | None = None,
 ) -> StepPlan:
     """Plan the next pose of one step (module doc). Never raises for bad maps: returns ``done`` with the
-    reason instead. ``memory`` is not modified; the plan carries the memory to keep if the goal is taken."""
+    reason instead. ``memory`` is not modified; the plan carries the memory to keep if the goal is taken.
+    ``explored``: the mapper's explored plane (the ``gain`` rule's unknown area; same shape as ``free``)."""
     params = params or PlannerParams()
     t_start = time.perf_counter()
     mem = memory.copy()
@@ -326,7 +354,12 @@ def plan_step(
     if not reached.reachable.any():
         return finish(_look_around(_unreachable_reason(reached, n, ok, dropped_note, params), pose, n, mem, params))
 
-    idx, probs, note, sampled = _choose(frontiers, reached, strategy, mem, rng, params)
+    if explored is not None and np.shape(explored) != np.shape(free):
+        return finish(StepPlan("done", f"malformed map: explored {np.shape(explored)} but free {np.shape(free)}",
+                               memory=mem))
+    committed = mem.target
+    idx, probs, note, sampled = _choose(frontiers, reached, strategy, mem, rng, params,
+                                        (grid, free, occupied, explored), pose)
     frontier = frontiers[idx]
     pg, geo = reached.grid, reached.geodesic
     target_block = reached.approach[idx]
@@ -347,6 +380,9 @@ def plan_step(
         (ax, ay), (bx, by) = path[-2], path[-1]
         yaw = math.atan2(by - ay, bx - ax) if math.hypot(bx - ax, by - ay) > 1e-6 else pose.yaw
         mem.target = frontier
+        if strategy in frontier_rules.RULES and not sampled and committed is not None:
+            # the rules compare a kept target's value with its value when it was chosen
+            mem.target = frontier.model_copy(update={"sv": committed.sv, "sv_normal": committed.sv_normal})
         mem.committed_steps += 1
         what = "heads for"
     mem.turns = 0
