@@ -190,8 +190,14 @@ def run(tmp_path_factory: pytest.TempPathFactory, redis_url: str) -> Iterator[Ru
             robots[name] = TestRobot(bus.session, scene, (p.x, p.y, p.yaw), namespace=f"/{name}",
                                      behaviour=behaviour).start()
         assert wait_for(lambda: c.get("/v1/ready").status_code == 200, 60), c.get("/v1/ready").text
-        replies = bus.session.liveliness().get("@ros2_lv/0/**", timeout=2.0)
-        tokens = [str(r.ok.key_expr) for r in replies if r.ok is not None]
+        tokens: list[str] = []
+
+        def bridge_tokens() -> bool:  # the bridge's rmw_zenoh tokens (a loaded machine answers late)
+            replies = bus.session.liveliness().get("@ros2_lv/0/**", timeout=2.0)
+            tokens[:] = [str(r.ok.key_expr) for r in replies if r.ok is not None]
+            return all(any(f"eqa_bridge_{name}" in t and "goal_pose" in t for t in tokens) for name in ROBOTS)
+
+        assert wait_for(bridge_tokens, 60), tokens
         eids = {}
         for name in ROBOTS:
             r = c.post("/v1/questions", json={
