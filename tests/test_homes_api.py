@@ -17,6 +17,7 @@ from pathlib import Path
 import httpx
 import pytest
 from fleet_support import GatewayThread, clear_gateway_state
+from gateway_helpers import ADMIN, READER, SCENE, TOKENS, A, B, Q
 
 from eqa import homes, keys
 from eqa.bus import Bus
@@ -25,14 +26,6 @@ from eqa.messages import EpisodeStart
 from eqa.settings import Settings
 from eqa.store import open_store
 
-SCENE = "gen-00001"
-TOKENS = ["tok-a", "tok-b", "tok-admin:admin", "tok-reader:read"]
-A = {"Authorization": "Bearer tok-a"}
-B = {"Authorization": "Bearer tok-b"}
-ADMIN = {"Authorization": "Bearer tok-admin"}
-READER = {"Authorization": "Bearer tok-reader"}
-Q = {"question": "Where is the black suitcase?", "choices": ["bedroom", "hallway"], "scene": SCENE, "max_steps": 3,
-     "record": False}
 CAP = 5
 
 

@@ -22,18 +22,10 @@ from pathlib import Path
 import httpx
 import pytest
 from fleet_support import GatewayThread, wait_for
+from gateway_helpers import ADMIN, READER, SCENE, TOKENS, A, B, Q
 
 from eqa.launcher import free_port
 from eqa.settings import Settings
-
-SCENE = "gen-00001"
-TOKENS = ["tok-a", "tok-b", "tok-admin:admin", "tok-reader:read"]
-A = {"Authorization": "Bearer tok-a"}
-B = {"Authorization": "Bearer tok-b"}
-ADMIN = {"Authorization": "Bearer tok-admin"}
-READER = {"Authorization": "Bearer tok-reader"}
-Q = {"question": "Where is the black suitcase?", "choices": ["bedroom", "hallway"], "scene": SCENE, "max_steps": 3,
-     "record": False}
 
 
 def gw_settings(tmp: Path, **update: object) -> Settings:
