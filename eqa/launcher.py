@@ -280,7 +280,9 @@ class Fleet:
                 missing = [c for c in wanted if (c.service, c.instance) not in self._alive]
                 if not missing:
                     return
-                dead = [c for c in missing if c.proc is not None and c.proc.poll() is not None]
+                # a dead child the supervisor is about to replace (a restart, or its standby once the dead
+                # process's token is gone) is waited for; one it will not replace ends the wait
+                dead = [c for c in missing if (c.proc is None or c.proc.poll() is not None) and not self._replaces(c)]
                 if dead:
                     c = dead[0]
                     raise LaunchError(
@@ -292,6 +294,14 @@ class Fleet:
                     names = ", ".join(c.instance for c in missing)
                     raise LaunchError(f"not alive after {timeout:.0f} s: {names}; logs in {missing[0].log_path.parent}")
                 self._alive_changed.wait(min(left, 0.5))
+
+    def _replaces(self, child: Child) -> bool:
+        """True when the supervisor will start a process in place of ``child``'s dead one."""
+        return (child.proc is not None and self.restart_enabled and child.restarts < self.max_restarts
+                and not self._stop.is_set() and self._supervisor_running())
+
+    def _supervisor_running(self) -> bool:
+        return self._supervisor is not None and self._supervisor.is_alive()
 
     def _supervise(self) -> None:
         while not self._stop.wait(SUPERVISE_S):

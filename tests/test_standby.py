@@ -114,3 +114,15 @@ def test_a_promotion_is_bounded_and_checked() -> None:
         standby.Promotion(env={"A=B": "1"})
     p = standby.Promotion(env={"EQA_INSTANCE": "mapper-0"}, unset=["EQA_X"])
     assert standby.Promotion.model_validate_json(p.encode()) == p
+
+
+def test_waiting_for_the_fleet_right_after_a_kill_waits_for_the_replacement(fleet) -> None:
+    """A dead child the supervisor is replacing is not a child that "exited before it was up": ``wait_alive``
+    right after a kill returns once its standby holds the instance's token."""
+    f, _, _ = fleet
+    f.wait_alive(timeout=120)
+    f.wait_standbys(timeout=180)
+    spare_pid = f.standbys["stopper"].proc.pid
+    f.kill("stopper")
+    f.wait_alive(timeout=60)  # raised LaunchError while the promotion waited for the dead token to go
+    assert f.child("stopper").proc.pid == spare_pid

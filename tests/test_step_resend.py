@@ -49,7 +49,8 @@ def _run_with_kill(fleet: Fleet, service: str) -> tuple[dict, int]:
         fleet.kill(service)
         assert wait_for(lambda: _status(c, eid)["state"] not in ("running", "queued"), 90), _status(c, eid)
         child = fleet.child(service)
-        assert child.proc is not None and child.proc.pid != before  # the launcher restarted it
+        # the launcher restarted it (the episode may end first: a bounded wait)
+        assert wait_for(lambda: child.proc is not None and child.proc.pid != before, 15.0), child.history
         resends = log.read_text().count("frame sent again") - resends_before
         return _status(c, eid), resends
 
