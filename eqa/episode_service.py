@@ -469,6 +469,7 @@ class EpisodeService(Service, Generic[S]):
             start = self.shard.start_of(eid)  # its start came while another instance owned the robot
             if isinstance(start, EpisodeStart) and self.store.get(episode_end_key(eid)) is not None:
                 self._note_ended(eid)  # ended by the instance that owned it before: nothing to start
+                self.ended_before(robot, eid)
                 return
             if isinstance(start, EpisodeStart):
                 self._on_start(robot, start)
@@ -536,6 +537,11 @@ class EpisodeService(Service, Generic[S]):
                          eid)
                 self._forget(eid)
 
+    def ended_before(self, robot: str, episode_id: str) -> None:
+        """A step message came for an episode whose end is stored but whose state is gone here. The instance
+        that ended it stored the end before publishing it and may have died in between, so the service that
+        ends episodes publishes the stored end again (the stopper); the others do nothing."""
+
     def _answer_again(self, robot: str, episode_id: str, state: S, msg: Any) -> None:
         meta = self.meta[episode_id]
         metrics.inc(metrics.RESENDS, self.name, "answer_again")
@@ -551,6 +557,7 @@ class EpisodeService(Service, Generic[S]):
         eid = msg.episode_id
         if self.store.get(episode_end_key(eid)) is not None:
             log.info("%s: %s of ended episode %s ignored", self.name, msg.kind, eid)
+            self.ended_before(robot, eid)
             return
         items = self._held.get(eid)
         nbytes = message_bytes(msg)

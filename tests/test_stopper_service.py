@@ -338,3 +338,29 @@ def test_restart_of_the_stopper_process_keeps_the_running_intersection(
         assert trace is not None and len(trace.steps) == 3
     finally:
         store.close()
+
+
+def test_a_stored_end_is_published_again_when_a_step_comes_after_it(
+    running: tuple[Listener, StopperService, Settings],
+) -> None:
+    """An instance killed between storing an episode's end and publishing it: its successor, asked the last step
+    again, publishes the stored end (without it the episode waits for the gateway's watchdog)."""
+    lis, svc, st = running
+    lis.send(keys.EPISODE_START, _start("ep-stored-end", rule="max_steps", max_steps=1))
+    lis.send(keys.MAPPER_SCORES, _scores("ep-stored-end", 0, [0.25] * 4, 0.5))
+    first = lis.end("ep-stored-end")
+    svc.stop()  # as if killed after storing the end: the successor has no state and never saw the end
+    with lis._lock:
+        lis.ends.clear()
+    successor = StopperService(st)
+    successor.start()
+    try:
+        assert wait_for(lambda: lis.alive_instances(), timeout=10.0)
+        deadline = time.monotonic() + 30
+        while not lis.ends and time.monotonic() < deadline:  # the step re-sent until the successor listens
+            lis.send(keys.MAPPER_SCORES, _scores("ep-stored-end", 0, [0.25] * 4, 0.5))
+            wait_for(lambda: bool(lis.ends), timeout=1.0)
+        again = lis.end("ep-stored-end")
+        assert again == first
+    finally:
+        successor.stop()

@@ -211,6 +211,20 @@ class StopperService(EpisodeService[EpisodeRecord]):
         raw = self.store.get_json(task_metrics_key(episode_id))
         return {str(k): float(v) for k, v in raw.items()} if isinstance(raw, dict) else None
 
+    def ended_before(self, robot: str, episode_id: str) -> None:
+        """Publish the stored ``EpisodeEnd`` again: a step input came after the end was stored, so the instance
+        that stored it may have been killed before publishing it (everyone takes a repeated end as one)."""
+        raw = self.store.get(episode_end_key(episode_id))
+        if raw is None:
+            return
+        try:
+            end = EpisodeEnd.model_validate_json(raw)
+        except ValueError as exc:
+            log.warning("episode %s: stored end unreadable, not published again: %s", episode_id, exc)
+            return
+        log.info("episode %s: a step came after its end was stored; the stored end published again", episode_id)
+        self.publish(robot, keys.EPISODE_END, end)
+
     def _finish(
         self, rec: EpisodeRecord, state: EpisodeState, reason: str, answer: str | None, decision: Decision | None = None
     ) -> None:
