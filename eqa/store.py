@@ -11,16 +11,22 @@ Stream ids have the Redis form ``<ms>-<seq>`` and increase strictly within a str
 from __future__ import annotations
 
 import json
+import logging
 import re
 import sqlite3
 import threading
 import time
 from abc import ABC, abstractmethod
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from eqa import metrics
 from eqa.settings import Settings
+
+if TYPE_CHECKING:
+    from eqa.messages import EpisodeEnd
+
+log = logging.getLogger(__name__)
 
 EPISODE_STATE_TTL_S = 2 * 24 * 3600.0
 """How long a service keeps the stored state of an episode nobody ends (services resume from it)."""
@@ -30,6 +36,21 @@ def episode_end_key(episode_id: str) -> str:
     """Where the stopper stores the ``EpisodeEnd`` of an episode before publishing it: the gateway reconciles
     from it after a restart, a restarted sim does not take up an episode that has one."""
     return f"eqa:stopper:end:{episode_id}"
+
+
+def stored_end(store: Store, episode_id: str) -> EpisodeEnd | None:
+    """The ``EpisodeEnd`` the stopper stored for ``episode_id`` (None when there is none, or it is unreadable:
+    logged)."""
+    from eqa.messages import EpisodeEnd
+
+    raw = store.get(episode_end_key(episode_id))
+    if raw is None:
+        return None
+    try:
+        return EpisodeEnd.model_validate_json(raw)
+    except ValueError as exc:
+        log.warning("stored end of %s is unreadable: %s", episode_id, exc)
+        return None
 
 
 def task_metrics_key(episode_id: str) -> str:

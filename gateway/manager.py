@@ -63,7 +63,6 @@ from eqa.event_log import JOURNAL_SERVICES, Identity, event_identity, missing_ev
 from eqa.messages import (
     Ablation,
     EpisodeCancel,
-    EpisodeEnd,
     EpisodeStart,
     EpisodeStatus,
     ErrorReply,
@@ -74,7 +73,7 @@ from eqa.messages import (
 )
 from eqa.recording import recording_dir
 from eqa.settings import Settings
-from eqa.store import Store, StoreUnavailable, episode_end_key, episode_journal_key, task_trace_key
+from eqa.store import Store, StoreUnavailable, episode_journal_key, stored_end, task_trace_key
 from gateway import metrics as gateway_metrics
 from gateway import state as sm
 from gateway.auth import ANONYMOUS, Caller, RateLimiter
@@ -865,13 +864,8 @@ class EpisodeManager:
 
     def _recover_end(self, rec: Record) -> bool:
         """End ``rec`` from the stopper's stored ``EpisodeEnd`` if there is one (an end not seen on the bus)."""
-        raw = self.store.get(episode_end_key(rec.status.episode_id))
-        if raw is None:
-            return False
-        try:
-            end = EpisodeEnd.model_validate_json(raw)
-        except ValueError as exc:
-            log.warning("stored end of %s is unreadable: %s", rec.status.episode_id, exc)
+        end = stored_end(self.store, rec.status.episode_id)
+        if end is None:
             return False
         event = summarize(end)
         event["recovered"] = "from the stopper's stored end: not seen on the bus by this gateway"

@@ -90,14 +90,19 @@ class CountedStream(StreamingResponse):
                 release()
 
 
-def _episode_id(episode_id: str) -> str:
+def path_id(value: str, param: str, what: str) -> str:
+    """A path parameter that must be a safe id (:func:`eqa.keys.check_id`): the value, or 422 naming the rule."""
     try:
-        return keys.check_id(episode_id, "episode id")
+        return keys.check_id(value, what)
     except ValueError as exc:
         raise HTTPException(
             status.HTTP_422_UNPROCESSABLE_CONTENT,
-            detail=[{"loc": ["path", "episode_id"], "msg": str(exc), "type": "value_error"}],
+            detail=[{"loc": ["path", param], "msg": str(exc), "type": "value_error"}],
         ) from exc
+
+
+def _episode_id(episode_id: str) -> str:
+    return path_id(episode_id, "episode_id", "episode id")
 
 
 def _event_id(value: str, where: list[str]) -> str:

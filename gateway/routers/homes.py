@@ -10,10 +10,9 @@ from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response,
 from fastapi import Path as PathParam
 from starlette.concurrency import run_in_threadpool
 
-from eqa import keys
 from gateway.deps import ManagerDep, ReaderDep, SubmitterDep
 from gateway.homes import HomeDeleted, HomeInfo, HomeList
-from gateway.routers.episodes import READ_ERRORS, errors
+from gateway.routers.episodes import READ_ERRORS, errors, path_id
 from gateway.schemas import Problem
 
 router = APIRouter(prefix="/v1", tags=["homes"])
@@ -36,13 +35,7 @@ HomeNameParam = Annotated[
 
 
 def _name(name: str) -> str:
-    try:
-        return keys.check_id(name, "home")
-    except ValueError as exc:
-        raise HTTPException(
-            status.HTTP_422_UNPROCESSABLE_CONTENT,
-            detail=[{"loc": ["path", "name"], "msg": str(exc), "type": "value_error"}],
-        ) from exc
+    return path_id(name, "name", "home")
 
 
 LIST_PARAMS = frozenset({"limit", "offset"})

@@ -41,7 +41,14 @@ from eqa.messages import (
 )
 from eqa.recording import recording_dir
 from eqa.settings import Settings
-from eqa.store import EPISODE_STATE_TTL_S, Store, episode_end_key, episode_state_key, task_metrics_key
+from eqa.store import (
+    EPISODE_STATE_TTL_S,
+    Store,
+    episode_end_key,
+    episode_state_key,
+    stored_end,
+    task_metrics_key,
+)
 from eqa.task_traces import kind_of_metrics, task_outcome
 from services.stopper.calibration import TraceStore, load_table
 from services.stopper.conformal import ScoreError
@@ -214,13 +221,8 @@ class StopperService(EpisodeService[EpisodeRecord]):
     def ended_before(self, robot: str, episode_id: str) -> None:
         """Publish the stored ``EpisodeEnd`` again: a step input came after the end was stored, so the instance
         that stored it may have been killed before publishing it (everyone takes a repeated end as one)."""
-        raw = self.store.get(episode_end_key(episode_id))
-        if raw is None:
-            return
-        try:
-            end = EpisodeEnd.model_validate_json(raw)
-        except ValueError as exc:
-            log.warning("episode %s: stored end unreadable, not published again: %s", episode_id, exc)
+        end = stored_end(self.store, episode_id)
+        if end is None:
             return
         log.info("episode %s: a step came after its end was stored; the stored end published again", episode_id)
         self.publish(robot, keys.EPISODE_END, end)
