@@ -6,12 +6,12 @@ episode without a home unchanged."""
 from __future__ import annotations
 
 import math
-import queue
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+from test_mapper_service import Collector
 
 from eqa import homes, keys
 from eqa.app.evaluation import replay
@@ -19,9 +19,7 @@ from eqa.bus import Bus
 from eqa.messages import (
     EpisodeEnd,
     EpisodeStart,
-    ErrorReply,
     Frame,
-    MapUpdate,
     MemoryScore,
     Pose2D,
     StepScores,
@@ -210,21 +208,6 @@ def test_concurrent_episodes_in_one_home_merge(house, store: Store, tmp_path: Pa
 
 
 # ---- the service over Zenoh ---------------------------------------------------------------------------------
-class Outputs:
-    def __init__(self, bus: Bus) -> None:
-        self.maps: queue.Queue[MapUpdate] = queue.Queue()
-        self.scores: queue.Queue[StepScores] = queue.Queue()
-        self.errors: queue.Queue[ErrorReply] = queue.Queue()
-        bus.subscribe(keys.stream(ROBOT, keys.MAPPER_MAP), MapUpdate, lambda k, m: self.maps.put(m))
-        bus.subscribe(keys.stream(ROBOT, keys.MAPPER_SCORES), StepScores, lambda k, m: self.scores.put(m))
-        bus.subscribe(keys.stream(ROBOT, keys.MAPPER_ERROR), ErrorReply, lambda k, m: self.errors.put(m))
-
-    def step(self, step: int) -> tuple[MapUpdate, StepScores]:
-        m, s = self.maps.get(timeout=60), self.scores.get(timeout=60)
-        assert m.step == step and s.step == step, (m.step, s.step)
-        return m, s
-
-
 def end(episode_id: str, steps: int) -> EpisodeEnd:
     return EpisodeEnd(episode_id=episode_id, robot=ROBOT, state="stopped", reason="test", steps=steps)
 
@@ -235,7 +218,7 @@ def test_home_carried_over_warm_started_through_a_scorer_replica_and_continued_e
     settings = settings.model_copy(update={"redis_url": redis_url, "scorer_replica": "homes", "home_max_views": 3})
     home = homes.home_id("tenant-a", "kitchen-house")
     with Bus(hub_settings, "gateway") as bus:
-        out = Outputs(bus)
+        out = Collector(bus)
         scorer = ScorerService(settings)  # the oracle backend: simulated perception model, not a VLM
         scorer.start()
         mapper = MapperService(settings)

@@ -77,6 +77,12 @@ class Collector:
         bus.subscribe(keys.stream(ROBOT, keys.MAPPER_SCORES), StepScores, lambda k, m: self.scores.put(m))
         bus.subscribe(keys.stream(ROBOT, keys.MAPPER_ERROR), ErrorReply, lambda k, m: self.errors.put(m))
 
+    def step(self, step: int) -> tuple[MapUpdate, StepScores]:
+        """The map update and scores of ``step`` (the next ones to arrive)."""
+        m, s = self.maps.get(timeout=60), self.scores.get(timeout=60)
+        assert m.step == step and s.step == step, (m.step, s.step)
+        return m, s
+
 
 def preferring_left_scorer(calls: list[ScoreRequest]):
     """A deterministic scorer for the test: LSV favours the leftmost prompt point in the image."""
