@@ -131,6 +131,17 @@ class GatewayThread:
         self.server.should_exit = True
         self._thread.join(timeout=15)
 
+    def crash(self) -> None:
+        """Stop at once as a killed process would: every open connection is aborted (its clients see the
+        drop now), then the server exits without a graceful shutdown. uvicorn's own shutdown leaves a
+        response still streaming (an event stream) open, and its socket lingers until garbage collection."""
+        for conn in list(self.server.server_state.connections):
+            transport = getattr(conn, "transport", None)
+            if transport is not None:
+                conn.loop.call_soon_threadsafe(transport.abort)
+        self.server.force_exit = True
+        self.__exit__(None, None, None)
+
 
 class GatewayProcess:
     """``python -m gateway`` as a child process with the settings as ``EQA_*`` variables."""

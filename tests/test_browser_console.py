@@ -242,13 +242,6 @@ def test_reload_mid_episode_resumes_without_a_gap(browser: Any, gw: GatewayThrea
         assert steps == list(range(30))
 
 
-def crash(t: GatewayThread) -> None:
-    """Stop a gateway thread at once, open event streams and all (uvicorn's force exit): its clients see the
-    connection drop, as when the process dies."""
-    t.server.force_exit = True
-    t.__exit__(None, None, None)
-
-
 def test_gateway_crash_mid_episode_the_page_reconnects_and_resumes(
     browser: Any, fleet: Fleet, gw: GatewayThread, tmp_path: Path
 ) -> None:
@@ -270,7 +263,7 @@ def test_gateway_crash_mid_episode_the_page_reconnects_and_resumes(
             b.get(f"{first.url}/#watch/{eid}")
             wait_until(lambda: len(page_event_ids(b)) >= 8, timeout=EPISODE_S, what="the first events")
             with paused(fleet, "sim"):
-                crash(first)
+                first.crash()
                 wait_until(lambda: "reconnecting" in b.find_element("id", "w-conn").text, what="the lost connection")
                 second = GatewayThread(alone, port=first.port).__enter__()
             # "reconnected (resumed after ...)" shows until the next state: with a fast fleet the rest of the
@@ -293,7 +286,7 @@ def test_gateway_crash_mid_episode_the_page_reconnects_and_resumes(
         assert "gateway_restart" in kinds and kinds[-1] == "episode_end"
         assert st["state"] == "stopped" and st["steps"] == 30, st
     finally:
-        crash(second or first)
+        (second or first).crash()
 
 
 def test_wrong_token_and_unreachable_gateway_are_explained(browser: Any, gw: GatewayThread, tmp_path: Path) -> None:
@@ -319,7 +312,7 @@ def test_wrong_token_and_unreachable_gateway_are_explained(browser: Any, gw: Gat
         with_token(b, other.url)
         b.get(other.url + "/#fleet")
         wait_until(lambda: b.find_elements("css selector", "#f-services tr[data-service=planner]"), what="fleet")
-        crash(other)
+        other.crash()
         text = wait_until(lambda: "Cannot reach the gateway" in b.find_element("id", "banner").text
                           and b.find_element("id", "banner").text, what="the unreachable message")
         assert other.url in text
@@ -329,7 +322,7 @@ def test_wrong_token_and_unreachable_gateway_are_explained(browser: Any, gw: Gat
                        what="the page to notice the gateway is back (no manual refresh)")
             assert "updated" in b.find_element("id", "f-updated").text
         finally:
-            crash(again)
+            again.crash()
 
 
 def test_task_from_the_form_shows_its_phases_and_metrics(browser: Any, gw: GatewayThread, client: httpx.Client) -> None:
