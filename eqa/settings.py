@@ -258,6 +258,12 @@ class GatewaySettings(SettingsGroup):
     gateway_keep_alive_s: float = Field(
         default=5.0, gt=0, le=600, description="idle HTTP keep-alive connections are closed after this"
     )
+    gateway_shutdown_grace_s: float = Field(
+        default=3.0, gt=0, le=600,
+        description="on SIGTERM, requests in flight may finish for this long before they are cancelled; an open "
+        "event stream never finishes by itself (its client resumes with Last-Event-ID), so without this bound a "
+        "follower of a running episode keeps the gateway from exiting",
+    )
 
     @field_validator("trusted_proxies", mode="before")
     @classmethod

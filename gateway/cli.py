@@ -22,13 +22,15 @@ def uvicorn_options(settings: Settings) -> dict[str, Any]:
     peer on 127.0.0.1 (its ``forwarded_allow_ips`` default), so a local client could pick its address; the
     app reads the header itself, only from ``EQA_TRUSTED_PROXIES`` (:func:`gateway.auth.client_ip`).
     Idle keep-alive connections close after ``EQA_GATEWAY_KEEP_ALIVE_S``; slow bodies are the app's
-    (:class:`gateway.limits.BodyLimit`)."""
+    (:class:`gateway.limits.BodyLimit`). On SIGTERM, requests in flight get ``EQA_GATEWAY_SHUTDOWN_GRACE_S``,
+    then are cancelled: event streams only end when their episode does."""
     return {
         "host": settings.gateway_host,
         "port": settings.gateway_port,
         "proxy_headers": False,
         "server_header": False,
         "timeout_keep_alive": settings.gateway_keep_alive_s,
+        "timeout_graceful_shutdown": settings.gateway_shutdown_grace_s,
         "access_log": False,
     }
 

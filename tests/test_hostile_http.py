@@ -321,3 +321,37 @@ def test_scenes_new_to_the_gateway_are_rate_limited_per_token(tmp_path: Path) ->
         assert r.status_code == 429 and int(r.headers["retry-after"]) >= 1 and "new to the gateway" in r.text
         assert c.post("/v1/questions", json={**Q, "scene": "room-y"}, headers=B).status_code == 422  # per token
         assert c.post("/v1/questions", json={**Q, "scene": "room-1"}, headers=A).status_code == 422  # known
+
+
+def test_sigterm_with_an_open_event_stream_exits_within_the_grace(tmp_path: Path) -> None:
+    """A follower's event stream of a running episode never ends by itself: SIGTERM (docker stop) must not
+    wait for it beyond ``EQA_GATEWAY_SHUTDOWN_GRACE_S``; the stream is cut and its client resumes elsewhere."""
+    import threading
+
+    from fleet_support import GatewayProcess
+
+    gw = GatewayProcess(gw_settings(tmp_path, gateway_shutdown_grace_s=1.0), log_path=tmp_path / "gw.log").start()
+    try:
+        eid = httpx.post(f"{gw.url}/v1/questions", json=Q, headers=A, timeout=30).json()["episode_id"]
+        opened, ended = threading.Event(), threading.Event()
+
+        def follow() -> None:
+            try:
+                with httpx.stream("GET", f"{gw.url}/v1/episodes/{eid}/events", headers=A, timeout=None) as s:
+                    for _ in s.iter_lines():
+                        opened.set()
+            except httpx.HTTPError:
+                pass
+            ended.set()
+
+        threading.Thread(target=follow, daemon=True).start()
+        assert opened.wait(30), "the event stream did not open"
+        assert gw.proc is not None
+        t0 = time.monotonic()
+        gw.proc.terminate()
+        gw.proc.wait(timeout=20)  # TimeoutExpired: the open stream held the gateway past its grace
+        took = time.monotonic() - t0
+        assert ended.wait(5), "the stream's client was not cut off"
+        assert took < 15, took
+    finally:
+        gw.kill()
