@@ -16,13 +16,14 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, get_args
 
 from eqa import keys
-from eqa.messages import MAX_CHOICES, Pose2D, Question, letters
+from eqa.messages import BOUND_STRATEGIES, MAX_CHOICES, Pose2D, Question, Strategy, letters
 
 log = logging.getLogger(__name__)
 
+PRODUCT_STRATEGIES = [s for s in get_args(Strategy) if s not in BOUND_STRATEGIES]  # the yardsticks read ground truth
 DEMO_BENCHMARK_SEED, DEMO_HOUSE, DEMO_CATEGORY = 0, 151, "state"  # benchmark question gen-00151-sta0
 DEMO_SCENE = f"gen-{DEMO_HOUSE:05d}"
 ORACLE_LABEL = (
@@ -132,7 +133,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help=f"one answer choice (repeat, 2..{MAX_CHOICES}); none = the scorer proposes answers")
     p.add_argument("--scene", help=f"scene id, e.g. gen-00042 (generated from seed 42); demo: {DEMO_SCENE}")
     p.add_argument("--pose", type=parse_pose, help="start pose x,y[,yaw]; default: sampled")
-    p.add_argument("--strategy", default="semantic", choices=["semantic", "fbe", "no_lsv", "no_gsv", "nearest"])
+    p.add_argument("--strategy", default="semantic", choices=PRODUCT_STRATEGIES,
+                   help="how to choose the next frontier (docs/results/exploration-strategies.md); default semantic")
     p.add_argument("--stop-rule", default="cp", choices=["cp", "entropy", "relevance", "max_steps"])
     p.add_argument("--eps", type=float, default=0.2, help="CP: 1-eps is the wanted success probability")
     p.add_argument("--threshold", type=float, default=None, help="entropy/relevance threshold")

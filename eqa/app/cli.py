@@ -149,7 +149,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
-    up = sub.add_parser("up", help="start every service as its own process and keep them running")
+    up = sub.add_parser(
+        "up", help="start every service as its own process and keep them running",
+        description="Start the sim, mapper, scorer replicas, planner, stopper and the gateway, each its own process "
+        "over Zenoh, restart any that dies (a restarted service continues its episodes from the store), and run "
+        "until Ctrl-C. The web console and the API are on the gateway's port. Configured by EQA_* variables "
+        "(docs/configuration.md); --services and --join spread a fleet over hosts (docs/deployment.md).")
     up.add_argument("--scorers", type=int, default=1, help="number of scorer replicas (default 1)")
     up.add_argument("--no-gateway", action="store_true", help="run the pipeline services only")
     up.add_argument("--port", type=int, default=None, help="gateway port (default EQA_GATEWAY_PORT=8080)")
@@ -164,7 +169,10 @@ def build_parser() -> argparse.ArgumentParser:
                     "tls/10.0.0.1:7447; repeatable) and runs only --services (docs/deployment.md, Scaling out)")
     up.set_defaults(func=cmd_up)
 
-    health = sub.add_parser("health", help="check that services hold a liveliness token (compose health checks)")
+    health = sub.add_parser(
+        "health", help="check that services hold a liveliness token (compose health checks)",
+        description="Exit 0 when every named service has a live instance on the bus (its liveliness token), 1 "
+        "otherwise, naming the ones missing; the compose file's health checks run it.")
     health.add_argument("services", nargs="+", help="service names, e.g. sim mapper")
     health.add_argument("--timeout", type=float, default=5.0,
                         help="seconds to wait for every named service (default 5)")
