@@ -163,7 +163,8 @@ def replay(ep: ObjEpisode, f: np.ndarray, q_hat: float | None) -> tuple[bool, fl
 
 
 def evaluate(out: Path, seeds: list[int], tuning_seed: int) -> dict[str, Any]:
-    from bench.bench_answer_rules import Out, paired, wilson
+    from bench.bench_answer_rules import Out, paired
+    from eqa.app.evaluation import wilson_ci
     from services.stopper.conformal import conformal_quantile, nonconformity
     from services.stopper.object_evidence import EvidenceParams
 
@@ -221,7 +222,7 @@ def evaluate(out: Path, seeds: list[int], tuning_seed: int) -> dict[str, Any]:
         cov = {}
         for key, o in (("a", oa), ("b", ob)):
             k = sum(bool(x.covered) for x in o)
-            lo, hi = wilson(k, len(o))
+            lo, hi = wilson_ci(k, len(o))
             cov[key] = {"coverage": k / len(o), "ci_low": lo, "ci_high": hi, "n": len(o)}
         res["cp"][f"{eps:g}"] = {"q_hat": {k: {str(s): v for s, v in d.items()} for k, d in qs.items()},
                                  "coverage": cov, "paired": by_cat(oa, ob)}
