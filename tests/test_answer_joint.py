@@ -12,6 +12,7 @@ import time
 
 import numpy as np
 import pytest
+from fleet_support import wait_for
 from objects_support import ring_views, run_steps
 
 from eqa import keys
@@ -110,12 +111,7 @@ def test_joint_answer_through_mapper_and_scorer(hub_settings: Settings, settings
             assert all(s.mode == "logprobs" for s in got)  # the scorer's mode is kept
             # the stopper's trace (what `eqa calibrate` learns CP from) holds the joint answers
             traces = TraceStore(stopper.store)
-            deadline = time.monotonic() + 15
-            while time.monotonic() < deadline:
-                t = traces.trace_for_episode("ep-j")
-                if t is not None and len(t.steps) == 4:
-                    break
-                time.sleep(0.05)
+            wait_for(lambda: (t := traces.trace_for_episode("ep-j")) is not None and len(t.steps) == 4, 15.0)
             trace = traces.trace_for_episode("ep-j")
             assert trace is not None and len(trace.steps) == 4
             for s, st in zip(got, trace.steps, strict=True):

@@ -7,13 +7,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from support.scenes import largest_room_spot, rendered_frame
 
 from eqa.messages import EpisodeStart, Frame, Frontier, Pose2D, PromptPoint, Question
 from services.mapper.episode_map import EpisodeMap
 from services.mapper.frontiers import frontier_weight, sv_normal, weigh_frontiers
 from services.mapper.semantic_map import semantic_value, temperatures, write_values
 from services.mapper.tsdf import FrameError, TSDFVolume, check_frame
-from services.sim.camera import camera_pose, intrinsics
 from services.sim.library import load_or_generate
 from services.sim.render import Renderer
 
@@ -23,14 +23,8 @@ W, H = 160, 120
 @pytest.fixture(scope="module")
 def house(tmp_path_factory: pytest.TempPathFactory) -> tuple:
     scene = load_or_generate("gen-00007", Path(tmp_path_factory.mktemp("scenes")))
-    renderer = Renderer(scene)
     room = max(scene.rooms, key=lambda r: r.area)
-    gt, ox, oy = scene.navigable_grid(0.1)
-    rr, cc = np.nonzero(gt)
-    cx, cy = room.center
-    k = int(np.argmin((ox + (cc + 0.5) * 0.1 - cx) ** 2 + (oy + (rr + 0.5) * 0.1 - cy) ** 2))
-    start_xy = (ox + (cc[k] + 0.5) * 0.1, oy + (rr[k] + 0.5) * 0.1)
-    return scene, renderer, room, (gt, ox, oy), start_xy
+    return scene, Renderer(scene), room, scene.navigable_grid(0.1), largest_room_spot(scene)
 
 
 def make_start(strategy: str = "semantic") -> EpisodeStart:
@@ -41,12 +35,7 @@ def make_start(strategy: str = "semantic") -> EpisodeStart:
 
 
 def render_frame(renderer: Renderer, pose: Pose2D, step: int) -> Frame:
-    K = intrinsics(W, H)
-    T = camera_pose(pose)
-    r = renderer.render(T, K, W, H)
-    return Frame(
-        episode_id="ep-map", step=step, pose=pose, camera_pose=T, intrinsics=K, rgb=r.rgb, depth=r.depth
-    )
+    return rendered_frame(renderer, pose, "ep-map", step, W, H)
 
 
 @pytest.fixture(scope="module")

@@ -7,20 +7,19 @@ a restart mid-episode (the restored map goes on, its saves continue the log).
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np
 import pytest
+from support.scenes import free_cell_walk, rendered_frame
 
 from eqa.codec import unpackb
 from eqa.episode_service import EpisodeService, StateParts
-from eqa.messages import EpisodeStart, Frame, Pose2D, Question
+from eqa.messages import EpisodeStart, Frame, Question
 from eqa.settings import Settings
 from eqa.store import EmbeddedStore, episode_part_key, episode_state_key
 from services.mapper import snapshots
 from services.mapper.episode_map import EpisodeMap
-from services.sim.camera import camera_pose, intrinsics
 from services.sim.library import load_or_generate
 from services.sim.render import Renderer
 
@@ -32,18 +31,8 @@ def frames(tmp_path_factory: pytest.TempPathFactory) -> list[Frame]:
     """A walk through the house's free cells that turns as it goes: the grid grows several times."""
     scene = load_or_generate("gen-00007", Path(tmp_path_factory.mktemp("scenes")))
     renderer = Renderer(scene)
-    gt, ox, oy = scene.navigable_grid(0.1)
-    rr, cc = np.nonzero(gt)
-    rng = np.random.default_rng(5)
-    K = intrinsics(W, H)
-    out = []
-    for step, k in enumerate(rng.choice(len(rr), size=24, replace=False)):
-        pose = Pose2D(x=float(ox + (cc[k] + 0.5) * 0.1), y=float(oy + (rr[k] + 0.5) * 0.1), yaw=step * 1.1 % math.tau)
-        T = camera_pose(pose)
-        r = renderer.render(T, K, W, H)
-        out.append(Frame(episode_id="ep-snap", step=step, pose=pose, camera_pose=T, intrinsics=K, rgb=r.rgb,
-                         depth=r.depth))
-    return out
+    return [rendered_frame(renderer, pose, "ep-snap", step, W, H)
+            for step, pose in enumerate(free_cell_walk(scene, 24, seed=5, turn_rad=1.1))]
 
 
 def make_map() -> EpisodeMap:

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from pydantic import ValidationError
+from support.scenes import largest_room_spot, rendered_frame
 
 from eqa.messages import EpisodeStart, Frame, Pose2D, Question
 from eqa.settings import Settings
@@ -26,7 +27,6 @@ from services.mapper.semantic_map import (
     write_values,
     write_values_binned,
 )
-from services.sim.camera import camera_pose, intrinsics
 from services.sim.library import load_or_generate
 from services.sim.render import Renderer
 
@@ -111,13 +111,7 @@ def test_agree_one_is_the_layer_without_bins_bit_for_bit() -> None:
 @pytest.fixture(scope="module")
 def house(tmp_path_factory: pytest.TempPathFactory) -> tuple:
     scene = load_or_generate("gen-00007", Path(tmp_path_factory.mktemp("scenes")))
-    renderer = Renderer(scene)
-    room = max(scene.rooms, key=lambda r: r.area)
-    gt, ox, oy = scene.navigable_grid(0.1)
-    rr, cc = np.nonzero(gt)
-    cx, cy = room.center
-    k = int(np.argmin((ox + (cc + 0.5) * 0.1 - cx) ** 2 + (oy + (rr + 0.5) * 0.1 - cy) ** 2))
-    return renderer, (ox + (cc[k] + 0.5) * 0.1, oy + (rr[k] + 0.5) * 0.1)
+    return Renderer(scene), largest_room_spot(scene)
 
 
 def _start() -> EpisodeStart:
@@ -126,9 +120,7 @@ def _start() -> EpisodeStart:
 
 
 def _frame(renderer: Renderer, pose: Pose2D, step: int) -> Frame:
-    K, T = intrinsics(W, H), camera_pose(pose)
-    r = renderer.render(T, K, W, H)
-    return Frame(episode_id="ep-vb", step=step, pose=pose, camera_pose=T, intrinsics=K, rgb=r.rgb, depth=r.depth)
+    return rendered_frame(renderer, pose, "ep-vb", step, W, H)
 
 
 def _turn(renderer: Renderer, xy: tuple[float, float], config: MapperConfig, n: int = 6) -> EpisodeMap:
