@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from fleet_support import wait_for
 from support.scenes import rendered_frame
+from support.services import serving
 
 from eqa import keys
 from eqa.bus import Bus
@@ -185,10 +186,7 @@ def test_scorer_failure_is_reported_and_map_still_published(
 
     with Bus(hub_settings, "gateway") as bus:
         got = Collector(bus)
-        svc = MapperService(settings, scorer=broken)
-        svc.start()
-        try:
-            time.sleep(0.5)
+        with serving(MapperService(settings, scorer=broken)):
             bus.publish(keys.stream(ROBOT, keys.EPISODE_START), start_msg("ep-noscore"))
             bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), frame(renderer, "ep-noscore", 0))
             err = got.errors.get(timeout=15)
@@ -196,8 +194,6 @@ def test_scorer_failure_is_reported_and_map_still_published(
             m = got.maps.get(timeout=10)
             assert m.step == 0 and m.explored_area_m2 > 0
             assert got.scores.empty()
-        finally:
-            svc.stop()
 
 
 def _spawn(settings: Settings, log: Path) -> subprocess.Popen:
