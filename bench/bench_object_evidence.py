@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import itertools
 import json
 import pickle
 import sys
@@ -99,10 +98,10 @@ def run_episode(question: Any) -> ObjEpisode:
 
 def object_questions(seed: int, split: str, n: int, bench: Any) -> list[Any]:
     """The first ``n`` existence / counting questions of the split, alternating categories."""
+    from services.sim.questions import category_round_robin
+
     qs = {"calibration": bench.calibration, "test": bench.test}[split]
-    by = {c: [q for q in qs if q.category == c] for c in ("existence", "counting")}
-    out = [q for pair in itertools.zip_longest(by["existence"], by["counting"]) for q in pair if q is not None]
-    return out[:n]
+    return category_round_robin(qs, n, categories=("existence", "counting"))
 
 
 def record(seeds: list[int], n: int, out: Path) -> None:
