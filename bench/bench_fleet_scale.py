@@ -32,7 +32,6 @@ import shutil
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from collections import defaultdict
 from pathlib import Path
@@ -43,7 +42,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 import numpy as np
-from exactly_once import StepLedger
+from exactly_once import Ends, StepLedger
 from tqdm import tqdm
 
 from eqa import keys
@@ -64,16 +63,6 @@ def cpu_seconds(pid: int) -> float:
     except OSError:
         return 0.0
     return (int(fields[11]) + int(fields[12])) / TICK
-
-
-class Ends:
-    def __init__(self) -> None:
-        self.ends: dict[str, EpisodeEnd] = {}
-        self.lock = threading.Lock()
-
-    def __call__(self, _key: str, msg: EpisodeEnd) -> None:
-        with self.lock:
-            self.ends.setdefault(msg.episode_id, msg)
 
 
 def run_config(n: int, args: argparse.Namespace, redis_url: str, root: Path) -> dict[str, Any]:

@@ -201,7 +201,7 @@ def main(argv: list[str] | None = None) -> int:
         )
     q = Question(text="Where is the sofa?", choices=["a", "b", "c", "d"], scene=args.scene)
     start = EpisodeStart(episode_id="bench", robot="r0", question=q, max_steps=args.steps)
-    em = EpisodeMap(start)
+    episode_map = EpisodeMap(start)
     redis_proc = None
     if args.store == "redis":
         import shutil
@@ -258,25 +258,25 @@ def main(argv: list[str] | None = None) -> int:
             differ = f"step {f.step}: TSDF {why}" if why else None
         timer = Timer()
         t0 = time.perf_counter()
-        em.integrate(f, timer)
-        em.compute_frontiers(timer=timer)
+        episode_map.integrate(f, timer)
+        episode_map.compute_frontiers(timer=timer)
         core.append((time.perf_counter() - t0) * 1000)
         if base_proj is not None and differ is None:
-            base_vol.planes["traversed"] = em.volume.planes["traversed"]
-            old = base_proj.project(base_vol, (f.pose.x, f.pose.y), em.config.projection)
-            why = same_volume(base_vol, em.volume) or same_maps(old, em.maps)
+            base_vol.planes["traversed"] = episode_map.volume.planes["traversed"]
+            old = base_proj.project(base_vol, (f.pose.x, f.pose.y), episode_map.config.projection)
+            why = same_volume(base_vol, episode_map.volume) or same_maps(old, episode_map.maps)
             differ = f"step {f.step}: mapper {why}" if why else None
         t0 = time.perf_counter()
-        em.apply_scores([0.5, 0.3, 0.2][: len(em.prompts)], 0.6)
+        episode_map.apply_scores([0.5, 0.3, 0.2][: len(episode_map.prompts)], 0.6)
         extra["semantic_values"].append((time.perf_counter() - t0) * 1000)
         t0 = time.perf_counter()
-        full = em.snapshot()
+        full = episode_map.snapshot()
         store.set("mapper/episode/bench", full)
         extra["snapshot full"].append((time.perf_counter() - t0) * 1000)
         nbytes["snapshot full"].append(len(full))
         if snapshot_step is not None:  # incremental snapshot: the step's parts + header
             t0 = time.perf_counter()
-            header, parts, obsolete = snapshot_step(em)
+            header, parts, obsolete = snapshot_step(episode_map)
             built = (time.perf_counter() - t0) * 1000
             build_ms.append(built)
             # the same bytes written the two ways, in alternating order: one call (EpisodeService.save: one
@@ -298,7 +298,7 @@ def main(argv: list[str] | None = None) -> int:
                 extra["snapshot step" + suffix].append(built + (time.perf_counter() - t0) * 1000)
             nbytes["snapshot step"].append(len(header) + sum(len(d) for d in parts.values()))
         t0 = time.perf_counter()
-        payload = encode(em.map_update(timer.ms))
+        payload = encode(episode_map.map_update(timer.ms))
         extra["encode"].append((time.perf_counter() - t0) * 1000)
         if recorder is not None:
             from services.mapper.service import MapperService
@@ -306,10 +306,10 @@ def main(argv: list[str] | None = None) -> int:
             t0 = time.perf_counter()
             svc = MapperService.__new__(MapperService)
             svc.recorders = {"bench": recorder}
-            MapperService._record(svc, em, f)
+            MapperService._record(svc, episode_map, f)
             extra["record"].append((time.perf_counter() - t0) * 1000)
-        rows.append((f.step, timer.ms, em.explored_area_m2(), float(em.maps.observed.sum()) * 0.01,
-                     em.volume.nbytes(), len(payload)))
+        rows.append((f.step, timer.ms, episode_map.explored_area_m2(), float(episode_map.maps.observed.sum()) * 0.01,
+                     episode_map.volume.nbytes(), len(payload)))
 
     load = os.getloadavg()
     print(f"mapper bench: scene {args.scene}, {W}x{H}, {len(frames)} steps, {args.store} store, "
@@ -362,10 +362,10 @@ def main(argv: list[str] | None = None) -> int:
         f"{last[4] / 1e6:.2f} MB at step {last[0]} (observed {last[3]:.0f} m2); "
         f"{last[4] / max(last[3], 1e-9) / 1e3:.1f} kB per observed m2"
     )
-    before = em.volume.nbytes()
+    before = episode_map.volume.nbytes()
     for i in range(10):  # same pose again and again: the volume must not grow with the number of steps
-        em.integrate(frames[-1].model_copy(update={"step": len(frames) + i}))
-    print(f"memory after 10 more steps at the last pose: {em.volume.nbytes() / 1e6:.2f} MB "
+        episode_map.integrate(frames[-1].model_copy(update={"step": len(frames) + i}))
+    print(f"memory after 10 more steps at the last pose: {episode_map.volume.nbytes() / 1e6:.2f} MB "
           f"(was {before / 1e6:.2f} MB): grows with area, not steps")
     if recorder is not None:
         recorder.close()

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import itertools
 import json
 import pickle
 import sys
@@ -99,10 +98,10 @@ def run_episode(question: Any) -> ObjEpisode:
 
 def object_questions(seed: int, split: str, n: int, bench: Any) -> list[Any]:
     """The first ``n`` existence / counting questions of the split, alternating categories."""
+    from services.sim.questions import category_round_robin
+
     qs = {"calibration": bench.calibration, "test": bench.test}[split]
-    by = {c: [q for q in qs if q.category == c] for c in ("existence", "counting")}
-    out = [q for pair in itertools.zip_longest(by["existence"], by["counting"]) for q in pair if q is not None]
-    return out[:n]
+    return category_round_robin(qs, n, categories=("existence", "counting"))
 
 
 def record(seeds: list[int], n: int, out: Path) -> None:
@@ -163,7 +162,8 @@ def replay(ep: ObjEpisode, f: np.ndarray, q_hat: float | None) -> tuple[bool, fl
 
 
 def evaluate(out: Path, seeds: list[int], tuning_seed: int) -> dict[str, Any]:
-    from bench.bench_answer_rules import Out, paired, wilson
+    from bench.bench_answer_rules import Out, paired
+    from eqa.app.evaluation import wilson_ci
     from services.stopper.conformal import conformal_quantile, nonconformity
     from services.stopper.object_evidence import EvidenceParams
 
@@ -221,7 +221,7 @@ def evaluate(out: Path, seeds: list[int], tuning_seed: int) -> dict[str, Any]:
         cov = {}
         for key, o in (("a", oa), ("b", ob)):
             k = sum(bool(x.covered) for x in o)
-            lo, hi = wilson(k, len(o))
+            lo, hi = wilson_ci(k, len(o))
             cov[key] = {"coverage": k / len(o), "ci_low": lo, "ci_high": hi, "n": len(o)}
         res["cp"][f"{eps:g}"] = {"q_hat": {k: {str(s): v for s, v in d.items()} for k, d in qs.items()},
                                  "coverage": cov, "paired": by_cat(oa, ob)}

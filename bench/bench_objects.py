@@ -133,16 +133,16 @@ def part_memory(args: argparse.Namespace) -> dict:
     from services.mapper.episode_map import EpisodeMap
 
     q = Question(text="Where is the chair?", choices=["a", "b"], scene=f"gen-{args.house}")
-    em = EpisodeMap(EpisodeStart(episode_id="bench", robot="r0", question=q, max_steps=args.steps))
+    episode_map = EpisodeMap(EpisodeStart(episode_id="bench", robot="r0", question=q, max_steps=args.steps))
     rows = []
     frames = house_frames(args)
     for step, (pose, T, K, fr, renderer) in enumerate(
         tqdm(frames, total=args.steps, desc="memory: objects vs full scene")
     ):
         t0 = time.perf_counter()  # the mapper's core step on the same frame, side by side
-        em.integrate(Frame(episode_id="bench", step=step, pose=pose, camera_pose=T, intrinsics=K, rgb=fr.rgb,
+        episode_map.integrate(Frame(episode_id="bench", step=step, pose=pose, camera_pose=T, intrinsics=K, rgb=fr.rgb,
                            depth=fr.depth))
-        em.compute_frontiers()
+        episode_map.compute_frontiers()
         t_core = (time.perf_counter() - t0) * 1000
         req = DetectRequest(episode_id="bench-objects", step=step, rgb=fr.rgb, classes=classes, thresholds=th,
                             instances=fr.instances, labels=renderer.labels(fr.instances), depth=fr.depth,

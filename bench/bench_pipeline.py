@@ -132,19 +132,19 @@ class _Tap:
             out.setdefault(name, []).append(ms)
 
         for step, t_frame in enumerate(frames):
-            mu = first.get(("mapper/map", step))
+            mapped = first.get(("mapper/map", step))
             sc = first.get(("mapper/scores", step))
             de = first.get(("stopper/decision", step))
             go = first.get(("planner/goal", step))
-            if mu is not None:
-                add("mapper: Frame -> MapUpdate at the hub", (mu[0] - t_frame) * 1e3)
-                m: MapUpdate = mu[1]
+            if mapped is not None:
+                add("mapper: Frame -> MapUpdate at the hub", (mapped[0] - t_frame) * 1e3)
+                m: MapUpdate = mapped[1]
                 for k, v in m.timing_ms.items():
                     add(f"  mapper {k}", v)
             if sc is not None and de is not None:
                 add("stopper: StepScores -> Decision", (de[0] - sc[0]) * 1e3)
-            if mu is not None and de is not None and go is not None:
-                add("planner: max(MapUpdate, Decision) -> Goal", (go[0] - max(mu[0], de[0])) * 1e3)
+            if mapped is not None and de is not None and go is not None:
+                add("planner: max(MapUpdate, Decision) -> Goal", (go[0] - max(mapped[0], de[0])) * 1e3)
             if go is not None and step + 1 < len(frames):
                 add("sim: Goal -> Frame(t+1) (move, render, encode, transport)", (frames[step + 1] - go[0]) * 1e3)
             if step + 1 < len(frames):
@@ -256,12 +256,13 @@ def in_process(base: Settings, scene_id: str, size: tuple[int, int], steps: int,
         episode_id="bench", robot="r0", question=qs[0], strategy="semantic", max_steps=steps + 1, seed=3,
         stop=StopConfig(rule="max_steps"),
     )
-    em = EpisodeMap(start)
+    episode_map = EpisodeMap(start)
     store = EmbeddedStore(tmp / "store.sqlite")
     rec_settings = base.model_copy(update={"data_dir": tmp, "record": True})
     recorder = EpisodeRecorder(rec_settings, "bench", "mapper")
     svc = MapperService.__new__(MapperService)
     svc.recorders = {"bench": recorder}
+    svc.extensions = []  # the map's own recording is timed; the object and view extensions are off here
     backend = make_backend(base.model_copy(update={"scorer_backend": "oracle"}))
     stop_rec = EpisodeRecord.from_start(start, "r0")
     params = PlannerParams()
@@ -300,9 +301,9 @@ def in_process(base: Settings, scene_id: str, size: tuple[int, int], steps: int,
         t_map = time.perf_counter()
         c_map = time.process_time()
         timer = Timer()
-        em.integrate(frame, timer)
+        episode_map.integrate(frame, timer)
         req = ScoreRequest(
-            episode_id="bench", step=step, question=start.question, rgb=frame.rgb, prompt_points=em.prompts,
+            episode_id="bench", step=step, question=start.question, rgb=frame.rgb, prompt_points=episode_map.prompts,
             instances=frame.instances, labels=frame.labels, depth=frame.depth, seed=start.seed,
         )
         c_map = time.process_time() - c_map
@@ -314,11 +315,11 @@ def in_process(base: Settings, scene_id: str, size: tuple[int, int], steps: int,
         lap("scorer: oracle backend", t0)
         t1 = time.perf_counter()
         c1 = time.process_time()
-        em.apply_scores(scores.lsv, scores.gsv)
+        episode_map.apply_scores(scores.lsv, scores.gsv)
         timer.lap("semantic_values", t1)
-        em.compute_frontiers(timer=timer)
+        episode_map.compute_frontiers(timer=timer)
         t1 = time.perf_counter()
-        header, parts, obsolete = snapshot_step(em)  # what the mapper service stores (incremental)
+        header, parts, obsolete = snapshot_step(episode_map)  # what the mapper service stores (incremental)
         for name, data in parts.items():
             store.set(f"mapper/episode/bench:{name}", data)
         store.set("mapper/episode/bench", header)
@@ -326,7 +327,7 @@ def in_process(base: Settings, scene_id: str, size: tuple[int, int], steps: int,
             store.delete(f"mapper/episode/bench:{name}")
         timer.lap("snapshot", t1)
         t1 = time.perf_counter()
-        mu_bytes = encode(em.map_update(timer.ms))
+        update_bytes = encode(episode_map.map_update(timer.ms))
         timer.lap("MapUpdate encode", t1)
         t.setdefault("CPU mapper step without Rerun (no scorer)", []).append(
             (c_map + time.process_time() - c1) * 1e3)
@@ -336,7 +337,7 @@ def in_process(base: Settings, scene_id: str, size: tuple[int, int], steps: int,
             t.setdefault(f"mapper {k}", []).append(v)
         t1 = time.perf_counter()
         c1 = time.process_time()
-        MapperService._record(svc, em, frame)
+        MapperService._record(svc, episode_map, frame)
         cpu("mapper record (Rerun)", c1)
         record_ms = (time.perf_counter() - t1) * 1e3
         t.setdefault("mapper record (Rerun)", []).append(record_ms)
@@ -351,11 +352,12 @@ def in_process(base: Settings, scene_id: str, size: tuple[int, int], steps: int,
         if isinstance(decision, Decision) and decision.stop:
             stop_rec = EpisodeRecord.from_start(start, "r0")
         t0 = time.perf_counter()
-        mu = decode(mu_bytes, MapUpdate)
+        update = decode(update_bytes, MapUpdate)
         t0 = lap("planner: MapUpdate decode", t0)
         c0 = time.process_time()
         plan = plan_step(
-            mu.grid, mu.free, mu.occupied, mu.pose, mu.frontiers, "semantic", memory, step_rng(3, step), params
+            update.grid, update.free, update.occupied, update.pose, update.frontiers, "semantic", memory,
+            step_rng(3, step), params,
         )
         plan_ms = (time.perf_counter() - t0) * 1e3
         cpu("planner plan_step()", c0)

@@ -20,7 +20,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 from eqa.messages import (
@@ -51,99 +51,118 @@ def _pose(p: Pose2D | None) -> dict[str, float | None] | None:
     return None if p is None else {"x": _r(p.x, 3), "y": _r(p.y, 3), "yaw": _r(p.yaw, 3)}
 
 
+def _frame(msg: Frame) -> dict[str, Any]:
+    out = {"step": msg.step, "pose": _pose(msg.pose), "scene": msg.scene, "image": list(msg.rgb.shape[:2]),
+           "visible": sorted({lab.category for lab in msg.labels})[:32]}
+    if msg.skill is not None:  # a task skill's outcome
+        out["skill"] = msg.skill.model_dump(mode="json")
+    return out
+
+
+def _map_update(msg: MapUpdate) -> dict[str, Any]:
+    best = sorted(msg.frontiers, key=lambda f: -f.weight)[:MAX_FRONTIERS]
+    return {
+        "step": msg.step,
+        "pose": _pose(msg.pose),
+        "grid": msg.grid.model_dump(),
+        "explored_area_m2": _r(msg.explored_area_m2, 2),
+        "frontiers": len(msg.frontiers),
+        "top_frontiers": [{"x": _r(f.x, 2), "y": _r(f.y, 2), "weight": _r(f.weight)} for f in best],
+        "prompt_points": [p.label for p in msg.prompt_points],
+        "layers": sorted(msg.values),
+        "timing_ms": {k: _r(v, 1) for k, v in msg.timing_ms.items()},
+    }
+
+
+def _step_scores(msg: StepScores) -> dict[str, Any]:
+    return {"step": msg.step, "answer_probs": [_r(p) for p in msg.answer_probs], "relevance": _r(msg.relevance),
+            "gsv": _r(msg.gsv), "backend": msg.backend}
+
+
+def _decision(msg: Decision) -> dict[str, Any]:
+    return {
+        "step": msg.step,
+        "rule": msg.rule,
+        "stop": msg.stop,
+        "reason": msg.reason,
+        "prediction_set": msg.prediction_set,
+        "step_set": msg.step_set,
+        "scores": {k: _r(v) for k, v in msg.scores.items()},
+        "answer": msg.answer,
+        "q_hat": None if msg.q_hat is None else _r(msg.q_hat),
+    }
+
+
+def _goal(msg: Goal) -> dict[str, Any]:
+    f = msg.frontier
+    return {
+        "step": msg.step,
+        "pose": _pose(msg.pose),
+        "done": msg.done,
+        "reason": msg.reason,
+        "path_len": len(msg.path),
+        "skill": msg.skill,
+        "target": msg.target,
+        "phase": msg.phase,
+        "numbers": {k: _r(v) for k, v in msg.numbers.items()},
+        "frontier": None if f is None else {"x": _r(f.x, 2), "y": _r(f.y, 2), "weight": _r(f.weight)},
+    }
+
+
+def _error(msg: ErrorReply) -> dict[str, Any]:
+    return {"step": msg.step, "source": msg.source, "reason": msg.reason}
+
+
+def _episode_end(msg: EpisodeEnd) -> dict[str, Any]:
+    out = {
+        "robot": msg.robot,
+        "state": msg.state,
+        "reason": msg.reason,
+        "answer": msg.answer,
+        "answer_text": msg.answer_text,
+        "prediction_set": msg.prediction_set,
+        "steps": msg.steps,
+        "max_steps": msg.max_steps,
+        "normalized_steps": _r(msg.normalized_steps),
+        "correct": msg.correct,
+    }
+    if msg.metrics:  # a task episode's phase metrics and what they mean
+        out["metrics"] = {k: _r(v) for k, v in msg.metrics.items()}
+        out["outcome"] = task_outcome(kind_of_metrics(msg.metrics), msg.metrics, msg.state, msg.reason, msg.steps,
+                                      msg.max_steps)
+    return out
+
+
+def _episode_start(msg: EpisodeStart) -> dict[str, Any]:
+    q = msg.question
+    return {"robot": msg.robot, "question": q.text, "choices": q.choices, "scene": q.scene, "strategy": msg.strategy,
+            "stop": msg.stop.model_dump(), "max_steps": msg.max_steps, "seed": msg.seed}
+
+
+def _episode_cancel(msg: EpisodeCancel) -> dict[str, Any]:
+    return {"reason": msg.reason}
+
+
+# The key fields of each message kind an event shows (in this order after ``kind`` and ``episode_id``).
+SUMMARIES: dict[type[Message], Callable[[Any], dict[str, Any]]] = {
+    Frame: _frame,
+    MapUpdate: _map_update,
+    StepScores: _step_scores,
+    Decision: _decision,
+    Goal: _goal,
+    ErrorReply: _error,
+    EpisodeEnd: _episode_end,
+    EpisodeStart: _episode_start,
+    EpisodeCancel: _episode_cancel,
+}
+
+
 def summarize(msg: Message) -> dict[str, Any]:
     """A JSON-safe dict with ``kind``, ``episode_id``, ``step`` (when the message has one) and key fields."""
     out: dict[str, Any] = {"kind": msg.kind, "episode_id": getattr(msg, "episode_id", None)}
-    if isinstance(msg, Frame):
-        out.update(
-            step=msg.step,
-            pose=_pose(msg.pose),
-            scene=msg.scene,
-            image=list(msg.rgb.shape[:2]),
-            visible=sorted({lab.category for lab in msg.labels})[:32],
-        )
-        if msg.skill is not None:  # a task skill's outcome
-            out["skill"] = msg.skill.model_dump(mode="json")
-    elif isinstance(msg, MapUpdate):
-        best = sorted(msg.frontiers, key=lambda f: -f.weight)[:MAX_FRONTIERS]
-        out.update(
-            step=msg.step,
-            pose=_pose(msg.pose),
-            grid=msg.grid.model_dump(),
-            explored_area_m2=_r(msg.explored_area_m2, 2),
-            frontiers=len(msg.frontiers),
-            top_frontiers=[{"x": _r(f.x, 2), "y": _r(f.y, 2), "weight": _r(f.weight)} for f in best],
-            prompt_points=[p.label for p in msg.prompt_points],
-            layers=sorted(msg.values),
-            timing_ms={k: _r(v, 1) for k, v in msg.timing_ms.items()},
-        )
-    elif isinstance(msg, StepScores):
-        out.update(
-            step=msg.step,
-            answer_probs=[_r(p) for p in msg.answer_probs],
-            relevance=_r(msg.relevance),
-            gsv=_r(msg.gsv),
-            backend=msg.backend,
-        )
-    elif isinstance(msg, Decision):
-        out.update(
-            step=msg.step,
-            rule=msg.rule,
-            stop=msg.stop,
-            reason=msg.reason,
-            prediction_set=msg.prediction_set,
-            step_set=msg.step_set,
-            scores={k: _r(v) for k, v in msg.scores.items()},
-            answer=msg.answer,
-            q_hat=None if msg.q_hat is None else _r(msg.q_hat),
-        )
-    elif isinstance(msg, Goal):
-        out.update(
-            step=msg.step,
-            pose=_pose(msg.pose),
-            done=msg.done,
-            reason=msg.reason,
-            path_len=len(msg.path),
-            skill=msg.skill,
-            target=msg.target,
-            phase=msg.phase,
-            numbers={k: _r(v) for k, v in msg.numbers.items()},
-            frontier=None
-            if msg.frontier is None
-            else {"x": _r(msg.frontier.x, 2), "y": _r(msg.frontier.y, 2), "weight": _r(msg.frontier.weight)},
-        )
-    elif isinstance(msg, ErrorReply):
-        out.update(step=msg.step, source=msg.source, reason=msg.reason)
-    elif isinstance(msg, EpisodeEnd):
-        out.update(
-            robot=msg.robot,
-            state=msg.state,
-            reason=msg.reason,
-            answer=msg.answer,
-            answer_text=msg.answer_text,
-            prediction_set=msg.prediction_set,
-            steps=msg.steps,
-            max_steps=msg.max_steps,
-            normalized_steps=_r(msg.normalized_steps),
-            correct=msg.correct,
-        )
-        if msg.metrics:  # a task episode's phase metrics and what they mean
-            out["metrics"] = {k: _r(v) for k, v in msg.metrics.items()}
-            out["outcome"] = task_outcome(kind_of_metrics(msg.metrics), msg.metrics, msg.state, msg.reason,
-                                          msg.steps, msg.max_steps)
-    elif isinstance(msg, EpisodeStart):
-        out.update(
-            robot=msg.robot,
-            question=msg.question.text,
-            choices=msg.question.choices,
-            scene=msg.question.scene,
-            strategy=msg.strategy,
-            stop=msg.stop.model_dump(),
-            max_steps=msg.max_steps,
-            seed=msg.seed,
-        )
-    elif isinstance(msg, EpisodeCancel):
-        out.update(reason=msg.reason)
+    fields = next((f for cls, f in SUMMARIES.items() if isinstance(msg, cls)), None)
+    if fields is not None:
+        out.update(fields(msg))
     for name in ("reason", "question"):  # texts a bus peer controls: bounded in the stored event
         if isinstance(out.get(name), str) and len(out[name]) > MAX_TEXT:
             out[name] = out[name][:MAX_TEXT] + "..."

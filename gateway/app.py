@@ -73,88 +73,101 @@ def _watchdog_period(settings: Settings) -> float:
     return max(0.05, min(1.0, settings.episode_timeout_s / 4))
 
 
+class Inbox:
+    """The bus messages of the episodes this gateway runs, from Zenoh's threads to the event loop, handled in
+    arrival order on a worker thread. Messages of other episodes are dropped on arrival, before any work; data
+    messages (frames, maps, scores, goals, decisions) wait at most INBOX_MAX_DATA deep, so a flood cannot delay an
+    EpisodeEnd or an ErrorReply behind it for more than that (the drops are counted and logged)."""
+
+    def __init__(self, loop: asyncio.AbstractEventLoop, manager: EpisodeManager) -> None:
+        self.loop, self.manager = loop, manager
+        self.queue: asyncio.Queue[tuple[str, Message]] = asyncio.Queue()
+        self.data = 0  # data messages waiting
+        self.dropped = 0  # data messages dropped
+
+    def on_message(self, key: str, msg: Message) -> None:  # Zenoh thread
+        self.loop.call_soon_threadsafe(self._enqueue, keys.robot_of(key), msg)
+
+    def _enqueue(self, robot: str, msg: Message) -> None:  # event loop
+        if not self.manager.is_active(getattr(msg, "episode_id", None)):
+            return
+        if not isinstance(msg, CONTROL_TYPES):
+            if self.data >= INBOX_MAX_DATA:
+                self.dropped += 1
+                metrics.inc(metrics.BUS_DROPPED, "gateway", "inbox_full")
+                if self.dropped in (1, 10, 100) or self.dropped % 1000 == 0:
+                    log.warning("inbox full: %d data messages dropped so far (a flood on %s?)", self.dropped, robot)
+                return
+            self.data += 1
+        self.queue.put_nowait((robot, msg))
+
+    async def consume(self) -> None:
+        while True:
+            robot, msg = await self.queue.get()
+            if not isinstance(msg, CONTROL_TYPES):
+                self.data -= 1
+            with logs.bind(robot=robot, episode=getattr(msg, "episode_id", None), step=getattr(msg, "step", None)):
+                try:
+                    await asyncio.to_thread(self.manager.handle, robot, msg)
+                except Exception:
+                    log.exception("handling %s of %s failed; going on", msg.kind, robot)
+
+
+async def watchdog(manager: EpisodeManager, settings: Settings) -> None:
+    """Time out silent episodes every :func:`_watchdog_period`; every PRUNE_EVERY_S, apply the retention of
+    episodes and homes (a large backlog in batches, letting requests through between them)."""
+    loop = asyncio.get_running_loop()
+    period = _watchdog_period(settings)
+    last_prune = 0.0
+    while True:
+        await asyncio.sleep(period)
+        try:
+            await asyncio.to_thread(manager.check_timeouts)
+            if loop.time() - last_prune >= PRUNE_EVERY_S:
+                last_prune = loop.time()
+                while await asyncio.to_thread(manager.prune) >= PRUNE_BATCH:
+                    await asyncio.sleep(0)
+                while await asyncio.to_thread(manager.prune_homes) >= PRUNE_BATCH:
+                    await asyncio.sleep(0)
+        except Exception:
+            log.exception("watchdog pass failed; going on")
+
+
+async def exit_with_launcher(parent_pid: int) -> None:
+    """Started by a launcher (``EQA_PARENT_PID``): shut down like on SIGTERM once it is gone (no orphans)."""
+    while os.getppid() == parent_pid:
+        await asyncio.sleep(0.5)
+    log.warning("gateway: launcher (pid %d) is gone; stopping", parent_pid)
+    os.kill(os.getpid(), signal.SIGTERM)
+
+
 @asynccontextmanager
 async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+    """The gateway's store, bus and episode manager for the app's life, with its three tasks: the inbox, the
+    watchdog and, under a launcher, the exit when the launcher is gone."""
     settings: Settings = app.state.settings
     loop = asyncio.get_running_loop()
     hub = Hub()
     app.state.hub = hub
     store = await asyncio.to_thread(open_store, settings, STORE_TIMEOUT_S)
     bus = Bus(settings, "gateway").open()
-    inbox: asyncio.Queue[tuple[str, Message]] = asyncio.Queue()
-    backlog = {"data": 0, "dropped": 0}  # data messages waiting in the inbox; data messages dropped
 
     def notify() -> None:
         loop.call_soon_threadsafe(hub.bump)
 
     manager = EpisodeManager(settings, store, bus, notify=notify, scene_area=app.state.scene_area)
-
-    def enqueue(robot: str, msg: Message) -> None:  # event loop
-        """Messages of episodes this gateway does not run are dropped here, before any work; data messages
-        (frames, maps, scores, goals, decisions) wait at most INBOX_MAX_DATA deep, so a flood cannot delay an
-        EpisodeEnd or an ErrorReply behind it for more than that (the drops are counted and logged)."""
-        if not manager.is_active(getattr(msg, "episode_id", None)):
-            return
-        if not isinstance(msg, CONTROL_TYPES):
-            if backlog["data"] >= INBOX_MAX_DATA:
-                backlog["dropped"] += 1
-                metrics.inc(metrics.BUS_DROPPED, "gateway", "inbox_full")
-                if backlog["dropped"] in (1, 10, 100) or backlog["dropped"] % 1000 == 0:
-                    log.warning("inbox full: %d data messages dropped so far (a flood on %s?)", backlog["dropped"],
-                                robot)
-                return
-            backlog["data"] += 1
-        inbox.put_nowait((robot, msg))
-
-    def on_message(key: str, msg: Message) -> None:  # Zenoh thread
-        loop.call_soon_threadsafe(enqueue, keys.robot_of(key), msg)
-
+    inbox = Inbox(loop, manager)
     all_types = tuple(MESSAGE_TYPES.values())
     for robot in settings.robots:
-        bus.subscribe(keys.robot_streams(robot), all_types, on_message)
+        bus.subscribe(keys.robot_streams(robot), all_types, inbox.on_message)
     await asyncio.to_thread(manager.start)
     app.state.manager = manager
-
-    async def consume() -> None:
-        while True:
-            robot, msg = await inbox.get()
-            if not isinstance(msg, CONTROL_TYPES):
-                backlog["data"] -= 1
-            with logs.bind(robot=robot, episode=getattr(msg, "episode_id", None), step=getattr(msg, "step", None)):
-                try:
-                    await asyncio.to_thread(manager.handle, robot, msg)
-                except Exception:
-                    log.exception("handling %s of %s failed; going on", msg.kind, robot)
-
-    async def watchdog() -> None:
-        period = _watchdog_period(settings)
-        last_prune = 0.0
-        while True:
-            await asyncio.sleep(period)
-            try:
-                await asyncio.to_thread(manager.check_timeouts)
-                if loop.time() - last_prune >= PRUNE_EVERY_S:
-                    last_prune = loop.time()
-                    while await asyncio.to_thread(manager.prune) >= PRUNE_BATCH:
-                        await asyncio.sleep(0)  # a large backlog goes in batches, letting requests through
-                    while await asyncio.to_thread(manager.prune_homes) >= PRUNE_BATCH:
-                        await asyncio.sleep(0)
-            except Exception:
-                log.exception("watchdog pass failed; going on")
-
-    async def exit_with_launcher() -> None:
-        """Started by a launcher (``EQA_PARENT_PID``): shut down like on SIGTERM once it is gone (no orphans)."""
-        while os.getppid() == settings.parent_pid:
-            await asyncio.sleep(0.5)
-        log.warning("gateway: launcher (pid %d) is gone; stopping", settings.parent_pid)
-        os.kill(os.getpid(), signal.SIGTERM)
-
     tasks = [
-        asyncio.create_task(consume(), name="gateway-consume"),
-        asyncio.create_task(watchdog(), name="gateway-watchdog"),
+        asyncio.create_task(inbox.consume(), name="gateway-consume"),
+        asyncio.create_task(watchdog(manager, settings), name="gateway-watchdog"),
     ]
     if settings.parent_pid:
-        tasks.append(asyncio.create_task(exit_with_launcher(), name="gateway-exit-with-launcher"))
+        tasks.append(asyncio.create_task(exit_with_launcher(settings.parent_pid), name="gateway-exit-with-launcher"))
     log.info(
         "gateway %s up: robots %s, store %s",
         settings.instance,

@@ -100,8 +100,8 @@ class HomeRegistry:
         raw = self.store.get_json(record_key(homes.home_id(owner, name)))
         if raw is None:
             return None
-        rec = HomeRecord.model_validate(raw)
-        return rec if rec.owner == owner else None
+        entry = HomeRecord.model_validate(raw)
+        return entry if entry.owner == owner else None
 
     def count(self, owner: str) -> int:
         return self.store.index_len(idx_owner(owner))
@@ -110,20 +110,20 @@ class HomeRegistry:
         """The record of ``owner``'s home ``name`` after one more episode in ``house`` named it (made if new);
         None (and nothing written) when it is new and ``owner`` already holds ``cap`` homes."""
         now = time.time() if now is None else now
-        rec = self.get(owner, name)
-        if rec is None:
+        entry = self.get(owner, name)
+        if entry is None:
             if self.count(owner) >= cap:
                 return None
-            rec = HomeRecord(home=homes.home_id(owner, name), name=name, owner=owner, house=house, created_at=now,
+            entry = HomeRecord(home=homes.home_id(owner, name), name=name, owner=owner, house=house, created_at=now,
                              last_used_at=now)
-        rec.last_used_at = now
-        rec.episodes += 1
+        entry.last_used_at = now
+        entry.episodes += 1
         # the record before the indexes (a reader never finds an indexed home without its record), and both
         # indexes each time (a delete cut short after its index removals leaves a record that is indexed again)
-        self.store.set_json(record_key(rec.home), rec.model_dump(mode="json"))
-        self.store.index_add(idx_owner(owner), rec.home, rec.created_at)
-        self.store.index_add(IDX_USED, rec.home, now)
-        return rec
+        self.store.set_json(record_key(entry.home), entry.model_dump(mode="json"))
+        self.store.index_add(idx_owner(owner), entry.home, entry.created_at)
+        self.store.index_add(IDX_USED, entry.home, now)
+        return entry
 
     def page(self, owner: str, limit: int, offset: int) -> list[HomeRecord]:
         """One page of ``owner``'s homes, newest first."""
@@ -150,23 +150,23 @@ class HomeRegistry:
                 out.append(None)
         return out
 
-    def parts(self, rec: HomeRecord) -> list[str]:
+    def parts(self, entry: HomeRecord) -> list[str]:
         """Names of the stored parts of the home's memory (key suffixes after :func:`eqa.homes.prefix`)."""
-        pre = homes.prefix(rec.home)
+        pre = homes.prefix(entry.home)
         return [k[len(pre):] for k in self.store.keys(pre)][:MAX_PARTS_SHOWN]
 
-    def map_png(self, rec: HomeRecord) -> bytes | None:
+    def map_png(self, entry: HomeRecord) -> bytes | None:
         """The picture of the home's map the mapper keeps (PNG bytes), if any."""
-        raw = self.store.get(homes.map_png_key(rec.home))
+        raw = self.store.get(homes.map_png_key(entry.home))
         return raw if raw is not None and raw.startswith(PNG_SIGNATURE) else None
 
-    def delete(self, rec: HomeRecord) -> int:
+    def delete(self, entry: HomeRecord) -> int:
         """Delete the home's memory and the gateway's record (the index entries first: the list never shows a
         home whose memory is half gone); the number of memory keys deleted."""
-        self.store.index_remove(idx_owner(rec.owner), [rec.home])
-        self.store.index_remove(IDX_USED, [rec.home])
-        n = homes.delete_home(self.store, rec.home)
-        self.store.delete(record_key(rec.home))
+        self.store.index_remove(idx_owner(entry.owner), [entry.home])
+        self.store.index_remove(IDX_USED, [entry.home])
+        n = homes.delete_home(self.store, entry.home)
+        self.store.delete(record_key(entry.home))
         return n
 
     def unused_since(self, cutoff: float, limit: int) -> list[HomeRecord]:

@@ -75,7 +75,7 @@ from eqa.recording import recording_dir
 from eqa.settings import Settings
 from eqa.store import Store, StoreUnavailable, episode_journal_key, stored_end, task_trace_key
 from gateway import metrics as gateway_metrics
-from gateway import state as sm
+from gateway import state as lifecycle
 from gateway.auth import ANONYMOUS, Caller, RateLimiter
 from gateway.errors import (
     BusyError,
@@ -103,7 +103,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 REQUIRED_SERVICES = dataflow.PIPELINE
-TERMINAL = sm.TERMINAL
+TERMINAL = lifecycle.TERMINAL
 DEFAULT_MAX_STEPS = 30  # 3*sqrt(100 m^2): a mid-sized home, when the floor area is unknown
 PRUNE_BATCH = 500  # records deleted per retention pass (the lock is held meanwhile)
 LEGACY_OWNER = "legacy"  # records stored before tenants existed: admin only
@@ -271,11 +271,11 @@ class EpisodeManager:
         for k in self.store.keys("gw:ep:"):
             raw = self.store.get_json(k)
             try:
-                rec = Record.load(raw)
+                episode = Record.load(raw)
             except Exception:
                 log.warning("unreadable episode record %s; not indexed", k)
                 continue
-            self._index(rec)
+            self._index(episode)
             n += 1
         self.store.set(IDX_VERSION_KEY, INDEX_VERSION)
         log.info("indexed %d stored episode records", n)
@@ -291,18 +291,18 @@ class EpisodeManager:
                     self.store.index_remove(IDX_ACTIVE, [eid])
                     continue
                 try:
-                    rec = Record.load(json.loads(raw))
+                    episode = Record.load(json.loads(raw))
                 except Exception:
                     log.exception("unreadable episode record %s; skipped", eid)
                     continue
-                st = rec.status
+                st = episode.status
                 if st.state in TERMINAL:
                     self.store.index_remove(IDX_ACTIVE, [eid])
                     continue
-                self._active[st.episode_id] = rec
-                self._snapshots[st.episode_id] = (rec.owner, st.model_copy(deep=True))
+                self._active[st.episode_id] = episode
+                self._snapshots[st.episode_id] = (episode.owner, st.model_copy(deep=True))
                 if st.state == "running":
-                    rec.last_activity = now
+                    episode.last_activity = now
                     if self.store.get(robot_key(st.robot)) is None:
                         self.store.set(robot_key(st.robot), st.episode_id.encode())
                     self._append(
@@ -316,8 +316,8 @@ class EpisodeManager:
                             "was down follows, backfilled from their journals",
                         ),
                     )
-                    self._backfill(rec)
-                    if self._recover_end(rec):
+                    self._backfill(episode)
+                    if self._recover_end(episode):
                         continue
                     log.info("reconciled running episode %s on %s (step %d)", st.episode_id, st.robot, st.step)
             for robot in self.settings.robots:
@@ -332,20 +332,20 @@ class EpisodeManager:
                     self._start_next(robot)
 
     # ---- persistence helpers ----------------------------------------------------------------------------
-    def _index(self, rec: Record) -> None:
-        st, score = rec.status, rec.status.created_at
+    def _index(self, episode: Record) -> None:
+        st, score = episode.status, episode.status.created_at
         self.store.index_add(IDX_ALL, st.episode_id, score)
-        self.store.index_add(idx_owner(rec.owner), st.episode_id, score)
+        self.store.index_add(idx_owner(episode.owner), st.episode_id, score)
         if st.state in TERMINAL:
             self.store.index_add(idx_state(st.state), st.episode_id, score)
-            self.store.index_add(idx_owner_state(rec.owner, st.state), st.episode_id, score)
+            self.store.index_add(idx_owner_state(episode.owner, st.state), st.episode_id, score)
             self.store.index_remove(IDX_ACTIVE, [st.episode_id])
         else:
             self.store.index_add(IDX_ACTIVE, st.episode_id, score)
 
-    def _save(self, rec: Record) -> None:
-        self.store.set_json(ep_key(rec.status.episode_id), rec.dump())
-        self._snapshots[rec.status.episode_id] = (rec.owner, rec.status.model_copy(deep=True))
+    def _save(self, episode: Record) -> None:
+        self.store.set_json(ep_key(episode.status.episode_id), episode.dump())
+        self._snapshots[episode.status.episode_id] = (episode.owner, episode.status.model_copy(deep=True))
 
     def _append(self, episode_id: str, event: dict[str, Any]) -> str:
         entry = self.store.append(ev_key(episode_id), json.dumps(event, separators=(",", ":")).encode())
@@ -362,11 +362,11 @@ class EpisodeManager:
         raw = self.store.get(robot_key(robot))
         return raw.decode() if raw else None
 
-    def store_record(self, rec: Record) -> None:
+    def store_record(self, episode: Record) -> None:
         """Store and index an episode record as it is (an ended one from elsewhere: an import, a benchmark's
         stored history); active records are taken up by :meth:`reconcile` at the next start."""
-        self.store.set_json(ep_key(rec.status.episode_id), rec.dump())
-        self._index(rec)
+        self.store.set_json(ep_key(episode.status.episode_id), episode.dump())
+        self._index(episode)
 
     def load(self, episode_id: str) -> Record | None:
         raw = self.store.get_json(ep_key(episode_id))
@@ -424,7 +424,7 @@ class EpisodeManager:
         """Newest first: queued/running ones from memory, the others from one page of one index."""
         limit = max(1, min(int(limit), 1000))
         admin = caller is None or caller.admin
-        if state in sm.ACTIVE:
+        if state in lifecycle.ACTIVE:
             with self._lock:
                 recs = [r for r in self._active.values() if r.status.state == state and (admin or r.owner ==
                         caller.tenant)]  # type: ignore[union-attr]
@@ -583,19 +583,19 @@ class EpisodeManager:
                 task=task,
                 **({"ablation": ablation, "pick_limit": pick_limit} if task is not None else {}),
             )
-            rec = Record(status=status, start=start, owner=owner)
-            self._active[episode_id] = rec
-            self._save(rec)
-            self._index(rec)
+            episode = Record(status=status, start=start, owner=owner)
+            self._active[episode_id] = episode
+            self._save(episode)
+            self._index(episode)
             if position == 0:
-                self._start(rec)
+                self._start(episode)
             else:
                 self._set_queue(robot, [*queues[robot], episode_id])
                 self._append(episode_id, gateway_event("queued", episode_id, robot=robot, position=position))
         return Submitted(
             episode_id=episode_id,
             robot=robot,
-            state=rec.status.state,
+            state=episode.status.state,
             max_steps=budget,
             queue_position=position,
             links={
@@ -619,41 +619,41 @@ class EpisodeManager:
                 f"{house or 'the robot world (no scene)'}: name another home, or reset this one "
                 f"(DELETE /v1/homes/{name})")
         cap = self.settings.homes_max_per_tenant
-        rec = self.homes.use(owner, name, house, cap)
-        if rec is None:
+        entry = self.homes.use(owner, name, house, cap)
+        if entry is None:
             raise TooManyError(
                 f"this token holds {self.homes.count(owner)} homes, the most one tenant may "
                 f"(EQA_HOMES_MAX_PER_TENANT={cap}); name one of them, or delete one with DELETE /v1/homes/{{name}}",
             )
-        return rec.home
+        return entry.home
 
     def _home_episodes(self, home: str) -> list[str]:
         """Queued and running episodes of the home with internal id ``home``."""
         return sorted(eid for eid, r in self._active.items() if r.start.home == home)
 
-    def _home_info(self, rec: HomeRecord, summary: Any, now: float) -> HomeInfo:
+    def _home_info(self, entry: HomeRecord, summary: Any, now: float) -> HomeInfo:
         with self._lock:  # only the active episodes need it: the store reads of the read routes go without
-            active = self._home_episodes(rec.home)
-        return HomeInfo(name=rec.name, house=rec.house, created_at=rec.created_at, last_used_at=rec.last_used_at,
-                        age_s=round(max(0.0, now - rec.created_at), 3), episodes_submitted=rec.episodes,
-                        active_episodes=active, memory=summary)
+            active = self._home_episodes(entry.home)
+        return HomeInfo(name=entry.name, house=entry.house, created_at=entry.created_at,
+                        last_used_at=entry.last_used_at, age_s=round(max(0.0, now - entry.created_at), 3),
+                        episodes_submitted=entry.episodes, active_episodes=active, memory=summary)
 
     def _home_record(self, caller: Caller | None, name: str) -> HomeRecord:
         keys.check_id(name, "home")
         owner = caller.tenant if caller is not None else ANONYMOUS
-        rec = self.homes.get(owner, name)
-        if rec is None:
+        entry = self.homes.get(owner, name)
+        if entry is None:
             self._check_store_intact()
             raise NotFoundError(f"no home {name!r}")
-        return rec
+        return entry
 
     def home(self, name: str, caller: Caller | None = None) -> HomeInfo:
         """The caller's home ``name`` (another tenant's home of that name is a different home: 404 here), with the
         names of its stored parts."""
-        rec = self._home_record(caller, name)
-        info = self._home_info(rec, self.homes.summaries([rec])[0], time.time())
-        parts = self.homes.parts(rec)
-        has_map = homes_layout.map_png_key(rec.home) in [homes_layout.prefix(rec.home) + p for p in parts]
+        entry = self._home_record(caller, name)
+        info = self._home_info(entry, self.homes.summaries([entry])[0], time.time())
+        parts = self.homes.parts(entry)
+        has_map = homes_layout.map_png_key(entry.home) in [homes_layout.prefix(entry.home) + p for p in parts]
         return info.model_copy(update={"parts": parts, "map_png": f"/v1/homes/{name}/map.png" if has_map else None})
 
     def home_map_png(self, name: str, caller: Caller | None = None) -> bytes:
@@ -667,22 +667,22 @@ class EpisodeManager:
         """One page of the caller's homes, newest first."""
         owner = caller.tenant if caller is not None else ANONYMOUS
         limit, offset = max(1, min(int(limit), 1000)), max(0, int(offset))
-        recs = self.homes.page(owner, limit, offset)
+        entries = self.homes.page(owner, limit, offset)
         now = time.time()
-        infos = [self._home_info(r, s, now) for r, s in zip(recs, self.homes.summaries(recs), strict=True)]
+        infos = [self._home_info(r, s, now) for r, s in zip(entries, self.homes.summaries(entries), strict=True)]
         return HomeList(homes=infos, total=self.homes.count(owner), offset=offset, limit=limit)
 
     def delete_home(self, name: str, caller: Caller | None = None) -> HomeDeleted:
         """Reset the caller's home ``name``: its memory and record go. :class:`ConflictError` (409) while an
         episode of it is queued or running (the mapper reads and writes the memory meanwhile)."""
         with self._lock:
-            rec = self._home_record(caller, name)
-            busy = self._home_episodes(rec.home)
+            entry = self._home_record(caller, name)
+            busy = self._home_episodes(entry.home)
             if busy:
                 raise ConflictError(f"home {name!r} has {len(busy)} queued or running episodes ({', '.join(busy[:5])}"
                                     f"{' ...' if len(busy) > 5 else ''}); cancel them or wait for their end")
-            n = self.homes.delete(rec)
-        log.info("home %s of %s deleted (%d memory keys)", rec.home, rec.owner, n)
+            n = self.homes.delete(entry)
+        log.info("home %s of %s deleted (%d memory keys)", entry.home, entry.owner, n)
         return HomeDeleted(name=name, deleted_keys=n)
 
     def prune_homes(self, now: float | None = None, batch: int = PRUNE_BATCH) -> int:
@@ -692,29 +692,29 @@ class EpisodeManager:
         cutoff = now - self.settings.homes_retention_days * 86400.0
         n = 0
         with self._lock:
-            for rec in self.homes.unused_since(cutoff, batch):
-                if self._home_episodes(rec.home):
+            for entry in self.homes.unused_since(cutoff, batch):
+                if self._home_episodes(entry.home):
                     continue
-                self.homes.delete(rec)
+                self.homes.delete(entry)
                 n += 1
         if n:
             log.info("retention: %d homes unused for %g days deleted", n, self.settings.homes_retention_days)
         return n
 
-    def _start(self, rec: Record) -> None:
+    def _start(self, episode: Record) -> None:
         now = time.time()
-        rec.status = sm.started(rec.status, now)
-        st = rec.status
-        rec.last_activity = now
-        rec.start = rec.start.model_copy(update={"sent_at": now})
-        self._save(rec)
+        episode.status = lifecycle.started(episode.status, now)
+        st = episode.status
+        episode.last_activity = now
+        episode.start = episode.start.model_copy(update={"sent_at": now})
+        self._save(episode)
         self.store.set(robot_key(st.robot), st.episode_id.encode())
-        self._append(st.episode_id, summarize(rec.start))
+        self._append(st.episode_id, summarize(episode.start))
         try:
-            self.bus.publish(keys.stream(st.robot, keys.EPISODE_START), rec.start)
+            self.bus.publish(keys.stream(st.robot, keys.EPISODE_START), episode.start)
         except Exception as exc:
             log.exception("could not publish EpisodeStart of %s", st.episode_id)
-            self._finish(rec, sm.Ending("failed", f"could not publish EpisodeStart on the bus: "
+            self._finish(episode, lifecycle.Ending("failed", f"could not publish EpisodeStart on the bus: "
                                                   f"{type(exc).__name__}: {exc}"))
             return
         log.info("episode %s started on %s (max_steps %d)", st.episode_id, st.robot, st.max_steps)
@@ -724,47 +724,47 @@ class EpisodeManager:
         while queue:
             nxt = queue.pop(0)
             self._set_queue(robot, queue)
-            rec = self._active.get(nxt)
-            if rec is not None and rec.status.state == "queued":
-                self._start(rec)
+            episode = self._active.get(nxt)
+            if episode is not None and episode.status.state == "queued":
+                self._start(episode)
                 return
 
     # ---- end / cancel -----------------------------------------------------------------------------------
-    def _finish(self, rec: Record, ending: sm.Ending) -> None:
+    def _finish(self, episode: Record, ending: lifecycle.Ending) -> None:
         """Store the final status (before any end event), tell the services when the gateway decided the end
         of a running episode, free the robot and start its next queued episode."""
-        was_running = rec.status.state == "running"
+        was_running = episode.status.state == "running"
         if ending.tell_services and was_running:
             try:
                 self.bus.publish(
-                    keys.stream(rec.status.robot, keys.EPISODE_CANCEL),
-                    EpisodeCancel(episode_id=rec.status.episode_id, reason=ending.reason),
+                    keys.stream(episode.status.robot, keys.EPISODE_CANCEL),
+                    EpisodeCancel(episode_id=episode.status.episode_id, reason=ending.reason),
                 )
             except Exception:
-                log.exception("could not publish EpisodeCancel for %s", rec.status.episode_id)
+                log.exception("could not publish EpisodeCancel for %s", episode.status.episode_id)
         now = time.time()
-        rdir = recording_dir(self.settings, rec.status.episode_id)
+        rdir = recording_dir(self.settings, episode.status.episode_id)
         has_recording = rdir.is_dir() and any(rdir.glob("*.rrd"))
         trace = None
-        if rec.status.task is not None:  # the sim's task trace names the phase and step of the first failure
+        if episode.status.task is not None:  # the sim's task trace names the phase and step of the first failure
             try:
-                raw = self.store.get_json(task_trace_key(rec.status.episode_id))
+                raw = self.store.get_json(task_trace_key(episode.status.episode_id))
                 trace = raw if isinstance(raw, dict) else None
             except Exception:
-                log.warning("task trace of %s unreadable; outcome from the metrics", rec.status.episode_id)
-        rec.status = sm.finished(rec.status, ending.state, ending.reason, now, end=ending.end, recording=has_recording,
-                                 trace=trace)
-        st = rec.status
+                log.warning("task trace of %s unreadable; outcome from the metrics", episode.status.episode_id)
+        episode.status = lifecycle.finished(episode.status, ending.state, ending.reason, now, end=ending.end,
+                                            recording=has_recording, trace=trace)
+        st = episode.status
         if was_running:
             self._mean_episode_s = 0.8 * self._mean_episode_s + 0.2 * max(0.0, now - st.created_at)
-        self._save(rec)
-        self._index(rec)
+        self._save(episode)
+        self._index(episode)
         self._active.pop(st.episode_id, None)
         self._snapshots.pop(st.episode_id, None)  # the store holds the final record
         if self._running_on(st.robot) == st.episode_id:
             self.store.delete(robot_key(st.robot))
         if ending.end is None:
-            self._append(st.episode_id, sm.end_event(st))
+            self._append(st.episode_id, lifecycle.end_event(st))
         log.info("episode %s %s: %s", st.episode_id, st.state, st.stop_reason)
         gateway_metrics.episode_ended(st)
         if self._running_on(st.robot) is None:  # a cancelled queued episode leaves its robot busy
@@ -773,18 +773,18 @@ class EpisodeManager:
     def cancel(self, episode_id: str, caller: Caller | None = None, reason: str = "cancelled by user") -> EpisodeStatus:
         keys.check_id(episode_id, "episode id")
         with self._lock:
-            rec = self._active.get(episode_id)
-            if rec is None:
+            episode = self._active.get(episode_id)
+            if episode is None:
                 stored = self.load(episode_id)
                 if stored is None or (caller is not None and not caller.sees(stored.owner)):
                     raise NotFoundError(f"no episode {episode_id!r}")
                 raise ConflictError(f"episode {episode_id} already ended ({stored.status.state})")
-            if caller is not None and not caller.sees(rec.owner):
+            if caller is not None and not caller.sees(episode.owner):
                 raise NotFoundError(f"no episode {episode_id!r}")
-            if rec.status.state == "queued":
-                self._set_queue(rec.status.robot, [e for e in self._queue(rec.status.robot) if e != episode_id])
-            self._finish(rec, sm.Ending("cancelled", reason, tell_services=True))
-            return rec.status
+            if episode.status.state == "queued":
+                self._set_queue(episode.status.robot, [e for e in self._queue(episode.status.robot) if e != episode_id])
+            self._finish(episode, lifecycle.Ending("cancelled", reason, tell_services=True))
+            return episode.status
 
     # ---- bus messages -----------------------------------------------------------------------------------
     def is_active(self, episode_id: object) -> bool:
@@ -799,47 +799,47 @@ class EpisodeManager:
         if not isinstance(episode_id, str):
             return
         with self._lock:
-            rec = self._active.get(episode_id)
-            if rec is None:
+            episode = self._active.get(episode_id)
+            if episode is None:
                 log.debug("message %s for episode %s that is not running here; ignored", msg.kind, episode_id)
                 return
             now = time.time()
-            t = sm.on_message(rec.status, robot, msg, now)
+            t = lifecycle.on_message(episode.status, robot, msg, now)
             for note in t.notes:
                 log.warning("%s: a %s ignored", note, msg.kind)
             if t.ignore:
                 return
-            rec.last_activity = now
+            episode.last_activity = now
             if t.last_error is not None:
-                rec.last_error = t.last_error
+                episode.last_error = t.last_error
             if t.ending is not None and t.ending.end is not None:
                 # The final status is stored before the end event: a client that reads the event and then
                 # asks for the status gets the final one.
-                self._finish(rec, t.ending)
+                self._finish(episode, t.ending)
                 self._append(episode_id, summarize(msg))
                 return
-            rec.events += 1
-            cap = EVENTS_PER_STEP * rec.status.max_steps + 100
+            episode.events += 1
+            cap = EVENTS_PER_STEP * episode.status.max_steps + 100
             event = summarize(msg)
-            if rec.backfilled and event_identity(event) in rec.backfilled:
-                rec.backfilled.discard(event_identity(event))  # seen in a journal first: stored once
-            elif rec.events <= cap or isinstance(msg, ErrorReply):
+            if episode.backfilled and event_identity(event) in episode.backfilled:
+                episode.backfilled.discard(event_identity(event))  # seen in a journal first: stored once
+            elif episode.events <= cap or isinstance(msg, ErrorReply):
                 self._append(episode_id, event)
-            elif rec.events == cap + 1:
+            elif episode.events == cap + 1:
                 log.warning("episode %s: over %d events (a flood on the bus?); further data messages are not "
                             "stored as events", episode_id, cap)
             if t.ending is not None:
-                self._finish(rec, t.ending)
+                self._finish(episode, t.ending)
                 return
             assert t.status is not None
-            rec.status = t.status
-            self._save(rec)
+            episode.status = t.status
+            self._save(episode)
 
-    def _backfill(self, rec: Record) -> int:
+    def _backfill(self, episode: Record) -> int:
         """Append the events the services journalled (:mod:`eqa.event_log`) that the stored stream lacks: what
         was published while no gateway listened. Bounded by the episode's event cap; returns how many."""
-        eid = rec.status.episode_id
-        cap = EVENTS_PER_STEP * rec.status.max_steps + 100
+        eid = episode.status.episode_id
+        cap = EVENTS_PER_STEP * episode.status.max_steps + 100
 
         def events(key: str) -> list[dict[str, Any]]:
             out = []
@@ -855,22 +855,22 @@ class EpisodeManager:
         missing = missing_events(events(ev_key(eid)), [events(episode_journal_key(s, eid)) for s in JOURNAL_SERVICES])
         for event in missing[:cap]:
             self._append(eid, event)
-            rec.backfilled.add(event_identity(event))
-        rec.events += len(missing)
+            episode.backfilled.add(event_identity(event))
+        episode.events += len(missing)
         if missing:
             log.info("episode %s: %d events published while the gateway was down backfilled from the services' "
                      "journals", eid, len(missing))
         return len(missing)
 
-    def _recover_end(self, rec: Record) -> bool:
-        """End ``rec`` from the stopper's stored ``EpisodeEnd`` if there is one (an end not seen on the bus)."""
-        end = stored_end(self.store, rec.status.episode_id)
+    def _recover_end(self, episode: Record) -> bool:
+        """End ``episode`` from the stopper's stored ``EpisodeEnd`` if there is one (an end not seen on the bus)."""
+        end = stored_end(self.store, episode.status.episode_id)
         if end is None:
             return False
         event = summarize(end)
         event["recovered"] = "from the stopper's stored end: not seen on the bus by this gateway"
-        self._finish(rec, sm.Ending(end.state if end.state in TERMINAL else "stopped", end.reason, end=end))
-        self._append(rec.status.episode_id, event)  # after the final status, as in handle()
+        self._finish(episode, lifecycle.Ending(end.state if end.state in TERMINAL else "stopped", end.reason, end=end))
+        self._append(episode.status.episode_id, event)  # after the final status, as in handle()
         return True
 
     # ---- watchdog and retention -------------------------------------------------------------------------
@@ -880,16 +880,16 @@ class EpisodeManager:
         timeout = self.settings.episode_timeout_s
         failed = []
         with self._lock:
-            for rec in list(self._active.values()):
-                st = rec.status
-                if not sm.timed_out(st.state, rec.last_activity, self.started_at, now, timeout):
+            for episode in list(self._active.values()):
+                st = episode.status
+                if not lifecycle.timed_out(st.state, episode.last_activity, self.started_at, now, timeout):
                     continue
-                if self._recover_end(rec):
+                if self._recover_end(episode):
                     continue
-                reason = sm.timeout_reason(
-                    st, timeout, self.missing_services(), rec.last_error, restarted=st.updated_at < self.started_at
+                reason = lifecycle.timeout_reason(
+                    st, timeout, self.missing_services(), episode.last_error, restarted=st.updated_at < self.started_at
                 )
-                self._finish(rec, sm.Ending("failed", reason, tell_services=True))
+                self._finish(episode, lifecycle.Ending("failed", reason, tell_services=True))
                 failed.append(st.episode_id)
         return failed
 
@@ -910,8 +910,8 @@ class EpisodeManager:
             drop: dict[str, list[str]] = {IDX_ALL: list(ids), IDX_ACTIVE: []}
             for eid, raw in zip(ids, raws, strict=True):
                 try:
-                    rec = json.loads(raw) if raw is not None else {}
-                    owner, state = str(rec.get("owner", LEGACY_OWNER)), rec["status"]["state"]
+                    stored = json.loads(raw) if raw is not None else {}
+                    owner, state = str(stored.get("owner", LEGACY_OWNER)), stored["status"]["state"]
                 except Exception:
                     continue
                 for index in (idx_owner(owner), idx_state(state), idx_owner_state(owner, state)):

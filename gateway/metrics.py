@@ -107,13 +107,13 @@ class EpisodeCollector(Collector):
             manager = getattr(app.state, "manager", None)
             if manager is None:
                 continue
-            for rec in _records(manager):
-                st = rec.status
+            for episode in _records(manager):
+                st = episode.status
                 key = (st.state, kind_of(st))
                 if key in counts:
                     counts[key] += 1
                 if st.state == "running":
-                    longest = max(longest, now - rec.last_activity)
+                    longest = max(longest, now - episode.last_activity)
             for service, instances in manager.alive_services().items():
                 services[service] = services.get(service, 0) + len(instances)
         for (state, kind), n in counts.items():

@@ -37,8 +37,16 @@ def rerun_cli() -> str:
     return found
 
 
-def _env() -> dict[str, str]:
-    return {**os.environ, "RERUN_TELEMETRY_ENABLED": "false"}
+def _rrd(*args: str, timeout_s: float) -> subprocess.CompletedProcess[str]:
+    """``rerun rrd <args>``, its output captured as text, without telemetry; a failure is the caller's to read."""
+    return subprocess.run(
+        [rerun_cli(), "rrd", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout_s,
+        env={**os.environ, "RERUN_TELEMETRY_ENABLED": "false"},
+        check=False,
+    )
 
 
 def parts(settings: Settings, episode_id: str) -> list[Path]:
@@ -56,14 +64,7 @@ def merge(settings: Settings, episode_id: str, timeout_s: float = 120.0) -> Path
         if out.exists() and out.stat().st_mtime >= max(p.stat().st_mtime for p in files):
             return out
         tmp = out.with_suffix(".tmp.rrd")
-        proc = subprocess.run(
-            [rerun_cli(), "rrd", "merge", "--continue-on-error", *map(str, files), "-o", str(tmp)],
-            capture_output=True,
-            text=True,
-            timeout=timeout_s,
-            env=_env(),
-            check=False,
-        )
+        proc = _rrd("merge", "--continue-on-error", *map(str, files), "-o", str(tmp), timeout_s=timeout_s)
         if proc.returncode != 0 or not tmp.exists():
             tmp.unlink(missing_ok=True)
             raise RecordingError(f"rerun rrd merge failed: {proc.stderr.strip()[-500:]}")
@@ -73,27 +74,13 @@ def merge(settings: Settings, episode_id: str, timeout_s: float = 120.0) -> Path
 
 def verify(path: Path, timeout_s: float = 120.0) -> tuple[bool, str]:
     """``rerun rrd verify``: (ok, message)."""
-    proc = subprocess.run(
-        [rerun_cli(), "rrd", "verify", str(path)],
-        capture_output=True,
-        text=True,
-        timeout=timeout_s,
-        env=_env(),
-        check=False,
-    )
+    proc = _rrd("verify", str(path), timeout_s=timeout_s)
     return proc.returncode == 0, (proc.stdout + proc.stderr).strip()
 
 
 def entity_paths(path: Path, timeout_s: float = 120.0) -> set[str]:
     """Entity paths that hold data in a recording (from ``rerun rrd print``)."""
-    proc = subprocess.run(
-        [rerun_cli(), "rrd", "print", str(path)],
-        capture_output=True,
-        text=True,
-        timeout=timeout_s,
-        env=_env(),
-        check=False,
-    )
+    proc = _rrd("print", str(path), timeout_s=timeout_s)
     if proc.returncode != 0:
         raise RecordingError(f"rerun rrd print failed: {proc.stderr.strip()[-500:]}")
     found = set()

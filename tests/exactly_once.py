@@ -16,7 +16,7 @@ from collections import defaultdict
 from typing import Any
 
 from eqa import keys
-from eqa.messages import STREAM_TYPES
+from eqa.messages import STREAM_TYPES, EpisodeEnd
 
 PAIRS = (keys.MAPPER_MAP, keys.STOPPER_DECISION, keys.PLANNER_GOAL, keys.SIM_ERROR)
 
@@ -31,6 +31,18 @@ def wait_on(cond: threading.Condition, pred: Any, timeout: float) -> bool:
                 return False
             cond.wait(min(left, 0.2))
     return True
+
+
+class Ends:
+    """The first ``EpisodeEnd`` of each episode (subscribe it to ``keys.any_robot(keys.EPISODE_END)``)."""
+
+    def __init__(self) -> None:
+        self.ends: dict[str, EpisodeEnd] = {}
+        self.lock = threading.Lock()
+
+    def __call__(self, _key: str, msg: EpisodeEnd) -> None:
+        with self.lock:
+            self.ends.setdefault(msg.episode_id, msg)
 
 
 class StepLedger:
@@ -72,4 +84,13 @@ class StepLedger:
                     allowed = 1 + len(made.get(("sim/error", eid, t), ()))
                     if not 1 <= n <= allowed:
                         out.append(f"planner/goal step {t} of {eid}: made {n} times ({allowed - 1} refused)")
+        return out
+
+    def settled_problems(self, episodes: dict[str, int], timeout: float = 10.0) -> list[str]:
+        """:meth:`problems` once they are gone or ``timeout`` s passed: the subscriptions run on their own
+        threads, so the last decision, published right before the end, may be counted a moment later (a
+        missing one stays missing)."""
+        deadline = time.monotonic() + timeout
+        while (out := self.problems(episodes)) and time.monotonic() < deadline:
+            time.sleep(0.1)
         return out

@@ -49,6 +49,22 @@ def fleet_settings(data_dir: Path, redis_url: str | None = None, **update: Any) 
     return Settings(**{**base, **update})
 
 
+def lone_gateway_settings(data_dir: Path, tokens: list[str], **update: Any) -> Settings:
+    """Settings of a gateway run without a fleet (API, auth and limits tests): its own Zenoh port on loopback,
+    multicast scouting off, no recording, ``tokens``, 1000 requests/s per token unless ``update`` says else."""
+    base: dict[str, Any] = {
+        "data_dir": Path(data_dir),
+        "zenoh_mode": "peer",
+        "zenoh_listen": [f"tcp/127.0.0.1:{free_port()}"],
+        "zenoh_connect": [],
+        "zenoh_multicast": False,
+        "record": False,
+        "api_tokens": tokens,
+        "rate_limit_per_s": 1000.0,
+    }
+    return Settings(**{**base, **update})
+
+
 def clear_gateway_state(settings: Settings) -> int:
     """Delete the gateway's records (``gw:*``: episodes, event streams, robot locks, queues) from the store of
     ``settings``, leaving the services' keys alone; returns how many keys went."""

@@ -2,17 +2,39 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
+from eqa.bus import Bus
 from eqa.messages import InstanceLabel, PromptPoint, Question, ScoreRequest
+from eqa.scorer_client import ScorerClient
 from eqa.settings import Settings
+from services.vlm_scorer.service import ScorerService
 
 REPO = Path(__file__).resolve().parents[1]
+
+
+@contextlib.contextmanager
+def scorer_pool(hub_settings: Settings, *replicas: Settings) -> Iterator[tuple[ScorerClient, list[ScorerService]]]:
+    """In-process scorer replicas (one per ``replicas`` settings) and a pool client (10 s per request) on a bus of
+    its own that has seen every replica live; the replicas are stopped on the way out."""
+    with Bus(hub_settings, "gateway", "client") as bus:
+        services = [ScorerService(s) for s in replicas]
+        for svc in services:
+            svc.start()
+        try:
+            client = ScorerClient(bus, replicas[0], timeout_s=10)
+            assert client.wait_for_replicas(len(services), timeout=10)
+            yield client, services
+        finally:
+            for svc in services:
+                svc.stop()
 
 
 def frame_request(

@@ -12,6 +12,7 @@ import time
 
 import numpy as np
 import pytest
+from fleet_support import wait_for
 from objects_support import ring_views, run_steps
 
 from eqa import keys
@@ -96,35 +97,31 @@ def test_joint_answer_through_mapper_and_scorer(hub_settings: Settings, settings
             bus.publish(keys.stream(ROBOT, keys.EPISODE_START), start("ep-j"))
             got = run_steps(bus, scores, renderer, vs, "ep-j", range(4))
             assert errors.empty(), errors.get()
-            av = mapper.answer_memory.memories["ep-j"]
-            assert len(av.steps) == 2  # the memory is full (K = 2)
+            views_kept = mapper.answer_memory.memories["ep-j"]
+            assert len(views_kept.steps) == 2  # the memory is full (K = 2)
             # one joint request per change of the kept set, the last one holding K images
             assert 1 <= len(scorer.joint) <= 4 and len(scorer.joint[-1].memory_views) == 2
             assert [len(r.memory_views) for r in scorer.joint][:2] == [1, 2]
-            kept_images = [np.asarray(im) for im in av.images]
+            kept_images = [np.asarray(im) for im in views_kept.images]
             for a, b in zip(scorer.joint[-1].memory_views, kept_images, strict=True):
                 assert np.array_equal(a, b)
             want = backend.answer_from_views(kept_images, Q, Q.choices)
-            assert got[-1].answer_views == sorted(av.steps) and got[-1].answer_probs == pytest.approx(want, abs=1e-5)
+            assert got[-1].answer_views == sorted(views_kept.steps)
+            assert got[-1].answer_probs == pytest.approx(want, abs=1e-5)
             assert got[0].answer_views == [0] and all(s.answer_views for s in got)
             assert all(s.mode == "logprobs" for s in got)  # the scorer's mode is kept
             # the stopper's trace (what `eqa calibrate` learns CP from) holds the joint answers
             traces = TraceStore(stopper.store)
-            deadline = time.monotonic() + 15
-            while time.monotonic() < deadline:
-                t = traces.trace_for_episode("ep-j")
-                if t is not None and len(t.steps) == 4:
-                    break
-                time.sleep(0.05)
+            wait_for(lambda: (t := traces.trace_for_episode("ep-j")) is not None and len(t.steps) == 4, 15.0)
             trace = traces.trace_for_episode("ep-j")
             assert trace is not None and len(trace.steps) == 4
             for s, st in zip(got, trace.steps, strict=True):
                 assert st.answer_probs == pytest.approx(s.answer_probs)
             # relevance is the step's own (the scorer's single-view Rel), not touched by the memory
-            assert sorted(av.relevance) == sorted(sorted(s.relevance for s in got)[-2:])
+            assert sorted(views_kept.relevance) == sorted(sorted(s.relevance for s in got)[-2:])
 
             # a restarted mapper continues the stored memory (images included)
-            kept_steps = list(av.steps)
+            kept_steps = list(views_kept.steps)
             mapper.stop()
             mapper = MapperService(joint)
             mapper.start()
@@ -194,18 +191,18 @@ def test_memory_views_are_validated_off_the_bus() -> None:
 
 
 def test_view_memory_keeps_the_k_most_relevant_bounded() -> None:
-    av = AnswerViews(2)
+    views_kept = AnswerViews(2)
     big = np.zeros((960, 1280, 3), np.uint8)
-    assert av.offer(0, 0.2, big) and av.offer(1, 0.1, big)
-    assert not av.offer(2, 0.1, big)  # a tie: the earlier view stays
-    assert av.offer(3, 0.5, big) and av.steps == [0, 3]
-    assert all(max(im.shape[:2]) <= 448 for im in av.images) and shrink(big).shape == (320, 427, 3)
-    again = AnswerViews.restore(av.snapshot())
-    assert again.steps == av.steps and again.relevance == av.relevance
+    assert views_kept.offer(0, 0.2, big) and views_kept.offer(1, 0.1, big)
+    assert not views_kept.offer(2, 0.1, big)  # a tie: the earlier view stays
+    assert views_kept.offer(3, 0.5, big) and views_kept.steps == [0, 3]
+    assert all(max(im.shape[:2]) <= 448 for im in views_kept.images) and shrink(big).shape == (320, 427, 3)
+    again = AnswerViews.restore(views_kept.snapshot())
+    assert again.steps == views_kept.steps and again.relevance == views_kept.relevance
     with pytest.raises(ValueError):
         AnswerViews(MAX_MEMORY_VIEWS + 1)
     with pytest.raises(ValueError):
-        AnswerViews.restore({**av.snapshot(), "steps": [0, 1, 2], "relevance": [0, 0, 0], "images": [big] * 3})
+        AnswerViews.restore({**views_kept.snapshot(), "steps": [0, 1, 2], "relevance": [0, 0, 0], "images": [big] * 3})
 
 
 def test_view_memory_is_bounded_in_views_and_pixels() -> None:

@@ -15,10 +15,8 @@ from typing import Any
 
 import pytest
 from browser_helpers import body_text, chromium, fresh_page, send_header, wait_until
-from fleet_support import GatewayThread
+from fleet_support import GatewayThread, lone_gateway_settings
 from gateway_helpers import TOKEN
-
-from eqa.settings import Settings
 
 SHOTS = os.environ.get("EQA_SCREENSHOTS")  # a directory: save what the browser showed (docs/usage.md pictures)
 
@@ -26,19 +24,7 @@ SHOTS = os.environ.get("EQA_SCREENSHOTS")  # a directory: save what the browser 
 @pytest.fixture(scope="module")
 def docs_gateway(tmp_path_factory: pytest.TempPathFactory) -> Iterator[GatewayThread]:
     """A gateway with a token and no fleet (the docs need none), on its own Zenoh port and store."""
-    from eqa.launcher import free_port
-
-    d = tmp_path_factory.mktemp("docs-gw")
-    s = Settings(
-        data_dir=d / "var",
-        zenoh_mode="peer",
-        zenoh_listen=[f"tcp/127.0.0.1:{free_port()}"],
-        zenoh_connect=[],
-        zenoh_multicast=False,
-        record=False,
-        api_tokens=[TOKEN],
-        rate_limit_per_s=1000.0,
-    )
+    s = lone_gateway_settings(tmp_path_factory.mktemp("docs-gw") / "var", [TOKEN])
     with GatewayThread(s) as gw:
         yield gw
 

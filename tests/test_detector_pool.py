@@ -5,59 +5,44 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scorer_helpers import scorer_pool
 from test_detector import frame
 
-from eqa.bus import Bus
 from eqa.messages import DetectRequest, ValueRequest
-from eqa.scorer_client import ScorerClient, ScorerError
-from services.vlm_scorer.service import ScorerService
+from eqa.scorer_client import ScorerError
 
 
 def test_detect_and_values_through_the_pool(hub_settings, settings):
     settings = settings.model_copy(update={"scorer_replica": "det"})
     rgb, inst, labels, depth = frame()
-    with Bus(hub_settings, "gateway", "client") as bus:
-        svc = ScorerService(settings)
-        svc.start()
-        try:
-            client = ScorerClient(bus, settings, timeout_s=10)
-            assert client.wait_for_replicas(1, timeout=10)
-            req = DetectRequest(episode_id="ep-1", step=3, rgb=rgb, classes=["mug"], thresholds=[0.25],
-                                instances=inst, labels=labels, depth=depth, seed=7)
-            res = client.detect(req)
-            assert res.backend == "oracle" and res.model == "simulated-detector" and res.replica == "det"
-            assert res.request_id == req.request_id
-            direct = svc.handle_detect(req)
-            assert [(d.cls, d.score, d.box) for d in res.detections] == [
-                (d.cls, d.score, d.box) for d in direct.detections  # type: ignore[union-attr]
-            ]
-            assert all(d.mask.dtype == bool for d in res.detections)
-            val = client.values(ValueRequest(episode_id="ep-1", step=3, rgb=rgb, targets=["mug", "bed"],
-                                             instances=inst, labels=labels, depth=depth))
-            assert len(val.values) == 2 and val.values[0] > val.values[1]
-            no_ids = req.model_copy(update={"instances": None})
-            with pytest.raises(ScorerError, match="instance ids"):
-                client.detect(no_ids)
-            bad = req.model_copy(update={"rgb": np.zeros((4, 4), np.uint8)})
-            with pytest.raises(ScorerError, match="HxWx3"):
-                client.detect(bad)
-            assert client.detect(req).detections is not None  # still serving
-        finally:
-            svc.stop()
+    with scorer_pool(hub_settings, settings) as (client, [svc]):
+        req = DetectRequest(episode_id="ep-1", step=3, rgb=rgb, classes=["mug"], thresholds=[0.25],
+                            instances=inst, labels=labels, depth=depth, seed=7)
+        res = client.detect(req)
+        assert res.backend == "oracle" and res.model == "simulated-detector" and res.replica == "det"
+        assert res.request_id == req.request_id
+        direct = svc.handle_detect(req)
+        assert [(d.cls, d.score, d.box) for d in res.detections] == [
+            (d.cls, d.score, d.box) for d in direct.detections  # type: ignore[union-attr]
+        ]
+        assert all(d.mask.dtype == bool for d in res.detections)
+        val = client.values(ValueRequest(episode_id="ep-1", step=3, rgb=rgb, targets=["mug", "bed"],
+                                         instances=inst, labels=labels, depth=depth))
+        assert len(val.values) == 2 and val.values[0] > val.values[1]
+        no_ids = req.model_copy(update={"instances": None})
+        with pytest.raises(ScorerError, match="instance ids"):
+            client.detect(no_ids)
+        bad = req.model_copy(update={"rgb": np.zeros((4, 4), np.uint8)})
+        with pytest.raises(ScorerError, match="HxWx3"):
+            client.detect(bad)
+        assert client.detect(req).detections is not None  # still serving
 
 
 def test_remote_detector_backend_is_an_error_reply(hub_settings, settings):
     settings = settings.model_copy(update={"scorer_replica": "rem", "detector_backend": "remote"})
     rgb, inst, labels, _depth = frame()
-    with Bus(hub_settings, "gateway", "client") as bus:
-        svc = ScorerService(settings)
-        svc.start()
-        try:
-            client = ScorerClient(bus, settings, timeout_s=10)
-            assert client.wait_for_replicas(1, timeout=10)
-            req = DetectRequest(episode_id="e", step=0, rgb=rgb, classes=["mug"], instances=inst, labels=labels)
-            for _ in range(2):
-                with pytest.raises(ScorerError, match="no well-known HTTP protocol"):
-                    client.detect(req)
-        finally:
-            svc.stop()
+    with scorer_pool(hub_settings, settings) as (client, _):
+        req = DetectRequest(episode_id="e", step=0, rgb=rgb, classes=["mug"], instances=inst, labels=labels)
+        for _ in range(2):
+            with pytest.raises(ScorerError, match="no well-known HTTP protocol"):
+                client.detect(req)

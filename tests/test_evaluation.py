@@ -123,3 +123,22 @@ def test_category_round_robin_keeps_the_mix():
     assert [q.id for q in category_round_robin(qs, 3)] == ["a0", "b0", "b1"]
     assert [q.id for q in category_round_robin(qs, None)] == ["a0", "b0", "b1", "b2"]
     assert [q.id for q in category_round_robin(qs, 99)] == ["a0", "b0", "b1", "b2"]
+
+
+def test_category_round_robin_over_named_categories_alternates_in_their_order():
+    import itertools
+
+    from eqa.messages import Question
+    from services.sim.questions import category_round_robin
+
+    qs = [Question(id=f"{c}{i}", text="q?", scene="gen-00001", category=c) for c, i in
+          [("counting", 0), ("existence", 0), ("room", 0), ("existence", 1), ("existence", 2), ("counting", 1)]]
+    both = ("existence", "counting")
+    assert [q.id for q in category_round_robin(qs, None, both)] == [
+        "existence0", "counting0", "existence1", "counting1", "existence2"]  # room questions are not taken
+    # the same as alternating the two lists and going on with the longer one, for every n
+    by = {c: [q for q in qs if q.category == c] for c in both}
+    alternating = [q for pair in itertools.zip_longest(*by.values()) for q in pair if q is not None]
+    for n in range(7):
+        assert category_round_robin(qs, n, both) == alternating[:n]
+    assert category_round_robin(qs, 3, ()) == []

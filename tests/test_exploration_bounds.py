@@ -47,15 +47,16 @@ def test_target_oracle_goes_for_the_reachable_frontier_nearest_the_target() -> N
 
 
 def test_perfect_sv_writes_ground_truth_values_not_the_scorers() -> None:
-    em = EpisodeMap(_start("perfect_sv", [(6.0, 0.0)]))
-    em.pose = Pose2D(x=0.0, y=0.0, yaw=0.0)
-    em.volume.ensure(-8.0, 8.0, -8.0, 8.0)
-    em.prompts = [PromptPoint(label="A", x=0.0, y=4.0, u=10, v=10), PromptPoint(label="B", x=5.0, y=0.0, u=20, v=10)]
-    sv = em.apply_scores([0.99, 0.01], 0.0)  # the scorer says A; the ground truth says B
+    episode_map = EpisodeMap(_start("perfect_sv", [(6.0, 0.0)]))
+    episode_map.pose = Pose2D(x=0.0, y=0.0, yaw=0.0)
+    episode_map.volume.ensure(-8.0, 8.0, -8.0, 8.0)
+    episode_map.prompts = [PromptPoint(label="A", x=0.0, y=4.0, u=10, v=10),
+                           PromptPoint(label="B", x=5.0, y=0.0, u=20, v=10)]
+    sv = episode_map.apply_scores([0.99, 0.01], 0.0)  # the scorer says A; the ground truth says B
     assert sv[1] > sv[0]
     assert sv[1] > math.exp(1.5)  # GSV = 1: a point nearer the target than the camera is in view
     em2 = EpisodeMap(_start("semantic", [(6.0, 0.0)]))
-    em2.pose, em2.prompts = em.pose, em.prompts
+    em2.pose, em2.prompts = episode_map.pose, episode_map.prompts
     em2.volume.ensure(-8.0, 8.0, -8.0, 8.0)
     sv2 = em2.apply_scores([0.99, 0.01], 0.0)
     assert sv2[0] > sv2[1]  # semantic keeps the scorer's values

@@ -15,7 +15,7 @@ from eqa.messages import (
     Question,
     StopConfig,
 )
-from gateway import state as sm
+from gateway import state as lifecycle
 
 
 def _status(state: str = "running", steps: int = 0) -> EpisodeStatus:
@@ -31,36 +31,38 @@ def _frame(step: int) -> Frame:
 
 def test_messages_advance_a_running_episode_without_touching_the_input() -> None:
     st = _status()
-    t = sm.on_message(st, "r0", _frame(3), now=5.0)
+    t = lifecycle.on_message(st, "r0", _frame(3), now=5.0)
     assert not t.ignore and t.ending is None and t.status is not None
     assert (t.status.step, t.status.steps, t.status.normalized_steps, t.status.updated_at) == (3, 4, 0.4, 5.0)
     assert (st.step, st.steps) == (-1, 0)  # pure: the input is not changed
-    d = sm.on_message(t.status, "r0", Decision(episode_id="ep-1", step=3, rule="cp", stop=False, reason="",
+    d = lifecycle.on_message(t.status, "r0", Decision(episode_id="ep-1", step=3, rule="cp", stop=False, reason="",
                                                prediction_set=["A", "B"], answer="B"), now=6.0)
     assert d.status is not None and d.status.prediction_set == ["A", "B"] and d.status.answer == "B"
 
 
 def test_ignored_inputs() -> None:
-    assert sm.on_message(_status("queued"), "r0", _frame(0), 1.0).ignore
-    assert sm.on_message(_status(), "r0", EpisodeCancel(episode_id="ep-1"), 1.0).ignore
-    other = sm.on_message(_status(), "r9", _frame(0), 1.0)
+    assert lifecycle.on_message(_status("queued"), "r0", _frame(0), 1.0).ignore
+    assert lifecycle.on_message(_status(), "r0", EpisodeCancel(episode_id="ep-1"), 1.0).ignore
+    other = lifecycle.on_message(_status(), "r9", _frame(0), 1.0)
     assert other.ignore and "runs on r0" in other.notes[0]
 
 
 def test_endings() -> None:
     end = EpisodeEnd(episode_id="ep-1", robot="r0", state="stopped", reason="one answer left", answer="B", steps=4,
                      max_steps=10)
-    t = sm.on_message(_status(), "r0", end, 1.0)
-    assert t.ending == sm.Ending("stopped", "one answer left", end=end)
-    refusal = sm.on_message(_status(), "r0", ErrorReply(source="sim", reason="start pose refused", step=0), 1.0)
-    assert refusal.ending == sm.Ending("failed", "sim refused the episode: start pose refused", tell_services=True)
-    late = sm.on_message(_status(steps=2), "r0", ErrorReply(source="sim", reason="goal refused", step=2), 1.0)
+    t = lifecycle.on_message(_status(), "r0", end, 1.0)
+    assert t.ending == lifecycle.Ending("stopped", "one answer left", end=end)
+    refusal = lifecycle.on_message(_status(), "r0", ErrorReply(source="sim", reason="start pose refused", step=0), 1.0)
+    assert refusal.ending == lifecycle.Ending("failed", "sim refused the episode: start pose refused",
+                                              tell_services=True)
+    late = lifecycle.on_message(_status(steps=2), "r0", ErrorReply(source="sim", reason="goal refused", step=2), 1.0)
     assert late.ending is None and late.last_error == "sim at step 2: goal refused"
-    final = sm.finished(_status(), "stopped", "one answer left", 9.0, end=end, recording=True)
+    final = lifecycle.finished(_status(), "stopped", "one answer left", 9.0, end=end, recording=True)
     assert (final.answer_text, final.correct, final.normalized_steps) == ("hallway", True, 0.4)
     assert final.recording == "/v1/episodes/ep-1/recording" and final.updated_at == 9.0
-    assert sm.end_event(final)["source"] == "gateway" and sm.end_event(final)["state"] == "stopped"
-    assert sm.timed_out("running", 0.0, 0.0, 11.0, 10.0) and not sm.timed_out("queued", 0.0, 0.0, 11.0, 10.0)
-    reason = sm.timeout_reason(_status(), 10.0, ["planner"], "mapper at step 0: x", restarted=True)
+    assert lifecycle.end_event(final)["source"] == "gateway" and lifecycle.end_event(final)["state"] == "stopped"
+    assert lifecycle.timed_out("running", 0.0, 0.0, 11.0, 10.0)
+    assert not lifecycle.timed_out("queued", 0.0, 0.0, 11.0, 10.0)
+    reason = lifecycle.timeout_reason(_status(), 10.0, ["planner"], "mapper at step 0: x", restarted=True)
     assert reason.startswith("no message for 10 s (last step -1); services not alive: planner; last error: mapper")
-    assert "restarted" in reason and sm.cancellable("queued") and not sm.cancellable("stopped")
+    assert "restarted" in reason and lifecycle.cancellable("queued") and not lifecycle.cancellable("stopped")

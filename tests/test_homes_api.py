@@ -16,12 +16,11 @@ from pathlib import Path
 
 import httpx
 import pytest
-from fleet_support import GatewayThread, clear_gateway_state
+from fleet_support import GatewayThread, clear_gateway_state, lone_gateway_settings, wait_for
 from gateway_helpers import ADMIN, READER, SCENE, TOKENS, A, B, Q
 
 from eqa import homes, keys
 from eqa.bus import Bus
-from eqa.launcher import free_port
 from eqa.messages import EpisodeStart
 from eqa.settings import Settings
 from eqa.store import open_store
@@ -30,23 +29,9 @@ CAP = 5
 
 
 def _settings(tmp: Path, redis_url: str, **update: object) -> Settings:
-    base = {
-        "data_dir": tmp / "var",
-        "redis_url": redis_url,
-        "zenoh_mode": "peer",
-        "zenoh_listen": [f"tcp/127.0.0.1:{free_port()}"],
-        "zenoh_connect": [],
-        "zenoh_multicast": False,
-        "record": False,
-        "api_tokens": TOKENS,
-        "rate_limit_per_s": 1000.0,
-        "episode_timeout_s": 3600.0,
-        "robots": ["robot0", "robot1"],
-        "queue_max_per_robot": 50,
-        "queue_max_per_token": 50,
-        "homes_max_per_tenant": CAP,
-    }
-    return Settings(**{**base, **update})  # type: ignore[arg-type]
+    base = {"redis_url": redis_url, "episode_timeout_s": 3600.0, "robots": ["robot0", "robot1"],
+            "queue_max_per_robot": 50, "queue_max_per_token": 50, "homes_max_per_tenant": CAP}
+    return lone_gateway_settings(tmp / "var", TOKENS, **{**base, **update})
 
 
 def _clear(s: Settings) -> None:
@@ -89,13 +74,6 @@ def _starts(s: Settings) -> tuple[list[EpisodeStart], Bus]:
     return got, bus
 
 
-def _wait(pred, timeout: float = 15.0) -> bool:
-    t0 = time.monotonic()
-    while time.monotonic() - t0 < timeout:
-        if pred():
-            return True
-        time.sleep(0.05)
-    return False
 
 
 def test_home_round_trip_question_task_list_get_delete(gw) -> None:
@@ -107,11 +85,11 @@ def test_home_round_trip_question_task_list_get_delete(gw) -> None:
         assert r.status_code == 202, r.text
         eid = r.json()["episode_id"]
         hid = homes.home_id(_tenant("tok-a"), "flat-1")
-        assert _wait(lambda: any(s.episode_id == eid for s in starts))
+        assert wait_for(lambda: any(s.episode_id == eid for s in starts), 15.0)
         start = next(s for s in starts if s.episode_id == eid)
         assert start.home == hid and hid != "flat-1"  # the services see the internal id only
         plain = c.post("/v1/questions", json=Q, headers=A).json()["episode_id"]
-        assert _wait(lambda: any(s.episode_id == plain for s in starts))
+        assert wait_for(lambda: any(s.episode_id == plain for s in starts), 15.0)
         assert next(s for s in starts if s.episode_id == plain).home is None  # no home: no memory
     finally:
         bus.__exit__(None, None, None)

@@ -18,6 +18,7 @@ import msgpack
 import numpy as np
 import pytest
 from fleet_support import GatewayThread, wait_for
+from support.services import serving
 
 from eqa import codec, keys
 from eqa.bus import Bus
@@ -110,10 +111,7 @@ def test_sim_answers_a_start_it_cannot_take_at_once(hub_settings: Settings, sett
     errors: list[ErrorReply] = []
     with Bus(hub_settings, "gateway", "t1") as bus:
         bus.subscribe(keys.any_robot(keys.SIM_ERROR), ErrorReply, lambda _k, m: errors.append(m))
-        svc = SimService(settings)
-        svc.start()
-        try:
-            time.sleep(0.5)
+        with serving(SimService(settings)):
             t0 = time.monotonic()
             bus.publish_raw(keys.stream("r0", keys.EPISODE_START),
                             _raw_start("ep-huge", "r0", start_pose={"x": 1e308, "y": -1e308, "yaw": 0.0}))
@@ -124,8 +122,6 @@ def test_sim_answers_a_start_it_cannot_take_at_once(hub_settings: Settings, sett
             assert by_id["ep-huge"].step == 0 and "pose out of range" in by_id["ep-huge"].reason
             assert "not a scene id" in by_id["ep-nl"].reason
             assert not (settings.scenes_path / "gen-00014\n").exists()
-        finally:
-            svc.stop()
 
 
 def test_mapper_holds_at_most_its_byte_cap_of_early_frames(hub_settings: Settings, settings: Settings) -> None:
@@ -137,10 +133,7 @@ def test_mapper_holds_at_most_its_byte_cap_of_early_frames(hub_settings: Setting
     errors: list[ErrorReply] = []
     with Bus(hub_settings, "gateway", "t1") as bus:
         bus.subscribe(keys.any_robot(keys.MAPPER_ERROR), ErrorReply, lambda _k, m: errors.append(m))
-        svc = MapperService(settings)
-        svc.start()
-        try:
-            time.sleep(0.5)
+        with serving(MapperService(settings)):
             rgb = np.zeros((1500, 2000, 3), np.uint8)  # 9 MB + 12 MB of depth: 21 MB a frame
             depth = np.zeros((1500, 2000), np.float32)
             sent = [f"ep-x{i}" for i in range(8)]
@@ -150,8 +143,6 @@ def test_mapper_holds_at_most_its_byte_cap_of_early_frames(hub_settings: Setting
                                   intrinsics=np.eye(3), rgb=rgb, depth=depth))
             # 3 frames (63 MB) may wait for their start; the other 5 are refused at once (not after 30 s)
             assert wait_for(lambda: len({e.episode_id for e in errors} & set(sent)) >= 5, 15), errors
-        finally:
-            svc.stop()
 
 
 def test_a_flood_does_not_hold_up_the_end(hub_settings: Settings, settings: Settings, tmp_path) -> None:

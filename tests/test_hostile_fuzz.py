@@ -15,13 +15,10 @@ from pathlib import Path
 
 import pytest
 import schemathesis
-from fleet_support import GatewayThread
+from fleet_support import GatewayThread, lone_gateway_settings
 from hypothesis import HealthCheck, given, settings
 from hypothesis.errors import Unsatisfiable
 from schemathesis.checks import not_a_server_error, positive_data_acceptance
-
-from eqa.launcher import free_port
-from eqa.settings import Settings
 
 FUZZ_EXAMPLES = 15
 TOKEN = "fuzz-token"
@@ -30,14 +27,8 @@ AUTH = {"Authorization": f"Bearer {TOKEN}"}
 
 @pytest.fixture(scope="module")
 def fuzz_gateway(tmp_path_factory: pytest.TempPathFactory) -> Iterator[GatewayThread]:
-    s = Settings(
-        data_dir=Path(tmp_path_factory.mktemp("fuzz")) / "var",
-        zenoh_mode="peer",
-        zenoh_listen=[f"tcp/127.0.0.1:{free_port()}"],
-        zenoh_connect=[],
-        zenoh_multicast=False,
-        record=False,
-        api_tokens=[TOKEN],
+    s = lone_gateway_settings(
+        Path(tmp_path_factory.mktemp("fuzz")) / "var", [TOKEN],
         rate_limit_per_s=10_000.0,
         auth_failures_per_min=100_000.0,  # the fuzz tries requests without the token on purpose
         queue_max_per_robot=5,

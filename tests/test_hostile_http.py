@@ -21,7 +21,7 @@ from pathlib import Path
 
 import httpx
 import pytest
-from fleet_support import GatewayThread, wait_for
+from fleet_support import GatewayThread, lone_gateway_settings, wait_for
 from gateway_helpers import ADMIN, READER, SCENE, TOKENS, A, B, Q
 
 from eqa.launcher import free_port
@@ -29,18 +29,7 @@ from eqa.settings import Settings
 
 
 def gw_settings(tmp: Path, **update: object) -> Settings:
-    base = {
-        "data_dir": tmp / "var",
-        "zenoh_mode": "peer",
-        "zenoh_listen": [f"tcp/127.0.0.1:{free_port()}"],
-        "zenoh_connect": [],
-        "zenoh_multicast": False,
-        "record": False,
-        "api_tokens": TOKENS,
-        "rate_limit_per_s": 1000.0,
-        "episode_timeout_s": 3600.0,
-    }
-    return Settings(**{**base, **update})  # type: ignore[arg-type]
+    return lone_gateway_settings(tmp / "var", TOKENS, **{"episode_timeout_s": 3600.0, **update})
 
 
 @pytest.fixture(scope="module")

@@ -7,13 +7,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from support.scenes import largest_room_spot, rendered_frame
 
 from eqa.messages import EpisodeStart, Frame, Frontier, Pose2D, PromptPoint, Question
 from services.mapper.episode_map import EpisodeMap
 from services.mapper.frontiers import frontier_weight, sv_normal, weigh_frontiers
 from services.mapper.semantic_map import semantic_value, temperatures, write_values
 from services.mapper.tsdf import FrameError, TSDFVolume, check_frame
-from services.sim.camera import camera_pose, intrinsics
 from services.sim.library import load_or_generate
 from services.sim.render import Renderer
 
@@ -23,14 +23,8 @@ W, H = 160, 120
 @pytest.fixture(scope="module")
 def house(tmp_path_factory: pytest.TempPathFactory) -> tuple:
     scene = load_or_generate("gen-00007", Path(tmp_path_factory.mktemp("scenes")))
-    renderer = Renderer(scene)
     room = max(scene.rooms, key=lambda r: r.area)
-    gt, ox, oy = scene.navigable_grid(0.1)
-    rr, cc = np.nonzero(gt)
-    cx, cy = room.center
-    k = int(np.argmin((ox + (cc + 0.5) * 0.1 - cx) ** 2 + (oy + (rr + 0.5) * 0.1 - cy) ** 2))
-    start_xy = (ox + (cc[k] + 0.5) * 0.1, oy + (rr[k] + 0.5) * 0.1)
-    return scene, renderer, room, (gt, ox, oy), start_xy
+    return scene, Renderer(scene), room, scene.navigable_grid(0.1), largest_room_spot(scene)
 
 
 def make_start(strategy: str = "semantic") -> EpisodeStart:
@@ -41,33 +35,28 @@ def make_start(strategy: str = "semantic") -> EpisodeStart:
 
 
 def render_frame(renderer: Renderer, pose: Pose2D, step: int) -> Frame:
-    K = intrinsics(W, H)
-    T = camera_pose(pose)
-    r = renderer.render(T, K, W, H)
-    return Frame(
-        episode_id="ep-map", step=step, pose=pose, camera_pose=T, intrinsics=K, rgb=r.rgb, depth=r.depth
-    )
+    return rendered_frame(renderer, pose, "ep-map", step, W, H)
 
 
 @pytest.fixture(scope="module")
 def turned(house: tuple) -> tuple[EpisodeMap, list[Frame]]:
     """A 360 deg turn in place (12 views, 30 deg apart) in the largest room."""
     _, renderer, _, _, (x, y) = house
-    em = EpisodeMap(make_start())
+    episode_map = EpisodeMap(make_start())
     frames = [render_frame(renderer, Pose2D(x=x, y=y, yaw=k * math.pi / 6), k) for k in range(12)]
     for f in frames:
-        em.integrate(f)
-        em.apply_scores([0.6, 0.3, 0.1][: len(em.prompts)], 0.8)
-        em.compute_frontiers()
-    return em, frames
+        episode_map.integrate(f)
+        episode_map.apply_scores([0.6, 0.3, 0.1][: len(episode_map.prompts)], 0.8)
+        episode_map.compute_frontiers()
+    return episode_map, frames
 
 
 def gt_on_map_grid(
-    em: EpisodeMap, gt: np.ndarray, ox: float, oy: float
+    episode_map: EpisodeMap, gt: np.ndarray, ox: float, oy: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    ny, nx = em.volume.shape2d
+    ny, nx = episode_map.volume.shape2d
     rows, cols = np.mgrid[0:ny, 0:nx]
-    X, Y = em.volume.cell_center(rows, cols)
+    X, Y = episode_map.volume.cell_center(rows, cols)
     gc = np.floor((X - ox) / 0.1 + 1e-6).astype(int)
     gr = np.floor((Y - oy) / 0.1 + 1e-6).astype(int)
     inside = (gc >= 0) & (gc < gt.shape[1]) & (gr >= 0) & (gr < gt.shape[0])
@@ -78,12 +67,12 @@ def gt_on_map_grid(
 
 def test_free_space_matches_floor_plan_after_turn(house: tuple, turned: tuple) -> None:
     _, _, room, (gt, ox, oy), (x, y) = house
-    em, _ = turned
-    g, X, Y = gt_on_map_grid(em, gt, ox, oy)
+    episode_map, _ = turned
+    g, X, Y = gt_on_map_grid(episode_map, gt, ox, oy)
     x0, y0, x1, y1 = room.rect
     # within view range: the robot's own room, up to 4 m away
     view = (np.hypot(X - x, Y - y) <= 4.0) & (x0 <= X) & (x1 >= X) & (y0 <= Y) & (y1 >= Y)
-    free = em.maps.free & view
+    free = episode_map.maps.free & view
     truth = g & view
     iou = (free & truth).sum() / (free | truth).sum()
     assert truth.sum() > 1000
@@ -91,23 +80,24 @@ def test_free_space_matches_floor_plan_after_turn(house: tuple, turned: tuple) -
 
 
 def test_explored_subset_of_observed_and_narrower(turned: tuple) -> None:
-    em, _ = turned
-    m = em.maps
+    episode_map, _ = turned
+    m = episode_map.maps
     assert m.explored.any()
     assert not (m.explored & ~m.observed).any()
     assert m.explored.sum() < m.observed.sum()
     # the narrow view meets the floor within 2.6 m / cos(30 deg) (optical axis 30 deg down from 1.5 m,
     # +-30 deg azimuth), plus the truncation band behind the floor; the full view sees the whole room
     # (4.35 m to the walls)
-    rows, cols = np.nonzero(m.explored & ~em.volume.planes["traversed"])
-    xs, ys = em.volume.cell_center(rows, cols)
-    assert np.hypot(xs - em.pose.x, ys - em.pose.y).max() < 2.6 / math.cos(math.radians(30)) + 0.5 + 0.2
+    rows, cols = np.nonzero(m.explored & ~episode_map.volume.planes["traversed"])
+    xs, ys = episode_map.volume.cell_center(rows, cols)
+    pose = episode_map.pose
+    assert np.hypot(xs - pose.x, ys - pose.y).max() < 2.6 / math.cos(math.radians(30)) + 0.5 + 0.2
 
 
 def test_frontier_normals_point_into_unknown(turned: tuple) -> None:
-    em, _ = turned
-    m = em.maps
-    assert len(em.frontiers) >= 3
+    episode_map, _ = turned
+    m = episode_map.maps
+    assert len(episode_map.frontiers) >= 3
     unknown = ~m.explored & ~m.occupied
 
     def unknown_fraction(f: Frontier, sign: float) -> float:
@@ -116,36 +106,36 @@ def test_frontier_normals_point_into_unknown(turned: tuple) -> None:
         hits = []
         for a in np.linspace(base - math.pi / 4, base + math.pi / 4, 7):
             for d in np.arange(0.3, 1.01, 0.1):
-                r, c = em.volume.cell_of(f.x + d * math.cos(a), f.y + d * math.sin(a))
+                r, c = episode_map.volume.cell_of(f.x + d * math.cos(a), f.y + d * math.sin(a))
                 hits.append(bool(unknown[r, c]))
         return float(np.mean(hits))
 
     into_unknown = 0
-    for f in em.frontiers:
-        r, c = em.volume.cell_of(f.x, f.y)
+    for f in episode_map.frontiers:
+        r, c = episode_map.volume.cell_of(f.x, f.y)
         assert m.free[r, c] and m.explored[r, c]
         assert math.isclose(math.hypot(f.nx, f.ny), 1.0, rel_tol=1e-6)
         ahead, behind = unknown_fraction(f, 1.0), unknown_fraction(f, -1.0)
         into_unknown += ahead > behind
-    assert into_unknown == len(em.frontiers)
+    assert into_unknown == len(episode_map.frontiers)
 
 
 def test_prompt_points_in_free_space_inside_image(turned: tuple) -> None:
-    em, frames = turned
-    assert 1 <= len(em.prompts) <= 3
-    assert [p.label for p in em.prompts] == ["A", "B", "C"][: len(em.prompts)]
+    episode_map, frames = turned
+    assert 1 <= len(episode_map.prompts) <= 3
+    assert [p.label for p in episode_map.prompts] == ["A", "B", "C"][: len(episode_map.prompts)]
     t = frames[-1].camera_pose[:3, 3]
-    for p in em.prompts:
-        r, c = em.volume.cell_of(p.x, p.y)
-        assert em.maps.free[r, c]
+    for p in episode_map.prompts:
+        r, c = episode_map.volume.cell_of(p.x, p.y)
+        assert episode_map.maps.free[r, c]
         assert 0 <= p.u <= W - 1 and 0 <= p.v <= H - 1
         assert 2.0 <= math.hypot(p.x - t[0], p.y - t[1]) <= 10.0
         # the pixel really looks at that floor point: back-project with the depth there
         K = frames[-1].intrinsics
         pc = frames[-1].camera_pose[:3, :3].T @ (np.array([p.x, p.y, 0.0]) - t)
         assert abs(K[0, 0] * pc[0] / pc[2] + K[0, 2] - p.u) < 1e-6
-    for a in em.prompts:
-        for b in em.prompts:
+    for a in episode_map.prompts:
+        for b in episode_map.prompts:
             if a is not b:
                 assert math.hypot(a.x - b.x, a.y - b.y) >= 1.0
 
@@ -187,17 +177,18 @@ def test_eq_a6_by_hand_on_small_grid() -> None:
 
 
 def test_semantic_values_raise_weights_of_frontiers_facing_them(turned: tuple) -> None:
-    em, _ = turned
+    episode_map, _ = turned
     # write a strong value 2 m beyond one frontier, along its normal, into a fresh layer
-    f = max(em.frontiers, key=lambda fr: fr.size)
-    before = {(g.x, g.y): g.weight for g in em.frontiers}
-    layer = em.layer()
+    f = max(episode_map.frontiers, key=lambda fr: fr.size)
+    before = {(g.x, g.y): g.weight for g in episode_map.frontiers}
+    layer = episode_map.layer()
     layer[:] = 0.0
     write_values(
-        layer, em.origin, em.resolution, [(f.x + 2.0 * f.nx, f.y + 2.0 * f.ny)], [semantic_value(1, 1, 1, 1)]
+        layer, episode_map.origin, episode_map.resolution, [(f.x + 2.0 * f.nx, f.y + 2.0 * f.ny)],
+        [semantic_value(1, 1, 1, 1)],
     )
-    em.compute_frontiers()
-    after = {(g.x, g.y): g for g in em.frontiers}
+    episode_map.compute_frontiers()
+    after = {(g.x, g.y): g for g in episode_map.frontiers}
     assert after[(f.x, f.y)].sv_normal > 0.5
     others = [g for k, g in after.items() if math.hypot(k[0] - f.x, k[1] - f.y) > 4.0]
     assert others and all(after[(f.x, f.y)].weight > g.weight for g in others)
@@ -224,11 +215,11 @@ def test_strategies_write_values_accordingly(house: tuple) -> None:
     frame = render_frame(renderer, Pose2D(x=x, y=y, yaw=0.3), 0)
     peaks = {}
     for strategy in ("semantic", "no_lsv", "no_gsv", "fbe"):
-        em = EpisodeMap(make_start(strategy))
-        em.integrate(frame)
-        sv = em.apply_scores([1.0] + [0.0] * (len(em.prompts) - 1), 0.5)
-        em.compute_frontiers()
-        peaks[strategy] = (sv, float(em.layer().max()), [f.weight for f in em.frontiers])
+        episode_map = EpisodeMap(make_start(strategy))
+        episode_map.integrate(frame)
+        sv = episode_map.apply_scores([1.0] + [0.0] * (len(episode_map.prompts) - 1), 0.5)
+        episode_map.compute_frontiers()
+        peaks[strategy] = (sv, float(episode_map.layer().max()), [f.weight for f in episode_map.frontiers])
     assert peaks["semantic"][0][0] == pytest.approx(math.exp(1.0 + 0.5))
     assert peaks["no_lsv"][0][0] == pytest.approx(math.exp(0.5))
     assert peaks["no_gsv"][0][0] == pytest.approx(math.exp(1.0))
@@ -242,9 +233,10 @@ def test_strategies_write_values_accordingly(house: tuple) -> None:
 )
 def test_bad_frames_rejected_map_unchanged(house: tuple, breakage: str) -> None:
     _, renderer, _, _, (x, y) = house
-    em = EpisodeMap(make_start())
-    em.integrate(render_frame(renderer, Pose2D(x=x, y=y, yaw=0.0), 0))
-    tsdf, weight, explored = em.volume.tsdf.copy(), em.volume.weight.copy(), em.volume.explored.copy()
+    episode_map = EpisodeMap(make_start())
+    episode_map.integrate(render_frame(renderer, Pose2D(x=x, y=y, yaw=0.0), 0))
+    vol = episode_map.volume
+    tsdf, weight, explored = vol.tsdf.copy(), vol.weight.copy(), vol.explored.copy()
     bad = render_frame(renderer, Pose2D(x=x, y=y, yaw=1.0), 1)
     if breakage == "size":
         bad.depth = np.ascontiguousarray(bad.depth[:, : W // 2])
@@ -263,10 +255,10 @@ def test_bad_frames_rejected_map_unchanged(house: tuple, breakage: str) -> None:
         bad.camera_pose = bad.camera_pose.copy()
         bad.camera_pose[3, 0] = 0.5
     with pytest.raises(FrameError):
-        em.integrate(bad)
-    assert em.step == 0
-    assert np.array_equal(em.volume.tsdf, tsdf) and np.array_equal(em.volume.weight, weight)
-    assert np.array_equal(em.volume.explored, explored)
+        episode_map.integrate(bad)
+    assert episode_map.step == 0
+    assert np.array_equal(episode_map.volume.tsdf, tsdf) and np.array_equal(episode_map.volume.weight, weight)
+    assert np.array_equal(episode_map.volume.explored, explored)
 
 
 def test_check_frame_accepts_inf_as_no_hit(house: tuple) -> None:
@@ -278,15 +270,15 @@ def test_check_frame_accepts_inf_as_no_hit(house: tuple) -> None:
 
 
 def test_snapshot_roundtrip_is_exact(turned: tuple) -> None:
-    em, _ = turned
-    back = EpisodeMap.restore(em.snapshot())
-    assert back.step == em.step and back.pose == em.pose and back.start == em.start
-    assert np.array_equal(back.volume.tsdf, em.volume.tsdf)
-    assert np.array_equal(back.volume.weight, em.volume.weight)
-    assert np.array_equal(back.volume.explored, em.volume.explored)
-    assert np.array_equal(back.layer(), em.layer())
-    assert np.array_equal(back.maps.free, em.maps.free)
-    assert back.frontiers == em.frontiers and back.prompts == em.prompts
+    episode_map, _ = turned
+    back = EpisodeMap.restore(episode_map.snapshot())
+    assert back.step == episode_map.step and back.pose == episode_map.pose and back.start == episode_map.start
+    assert np.array_equal(back.volume.tsdf, episode_map.volume.tsdf)
+    assert np.array_equal(back.volume.weight, episode_map.volume.weight)
+    assert np.array_equal(back.volume.explored, episode_map.volume.explored)
+    assert np.array_equal(back.layer(), episode_map.layer())
+    assert np.array_equal(back.maps.free, episode_map.maps.free)
+    assert back.frontiers == episode_map.frontiers and back.prompts == episode_map.prompts
     assert isinstance(back.prompts[0], PromptPoint)
 
 

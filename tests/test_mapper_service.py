@@ -13,6 +13,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from fleet_support import wait_for
+from support.scenes import rendered_frame
+from support.services import serving
 
 from eqa import keys
 from eqa.bus import Bus
@@ -30,7 +33,6 @@ from eqa.messages import (
 from eqa.settings import Settings
 from services.mapper.episode_map import EpisodeMap
 from services.mapper.service import MapperService
-from services.sim.camera import camera_pose, intrinsics
 from services.sim.library import load_or_generate
 from services.sim.render import Renderer
 
@@ -45,20 +47,7 @@ def renderer(tmp_path_factory: pytest.TempPathFactory) -> Renderer:
 
 
 def frame(renderer: Renderer, episode_id: str, step: int, x: float = 8.75, y: float = 4.35) -> Frame:
-    pose = Pose2D(x=x, y=y, yaw=step * math.pi / 4)
-    K = intrinsics(W, H)
-    T = camera_pose(pose)
-    r = renderer.render(T, K, W, H)
-    return Frame(
-        episode_id=episode_id,
-        step=step,
-        pose=pose,
-        camera_pose=T,
-        intrinsics=K,
-        rgb=r.rgb,
-        depth=r.depth,
-        instances=r.instances,
-    )
+    return rendered_frame(renderer, Pose2D(x=x, y=y, yaw=step * math.pi / 4), episode_id, step, W, H, instances=True)
 
 
 def start_msg(episode_id: str) -> EpisodeStart:
@@ -197,10 +186,7 @@ def test_scorer_failure_is_reported_and_map_still_published(
 
     with Bus(hub_settings, "gateway") as bus:
         got = Collector(bus)
-        svc = MapperService(settings, scorer=broken)
-        svc.start()
-        try:
-            time.sleep(0.5)
+        with serving(MapperService(settings, scorer=broken)):
             bus.publish(keys.stream(ROBOT, keys.EPISODE_START), start_msg("ep-noscore"))
             bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), frame(renderer, "ep-noscore", 0))
             err = got.errors.get(timeout=15)
@@ -208,8 +194,6 @@ def test_scorer_failure_is_reported_and_map_still_published(
             m = got.maps.get(timeout=10)
             assert m.step == 0 and m.explored_area_m2 > 0
             assert got.scores.empty()
-        finally:
-            svc.stop()
 
 
 def _spawn(settings: Settings, log: Path) -> subprocess.Popen:
@@ -225,12 +209,8 @@ def _spawn(settings: Settings, log: Path) -> subprocess.Popen:
 
 
 def _wait_alive(bus: Bus, timeout: float = 30.0) -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if bus.alive(keys.alive_service("mapper"), timeout=0.5):
-            return
-        time.sleep(0.2)
-    raise TimeoutError("mapper did not come up")
+    if not wait_for(lambda: bool(bus.alive(keys.alive_service("mapper"), timeout=0.5)), timeout, every=0.2):
+        raise TimeoutError("mapper did not come up")
 
 
 def test_killed_mapper_resumes_from_snapshot(

@@ -182,16 +182,13 @@ def test_question_episode_through_the_stopper_service_with_both_settings_on(hub_
     """A counting question episode over the real bus: the stopper service (EQA_OBJECT_EVIDENCE on, answer
     memory K = 2, a table calibrated with that rule) pools the object layer's evidence into f, warns about
     nothing, stops by CP and answers the count the evidence supports."""
-    from fleet_support import wait_for
-    from test_stopper_service import Listener
+    from test_stopper_service import listened_stopper
 
     from eqa import keys
-    from eqa.bus import Bus
     from eqa.store import EmbeddedStore
     from services.stopper import synthetic
     from services.stopper.answer_memory import AnswerRule
     from services.stopper.calibration import save_table
-    from services.stopper.service import StopperService
 
     rule = AnswerRule(2)
     traces = [synthetic.to_trace(e, f"q{i}") for i, e in enumerate(synthetic.episodes(200, seed=21))]
@@ -199,27 +196,19 @@ def test_question_episode_through_the_stopper_service_with_both_settings_on(hub_
     save_table(store, calibrate(traces, [0.2], answer_rule=rule))
     store.close()
     svc_settings = settings.model_copy(update={"object_evidence": True, "answer_memory_k": 2})
-    with Bus(hub_settings, "gateway", "test") as bus:
-        lis = Listener(bus)
-        svc = StopperService(svc_settings)
-        svc.start()
-        try:
-            assert wait_for(lambda: lis.alive_instances(), timeout=10.0)
-            lis.ready()
-            rec = _rec(True)
-            start = EpisodeStart(episode_id="ep-obj", robot="r0", question=rec.question, max_steps=10,
-                                 stop=StopConfig(rule="cp", eps=0.2))
-            lis.send(keys.EPISODE_START, start)
-            vlm = [0.4, 0.3, 0.2, 0.1]
-            ev = ObjectEvidence(category="counting", psi=[0.97, 0.95], explored=1.0)
-            for t in range(10):
-                lis.send(keys.MAPPER_SCORES, StepScores(episode_id="ep-obj", step=t, answer_probs=vlm,
-                                                        relevance=0.9, object_evidence=ev, backend="test"))
-                d = lis.decision("ep-obj", t)
-                assert "answer memory memory-2-loglinear" in d.reason and "table calibrated for" not in d.reason
-                if d.stop:
-                    break
-            end = lis.end("ep-obj")
-            assert end.answer == "B" and end.correct is True  # Two: what the layer supports
-        finally:
-            svc.stop()
+    with listened_stopper(hub_settings, svc_settings) as (lis, _svc):
+        rec = _rec(True)
+        start = EpisodeStart(episode_id="ep-obj", robot="r0", question=rec.question, max_steps=10,
+                             stop=StopConfig(rule="cp", eps=0.2))
+        lis.send(keys.EPISODE_START, start)
+        vlm = [0.4, 0.3, 0.2, 0.1]
+        ev = ObjectEvidence(category="counting", psi=[0.97, 0.95], explored=1.0)
+        for t in range(10):
+            lis.send(keys.MAPPER_SCORES, StepScores(episode_id="ep-obj", step=t, answer_probs=vlm,
+                                                    relevance=0.9, object_evidence=ev, backend="test"))
+            d = lis.decision("ep-obj", t)
+            assert "answer memory memory-2-loglinear" in d.reason and "table calibrated for" not in d.reason
+            if d.stop:
+                break
+        end = lis.end("ep-obj")
+        assert end.answer == "B" and end.correct is True  # Two: what the layer supports

@@ -45,8 +45,8 @@ def _ratio(goals: queue.Queue[Goal], pub, episode: str, left: list[str]) -> floa
                                          max_steps=20, seed=5))
     frs = [Frontier(x=8.5, y=6.5, nx=1, ny=0, size=9, weight=math.exp(2.0)),
            Frontier(x=1.0, y=6.5, nx=-1, ny=0, size=9, weight=math.exp(1.0))]
-    mu = _map(0, Pose2D(x=4.5, y=3.5), frs).model_copy(update={"episode_id": episode})
-    pub(keys.MAPPER_MAP, mu)
+    update = _map(0, Pose2D(x=4.5, y=3.5), frs).model_copy(update={"episode_id": episode})
+    pub(keys.MAPPER_MAP, update)
     pub(keys.STOPPER_DECISION, _d(0, left, episode=episode))
     g = goals.get(timeout=15)
     assert g.episode_id == episode and len(g.weights) == 2

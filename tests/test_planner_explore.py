@@ -80,9 +80,9 @@ def run_fbe(seed: int) -> tuple[int, int, bool, float, float]:
         )
         emap.integrate(frame)
         frontiers = emap.compute_frontiers()
-        mu = emap.map_update()
+        update = emap.map_update()
         plan = plan_step(
-            mu.grid, mu.free, mu.occupied, mu.pose, frontiers, "fbe", memory, step_rng(seed, step)
+            update.grid, update.free, update.occupied, update.pose, frontiers, "fbe", memory, step_rng(seed, step)
         )
         if plan.done:
             done = True

@@ -11,6 +11,7 @@ import random
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 from exactly_once import StepLedger, wait_on
@@ -59,8 +60,27 @@ class Run:
             self.last[msg.episode_id] = max(msg.step, self.last.get(msg.episode_id, -1))
             self.cond.notify_all()
 
+    @classmethod
+    def watching(cls, hub: Any) -> tuple[Run, StepLedger]:
+        """A run and a step ledger subscribed to the fleet's ends, frames and step outputs through ``hub``."""
+        run, ledger = cls(), StepLedger()
+        hub.subscribe(keys.any_robot(keys.EPISODE_END), EpisodeEnd, run.on_end)
+        hub.subscribe(keys.any_robot(keys.SIM_FRAME), Frame, run.on_frame)
+        ledger.subscribe(hub)
+        return run, ledger
+
     def wait(self, pred, timeout: float) -> bool:
         return wait_on(self.cond, pred, timeout)
+
+    def start_mid_step(self, hub: Any, eid: str, steps: int, seed: int, service: str) -> None:
+        """Start a ``steps``-step episode on robot0 (max_steps rule) and return once its step 3 is sent, at a
+        moment within that step drawn from ``service`` (a kill then lands somewhere inside the step)."""
+        q = Question(text="Is there a bed in the bedroom?", choices=["Yes", "No"], scene=SCENE)
+        hub.publish(keys.stream("robot0", keys.EPISODE_START),
+                    EpisodeStart(episode_id=eid, robot="robot0", question=q, max_steps=steps,
+                                 stop=StopConfig(rule="max_steps"), seed=seed, record=False))
+        assert self.wait(lambda: self.last.get(eid, -1) >= 3, 120), self.last.get(eid)
+        time.sleep(random.Random(service).uniform(0.0, 0.15))
 
 
 @pytest.fixture(scope="module")
@@ -72,10 +92,7 @@ def fleet(tmp_path_factory: pytest.TempPathFactory, redis_url: str):
                         sim_height=120, record=False, step_resend_s=0.0, episode_timeout_s=300.0)
     load_or_generate(SCENE, settings.scenes_path)
     with Fleet(settings, services=PIPELINE, scorers=1, max_restarts=10) as f:
-        run, ledger = Run(), StepLedger()
-        f.hub.subscribe(keys.any_robot(keys.EPISODE_END), EpisodeEnd, run.on_end)
-        f.hub.subscribe(keys.any_robot(keys.SIM_FRAME), Frame, run.on_frame)
-        ledger.subscribe(f.hub)
+        run, ledger = Run.watching(f.hub)
         time.sleep(0.5)
         yield f, run, ledger
 
@@ -85,12 +102,7 @@ def test_an_episode_goes_on_after_a_kill_with_no_resend_timer(fleet, service: st
     f, run, ledger = fleet
     f.wait_alive(timeout=120)
     eid = f"redrive-{service}-{os.getpid()}-{time.time_ns()}"
-    q = Question(text="Is there a bed in the bedroom?", choices=["Yes", "No"], scene=SCENE)
-    f.hub.publish(keys.stream("robot0", keys.EPISODE_START),
-                  EpisodeStart(episode_id=eid, robot="robot0", question=q, max_steps=STEPS,
-                               stop=StopConfig(rule="max_steps"), seed=3, record=False))
-    assert run.wait(lambda: run.last.get(eid, -1) >= 3, 120), run.last.get(eid)
-    time.sleep(random.Random(service).uniform(0.0, 0.15))  # somewhere within a step
+    run.start_mid_step(f.hub, eid, STEPS, 3, service)
     before = f.child(service).proc.pid  # type: ignore[union-attr]
     f.kill(service)
     ended = run.wait(lambda: eid in run.ends, 180)
@@ -101,9 +113,4 @@ def test_an_episode_goes_on_after_a_kill_with_no_resend_timer(fleet, service: st
     # the episode may end before the killed process is replaced (a kill in its last step): bounded wait
     assert wait_for(lambda: (p := f.child(service).proc) is not None and p.pid != before, 15.0), \
         f.child(service).history
-    # the ledger's subscriptions run on their own threads: give the last decision, published right before the end,
-    # a moment to be counted (a missing one stays missing)
-    deadline = time.monotonic() + 10
-    while (problems := ledger.problems({eid: STEPS})) and time.monotonic() < deadline:
-        time.sleep(0.1)
-    assert not problems, problems
+    assert not (problems := ledger.settled_problems({eid: STEPS})), problems

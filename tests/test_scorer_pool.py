@@ -7,7 +7,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
-from scorer_helpers import frame_request, start_replica
+from scorer_helpers import frame_request, scorer_pool, start_replica
 
 from eqa import keys
 from eqa.bus import Bus
@@ -76,33 +76,26 @@ def test_kill_one_of_two_replicas_with_50_in_flight(hub_settings, settings):
 
 def test_bad_input_gets_error_replies_and_replica_keeps_serving(hub_settings, settings):
     settings = settings.model_copy(update={"scorer_replica": "solo"})
-    with Bus(hub_settings, "gateway", "client") as bus:
-        svc = ScorerService(settings)
-        svc.start()
-        try:
-            client = ScorerClient(bus, settings, timeout_s=10)
-            assert client.wait_for_replicas(1, timeout=10)
-            good = frame_request()
-            bad_shape = frame_request()
-            bad_shape.rgb = np.zeros((20, 30), np.uint8)
-            bad_dtype = frame_request()
-            bad_dtype.rgb = np.zeros((20, 30, 3), np.float32)
-            for req, words in ((bad_shape, "HxWx3"), (bad_dtype, "uint8")):
-                with pytest.raises(ScorerError, match=words) as info:
-                    client.score(req)
-                assert info.value.reply.request_id == req.request_id
-            key = keys.scorer_replica("solo")
-            empty = _ask_raw(bus, key, _raw_request(good, question__text="   "))
-            many = _ask_raw(bus, key, _raw_request(good, question__choices=[f"c{i}" for i in range(27)]))
-            garbage = _ask_raw(bus, key, b"\x00not msgpack")
-            assert isinstance(empty[0], ErrorReply) and "question text is empty" in empty[0].reason
-            assert isinstance(many[0], ErrorReply) and "between 2 and 26 choices" in many[0].reason
-            assert isinstance(garbage[0], ErrorReply) and "msgpack" in garbage[0].reason
-            res = client.score(good)  # still serving
-            assert res.replica == "solo" and res.backend == "oracle" and res.model == "simulated-perception"
-            assert len(res.lsv) == 2 and abs(sum(res.lsv) - 1) < 1e-6
-        finally:
-            svc.stop()
+    with scorer_pool(hub_settings, settings) as (client, _):
+        good = frame_request()
+        bad_shape = frame_request()
+        bad_shape.rgb = np.zeros((20, 30), np.uint8)
+        bad_dtype = frame_request()
+        bad_dtype.rgb = np.zeros((20, 30, 3), np.float32)
+        for req, words in ((bad_shape, "HxWx3"), (bad_dtype, "uint8")):
+            with pytest.raises(ScorerError, match=words) as info:
+                client.score(req)
+            assert info.value.reply.request_id == req.request_id
+        key = keys.scorer_replica("solo")
+        empty = _ask_raw(client.bus, key, _raw_request(good, question__text="   "))
+        many = _ask_raw(client.bus, key, _raw_request(good, question__choices=[f"c{i}" for i in range(27)]))
+        garbage = _ask_raw(client.bus, key, b"\x00not msgpack")
+        assert isinstance(empty[0], ErrorReply) and "question text is empty" in empty[0].reason
+        assert isinstance(many[0], ErrorReply) and "between 2 and 26 choices" in many[0].reason
+        assert isinstance(garbage[0], ErrorReply) and "msgpack" in garbage[0].reason
+        res = client.score(good)  # still serving
+        assert res.replica == "solo" and res.backend == "oracle" and res.model == "simulated-perception"
+        assert len(res.lsv) == 2 and abs(sum(res.lsv) - 1) < 1e-6
 
 
 def test_missing_or_non_vlm_model_directory_is_an_error_reply(hub_settings, settings, tmp_path):
@@ -142,23 +135,13 @@ def test_no_replica_raises_unavailable(hub_settings, settings):
 
 
 def test_least_busy_replica_spreads_concurrent_requests(hub_settings, settings):
-    with Bus(hub_settings, "gateway", "client") as bus:
-        services = [ScorerService(settings.model_copy(update={"scorer_replica": f"s{i}"})) for i in range(2)]
-        for s in services:
-            s.start()
-        try:
-            client = ScorerClient(bus, settings, timeout_s=10)
-            assert client.wait_for_replicas(2, timeout=10)
-            with ThreadPoolExecutor(8) as pool:
-                results = list(
-                    pool.map(client.score, [frame_request(step=i, h=120, w=160) for i in range(24)])
-                )
-            counts = {r: sum(res.replica == r for res in results) for r in ("s0", "s1")}
-            assert min(counts.values()) >= 4, counts
-            assert sum(s.served for s in services) == 24
-        finally:
-            for s in services:
-                s.stop()
+    replicas = [settings.model_copy(update={"scorer_replica": f"s{i}"}) for i in range(2)]
+    with scorer_pool(hub_settings, *replicas) as (client, services):
+        with ThreadPoolExecutor(8) as pool:
+            results = list(pool.map(client.score, [frame_request(step=i, h=120, w=160) for i in range(24)]))
+        counts = {r: sum(res.replica == r for res in results) for r in ("s0", "s1")}
+        assert min(counts.values()) >= 4, counts
+        assert sum(s.served for s in services) == 24
 
 
 def test_annotated_image_goes_to_the_episode_recording(settings):

@@ -15,11 +15,10 @@ import os
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
-from exactly_once import StepLedger
+from exactly_once import Ends, StepLedger
 from fleet_support import wait_for
 
 from eqa import keys
@@ -33,16 +32,6 @@ REPO = Path(__file__).resolve().parents[1]
 ROBOTS = [f"shard{i}" for i in range(6)]
 STEPS = 8
 SCENE = "gen-00001"
-
-
-class Ends:
-    def __init__(self) -> None:
-        self.ends: dict[str, EpisodeEnd] = {}
-        self.lock = threading.Lock()
-
-    def __call__(self, _key: str, msg: EpisodeEnd) -> None:
-        with self.lock:
-            self.ends.setdefault(msg.episode_id, msg)
 
 
 def test_every_step_once_with_several_instances_through_kills_and_a_join(tmp_path: Path, redis_url: str):

@@ -12,11 +12,11 @@ from __future__ import annotations
 
 import json
 import threading
-import time
 
 import numpy as np
 import pytest
 from fleet_support import wait_for
+from support.services import serving
 
 from eqa import keys
 from eqa.bus import Bus
@@ -240,10 +240,7 @@ def test_sim_service_renders_a_changed_house(hub_settings, settings, houses) -> 
         bus.subscribe(keys.any_robot(keys.SIM_FRAME), Frame, on_frame)
         errors: list[ErrorReply] = []
         bus.subscribe(keys.any_robot(keys.SIM_ERROR), ErrorReply, lambda _k, m: errors.append(m))
-        svc = SimService(settings)
-        svc.start()
-        try:
-            time.sleep(0.5)
+        with serving(SimService(settings)):
             for ep, robot, scene in (("ep-c2", "r0", "gen-00042-c2"), ("ep-base", "r1", BASE),
                                      ("ep-bad", "r2", f"gen-00042-c{MAX_ROUNDS + 1}")):
                 q = Question(text="Where is the black trash can?", choices=["In the hallway", "In the bedroom"],
@@ -251,8 +248,6 @@ def test_sim_service_renders_a_changed_house(hub_settings, settings, houses) -> 
                 bus.publish(keys.stream(robot, keys.EPISODE_START),
                             EpisodeStart(episode_id=ep, robot=robot, question=q, max_steps=5, seed=1, record=False))
             assert wait_for(lambda: len(frames) >= 2 and errors, timeout=60.0)
-        finally:
-            svc.stop()
     assert [(e.episode_id, e.step) for e in errors] == [("ep-bad", 0)] and "rounds of changes" in errors[0].reason
     assert "ep-bad" not in frames
     changed, base = frames["ep-c2"], frames["ep-base"]

@@ -8,6 +8,7 @@ import time
 
 import numpy as np
 from fleet_support import wait_for
+from support.services import serving
 
 from eqa import keys
 from eqa.bus import Bus
@@ -42,10 +43,7 @@ def test_sim_service_serves_frames_and_refuses_bad_input(hub_settings, settings)
 
         bus.subscribe(keys.any_robot(keys.SIM_FRAME), Frame, on_frame)
         bus.subscribe(keys.any_robot(keys.SIM_ERROR), ErrorReply, lambda k, m: errors.append((keys.robot_of(k), m)))
-        svc = SimService(settings)
-        svc.start()
-        try:
-            time.sleep(0.5)
+        with serving(SimService(settings)):
             # unknown scene and a mesh that does not parse: error replies naming the problem
             bus.publish(keys.stream("r1", keys.EPISODE_START), _start("ep-bad", "r1", "no-such-scene"))
             bus.publish(keys.stream("r2", keys.EPISODE_START), _start("ep-broken", "r2", "broken"))
@@ -87,8 +85,6 @@ def test_sim_service_serves_frames_and_refuses_bad_input(hub_settings, settings)
             f1 = next(f for r, f in frames if r == "r0" and f.step == 1)
             assert f1.pose == good
             assert len([1 for r, f in frames if r == "r0"]) == 2  # nothing rendered for the refused goals
-        finally:
-            svc.stop()
 
 
 def test_a_restarted_sim_continues_the_episode_at_the_next_goal(hub_settings, settings) -> None:
@@ -104,10 +100,7 @@ def test_a_restarted_sim_continues_the_episode_at_the_next_goal(hub_settings, se
             assert wait_for(lambda: len(frames) == 1, timeout=15.0)
         finally:
             first.stop()  # the process is gone: everything in memory is lost
-        second = SimService(settings)
-        second.start()
-        try:
-            time.sleep(0.5)
+        with serving(SimService(settings)):
             goal = sample_start_pose(scene, np.random.default_rng(11), 0.5)
             bus.publish(keys.stream("r0", keys.PLANNER_GOAL), Goal(episode_id="ep-rs", step=0, pose=goal))
             assert wait_for(lambda: any(f.step == 1 for f in frames), timeout=15.0)
@@ -116,8 +109,6 @@ def test_a_restarted_sim_continues_the_episode_at_the_next_goal(hub_settings, se
             assert [(f.episode_id, f.step) for f in again] == [("ep-rs", 0)] * len(again)
             assert f1.episode_id == "ep-rs" and f1.step == 1
             assert (f1.pose.x, f1.pose.y) == (goal.x, goal.y) and f1.scene == SCENE
-        finally:
-            second.stop()
 
 
 def test_a_restarted_sim_sends_stored_steps_again_but_not_ended_episodes(hub_settings, settings) -> None:

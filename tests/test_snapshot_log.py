@@ -7,20 +7,19 @@ a restart mid-episode (the restored map goes on, its saves continue the log).
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np
 import pytest
+from support.scenes import free_cell_walk, rendered_frame
 
 from eqa.codec import unpackb
 from eqa.episode_service import EpisodeService, StateParts
-from eqa.messages import EpisodeStart, Frame, Pose2D, Question
+from eqa.messages import EpisodeStart, Frame, Question
 from eqa.settings import Settings
 from eqa.store import EmbeddedStore, episode_part_key, episode_state_key
 from services.mapper import snapshots
 from services.mapper.episode_map import EpisodeMap
-from services.sim.camera import camera_pose, intrinsics
 from services.sim.library import load_or_generate
 from services.sim.render import Renderer
 
@@ -32,18 +31,8 @@ def frames(tmp_path_factory: pytest.TempPathFactory) -> list[Frame]:
     """A walk through the house's free cells that turns as it goes: the grid grows several times."""
     scene = load_or_generate("gen-00007", Path(tmp_path_factory.mktemp("scenes")))
     renderer = Renderer(scene)
-    gt, ox, oy = scene.navigable_grid(0.1)
-    rr, cc = np.nonzero(gt)
-    rng = np.random.default_rng(5)
-    K = intrinsics(W, H)
-    out = []
-    for step, k in enumerate(rng.choice(len(rr), size=24, replace=False)):
-        pose = Pose2D(x=float(ox + (cc[k] + 0.5) * 0.1), y=float(oy + (rr[k] + 0.5) * 0.1), yaw=step * 1.1 % math.tau)
-        T = camera_pose(pose)
-        r = renderer.render(T, K, W, H)
-        out.append(Frame(episode_id="ep-snap", step=step, pose=pose, camera_pose=T, intrinsics=K, rgb=r.rgb,
-                         depth=r.depth))
-    return out
+    return [rendered_frame(renderer, pose, "ep-snap", step, W, H)
+            for step, pose in enumerate(free_cell_walk(scene, 24, seed=5, turn_rad=1.1))]
 
 
 def make_map() -> EpisodeMap:
@@ -51,10 +40,10 @@ def make_map() -> EpisodeMap:
     return EpisodeMap(EpisodeStart(episode_id="ep-snap", robot="r0", question=q, max_steps=30))
 
 
-def step(em: EpisodeMap, f: Frame) -> None:
-    em.integrate(f)
-    em.apply_scores([0.6, 0.3, 0.1, 0.5][: len(em.prompts)], 0.7)
-    em.compute_frontiers()
+def step(episode_map: EpisodeMap, f: Frame) -> None:
+    episode_map.integrate(f)
+    episode_map.apply_scores([0.6, 0.3, 0.1, 0.5][: len(episode_map.prompts)], 0.7)
+    episode_map.compute_frontiers()
 
 
 def assert_same(a: EpisodeMap, b: EpisodeMap) -> None:
@@ -81,10 +70,10 @@ class Parts:
         self.shape: tuple[int, int] | None = None
         self.grew_in_delta = False
 
-    def save(self, em: EpisodeMap, compact_every: int) -> int:
+    def save(self, episode_map: EpisodeMap, compact_every: int) -> int:
         before = self.shape
-        header, write, delete = snapshots.snapshot_step(em, compact_every)
-        self.shape = em.volume.shape2d
+        header, write, delete = snapshots.snapshot_step(episode_map, compact_every)
+        self.shape = episode_map.volume.shape2d
         self.grew_in_delta |= before not in (None, self.shape) and not any(n.startswith("f") for n in write)
         self.parts.update(write)
         self.header = header
@@ -98,18 +87,18 @@ class Parts:
 
 
 def test_restore_equals_live_every_step_with_compaction(frames: list[Frame]) -> None:
-    em, store = make_map(), Parts()
+    episode_map, store = make_map(), Parts()
     shapes, sizes = set(), []
     for f in frames:
-        step(em, f)
-        sizes.append(store.save(em, compact_every=5))
-        shapes.add(em.volume.shape2d)
-        assert_same(store.restore(), em)
+        step(episode_map, f)
+        sizes.append(store.save(episode_map, compact_every=5))
+        shapes.add(episode_map.volume.shape2d)
+        assert_same(store.restore(), episode_map)
         assert len(store.parts) <= 1 + 5  # obsolete parts are deleted: one full part and its deltas
     assert len(shapes) > 1, "the walk should make the grid grow"
     assert store.grew_in_delta, "a delta should have been taken on a grown grid (replay pads)"
     assert store.fulls >= 24 // 6
-    full = len(em.snapshot())
+    full = len(episode_map.snapshot())
     assert min(sizes) < full / 2  # a delta step writes much less than the whole map
 
 
@@ -129,17 +118,17 @@ def test_restart_mid_episode_continues_the_log(frames: list[Frame]) -> None:
 
 
 def test_whole_map_snapshot_still_restores(frames: list[Frame]) -> None:
-    em = make_map()
+    episode_map = make_map()
     for f in frames[:3]:
-        step(em, f)
-    assert_same(snapshots.restore(em.snapshot(), lambda name: b""), em)
+        step(episode_map, f)
+    assert_same(snapshots.restore(episode_map.snapshot(), lambda name: b""), episode_map)
 
 
 def test_bad_parts_are_refused(frames: list[Frame]) -> None:
-    em, store = make_map(), Parts()
+    episode_map, store = make_map(), Parts()
     for k, f in enumerate([*frames[:2], frames[1], frames[1]]):  # the same view again: a small delta
-        step(em, f.model_copy(update={"step": k}))
-        store.save(em, compact_every=50)
+        step(episode_map, f.model_copy(update={"step": k}))
+        store.save(episode_map, compact_every=50)
     delta = next(n for n in store.parts if n.startswith("d"))
     store.parts.pop(delta)
     with pytest.raises(KeyError):

@@ -7,19 +7,16 @@ through the promoted process's re-drive."""
 from __future__ import annotations
 
 import os
-import random
 import subprocess
 import sys
 import time
 
 import pytest
-from exactly_once import StepLedger
 from fleet_support import wait_for
 from test_redrive import SCENE, Run
 
 from eqa import keys, standby
 from eqa.launcher import PIPELINE, Fleet
-from eqa.messages import EpisodeEnd, EpisodeStart, Frame, Question, StopConfig
 from eqa.settings import Settings
 
 STEPS = 10
@@ -35,10 +32,7 @@ def fleet(tmp_path_factory: pytest.TempPathFactory, redis_url: str):
                         sim_height=120, record=False, step_resend_s=0.0, episode_timeout_s=300.0, standby=True)
     load_or_generate(SCENE, settings.scenes_path)
     with Fleet(settings, services=PIPELINE, scorers=1, max_restarts=10) as f:
-        run, ledger = Run(), StepLedger()
-        f.hub.subscribe(keys.any_robot(keys.EPISODE_END), EpisodeEnd, run.on_end)
-        f.hub.subscribe(keys.any_robot(keys.SIM_FRAME), Frame, run.on_frame)
-        ledger.subscribe(f.hub)
+        run, ledger = Run.watching(f.hub)
         f.wait_standbys(timeout=180)
         yield f, run, ledger
 
@@ -64,12 +58,7 @@ def test_a_kill_is_answered_by_the_standby_and_every_step_is_made_once(fleet, se
     f.wait_standbys(timeout=180)
     spare_pid = f.standbys[service].proc.pid
     eid = f"standby-{service}-{os.getpid()}-{time.time_ns()}"
-    q = Question(text="Is there a bed in the bedroom?", choices=["Yes", "No"], scene=SCENE)
-    f.hub.publish(keys.stream("robot0", keys.EPISODE_START),
-                  EpisodeStart(episode_id=eid, robot="robot0", question=q, max_steps=STEPS,
-                               stop=StopConfig(rule="max_steps"), seed=5, record=False))
-    assert run.wait(lambda: run.last.get(eid, -1) >= 3, 120), run.last.get(eid)
-    time.sleep(random.Random(service).uniform(0.0, 0.15))  # somewhere within a step
+    run.start_mid_step(f.hub, eid, STEPS, 5, service)
     child = f.child(service)
     killed = child.proc.pid  # type: ignore[union-attr]
     f.kill(service)
@@ -83,10 +72,7 @@ def test_a_kill_is_answered_by_the_standby_and_every_step_is_made_once(fleet, se
     assert spare_pid != killed  # the standby took the instance's place
     assert f"standby pid {spare_pid} promoted" in child.history
     assert f"promoted to instance {child.instance}" in child.log_path.read_text(errors="replace")
-    deadline = time.monotonic() + 10  # the last decision is counted on the ledger's own thread
-    while (problems := ledger.problems({eid: STEPS})) and time.monotonic() < deadline:
-        time.sleep(0.1)
-    assert not problems, problems
+    assert not (problems := ledger.settled_problems({eid: STEPS})), problems
     f.wait_standbys(timeout=180)  # a new standby, a new process
     assert f.standbys[service].proc.pid not in (spare_pid, killed)
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -138,12 +139,9 @@ def _scores(eid: str, step: int, probs: list[float], rel: float) -> StepScores:
     return StepScores(episode_id=eid, step=step, answer_probs=probs, relevance=rel, backend="test")
 
 
-@pytest.fixture
-def running(hub_settings: Settings, settings: Settings) -> Iterator[tuple[Listener, StopperService, Settings]]:
-    svc_settings = settings.model_copy(update={"record": True})
-    store = EmbeddedStore(settings.data_dir / "store.sqlite")
-    save_table(store, _table())
-    store.close()
+@contextlib.contextmanager
+def listened_stopper(hub_settings: Settings, svc_settings: Settings) -> Iterator[tuple[Listener, StopperService]]:
+    """An in-process stopper with ``svc_settings`` and a :class:`Listener` it answers end to end."""
     with Bus(hub_settings, "gateway", "test") as bus:
         listener = Listener(bus)
         svc = StopperService(svc_settings)
@@ -151,9 +149,19 @@ def running(hub_settings: Settings, settings: Settings) -> Iterator[tuple[Listen
         try:
             assert wait_for(lambda: listener.alive_instances(), timeout=10.0)
             listener.ready()
-            yield listener, svc, svc_settings
+            yield listener, svc
         finally:
             svc.stop()
+
+
+@pytest.fixture
+def running(hub_settings: Settings, settings: Settings) -> Iterator[tuple[Listener, StopperService, Settings]]:
+    svc_settings = settings.model_copy(update={"record": True})
+    store = EmbeddedStore(settings.data_dir / "store.sqlite")
+    save_table(store, _table())
+    store.close()
+    with listened_stopper(hub_settings, svc_settings) as (listener, svc):
+        yield listener, svc, svc_settings
 
 
 def test_cp_episode_stops_when_one_answer_is_left(running: tuple[Listener, StopperService, Settings]) -> None:

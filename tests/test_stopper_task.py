@@ -39,6 +39,9 @@ def test_a_task_episode_ends_on_the_planners_done_with_its_metrics(hub_settings:
         svc = StopperService(settings)
         svc.start()
         try:
+            # the first messages wait until this bus sees the stopper's liveliness token, which it declares after
+            # its subscriptions (published at once, they could reach no subscriber on a loaded machine)
+            assert wait_for(lambda: bool(bus.alive(keys.alive_service("stopper"), timeout=0.5)), timeout=15.0)
             # the sim writes the metrics before its first frame; scores of two steps, then the planner's done
             store.set_json(task_metrics_key("ep-t1"), {"SR": 1.0, "SPL": 0.8, "collisions": 0.0})
             bus.publish(keys.stream(ROBOT, keys.EPISODE_START), _task_start("ep-t1"))

@@ -76,10 +76,10 @@ def test_planner_task_goals_from_map_updates_and_a_restart() -> None:
     assert (goal.skill, goal.target, goal.phase) == ("pick", 20, "picking")  # 2.2 m: arrives in one step
     assert decode(encode(goal)) == goal
     saved = json.loads(json.dumps(planner.to_json()))
-    mu = _map(1, goal.pose, [_mug(0.6)], SkillReport(skill="pick", success=True, target=20, reason="picked"))
-    g1, _ = planner.goal("ep-t", mu, Memory(), rng)
+    update = _map(1, goal.pose, [_mug(0.6)], SkillReport(skill="pick", success=True, target=20, reason="picked"))
+    g1, _ = planner.goal("ep-t", update, Memory(), rng)
     restarted = PlannerTask.from_json(saved)
-    g2, _ = restarted.goal("ep-t", mu, Memory(), np.random.default_rng(0))
+    g2, _ = restarted.goal("ep-t", update, Memory(), np.random.default_rng(0))
     assert planner.machine.holding and restarted.machine.holding
     assert (g1.done, g1.reason) == (g2.done, g2.reason) and g1.phase == g2.phase
     assert g1.done and "no frontier" in g1.reason  # holding, no goal receptacle seen, nothing to explore

@@ -3,11 +3,11 @@ across grid growth; the change stamps mark exactly the columns whose voxels chan
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np
 import pytest
+from support.scenes import free_cell_walk
 
 from eqa.messages import Pose2D
 from services.mapper.projection import project
@@ -23,13 +23,9 @@ W, H = 160, 120
 def views(tmp_path_factory: pytest.TempPathFactory) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, Pose2D]]:
     scene = load_or_generate("gen-00007", Path(tmp_path_factory.mktemp("scenes")))
     renderer = Renderer(scene)
-    gt, ox, oy = scene.navigable_grid(0.1)
-    rr, cc = np.nonzero(gt)
-    rng = np.random.default_rng(3)
     K = intrinsics(W, H)
     out = []
-    for step, k in enumerate(rng.choice(len(rr), size=16, replace=False)):
-        pose = Pose2D(x=float(ox + (cc[k] + 0.5) * 0.1), y=float(oy + (rr[k] + 0.5) * 0.1), yaw=step * 2.3 % math.tau)
+    for pose in free_cell_walk(scene, 16, seed=3, turn_rad=2.3):
         T = camera_pose(pose)
         out.append((renderer.render(T, K, W, H).depth, K, T, pose))
     return out

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from pydantic import ValidationError
+from support.scenes import largest_room_spot, rendered_frame
 
 from eqa.messages import EpisodeStart, Frame, Pose2D, Question
 from eqa.settings import Settings
@@ -26,7 +27,6 @@ from services.mapper.semantic_map import (
     write_values,
     write_values_binned,
 )
-from services.sim.camera import camera_pose, intrinsics
 from services.sim.library import load_or_generate
 from services.sim.render import Renderer
 
@@ -111,13 +111,7 @@ def test_agree_one_is_the_layer_without_bins_bit_for_bit() -> None:
 @pytest.fixture(scope="module")
 def house(tmp_path_factory: pytest.TempPathFactory) -> tuple:
     scene = load_or_generate("gen-00007", Path(tmp_path_factory.mktemp("scenes")))
-    renderer = Renderer(scene)
-    room = max(scene.rooms, key=lambda r: r.area)
-    gt, ox, oy = scene.navigable_grid(0.1)
-    rr, cc = np.nonzero(gt)
-    cx, cy = room.center
-    k = int(np.argmin((ox + (cc + 0.5) * 0.1 - cx) ** 2 + (oy + (rr + 0.5) * 0.1 - cy) ** 2))
-    return renderer, (ox + (cc[k] + 0.5) * 0.1, oy + (rr[k] + 0.5) * 0.1)
+    return Renderer(scene), largest_room_spot(scene)
 
 
 def _start() -> EpisodeStart:
@@ -126,18 +120,16 @@ def _start() -> EpisodeStart:
 
 
 def _frame(renderer: Renderer, pose: Pose2D, step: int) -> Frame:
-    K, T = intrinsics(W, H), camera_pose(pose)
-    r = renderer.render(T, K, W, H)
-    return Frame(episode_id="ep-vb", step=step, pose=pose, camera_pose=T, intrinsics=K, rgb=r.rgb, depth=r.depth)
+    return rendered_frame(renderer, pose, "ep-vb", step, W, H)
 
 
 def _turn(renderer: Renderer, xy: tuple[float, float], config: MapperConfig, n: int = 6) -> EpisodeMap:
-    em = EpisodeMap(_start(), config)
+    episode_map = EpisodeMap(_start(), config)
     for k in range(n):
-        em.integrate(_frame(renderer, Pose2D(x=xy[0], y=xy[1], yaw=k * math.pi / 3), k))
-        em.apply_scores([0.1, 0.6, 0.3][: len(em.prompts)], 0.7)
-        em.compute_frontiers()
-    return em
+        episode_map.integrate(_frame(renderer, Pose2D(x=xy[0], y=xy[1], yaw=k * math.pi / 3), k))
+        episode_map.apply_scores([0.1, 0.6, 0.3][: len(episode_map.prompts)], 0.7)
+        episode_map.compute_frontiers()
+    return episode_map
 
 
 def test_off_by_default_and_on_changes_only_the_values(house: tuple) -> None:
@@ -157,29 +149,30 @@ def test_a_real_view_writes_the_bins_it_looks_through(house: tuple) -> None:
     front, so with 8 bins only the sectors within 60 deg of east (6, 7, 0, 1) hold values: exactly the
     sectors of the points' bearings."""
     renderer, xy = house
-    em = EpisodeMap(_start(), MapperConfig(view_bins=8, view_agree=2))
-    em.integrate(_frame(renderer, Pose2D(x=xy[0], y=xy[1], yaw=0.0), 0))
-    assert em.prompts, "the test house must show free floor ahead"
-    em.apply_scores([1.0 / len(em.prompts)] * len(em.prompts), 0.5)
-    written = {b for b, name in enumerate(view_plane_names("question", 8)[:-1]) if em.volume.planes[name].any()}
+    episode_map = EpisodeMap(_start(), MapperConfig(view_bins=8, view_agree=2))
+    episode_map.integrate(_frame(renderer, Pose2D(x=xy[0], y=xy[1], yaw=0.0), 0))
+    assert episode_map.prompts, "the test house must show free floor ahead"
+    episode_map.apply_scores([1.0 / len(episode_map.prompts)] * len(episode_map.prompts), 0.5)
+    planes = episode_map.volume.planes
+    written = {b for b, name in enumerate(view_plane_names("question", 8)[:-1]) if planes[name].any()}
     assert written and written <= {6, 7, 0, 1}, written
-    bearings = [math.atan2(p.y - xy[1], p.x - xy[0]) for p in em.prompts]
+    bearings = [math.atan2(p.y - xy[1], p.x - xy[0]) for p in episode_map.prompts]
     assert written == {math.floor((a % (2 * math.pi)) / (math.pi / 4)) for a in bearings}
 
 
 def test_snapshot_round_trip_carries_the_bins(house: tuple) -> None:
     renderer, xy = house
     config = MapperConfig(view_bins=4, view_agree=2)
-    em = _turn(renderer, xy, config, n=4)
-    back = EpisodeMap.restore(em.snapshot(), config)
+    episode_map = _turn(renderer, xy, config, n=4)
+    back = EpisodeMap.restore(episode_map.snapshot(), config)
     for name in [*view_plane_names("question", 4), "value/question"]:
-        assert np.array_equal(back.volume.planes[name], em.volume.planes[name]), name
+        assert np.array_equal(back.volume.planes[name], episode_map.volume.planes[name]), name
     # the restored map goes on exactly as the original: the same next step gives the same layer
     f = _frame(renderer, Pose2D(x=xy[0], y=xy[1], yaw=4 * math.pi / 3), 4)
-    for m in (em, back):
+    for m in (episode_map, back):
         m.integrate(f)
         m.apply_scores([0.2, 0.2, 0.6][: len(m.prompts)], 0.4)
-    assert np.array_equal(back.layer(), em.layer())
+    assert np.array_equal(back.layer(), episode_map.layer())
     assert any(back.volume.planes[n].any() for n in view_plane_names("question", 4)[:-1])
 
 

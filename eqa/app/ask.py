@@ -121,6 +121,16 @@ def _print_event(event: dict[str, Any]) -> None:
         print(f"  error from {event.get('source')}: {event.get('reason')}", flush=True)
 
 
+def add_episode_run_options(p: argparse.ArgumentParser, timeout_s: float, waits_for: str) -> None:
+    """The options of a command that runs one episode (``eqa ask``, ``eqa task``): a running gateway or a fleet
+    of its own, how long to wait, and the output."""
+    p.add_argument("--url", default=None, help="use a running gateway (eqa up) instead of starting a fleet")
+    p.add_argument("--token", default=None, help="bearer token for --url")
+    p.add_argument("--scorers", type=int, default=1, help="scorer replicas to start (default 1)")
+    p.add_argument("--timeout", type=float, default=timeout_s, help=f"seconds to wait for {waits_for}")
+    p.add_argument("--json", action="store_true", help="print the final status as JSON only")
+
+
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "ask",
@@ -142,11 +152,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--home", default=None,
                    help="name of the home (house) the robot is in: the episode reads and extends its memory")
-    p.add_argument("--url", default=None, help="use a running gateway (eqa up) instead of starting a fleet")
-    p.add_argument("--token", default=None, help="bearer token for --url")
-    p.add_argument("--scorers", type=int, default=1, help="scorer replicas to start (default 1)")
-    p.add_argument("--timeout", type=float, default=600.0, help="seconds to wait for the answer")
-    p.add_argument("--json", action="store_true", help="print the final status as JSON only")
+    add_episode_run_options(p, 600.0, "the answer")
     p.set_defaults(func=run)
 
 

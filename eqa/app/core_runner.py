@@ -83,10 +83,11 @@ class EpisodeCores:
 def goal_refusal(scene: Scene, plan: StepPlan) -> str | None:
     """The simulator service's reply to a goal (``services.sim.service`` ``on_goal``): its reason to refuse
     it, or None when it takes it."""
+    from eqa.robot import NO_POSE
     from services.sim.motion import pose_error
 
     if plan.pose is None:
-        return "goal has no pose and is not done"
+        return NO_POSE
     reason = pose_error(scene, plan.pose)
     return None if reason is None else f"goal refused: {reason}"
 

@@ -50,15 +50,10 @@ EPS_GRID = (0.1, 0.2, 0.3)  # CP tables of the bench (0.1 needs >= 9 calibration
 def sequence(seed: int, index: int, n: int, scenes_dir: Path) -> list[Any]:
     """The ``n`` questions asked in house ``index`` of benchmark ``seed``: the house's candidates, one category
     after the other in the benchmark's category order, the first question of each category first."""
-    from services.sim.questions import CATEGORIES, benchmark_candidates
+    from services.sim.questions import CATEGORIES, benchmark_candidates, category_round_robin
 
     cands = benchmark_candidates(seed, index, scenes_dir)
-    out: list[Any] = []
-    depth = 0
-    while len(out) < n and any(len(cands[c]) > depth for c in CATEGORIES):
-        out += [cands[c][depth] for c in CATEGORIES if len(cands[c]) > depth][: n - len(out)]
-        depth += 1
-    return out
+    return category_round_robin([q for c in CATEGORIES for q in cands[c]], n, categories=CATEGORIES)
 
 
 def _calibration(q_hat: float | None, eps: float) -> Any:

@@ -50,7 +50,7 @@ def _pick_limit(text: str) -> int | None:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    from eqa.app.ask import parse_pose
+    from eqa.app.ask import add_episode_run_options, parse_pose
 
     p = subparsers.add_parser(
         "task", help="run one pick-and-place or object-search task end to end (HELIOS) and print each phase",
@@ -70,11 +70,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="step budget (default 6*sqrt(floor area), the task benchmark's)")
     p.add_argument("--seed", type=int, default=0, help="seed of the start pose sampling")
     p.add_argument("--no-record", action="store_true", help="no Rerun recording")
-    p.add_argument("--url", default=None, help="use a running gateway (eqa up) instead of starting a fleet")
-    p.add_argument("--token", default=None, help="bearer token for --url")
-    p.add_argument("--scorers", type=int, default=1, help="scorer replicas to start (default 1)")
-    p.add_argument("--timeout", type=float, default=900.0, help="seconds to wait for the end")
-    p.add_argument("--json", action="store_true", help="print the final status as JSON only")
+    add_episode_run_options(p, 900.0, "the end")
     p.set_defaults(func=run)
 
 

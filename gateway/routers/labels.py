@@ -69,19 +69,19 @@ def _letter(answer: str | int, choices: list[str]) -> str:
 
 
 def store_label(manager: EpisodeManager, episode_id: str, answer: str | int, caller: object) -> EpisodeLabel:
-    rec = manager.load(episode_id)
-    if rec is None or not caller.sees(rec.owner):  # type: ignore[attr-defined]
+    episode = manager.load(episode_id)
+    if episode is None or not caller.sees(episode.owner):  # type: ignore[attr-defined]
         raise NotFoundError(f"no episode {episode_id!r}")
-    if rec.status.state not in TERMINAL:
-        raise ConflictError(f"episode {episode_id} has not finished ({rec.status.state}): label it once it ended")
-    choices = _choices(manager, episode_id, list(rec.start.question.choices))
+    if episode.status.state not in TERMINAL:
+        raise ConflictError(f"episode {episode_id} has not finished ({episode.status.state}): label it once it ended")
+    choices = _choices(manager, episode_id, list(episode.start.question.choices))
     if len(choices) < 2:
         raise ConflictError(f"episode {episode_id} has no choices to label (it ended before its first step)")
     letter = _letter(answer, choices)
     label = EpisodeLabel(episode_id=episode_id, answer=letter, answer_text=choices[letters(len(choices)).index(letter)],
-                         question_id=rec.start.question.id, tenant=rec.owner)
+                         question_id=episode.start.question.id, tenant=episode.owner)
     manager.store.set(episode_label_key(episode_id), label.model_dump_json().encode())
-    log.info("episode %s labelled %s by tenant %s", episode_id, letter, rec.owner)
+    log.info("episode %s labelled %s by tenant %s", episode_id, letter, episode.owner)
     return label
 
 

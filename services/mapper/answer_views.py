@@ -142,8 +142,8 @@ class AnswerViewsExtension(MapperExtension):
         memory = self.memories.get(episode_id)
         return None if memory is None else memory.snapshot()
 
-    def restore(self, em: EpisodeMap, part: Any | None) -> None:
-        start = em.start
+    def restore(self, episode_map: EpisodeMap, part: Any | None) -> None:
+        start = episode_map.start
         if not self._wanted(start):
             return
         if part is not None:
@@ -155,45 +155,45 @@ class AnswerViewsExtension(MapperExtension):
                             start.episode_id, exc)
         self.start(start)
 
-    def scores(self, em: EpisodeMap, frame: Frame, result: ScoreResult, out: StepOutputs,
+    def scores(self, episode_map: EpisodeMap, frame: Frame, result: ScoreResult, out: StepOutputs,
                timing: dict[str, float]) -> ScoreResult:
         """The step's result with the joint answer when the memory is on (else ``result`` unchanged); the
         steps it comes from go to ``out``."""
         t0 = time.perf_counter()
-        result = self._joint(em, frame.step, frame.rgb, result)
-        memory = self.memories.get(em.episode_id)
+        result = self._joint(episode_map, frame.step, frame.rgb, result)
+        memory = self.memories.get(episode_map.episode_id)
         out.answer_views = sorted(memory.steps) if memory is not None and memory.answer is not None else []
         timing["answer_views"] = timing.get("answer_views", 0.0) + (time.perf_counter() - t0) * 1000.0
         return result
 
-    def _joint(self, em: EpisodeMap, step: int, rgb: np.ndarray, result: ScoreResult) -> ScoreResult:
-        memory = self.memories.get(em.episode_id)
+    def _joint(self, episode_map: EpisodeMap, step: int, rgb: np.ndarray, result: ScoreResult) -> ScoreResult:
+        memory = self.memories.get(episode_map.episode_id)
         if memory is None:
             return result
         if step > memory.last_step:  # a step sent again is not offered twice
             changed = memory.offer(step, result.relevance, rgb)
             if changed or memory.answer is None:
-                memory.answer = self._ask(em, step, memory)
+                memory.answer = self._ask(episode_map, step, memory)
         if memory.answer is None:
             return result
         # the scorer's mode (logprobs / sampling) stays: the joint prompt is read the same way
         return result.model_copy(update={"answer_probs": list(memory.answer)})
 
-    def _ask(self, em: EpisodeMap, step: int, memory: AnswerViews) -> list[float] | None:
+    def _ask(self, episode_map: EpisodeMap, step: int, memory: AnswerViews) -> list[float] | None:
         request = ScoreRequest(
-            episode_id=em.episode_id, step=step,
-            question=em.start.question.without_ground_truth(),
-            rgb=memory.images[-1], memory_views=list(memory.images), seed=em.start.seed,
+            episode_id=episode_map.episode_id, step=step,
+            question=episode_map.start.question.without_ground_truth(),
+            rgb=memory.images[-1], memory_views=list(memory.images), seed=episode_map.start.seed,
         )
         reply = call_pool(self.context.score(), request)
-        if isinstance(reply, ScoreResult) and len(reply.answer_probs) == len(em.start.question.choices):
+        if isinstance(reply, ScoreResult) and len(reply.answer_probs) == len(episode_map.start.question.choices):
             return list(reply.answer_probs)
         reason = failure(reply)
         if isinstance(reply, Exception) and not isinstance(reply, ScorerError):  # no answer in time: next step
-            log.warning("episode %s step %d: no joint answer this step (%s); per-view answer", em.episode_id,
+            log.warning("episode %s step %d: no joint answer this step (%s); per-view answer", episode_map.episode_id,
                         step, reason)
             return None
         log.warning("episode %s step %d: joint answer refused, the episode keeps the per-view answer "
-                    "(single view, or the stopper's fusion): %s", em.episode_id, step, reason)
-        self.memories.pop(em.episode_id, None)  # once per episode: no joint request again
+                    "(single view, or the stopper's fusion): %s", episode_map.episode_id, step, reason)
+        self.memories.pop(episode_map.episode_id, None)  # once per episode: no joint request again
         return None

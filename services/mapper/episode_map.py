@@ -307,8 +307,8 @@ class EpisodeMap:
                 raise ValueError(f"snapshot field is a {type(a).__name__}, not an array")
             return a.copy()  # decoded arrays are read-only views of the payload
 
-        em = cls(EpisodeStart.model_validate(body["start"]), config, layers=list(body["layers"]))
-        v = em.volume
+        episode_map = cls(EpisodeStart.model_validate(body["start"]), config, layers=list(body["layers"]))
+        v = episode_map.volume
         v.origin_x, v.origin_y = (float(x) for x in body["origin"])
         shape = tuple(body["shape"])
         size = int(np.prod(shape))
@@ -321,10 +321,10 @@ class EpisodeMap:
             np.unpackbits(arr(body["explored"]), count=v.tsdf.size).astype(bool).reshape(v.tsdf.shape)
         )
         v.planes = {k: arr(a) for k, a in body["planes"].items()}
-        em.step = int(body["step"])
-        em.pose = Pose2D.model_validate(body["pose"]) if body["pose"] else None
-        em.frontiers = [Frontier.model_validate(f) for f in body["frontiers"]]
-        em.prompts = [PromptPoint.model_validate(p) for p in body["prompts"]]
-        if em.pose is not None:
-            em.maps = project(v, (em.pose.x, em.pose.y), em.config.projection)
-        return em
+        episode_map.step = int(body["step"])
+        episode_map.pose = Pose2D.model_validate(body["pose"]) if body["pose"] else None
+        episode_map.frontiers = [Frontier.model_validate(f) for f in body["frontiers"]]
+        episode_map.prompts = [PromptPoint.model_validate(p) for p in body["prompts"]]
+        if episode_map.pose is not None:
+            episode_map.maps = project(v, (episode_map.pose.x, episode_map.pose.y), episode_map.config.projection)
+        return episode_map

@@ -168,33 +168,33 @@ class MapperExtension(Protocol):
         """A new episode; the value layers it writes besides the question's (none by default)."""
         return []
 
-    def restore(self, em: EpisodeMap, part: Any | None) -> None:
+    def restore(self, episode_map: EpisodeMap, part: Any | None) -> None:
         """After a restart: continue from the stored ``part`` (None: the state has none)."""
 
-    def submit(self, robot: str, em: EpisodeMap, frame: Frame) -> Future[Any] | None:
+    def submit(self, robot: str, episode_map: EpisodeMap, frame: Frame) -> Future[Any] | None:
         """The frame was integrated: send the extension's own requests; their future goes to :meth:`apply`."""
         return None
 
-    def scores(self, em: EpisodeMap, frame: Frame, result: ScoreResult, out: StepOutputs,
+    def scores(self, episode_map: EpisodeMap, frame: Frame, result: ScoreResult, out: StepOutputs,
                timing: dict[str, float]) -> ScoreResult:
         """The step's scores (also of a step sent again); returns them, changed or not."""
         return result
 
-    def apply(self, robot: str, em: EpisodeMap, frame: Frame, pending: Future[Any] | None, out: StepOutputs,
+    def apply(self, robot: str, episode_map: EpisodeMap, frame: Frame, pending: Future[Any] | None, out: StepOutputs,
               timing: dict[str, float]) -> None:
         """After the semantic values: fuse what :meth:`submit` asked for, fill ``out``."""
 
-    def resent(self, em: EpisodeMap, frame: Frame, out: StepOutputs) -> None:
+    def resent(self, episode_map: EpisodeMap, frame: Frame, out: StepOutputs) -> None:
         """The last step's frame came again: fill ``out`` from the stored state (nothing is fused twice)."""
 
-    def attach(self, em: EpisodeMap, update: MapUpdate, frame: Frame) -> None:
+    def attach(self, episode_map: EpisodeMap, update: MapUpdate, frame: Frame) -> None:
         """Add to the step's map update."""
 
     def dump(self, episode_id: str) -> Any | None:
         """Its part of the episode's stored state; None: no part."""
         return None
 
-    def record(self, em: EpisodeMap, frame: Frame, recorder: EpisodeRecorder) -> None:
+    def record(self, episode_map: EpisodeMap, frame: Frame, recorder: EpisodeRecorder) -> None:
         """Log the step's own entities to the episode's (active) recorder."""
 
     def finish(self, episode_id: str) -> None:

@@ -90,11 +90,11 @@ def frontier_class(task: Task, holding: bool) -> str:
     return str(task.start_receptacle or task.object)
 
 
-def obstacle_heights(em: EpisodeMap) -> np.ndarray | None:
+def obstacle_heights(episode_map: EpisodeMap) -> np.ndarray | None:
     """Height (m) of the highest occupied voxel of each map cell up to the camera height, 0 where none: the
     heights the gaze-point occlusion test compares with ``EQA_HELIOS_GAZE_OBSTACLE_M`` (occupied = observed
     and within the occupied band behind a surface, as the 2D occupancy map)."""
-    v, pc = em.volume, em.config.projection
+    v, pc = episode_map.volume, episode_map.config.projection
     if v.tsdf.size == 0:
         return None
     z = v.z_centers
@@ -148,73 +148,74 @@ class ObjectLayerExtension(MapperExtension):
         objects = self.maps.get(episode_id)
         return None if objects is None else objects.snapshot()
 
-    def restore(self, em: EpisodeMap, part: Any | None) -> None:
+    def restore(self, episode_map: EpisodeMap, part: Any | None) -> None:
         """The stored layer; a task episode stored without one starts a fresh layer. A task episode's map
         gets the task map's configuration back (:func:`task_map_config`)."""
-        if em.start.task is not None:
-            em.config = task_map_config(em.config)
+        if episode_map.start.task is not None:
+            episode_map.config = task_map_config(episode_map.config)
         if part is not None:
-            self.maps[em.episode_id] = object_map_module().ObjectMap.restore(part, self.context.objects_config)
-        elif em.start.task is not None:
-            self.maps[em.episode_id] = self._new_map(em.start)
+            self.maps[episode_map.episode_id] = object_map_module().ObjectMap.restore(part, self.context.objects_config)
+        elif episode_map.start.task is not None:
+            self.maps[episode_map.episode_id] = self._new_map(episode_map.start)
 
     # ---- per frame --------------------------------------------------------------------------------------
-    def submit(self, robot: str, em: EpisodeMap, frame: Frame) -> Future[Any] | None:
-        objects = self.maps.get(em.episode_id)
+    def submit(self, robot: str, episode_map: EpisodeMap, frame: Frame) -> Future[Any] | None:
+        objects = self.maps.get(episode_map.episode_id)
         if objects is None:
             return None
-        return self._pool.submit(self._ask, objects, em, frame)
+        return self._pool.submit(self._ask, objects, episode_map, frame)
 
-    def _ask(self, objects: ObjectMap, em: EpisodeMap, frame: Frame) -> tuple[Any, Any, float]:
+    def _ask(self, objects: ObjectMap, episode_map: EpisodeMap, frame: Frame) -> tuple[Any, Any, float]:
         detect, values = self.context.detect_and_values()
         t0 = time.perf_counter()
-        det, val = ask_objects(objects, em, frame, detect, values)
+        det, val = ask_objects(objects, episode_map, frame, detect, values)
         return det, val, (time.perf_counter() - t0) * 1000.0
 
-    def apply(self, robot: str, em: EpisodeMap, frame: Frame, pending: Future[Any] | None, out: StepOutputs,
+    def apply(self, robot: str, episode_map: EpisodeMap, frame: Frame, pending: Future[Any] | None, out: StepOutputs,
               timing: dict[str, float]) -> None:
         """Fuse the frame's detections and write its values (:func:`fuse_frame`); the frontiers of a task
         episode take their values from the current phase's search target (:func:`frontier_class`)."""
-        objects = self.maps.get(em.episode_id)
+        objects = self.maps.get(episode_map.episode_id)
         if pending is None or objects is None:
             return
         det, val, ask_ms = pending.result()
         timing["objects_ask"] = ask_ms
-        out.frontier_layer, errors = fuse_frame(objects, em, frame, det, val, timing)
+        out.frontier_layer, errors = fuse_frame(objects, episode_map, frame, det, val, timing)
         for reason in errors:
-            self.context.error(robot, em.episode_id, frame.step, reason)
+            self.context.error(robot, episode_map.episode_id, frame.step, reason)
 
-    def attach(self, em: EpisodeMap, update: MapUpdate, frame: Frame) -> None:
+    def attach(self, episode_map: EpisodeMap, update: MapUpdate, frame: Frame) -> None:
         """Put the episode's instances (with gaze points on this update's map) into ``update``."""
-        objects = self.maps.get(em.episode_id)
+        objects = self.maps.get(episode_map.episode_id)
         if objects is None:
             return
-        attach_objects(objects, em, update, frame)
-        self.last_objects[em.episode_id] = update.objects
+        attach_objects(objects, episode_map, update, frame)
+        self.last_objects[episode_map.episode_id] = update.objects
 
-    def record(self, em: EpisodeMap, frame: Frame, recorder: EpisodeRecorder) -> None:
-        objects = self.maps.get(em.episode_id)
+    def record(self, episode_map: EpisodeMap, frame: Frame, recorder: EpisodeRecorder) -> None:
+        objects = self.maps.get(episode_map.episode_id)
         if objects is None:
             return
         try:
             recorder.set_step(frame.step)
-            object_map_module().log_rerun(recorder, objects, self.last_objects.get(em.episode_id, []))
+            object_map_module().log_rerun(recorder, objects, self.last_objects.get(episode_map.episode_id, []))
         except Exception:
-            log.exception("episode %s: recording the object layer failed; going on", em.episode_id)
+            log.exception("episode %s: recording the object layer failed; going on", episode_map.episode_id)
 
 
-def ask_objects(objects: ObjectMap, em: EpisodeMap, frame: Frame, detect: Detect, values: Values) -> tuple[Any, Any]:
+def ask_objects(objects: ObjectMap, episode_map: EpisodeMap, frame: Frame, detect: Detect,
+                values: Values) -> tuple[Any, Any]:
     """The frame's detections and per-target value prompts (HELIOS 3.1.2) from the scorer pool; each reply is
     the result, or the exception its request raised (:func:`call_pool`)."""
-    det = call_pool(detect, objects.detect_request(frame, seed=em.start.seed))
+    det = call_pool(detect, objects.detect_request(frame, seed=episode_map.start.seed))
     val = call_pool(values, ValueRequest(
-        episode_id=em.episode_id, step=frame.step, rgb=frame.rgb, targets=objects.task_classes,
-        instances=frame.instances, labels=frame.labels, depth=frame.depth, seed=em.start.seed,
+        episode_id=episode_map.episode_id, step=frame.step, rgb=frame.rgb, targets=objects.task_classes,
+        instances=frame.instances, labels=frame.labels, depth=frame.depth, seed=episode_map.start.seed,
     ))
     return det, val
 
 
-def fuse_frame(objects: ObjectMap, em: EpisodeMap, frame: Frame, det: Any, val: Any,
+def fuse_frame(objects: ObjectMap, episode_map: EpisodeMap, frame: Frame, det: Any, val: Any,
                timing: dict[str, float]) -> tuple[str, list[str]]:
     """One frame's object-layer step of a task episode (the mapper's and the in-process runner's,
     :mod:`eqa.app.task_cores`): the phase from the frame's skill report, the detections fused into the 3D
@@ -232,25 +233,26 @@ def fuse_frame(objects: ObjectMap, em: EpisodeMap, frame: Frame, det: Any, val: 
             stats = objects.integrate(frame, det)
             timing.update({f"objects_{k}": v for k, v in stats.timing_ms.items()})
         except Exception as exc:
-            log.exception("episode %s: object layer update failed", em.episode_id)
+            log.exception("episode %s: object layer update failed", episode_map.episode_id)
             errors.append(f"object layer not updated: {type(exc).__name__}: {exc}")
     else:
         errors.append(f"detector failed, frame not fused: {failure(det)}")
     if isinstance(val, ValueResult) and len(val.values) == len(objects.task_classes):
-        rows, cols, conf = fov_values.fov_cells(frame.depth, frame.intrinsics, frame.camera_pose, em.origin,
-                                                em.resolution, em.layer(value_layer(objects.task_classes[0])).shape)
+        shape = episode_map.layer(value_layer(objects.task_classes[0])).shape
+        rows, cols, conf = fov_values.fov_cells(frame.depth, frame.intrinsics, frame.camera_pose, episode_map.origin,
+                                                episode_map.resolution, shape)
         for cls, v in zip(objects.task_classes, val.values, strict=True):
             name = value_layer(cls)
-            fov_values.fuse(em.layer(name), em.volume.add_plane(f"{CONFIDENCE_PREFIX}{name}", 0.0, np.float32),
-                            rows, cols, conf, float(v))
+            confidence = episode_map.volume.add_plane(f"{CONFIDENCE_PREFIX}{name}", 0.0, np.float32)
+            fov_values.fuse(episode_map.layer(name), confidence, rows, cols, conf, float(v))
     elif not isinstance(val, ValueResult):
         errors.append(f"value prompt failed: {failure(val)}")
     timing["objects_fuse"] = (time.perf_counter() - t0) * 1000.0
-    assert em.start.task is not None  # an object map is kept for task episodes only
-    return value_layer(frontier_class(em.start.task, objects.holding)), errors
+    assert episode_map.start.task is not None  # an object map is kept for task episodes only
+    return value_layer(frontier_class(episode_map.start.task, objects.holding)), errors
 
 
-def attach_objects(objects: ObjectMap, em: EpisodeMap, update: MapUpdate, frame: Frame,
+def attach_objects(objects: ObjectMap, episode_map: EpisodeMap, update: MapUpdate, frame: Frame,
                    timing: dict[str, float] | None = None) -> None:
     """Put the instances of ``objects`` (with gaze points on this update's map, for the current phase's
     targets) into ``update``; ``timing``: the step's timings so far, added to the update's."""
@@ -258,9 +260,10 @@ def attach_objects(objects: ObjectMap, em: EpisodeMap, update: MapUpdate, frame:
     height = float(frame.camera_pose[2, 3])
     # the robot's head camera has a fixed tilt: gaze points are scored for the view it really gets there
     pitch = float(np.arcsin(np.clip(frame.camera_pose[2, 2], -1.0, 1.0)))
-    targets = object_map_module().phase_classes(em.start.task, objects.holding) if em.start.task else None
-    update.objects = objects.summaries(update.grid, update.occupied, obstacle_heights(em), camera_height=height,
-                                       camera_pitch=pitch, targets=targets)
+    task = episode_map.start.task
+    targets = object_map_module().phase_classes(task, objects.holding) if task else None
+    update.objects = objects.summaries(update.grid, update.occupied, obstacle_heights(episode_map),
+                                       camera_height=height, camera_pitch=pitch, targets=targets)
     if timing is not None:
         update.timing_ms.update(timing)
     update.timing_ms["objects_summary"] = (time.perf_counter() - t0) * 1000.0

@@ -282,9 +282,9 @@ class QuestionObjectsExtension(MapperExtension):
         layer = self.layers.get(episode_id)
         return None if layer is None else layer.snapshot()
 
-    def restore(self, em: EpisodeMap, part: Any | None) -> None:
+    def restore(self, episode_map: EpisodeMap, part: Any | None) -> None:
         """After a restart: continue the stored layer; a state saved without one starts a fresh layer."""
-        start = em.start
+        start = episode_map.start
         if not self._wanted(start):
             return
         if part is None:
@@ -293,47 +293,47 @@ class QuestionObjectsExtension(MapperExtension):
         self.layers[start.episode_id] = QuestionObjects.restore(start.question, part, None,
                                                                 config=self.context.objects_config)
 
-    def submit(self, robot: str, em: EpisodeMap, frame: Frame) -> Future[Any] | None:
-        layer = self.layers.get(em.episode_id)
+    def submit(self, robot: str, episode_map: EpisodeMap, frame: Frame) -> Future[Any] | None:
+        layer = self.layers.get(episode_map.episode_id)
         if layer is None:
             return None
-        return self._pool.submit(self._detect, layer, em, frame)
+        return self._pool.submit(self._detect, layer, episode_map, frame)
 
-    def _detect(self, layer: QuestionObjects, em: EpisodeMap, frame: Frame) -> tuple[Any, float]:
+    def _detect(self, layer: QuestionObjects, episode_map: EpisodeMap, frame: Frame) -> tuple[Any, float]:
         detect, _ = self.context.detect_and_values()
         t0 = time.perf_counter()
-        det = call_pool(detect, layer.detect_request(frame, seed=em.start.seed))
+        det = call_pool(detect, layer.detect_request(frame, seed=episode_map.start.seed))
         return det, (time.perf_counter() - t0) * 1000.0
 
-    def apply(self, robot: str, em: EpisodeMap, frame: Frame, pending: Future[Any] | None, out: StepOutputs,
+    def apply(self, robot: str, episode_map: EpisodeMap, frame: Frame, pending: Future[Any] | None, out: StepOutputs,
               timing: dict[str, float]) -> None:
         """Fuse the frame's detections; the step's evidence, or none (no layer, or the detection failed)."""
-        layer = self.layers.get(em.episode_id)
+        layer = self.layers.get(episode_map.episode_id)
         if pending is None or layer is None:
             return
         det, ask_ms = pending.result()
         timing["question_objects_ask"] = ask_ms
         if not isinstance(det, DetectResult):
             log.warning("episode %s step %d: detection failed, no object evidence this step: %s",
-                        em.episode_id, frame.step, failure(det))
+                        episode_map.episode_id, frame.step, failure(det))
             return
         t0 = time.perf_counter()
         try:
             layer.integrate(frame, det)
         except Exception:
             log.exception("episode %s step %d: object layer not updated, no object evidence this step",
-                          em.episode_id, frame.step)
+                          episode_map.episode_id, frame.step)
             return
         timing["question_objects_fuse"] = (time.perf_counter() - t0) * 1000.0
-        out.object_evidence = self.evidence(em)
+        out.object_evidence = self.evidence(episode_map)
 
-    def resent(self, em: EpisodeMap, frame: Frame, out: StepOutputs) -> None:
-        out.object_evidence = self.evidence(em)
+    def resent(self, episode_map: EpisodeMap, frame: Frame, out: StepOutputs) -> None:
+        out.object_evidence = self.evidence(episode_map)
 
-    def evidence(self, em: EpisodeMap) -> ObjectEvidence | None:
+    def evidence(self, episode_map: EpisodeMap) -> ObjectEvidence | None:
         """The layer's evidence on the episode's current map."""
-        layer = self.layers.get(em.episode_id)
+        layer = self.layers.get(episode_map.episode_id)
         if layer is None:
             return None
-        observed = em.maps.observed if em.maps is not None else None
-        return layer.evidence(observed, em.grid() if observed is not None else None)
+        observed = episode_map.maps.observed if episode_map.maps is not None else None
+        return layer.evidence(observed, episode_map.grid() if observed is not None else None)

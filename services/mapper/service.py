@@ -128,9 +128,9 @@ class MapperService(EpisodeService[EpisodeMap]):
         extra = [layer for ext in self.extensions for layer in ext.start(start)]
         # a task episode's map sees low obstacles (task_map_config); a question's keeps the figures' map
         config = self.config if start.task is None else task_map_config(self.config)
-        em = EpisodeMap(start, config, layers=[QUESTION_LAYER, *extra] if extra else None)
-        self.homes.start(start, em)  # an episode in a home starts from its map
-        return em
+        episode_map = EpisodeMap(start, config, layers=[QUESTION_LAYER, *extra] if extra else None)
+        self.homes.start(start, episode_map)  # an episode in a home starts from its map
+        return episode_map
 
     def finish_episode(self, robot: str, msg: EpisodeCancel | EpisodeEnd, state: EpisodeMap) -> None:
         for ext in self.extensions:
@@ -163,14 +163,14 @@ class MapperService(EpisodeService[EpisodeMap]):
             log.warning("episode %s: stored parts %s belong to no extension here; left aside", episode_id,
                         sorted(k for k in data if k != "map"))
             data = data["map"]
-        em = snapshots.restore(data, lambda part: self.read_part(episode_id, part), self.config)
+        episode_map = snapshots.restore(data, lambda part: self.read_part(episode_id, part), self.config)
         for ext in self.extensions:
-            ext.restore(em, parts[ext.state_key])
+            ext.restore(episode_map, parts[ext.state_key])
         self.homes.restore(episode_id, home)
-        if isinstance(made, dict) and made.get("step") == em.step:
-            em.made = (float(made["sent_at"]), {str(k): float(v) for k, v in dict(made["timing_ms"]).items()})
-        log.info("episode %s: restored from snapshot at step %d", episode_id, em.step)
-        return em
+        if isinstance(made, dict) and made.get("step") == episode_map.step:
+            episode_map.made = (float(made["sent_at"]), {str(k): float(v) for k, v in dict(made["timing_ms"]).items()})
+        log.info("episode %s: restored from snapshot at step %d", episode_id, episode_map.step)
+        return episode_map
 
     def answered_step(self, episode_id: str, state: EpisodeMap) -> int:
         return state.step
@@ -186,28 +186,28 @@ class MapperService(EpisodeService[EpisodeMap]):
         self.error(robot, episode_id, step, reason)
 
     # ---- handlers ---------------------------------------------------------------------------------------
-    def on_frame(self, robot: str, em: EpisodeMap, frame: Frame) -> None:
+    def on_frame(self, robot: str, episode_map: EpisodeMap, frame: Frame) -> None:
         t_start = time.perf_counter()
         timer = Timer()
         try:
-            em.integrate(frame, timer)
+            episode_map.integrate(frame, timer)
         except FrameError as exc:
             self._error(robot, frame.episode_id, frame.step, f"frame rejected, map unchanged: {exc}")
             return
-        self.homes.observe(em, frame)  # a candidate keyframe of the home's view memory
+        self.homes.observe(episode_map, frame)  # a candidate keyframe of the home's view memory
         t0 = time.perf_counter()
-        memory = self.homes.warm(em, frame)  # first frame in a known home: the view memory re-scored
+        memory = self.homes.warm(episode_map, frame)  # first frame in a known home: the view memory re-scored
         timer.lap("home_warm", t0)
 
         # The scorer round trip is mostly waiting (another process, the bus): meanwhile this thread does the
         # step's work that does not depend on the scores: the frontier candidates. Same results, same order of
         # effects (snapshot saved before anything is published).
-        pending = self._pool.submit(self._timed_score, robot, em, frame)
+        pending = self._pool.submit(self._timed_score, robot, episode_map, frame)
         # the extensions' own requests (detections, value prompts) on their workers meanwhile
-        pending_ext: list[Future[Any] | None] = [ext.submit(robot, em, frame) for ext in self.extensions]
+        pending_ext: list[Future[Any] | None] = [ext.submit(robot, episode_map, frame) for ext in self.extensions]
         out = StepOutputs(memory=memory)
         t0 = time.perf_counter()
-        candidates = em.find_frontier_candidates()
+        candidates = episode_map.find_frontier_candidates()
         t0 = timer.lap("frontiers", t0)
         t0 = time.perf_counter()
         result, score_ms = pending.result()
@@ -215,63 +215,64 @@ class MapperService(EpisodeService[EpisodeMap]):
         timer.ms["score"] = score_ms
         if result is not None:  # e.g. the joint answer memory: the answer over the K most relevant views
             for ext in self.extensions:
-                result = ext.scores(em, frame, result, out, timer.ms)
+                result = ext.scores(episode_map, frame, result, out, timer.ms)
         t0 = time.perf_counter()
         if result is not None:
             try:
-                em.apply_scores(result.lsv, result.gsv)
+                episode_map.apply_scores(result.lsv, result.gsv)
             except ValueError as exc:
-                self._error(robot, em.episode_id, frame.step, f"semantic values not written: {exc}")
+                self._error(robot, episode_map.episode_id, frame.step, f"semantic values not written: {exc}")
         t0 = timer.lap("semantic_values", t0)
         for ext, pending_one in zip(self.extensions, pending_ext, strict=True):
-            ext.apply(robot, em, frame, pending_one, out, timer.ms)
-        em.compute_frontiers(out.frontier_layer, timer=timer, candidates=candidates)
+            ext.apply(robot, episode_map, frame, pending_one, out, timer.ms)
+        episode_map.compute_frontiers(out.frontier_layer, timer=timer, candidates=candidates)
         # Persist before publishing: whatever a consumer has seen survives a crash of this process. The update's
         # time and timings are stored with the map, so one killed between the two is answered by its successor
         # with the same message, not a second one.
-        em.made = (time.time(), timer.ms)
+        episode_map.made = (time.time(), timer.ms)
         t0 = time.perf_counter()
-        self._save(em)
+        self._save(episode_map)
         timer.lap("snapshot", t0)
         timer.ms["step"] = (time.perf_counter() - t_start) * 1000.0
-        update = em.map_update()
+        update = episode_map.map_update()
         update.skill = frame.skill  # a task skill's outcome, passed on to the planner's state machine
         for ext in self.extensions:
-            ext.attach(em, update, frame)
+            ext.attach(episode_map, update, frame)
         if result is None:  # not kept as the step's answer: a resent step is scored again (answer_again)
             self.publish(robot, keys.MAPPER_MAP, update)
         else:
-            self.publish_step(em.episode_id, keys.MAPPER_MAP, update, frame.step)
-            self.publish_step(em.episode_id, keys.MAPPER_SCORES, self._step_scores(em, frame, result, out),
-                              frame.step)
+            self.publish_step(episode_map.episode_id, keys.MAPPER_MAP, update, frame.step)
+            self.publish_step(episode_map.episode_id, keys.MAPPER_SCORES,
+                              self._step_scores(episode_map, frame, result, out), frame.step)
         t0 = time.perf_counter()
-        self._record(em, frame)
+        self._record(episode_map, frame)
         timer.lap("record", t0)
         self.last_timing_ms = timer.ms
 
-    def _republish(self, robot: str, em: EpisodeMap, frame: Frame) -> None:
+    def _republish(self, robot: str, episode_map: EpisodeMap, frame: Frame) -> None:
         """The frame of the last integrated step came again: the simulator got no goal back (a message after
         it was lost while a service restarted). Publish the step's map update and scores again from the stored
         map, without integrating the frame twice or writing its semantic values twice."""
-        log.info("episode %s: frame %d sent again; its map update and scores re-published", em.episode_id, frame.step)
-        update = em.map_update({})
+        log.info("episode %s: frame %d sent again; its map update and scores re-published", episode_map.episode_id,
+                 frame.step)
+        update = episode_map.map_update({})
         update.skill = frame.skill
         for ext in self.extensions:
-            ext.attach(em, update, frame)
+            ext.attach(episode_map, update, frame)
         self.publish(robot, keys.MAPPER_MAP, update)
-        result = self._score(robot, em, frame)
+        result = self._score(robot, episode_map, frame)
         if result is not None:
-            out = StepOutputs(memory=self.homes.memory(em.episode_id) if frame.step == 0 else [])
+            out = StepOutputs(memory=self.homes.memory(episode_map.episode_id) if frame.step == 0 else [])
             for ext in self.extensions:  # e.g. the stored joint answer
-                result = ext.scores(em, frame, result, out, {})
+                result = ext.scores(episode_map, frame, result, out, {})
             for ext in self.extensions:
-                ext.resent(em, frame, out)
-            self.publish(robot, keys.MAPPER_SCORES, self._step_scores(em, frame, result, out))
+                ext.resent(episode_map, frame, out)
+            self.publish(robot, keys.MAPPER_SCORES, self._step_scores(episode_map, frame, result, out))
 
     @staticmethod
-    def _step_scores(em: EpisodeMap, frame: Frame, result: ScoreResult, out: StepOutputs) -> StepScores:
+    def _step_scores(episode_map: EpisodeMap, frame: Frame, result: ScoreResult, out: StepOutputs) -> StepScores:
         return StepScores(
-            episode_id=em.episode_id,
+            episode_id=episode_map.episode_id,
             step=frame.step,
             answer_probs=result.answer_probs,
             relevance=result.relevance,
@@ -280,82 +281,82 @@ class MapperService(EpisodeService[EpisodeMap]):
             backend=result.backend,
             mode=result.mode,  # logprobs / sampling: the stopper warns on a calibration mismatch
             # a question without choices: the ones the scorer proposed (Explore-EQA section VI-A)
-            choices=em.start.question.choices or result.proposed_choices,
+            choices=episode_map.start.question.choices or result.proposed_choices,
             object_evidence=out.object_evidence,  # the question's object layer (EQA_OBJECT_EVIDENCE)
             answer_views=out.answer_views,  # steps of the joint answer (EQA_ANSWER_MEMORY_MODE=joint)
             memory=out.memory,  # warm start: the home's views re-scored for this question (step 0)
         )
 
-    def _timed_score(self, robot: str, em: EpisodeMap, frame: Frame) -> tuple[ScoreResult | None, float]:
+    def _timed_score(self, robot: str, episode_map: EpisodeMap, frame: Frame) -> tuple[ScoreResult | None, float]:
         t0 = time.perf_counter()
-        result = self._score(robot, em, frame)
+        result = self._score(robot, episode_map, frame)
         return result, (time.perf_counter() - t0) * 1000.0
 
-    def _score(self, robot: str, em: EpisodeMap, frame: Frame) -> ScoreResult | None:
+    def _score(self, robot: str, episode_map: EpisodeMap, frame: Frame) -> ScoreResult | None:
         request = ScoreRequest(
-            episode_id=em.episode_id,
+            episode_id=episode_map.episode_id,
             step=frame.step,
             # Ground truth never leaves for the scorer: it cannot read what it is not sent.
-            question=em.start.question.without_ground_truth(),
+            question=episode_map.start.question.without_ground_truth(),
             rgb=frame.rgb,
-            prompt_points=em.prompts,
+            prompt_points=episode_map.prompts,
             instances=frame.instances,
             labels=frame.labels,
             depth=frame.depth,
-            seed=em.start.seed,
+            seed=episode_map.start.seed,
         )
         result = call_pool(self.scorer(), request)
         if isinstance(result, Exception | ErrorReply):
-            self._error(robot, em.episode_id, frame.step, f"scorer failed: {failure(result)}")
+            self._error(robot, episode_map.episode_id, frame.step, f"scorer failed: {failure(result)}")
             return None
         return result
 
-    def _save(self, em: EpisodeMap, volume: dict[str, Any] | None = None) -> None:
+    def _save(self, episode_map: EpisodeMap, volume: dict[str, Any] | None = None) -> None:
         try:
-            self.save(em.episode_id, volume=volume)
+            self.save(episode_map.episode_id, volume=volume)
         except Exception:
-            log.exception("episode %s: snapshot not saved", em.episode_id)
+            log.exception("episode %s: snapshot not saved", episode_map.episode_id)
 
     # ---- monitoring -------------------------------------------------------------------------------------
-    def _record(self, em: EpisodeMap, frame: Frame) -> None:
-        recorder = self.recorders.get(em.episode_id)
+    def _record(self, episode_map: EpisodeMap, frame: Frame) -> None:
+        recorder = self.recorders.get(episode_map.episode_id)
         if recorder is None or recorder.stream is None:
             return
-        self._record_map(em, frame, recorder)
+        self._record_map(episode_map, frame, recorder)
         for ext in self.extensions:
-            ext.record(em, frame, recorder)
+            ext.record(episode_map, frame, recorder)
 
     @staticmethod
-    def _record_map(em: EpisodeMap, frame: Frame, recorder: EpisodeRecorder) -> None:
-        if em.maps is None:
+    def _record_map(episode_map: EpisodeMap, frame: Frame, recorder: EpisodeRecorder) -> None:
+        if episode_map.maps is None:
             return
         import rerun as rr
 
-        m = em.maps
+        m = episode_map.maps
         recorder.set_step(frame.step)
         occ = np.zeros(m.free.shape, dtype=np.uint8)  # 0 unknown, 128 free, 255 occupied (y up)
         occ[m.free] = 128
         occ[m.occupied] = 255
         recorder.log("map/occupancy", rr.Image(np.flipud(occ)))
         recorder.log("map/explored", rr.Image(np.flipud(m.explored.astype(np.uint8) * 255)))
-        for name in em.layers:
-            recorder.log(f"map/value/{name}", rr.Image(np.flipud(em.layer(name))))
+        for name in episode_map.layers:
+            recorder.log(f"map/value/{name}", rr.Image(np.flipud(episode_map.layer(name))))
         ny = m.free.shape[0]
-        res = em.resolution
-        if em.frontiers:
-            cells = [grid.fractional_cell(f.x, f.y, em.origin, res) for f in em.frontiers]
+        res = episode_map.resolution
+        if episode_map.frontiers:
+            cells = [grid.fractional_cell(f.x, f.y, episode_map.origin, res) for f in episode_map.frontiers]
             pos = [(c, ny - r) for r, c in cells]
-            w = np.array([f.weight for f in em.frontiers])
+            w = np.array([f.weight for f in episode_map.frontiers])
             recorder.log(
                 "map/frontiers",
                 rr.Points2D(
                     pos,
                     radii=1.0 + 2.0 * w / max(float(w.max()), 1e-9),
-                    labels=[f"{f.weight:.2f}" for f in em.frontiers],
+                    labels=[f"{f.weight:.2f}" for f in episode_map.frontiers],
                 ),
             )
-        if em.prompts:
+        if episode_map.prompts:
             recorder.log(
                 "camera/prompt_points",
-                rr.Points2D([(p.u, p.v) for p in em.prompts], labels=[p.label for p in em.prompts]),
+                rr.Points2D([(p.u, p.v) for p in episode_map.prompts], labels=[p.label for p in episode_map.prompts]),
             )

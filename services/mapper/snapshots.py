@@ -55,28 +55,28 @@ class _Log:
 _logs: weakref.WeakKeyDictionary[EpisodeMap, _Log] = weakref.WeakKeyDictionary()
 
 
-def _grid(em: EpisodeMap) -> tuple[float, float, int, int]:
-    v = em.volume
+def _grid(episode_map: EpisodeMap) -> tuple[float, float, int, int]:
+    v = episode_map.volume
     return (v.origin_x, v.origin_y, *v.shape2d)
 
 
-def _header(em: EpisodeMap, log: _Log) -> bytes:
+def _header(episode_map: EpisodeMap, log: _Log) -> bytes:
     return packb({
         "version": LOG_VERSION,
         "full": log.full,
         "deltas": list(log.deltas),
-        "step": em.step,
-        "pose": em.pose.model_dump() if em.pose else None,
-        "grid": list(_grid(em)),
-        "frontiers": [f.model_dump() for f in em.frontiers],
-        "prompts": [p.model_dump() for p in em.prompts],
+        "step": episode_map.step,
+        "pose": episode_map.pose.model_dump() if episode_map.pose else None,
+        "grid": list(_grid(episode_map)),
+        "frontiers": [f.model_dump() for f in episode_map.frontiers],
+        "prompts": [p.model_dump() for p in episode_map.prompts],
     })
 
 
-def _columns(em: EpisodeMap, idx: np.ndarray) -> dict[str, Any]:
+def _columns(episode_map: EpisodeMap, idx: np.ndarray) -> dict[str, Any]:
     """Voxel columns ``idx`` (flat ``row * cols + col``) as stored: observed mask, tsdf and weight of the
     observed voxels, explored mask."""
-    v = em.volume
+    v = episode_map.volume
     r, c = np.divmod(idx, v.shape2d[1])  # indexed, not reshaped: the volume's arrays are views (no copy)
     tsdf = v.tsdf[r, c]
     weight = v.weight[r, c]
@@ -90,18 +90,18 @@ def _columns(em: EpisodeMap, idx: np.ndarray) -> dict[str, Any]:
     }
 
 
-def _full_part(em: EpisodeMap) -> bytes:
+def _full_part(episode_map: EpisodeMap) -> bytes:
     """Everything: the episode start and layers, the grid, every observed column, every plane whole."""
-    v = em.volume
+    v = episode_map.volume
     observed = np.flatnonzero((v.weight > 0).any(axis=2).reshape(-1))
     return packb({
         "version": LOG_VERSION,
         "kind": "full",
-        "start": em.start.model_dump(mode="json"),
-        "layers": em.layers,
-        "grid": list(_grid(em)),
+        "start": episode_map.start.model_dump(mode="json"),
+        "layers": episode_map.layers,
+        "grid": list(_grid(episode_map)),
         "planes": {k: {"all": packed_array(a, compress=False)} for k, a in v.planes.items()},
-        **_columns(em, observed),
+        **_columns(episode_map, observed),
     })
 
 
@@ -109,8 +109,9 @@ def _from_full(data: bytes, config: MapperConfig | None) -> EpisodeMap:
     body = unpackb(data)
     if not isinstance(body, dict) or body.get("version") != LOG_VERSION or body.get("kind") != "full":
         raise ValueError(f"not a full mapper snapshot part of version {LOG_VERSION}")
-    em = EpisodeMap(EpisodeStart.model_validate(body["start"]), config, layers=[str(x) for x in body["layers"]])
-    v = em.volume
+    episode_map = EpisodeMap(EpisodeStart.model_validate(body["start"]), config,
+                             layers=[str(x) for x in body["layers"]])
+    v = episode_map.volume
     grid = body["grid"]
     if not (isinstance(grid, list) and len(grid) == 4) or not (0 <= int(grid[2]) <= 100_000
                                                                and 0 <= int(grid[3]) <= 100_000):
@@ -121,20 +122,20 @@ def _from_full(data: bytes, config: MapperConfig | None) -> EpisodeMap:
     v.weight = np.zeros((ny, nx, v.nz), dtype=np.float32)
     v.explored = np.zeros((ny, nx, v.nz), dtype=bool)
     v.planes = {}
-    _apply(em, data)
-    return em
+    _apply(episode_map, data)
+    return episode_map
 
 
-def snapshot_step(em: EpisodeMap, compact_every: int = COMPACT_EVERY,
+def snapshot_step(episode_map: EpisodeMap, compact_every: int = COMPACT_EVERY,
                   compact_bytes: float = COMPACT_BYTES) -> tuple[bytes, dict[str, bytes], list[str]]:
     """The step's save: ``(header, parts to write, parts to delete)`` (see the module docstring)."""
-    log = _logs.get(em)
-    v = em.volume
+    log = _logs.get(episode_map)
+    v = episode_map.volume
     full = (
         log is None
         or log.full is None
         or len(log.deltas) >= compact_every
-        or _padding(log.grid, _grid(em), em.resolution) is None
+        or _padding(log.grid, _grid(episode_map), episode_map.resolution) is None
         or v.col_stamp.shape != v.shape2d
         or log.delta_bytes > compact_bytes * log.full_bytes
         or any(name not in v.planes for name in log.planes)
@@ -142,13 +143,13 @@ def snapshot_step(em: EpisodeMap, compact_every: int = COMPACT_EVERY,
     if full:
         old = [] if log is None else [n for n in (log.full, *log.deltas) if n]
         gen = 0 if log is None else log.gen + 1
-        data = _full_part(em)
-        log = _Log(gen=gen, full=f"f{gen}", full_bytes=len(data), stamp=v.stamp, grid=_grid(em),
+        data = _full_part(episode_map)
+        log = _Log(gen=gen, full=f"f{gen}", full_bytes=len(data), stamp=v.stamp, grid=_grid(episode_map),
                    planes={k: a.copy() for k, a in v.planes.items()})
-        _logs[em] = log
-        return _header(em, log), {log.full: data}, old
+        _logs[episode_map] = log
+        return _header(episode_map, log), {log.full: data}, old
     assert log is not None
-    pad = _padding(log.grid, _grid(em), em.resolution)
+    pad = _padding(log.grid, _grid(episode_map), episode_map.resolution)
     if pad and any(pad):  # the grid grew: the saved copies of the planes grow the same way (zeros)
         log.planes = {k: np.pad(a, pad) for k, a in log.planes.items()}
     changed = np.flatnonzero(v.col_stamp.reshape(-1) > log.stamp) if v.stamp != log.stamp else np.zeros(0, np.int64)
@@ -164,15 +165,15 @@ def snapshot_step(em: EpisodeMap, compact_every: int = COMPACT_EVERY,
                                 "values": packed_array(arr.reshape(-1)[cells], compress=False)}
         if name in planes:
             log.planes[name] = arr.copy()
-    body = {"version": LOG_VERSION, "step": em.step, "grid": list(_grid(em)), "planes": planes,
-            **_columns(em, changed)}
+    body = {"version": LOG_VERSION, "step": episode_map.step, "grid": list(_grid(episode_map)), "planes": planes,
+            **_columns(episode_map, changed)}
     data = packb(body)
     name = f"d{log.gen}.{len(log.deltas)}"
     log.deltas.append(name)
     log.delta_bytes += len(data)
     log.stamp = v.stamp
-    log.grid = _grid(em)
-    return _header(em, log), {name: data}, []
+    log.grid = _grid(episode_map)
+    return _header(episode_map, log), {name: data}, []
 
 
 def _padding(old: tuple[float, float, int, int], new: tuple[float, float, int, int],
@@ -187,15 +188,15 @@ def _padding(old: tuple[float, float, int, int], new: tuple[float, float, int, i
     return ((top, bottom), (left, right))
 
 
-def _grow(em: EpisodeMap, grid: Any) -> None:
+def _grow(episode_map: EpisodeMap, grid: Any) -> None:
     """Pad the restored arrays to a delta's grid (the growth the live volume went through)."""
     if not (isinstance(grid, list) and len(grid) == 4):
         raise ValueError("snapshot delta without its grid")
     new = (float(grid[0]), float(grid[1]), int(grid[2]), int(grid[3]))
     if max(new[2], new[3]) > 100_000:
         raise ValueError("snapshot delta grid too large")
-    v = em.volume
-    pad = _padding(_grid(em), new, em.resolution)
+    v = episode_map.volume
+    pad = _padding(_grid(episode_map), new, episode_map.resolution)
     if pad is None:
         raise ValueError("snapshot delta grid is not the grid grown at its sides")
     if not any(pad[0] + pad[1]):
@@ -208,9 +209,9 @@ def _grow(em: EpisodeMap, grid: Any) -> None:
     v.origin_x, v.origin_y = new[0], new[1]
 
 
-def forget(em: EpisodeMap) -> None:
+def forget(episode_map: EpisodeMap) -> None:
     """Start over with a full part at the next save (e.g. after a map restored from elsewhere)."""
-    _logs.pop(em, None)
+    _logs.pop(episode_map, None)
 
 
 def _arr(a: Any, dtype: Any, what: str) -> np.ndarray:
@@ -219,12 +220,12 @@ def _arr(a: Any, dtype: Any, what: str) -> np.ndarray:
     return a
 
 
-def _apply(em: EpisodeMap, data: bytes) -> None:
+def _apply(episode_map: EpisodeMap, data: bytes) -> None:
     body = unpackb(data)
     if not isinstance(body, dict) or body.get("version") != LOG_VERSION:
         raise ValueError(f"not a mapper snapshot delta of version {LOG_VERSION}")
-    _grow(em, body.get("grid"))
-    v = em.volume
+    _grow(episode_map, body.get("grid"))
+    v = episode_map.volume
     nz = v.nz
     ncols = v.shape2d[0] * v.shape2d[1]
     cols = _arr(body["cols"], np.int32, "cols").astype(np.int64)
@@ -271,25 +272,26 @@ def restore(header: bytes, read_part: Any, config: MapperConfig | None = None) -
     if not isinstance(deltas, list) or len(deltas) > MAX_DELTAS or not all(isinstance(d, str) for d in deltas):
         raise ValueError("bad list of snapshot deltas")
     full = read_part(head["full"])
-    em = _from_full(full, config)
+    episode_map = _from_full(full, config)
     for name in deltas:
-        _apply(em, read_part(name))
-    v = em.volume
+        _apply(episode_map, read_part(name))
+    v = episode_map.volume
     if [v.origin_x, v.origin_y, *v.shape2d] != list(head["grid"]):
         raise ValueError("snapshot header and parts disagree on the grid")
-    em.step = int(head["step"])
-    em.pose = Pose2D.model_validate(head["pose"]) if head["pose"] else None
-    em.frontiers = [Frontier.model_validate(f) for f in head["frontiers"]]
-    em.prompts = [PromptPoint.model_validate(p) for p in head["prompts"]]
+    episode_map.step = int(head["step"])
+    episode_map.pose = Pose2D.model_validate(head["pose"]) if head["pose"] else None
+    episode_map.frontiers = [Frontier.model_validate(f) for f in head["frontiers"]]
+    episode_map.prompts = [PromptPoint.model_validate(p) for p in head["prompts"]]
     # arrays written in place above: change stamps start over, the projection reads the grid whole again
     v.stamp = 0
     v.col_stamp = np.zeros(v.shape2d, dtype=np.int64)
     v.caches.clear()
-    em.maps = project(v, (em.pose.x, em.pose.y), em.config.projection) if em.pose is not None else None
+    pose = episode_map.pose
+    episode_map.maps = None if pose is None else project(v, (pose.x, pose.y), episode_map.config.projection)
     gen = int(head["full"][1:]) if head["full"][1:].isdigit() else 0
-    _logs[em] = _Log(gen=gen, full=head["full"], full_bytes=len(full), deltas=list(deltas), stamp=0,
-                     grid=_grid(em), planes={k: a.copy() for k, a in v.planes.items()})
-    return em
+    _logs[episode_map] = _Log(gen=gen, full=head["full"], full_bytes=len(full), deltas=list(deltas), stamp=0,
+                     grid=_grid(episode_map), planes={k: a.copy() for k, a in v.planes.items()})
+    return episode_map
 
 
 # ---- what rides along with the map in the stored envelope ------------------------------------------------------

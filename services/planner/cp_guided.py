@@ -62,9 +62,9 @@ def reweight(weights: list[float], decision: Decision | None, gamma: float = DEF
     return [float(v) for v in out]
 
 
-def guided_map(mu: MapUpdate, decision: Decision | None, gamma: float = DEFAULT_GAMMA) -> MapUpdate:
+def guided_map(update: MapUpdate, decision: Decision | None, gamma: float = DEFAULT_GAMMA) -> MapUpdate:
     """The map update with its frontier weights re-tempered by the prediction set (the planner samples from it
     as for ``semantic``)."""
-    new = reweight([f.weight for f in mu.frontiers], decision, gamma)
-    frontiers = [f.model_copy(update={"weight": w}) for f, w in zip(mu.frontiers, new, strict=True)]
-    return mu.model_copy(update={"frontiers": frontiers})
+    new = reweight([f.weight for f in update.frontiers], decision, gamma)
+    frontiers = [f.model_copy(update={"weight": w}) for f, w in zip(update.frontiers, new, strict=True)]
+    return update.model_copy(update={"frontiers": frontiers})

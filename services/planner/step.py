@@ -307,6 +307,28 @@ def _choose(frontiers: list[Frontier], reached: _Reach, strategy: Strategy, mem:
     return idx, probs, note, True
 
 
+def _advance(mem: Memory, frontier: Frontier, path: list[tuple[float, float]], arrived: bool, pose: Pose2D,
+             strategy: Strategy, sampled: bool, committed: Frontier | None) -> tuple[float, str]:
+    """The goal's yaw and what the step does to ``frontier``, with ``mem`` updated for the move: a frontier
+    arrived at is visited (face it, drop the target); else it is the target kept (face along the path's last
+    leg), one more step committed to it."""
+    if arrived:
+        mem.visited.append((frontier.x, frontier.y))
+        mem.target = None
+        mem.committed_steps = 0
+        mem.turns = 0
+        return math.atan2(frontier.ny, frontier.nx), "arrives at"
+    (ax, ay), (bx, by) = path[-2], path[-1]
+    yaw = math.atan2(by - ay, bx - ax) if math.hypot(bx - ax, by - ay) > 1e-6 else pose.yaw
+    mem.target = frontier
+    if strategy in frontier_rules.RULES and not sampled and committed is not None:
+        # the rules compare a kept target's value with its value when it was chosen
+        mem.target = frontier.model_copy(update={"sv": committed.sv, "sv_normal": committed.sv_normal})
+    mem.committed_steps += 1
+    mem.turns = 0
+    return yaw, "heads for"
+
+
 def plan_step(
     grid: GridSpec,
     free: np.ndarray,
@@ -370,22 +392,7 @@ def plan_step(
     path, fits = truncate(pulled, params.max_step_m)
     arrived = fits and complete
     gx, gy = path[-1]
-    if arrived:
-        yaw = math.atan2(frontier.ny, frontier.nx)
-        mem.visited.append((frontier.x, frontier.y))
-        mem.target = None
-        mem.committed_steps = 0
-        what = "arrives at"
-    else:
-        (ax, ay), (bx, by) = path[-2], path[-1]
-        yaw = math.atan2(by - ay, bx - ax) if math.hypot(bx - ax, by - ay) > 1e-6 else pose.yaw
-        mem.target = frontier
-        if strategy in frontier_rules.RULES and not sampled and committed is not None:
-            # the rules compare a kept target's value with its value when it was chosen
-            mem.target = frontier.model_copy(update={"sv": committed.sv, "sv_normal": committed.sv_normal})
-        mem.committed_steps += 1
-        what = "heads for"
-    mem.turns = 0
+    yaw, what = _advance(mem, frontier, path, arrived, pose, strategy, sampled, committed)
     moved = path_length(path)
     reason = (
         f"{note}; {what} frontier {idx} ({frontier.x:.1f}, {frontier.y:.1f}) "

@@ -34,20 +34,20 @@ class PlannerTask:
         return cls(TaskMachine(t.kind, t.object, t.start_receptacle, t.goal_receptacle, start.ablation,
                                start.pick_limit, th))
 
-    def goal(self, episode_id: str, mu: MapUpdate, memory: Memory, rng: np.random.Generator,
+    def goal(self, episode_id: str, update: MapUpdate, memory: Memory, rng: np.random.Generator,
              params: PlannerParams | None = None, before: dict[str, Any] | None = None) -> tuple[Goal, StepPlan]:
-        """The goal of step ``mu.step``. ``before``: the machine's state to plan from again (a refused goal)."""
+        """The goal of step ``update.step``. ``before``: the machine's state to plan from again (a refused goal)."""
         if before is not None:
             self.machine = TaskMachine.from_json(before)
-        objects = [from_instance(o) for o in getattr(mu, "objects", [])]
-        st = task_step(self.machine, mu.grid, mu.free, mu.occupied, mu.pose, list(mu.frontiers), objects,
-                       outcome_of(getattr(mu, "skill", None)), memory, rng, params)
+        objects = [from_instance(o) for o in getattr(update, "objects", [])]
+        st = task_step(self.machine, update.grid, update.free, update.occupied, update.pose, list(update.frontiers),
+                       objects, outcome_of(getattr(update, "skill", None)), memory, rng, params)
         plan = st.plan
         plan.memory = st.memory
-        goal = Goal(episode_id=episode_id, step=mu.step, pose=plan.pose, path=plan.path, frontier=plan.frontier,
+        goal = Goal(episode_id=episode_id, step=update.step, pose=plan.pose, path=plan.path, frontier=plan.frontier,
                     weights=plan.probabilities, done=plan.done, reason=plan.reason, skill=st.skill,  # type: ignore[arg-type]
                     target=st.target, phase=st.phase,  # type: ignore[arg-type]
-                    numbers=decision_numbers(self.machine, st, objects, mu.pose))
+                    numbers=decision_numbers(self.machine, st, objects, update.pose))
         return goal, plan
 
     def to_json(self) -> dict[str, Any]:

@@ -36,6 +36,7 @@ import zenoh
 from eqa import keys, ros
 from eqa.bus import Bus
 from eqa.messages import EpisodeCancel, EpisodeEnd, EpisodeStart, ErrorReply, Frame, Goal, Pose2D
+from eqa.robot import goal_not_taken
 from eqa.service import Service
 from eqa.settings import Settings
 from eqa.store import Store
@@ -218,12 +219,11 @@ class Ros2BridgeService(Service):
         if goal.step != rb.step or rb.phase != "idle":
             log.info("robot %s: goal for step %d while at step %d (%s) ignored", robot, goal.step, rb.step, rb.phase)
             return
-        if goal.pose is None:
-            self._error(robot, goal.episode_id, goal.step, "goal has no pose and is not done")
+        refused = goal_not_taken(goal.pose, rb.step, rb.max_steps)
+        if refused is not None:
+            self._error(robot, goal.episode_id, goal.step, refused)
             return
-        if rb.step + 1 >= rb.max_steps:
-            self._error(robot, goal.episode_id, goal.step, f"step limit {rb.max_steps} reached")
-            return
+        assert goal.pose is not None
         s = self.settings
         try:
             data = core.goal_pose_stamped(goal.pose, time.time_ns(), s.ros2_map_frame)

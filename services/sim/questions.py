@@ -18,6 +18,7 @@ from __future__ import annotations
 import logging
 import math
 from collections import Counter, defaultdict
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -293,16 +294,20 @@ class Benchmark:
                    test=[Question.model_validate(q) for q in data["test"]])
 
 
-def category_round_robin(questions: list[Question], limit: int | None) -> list[Question]:
+def category_round_robin(questions: list[Question], limit: int | None,
+                          categories: Sequence[str] | None = None) -> list[Question]:
     """At most ``limit`` of ``questions`` (all when None) keeping the category mix: one of each category in turn
-    (categories in sorted order, each in its own order)."""
-    limit = len(questions) if limit is None else min(limit, len(questions))
-    by_category: dict[str, list[Question]] = {}
+    (each in its own order), the categories in sorted order, or only ``categories`` in that order when given."""
+    by_category: dict[str, list[Question]] = {c: [] for c in categories or ()}
     for q in questions:
-        by_category.setdefault(q.category or "", []).append(q)
+        if categories is None or (q.category or "") in by_category:
+            by_category.setdefault(q.category or "", []).append(q)
+    turn = list(categories) if categories is not None else sorted(by_category)
+    total = sum(len(qs) for qs in by_category.values())
+    limit = total if limit is None else min(limit, total)
     out: list[Question] = []
     while len(out) < limit:
-        for category in sorted(by_category):
+        for category in turn:
             if by_category[category] and len(out) < limit:
                 out.append(by_category[category].pop(0))
     return out

@@ -41,6 +41,7 @@ from eqa.codec import CodecError, unpackb
 from eqa.episode_service import EpisodeService
 from eqa.messages import EpisodeCancel, EpisodeEnd, EpisodeStart, Frame, Goal, Pose2D, SkillReport
 from eqa.recording import ENTITIES
+from eqa.robot import goal_not_taken
 from eqa.settings import Settings
 from eqa.sharding import Redrive
 from eqa.store import (
@@ -365,12 +366,11 @@ class SimService(EpisodeService[_Episode]):
         if goal.step != ep.step:
             log.warning("robot %s: goal for step %d while at step %d ignored", robot, goal.step, ep.step)
             return
-        if goal.pose is None:
-            self.error(robot, ep.episode_id, goal.step, "goal has no pose and is not done")
+        reason = goal_not_taken(goal.pose, ep.step, ep.max_steps)
+        if reason is not None:
+            self.error(robot, ep.episode_id, goal.step, reason)
             return
-        if ep.step + 1 >= ep.max_steps:
-            self.error(robot, ep.episode_id, goal.step, f"step limit {ep.max_steps} reached")
-            return
+        assert goal.pose is not None
         reason = pose_error(ep.scene, goal.pose)
         if reason is not None:
             self.error(robot, ep.episode_id, goal.step, f"goal refused: {reason}")

@@ -92,10 +92,11 @@ class StopperService(EpisodeService[EpisodeRecord]):
         return state.model_dump(mode="json")
 
     def load_state(self, episode_id: str, data: Any) -> EpisodeRecord:
-        rec = EpisodeRecord.model_validate(data)
-        rec.restarts += 1
-        log.info("resumed episode %s at step %d (running set %s)", rec.episode_id, rec.last_step, rec.running)
-        return rec
+        episode = EpisodeRecord.model_validate(data)
+        episode.restarts += 1
+        log.info("resumed episode %s at step %d (running set %s)", episode.episode_id, episode.last_step,
+                 episode.running)
+        return episode
 
     def answered_step(self, episode_id: str, state: EpisodeRecord) -> int:
         return state.last_step
@@ -109,27 +110,27 @@ class StopperService(EpisodeService[EpisodeRecord]):
         else:
             log.info("episode %s: step %d already decided; duplicate scores ignored", state.episode_id, msg.step)
 
-    def _save_trace(self, rec: EpisodeRecord, end_reason: str | None = None) -> None:
-        trace = rec.trace(end_reason)
+    def _save_trace(self, episode: EpisodeRecord, end_reason: str | None = None) -> None:
+        trace = episode.trace(end_reason)
         if trace is not None and self.traces is not None:
-            self.traces.save_episode(rec.episode_id, trace)
+            self.traces.save_episode(episode.episode_id, trace)
 
-    def _recording(self, rec: EpisodeRecord) -> str | None:
-        if rec.record and self.settings.record:
-            return str(recording_dir(self.settings, rec.episode_id))
+    def _recording(self, episode: EpisodeRecord) -> str | None:
+        if episode.record and self.settings.record:
+            return str(recording_dir(self.settings, episode.episode_id))
         return None
 
     # ---- handlers -----------------------------------------------------------------------------------------
     def start_episode(self, robot: str, start: EpisodeStart) -> EpisodeRecord | None:
-        rec = EpisodeRecord.from_start(start, robot)
-        rec.answer_memory = self.settings.answer_memory_k  # (answer_memory.py); fixed for the episode
-        rec.answer_fusion = self.settings.answer_memory_fusion
+        episode = EpisodeRecord.from_start(start, robot)
+        episode.answer_memory = self.settings.answer_memory_k  # (answer_memory.py); fixed for the episode
+        episode.answer_fusion = self.settings.answer_memory_fusion
         if self.settings.object_evidence:  # pooled into f by object_evidence.py
-            rec.object_evidence = (self.settings.object_evidence_psi_min, self.settings.object_evidence_weight)
+            episode.object_evidence = (self.settings.object_evidence_psi_min, self.settings.object_evidence_weight)
         try:
-            rec.threshold = check_threshold(start)
+            episode.threshold = check_threshold(start)
         except ValueError as exc:
-            self._finish(rec, "failed", f"invalid stop threshold: {exc}", None)
+            self._finish(episode, "failed", f"invalid stop threshold: {exc}", None)
             return None
         if start.stop.rule == "cp":
             name = self.settings.calibration_name
@@ -142,62 +143,62 @@ class StopperService(EpisodeService[EpisodeRecord]):
             choice, why = resolve_calibration(table, where, start.stop.eps, name, start.question.category)
             if choice is None:
                 log.error("episode %s: %s", start.episode_id, why)
-                self._finish(rec, "failed", why, None)
+                self._finish(episode, "failed", why, None)
                 return None
             if choice.note:
                 log.warning("episode %s: %s", start.episode_id, choice.note)
-            rec.calibration = choice
-        self._save_trace(rec)
+            episode.calibration = choice
+        self._save_trace(episode)
         log.info(
             "episode %s started on %s: rule %s, %d steps max",
-            rec.episode_id,
+            episode.episode_id,
             robot,
             start.stop.rule,
-            rec.max_steps,
+            episode.max_steps,
         )
-        return rec
+        return episode
 
-    def on_scores(self, robot: str, rec: EpisodeRecord, scores: StepScores) -> None:
-        if robot != rec.robot:
+    def on_scores(self, robot: str, episode: EpisodeRecord, scores: StepScores) -> None:
+        if robot != episode.robot:
             log.warning(
                 "scores of episode %s arrived for robot %s, expected %s; dropped",
-                rec.episode_id,
+                episode.episode_id,
                 robot,
-                rec.robot,
+                episode.robot,
             )
             return
-        work = rec.model_copy(deep=True)  # a failure below leaves the stored state untouched
+        work = episode.model_copy(deep=True)  # a failure below leaves the stored state untouched
         try:
             decision = decide(work, scores)
         except ScoreError as exc:
             reason = f"invalid scores at step {scores.step}: {exc}"
-            log.error("episode %s: %s", rec.episode_id, reason)
-            self._finish(rec, "failed", reason, None)
+            log.error("episode %s: %s", episode.episode_id, reason)
+            self._finish(episode, "failed", reason, None)
             return
         if decision is None:
-            self.answer_again(robot, rec, scores)
+            self.answer_again(robot, episode, scores)
             return
         work.last_decision = decision
-        self.episodes[rec.episode_id] = work
+        self.episodes[episode.episode_id] = work
         self._save_trace(work)
         self._log_rerun(work, decision)
         if decision.stop:
             self._finish(work, "stopped", decision.reason, decision.answer, decision)
         else:
-            self.publish_step(rec.episode_id, keys.STOPPER_DECISION, decision, decision.step, save=True)
+            self.publish_step(episode.episode_id, keys.STOPPER_DECISION, decision, decision.step, save=True)
 
-    def on_goal(self, robot: str, rec: EpisodeRecord, goal: Goal) -> None:
+    def on_goal(self, robot: str, episode: EpisodeRecord, goal: Goal) -> None:
         if not goal.done:
             return
-        if self._task_metrics(rec.episode_id) is not None:  # a task episode: the planner ends it
-            self._finish(rec, "stopped", f"task ended: {goal.reason or 'the planner is done'}", None)
+        if self._task_metrics(episode.episode_id) is not None:  # a task episode: the planner ends it
+            self._finish(episode, "stopped", f"task ended: {goal.reason or 'the planner is done'}", None)
             return
-        answer = rec.fallback()
+        answer = episode.fallback()
         why = goal.reason or "nothing left to explore"
         if answer is None:
-            self._finish(rec, "failed", f"the planner ended exploration before any step was scored: {why}", None)
+            self._finish(episode, "failed", f"the planner ended exploration before any step was scored: {why}", None)
             return
-        self._finish(rec, "stopped", fallback_reason(f"planner ended exploration: {why}", answer), answer)
+        self._finish(episode, "stopped", fallback_reason(f"planner ended exploration: {why}", answer), answer)
 
     def finish_episode(self, robot: str, msg: EpisodeCancel | EpisodeEnd, state: EpisodeRecord) -> None:
         if isinstance(msg, EpisodeCancel):
@@ -208,9 +209,9 @@ class StopperService(EpisodeService[EpisodeRecord]):
         self._drop(state, msg.reason)
 
     # ---- helpers ------------------------------------------------------------------------------------------
-    def _drop(self, rec: EpisodeRecord, reason: str) -> None:
-        self._save_trace(rec, end_reason=reason)
-        self.drop(rec.episode_id)
+    def _drop(self, episode: EpisodeRecord, reason: str) -> None:
+        self._save_trace(episode, end_reason=reason)
+        self.drop(episode.episode_id)
 
     def _task_metrics(self, episode_id: str) -> dict[str, float] | None:
         """The sim's phase metrics of a task episode (:func:`eqa.store.task_metrics_key`); None for a question
@@ -228,42 +229,43 @@ class StopperService(EpisodeService[EpisodeRecord]):
         self.publish(robot, keys.EPISODE_END, end)
 
     def _finish(
-        self, rec: EpisodeRecord, state: EpisodeState, reason: str, answer: str | None, decision: Decision | None = None
+        self, episode: EpisodeRecord, state: EpisodeState, reason: str, answer: str | None,
+        decision: Decision | None = None,
     ) -> None:
         """End an episode: store the end and drop the state first, then publish (the last Decision, if any,
         and the EpisodeEnd)."""
-        r = self.recorders.get(rec.episode_id)
+        r = self.recorders.get(episode.episode_id)
         if answer is not None and r is not None:
             r.log("stopper/log", _text(f"final answer {answer}: {reason}"))
-        end = end_message(rec, state, reason, answer, self._recording(rec))
-        metrics = self._task_metrics(rec.episode_id)
+        end = end_message(episode, state, reason, answer, self._recording(episode))
+        metrics = self._task_metrics(episode.episode_id)
         if metrics is not None:  # a task episode: its phase metrics, no answer
             reason = reason.split("; answering")[0]
-            end = end_message(rec, state, reason, None, self._recording(rec))
+            end = end_message(episode, state, reason, None, self._recording(episode))
             end = end.model_copy(update={"metrics": metrics, "answer": None, "answer_text": None,
                                          "prediction_set": []})
             if r is not None and r.enabled:
                 out = task_outcome(kind_of_metrics(metrics), metrics, state, reason, end.steps, end.max_steps)
                 r.log(TASK_OUTCOME_ENTITY, _text(f"task {out['text']} ({reason})",
                                                       "INFO" if out["success"] else "WARN"))
-        self.store.set(episode_end_key(rec.episode_id), end.model_dump_json().encode(), ttl_s=EPISODE_STATE_TTL_S)
-        self._drop(rec, reason)
+        self.store.set(episode_end_key(episode.episode_id), end.model_dump_json().encode(), ttl_s=EPISODE_STATE_TTL_S)
+        self._drop(episode, reason)
         if decision is not None:
-            self.publish(rec.robot, keys.STOPPER_DECISION, decision)
-        self.publish(rec.robot, keys.EPISODE_END, end)
-        log.info("episode %s %s after %d steps: answer %s (%s)", rec.episode_id, state, end.steps, answer, reason)
+            self.publish(episode.robot, keys.STOPPER_DECISION, decision)
+        self.publish(episode.robot, keys.EPISODE_END, end)
+        log.info("episode %s %s after %d steps: answer %s (%s)", episode.episode_id, state, end.steps, answer, reason)
 
-    def _log_rerun(self, rec: EpisodeRecord, decision: Decision) -> None:
-        r = self.recorders.get(rec.episode_id)
+    def _log_rerun(self, episode: EpisodeRecord, decision: Decision) -> None:
+        r = self.recorders.get(episode.episode_id)
         if r is None or not r.enabled:
             return
         import rerun as rr
 
         r.set_step(decision.step)
-        r.log("stopper/relevance", rr.Scalars([rec.relevance[-1]]))
+        r.log("stopper/relevance", rr.Scalars([episode.relevance[-1]]))
         for name, value in decision.scores.items():  # rho_y^t per letter (CP) or the rule's statistic
             r.log(f"{SCORES_ENTITY}/{name}", rr.Scalars([value]))
-        if rec.stop.rule == "cp":
+        if episode.stop.rule == "cp":
             for letter, rho in decision.scores.items():
                 r.log(f"stopper/rho/{letter}", rr.Scalars([rho]))
             r.log("stopper/set_size", rr.Scalars([float(len(decision.prediction_set))]))

@@ -433,83 +433,75 @@ def _probe_image() -> np.ndarray:
     return (rng.random((64, 64, 3)) * 255).astype(np.uint8)
 
 
-def probe_endpoint(
-    base_url: str,
-    model: str | None = None,
-    api_key: str | None = None,
-    timeout_s: float = 30.0,
-    mode: Mode = "auto",
-    samples: int = 8,
-    temperature: float = 1.0,
-    score_step: bool = True,
-) -> ProbeReport:
-    """Probe an OpenAI-compatible endpoint: ``GET /models``, one image + Yes/No chat completion asking for
-    logprobs, then (``score_step``) one full scoring step of a synthetic frame in the chosen mode, timed.
-    Never raises for what the endpoint does: findings go to :attr:`ProbeReport.problems`."""
+def _probe_models(client: httpx.Client, rep: ProbeReport, model: str | None) -> bool:
+    """``GET /models`` and the model to probe (``model``, else the first listed) into ``rep``; False when the
+    probe cannot go on (the server is not reachable, or no model is known)."""
+    try:
+        resp = client.get(rep.base_url + "/models")
+        if resp.status_code == 200:
+            data = resp.json().get("data", [])
+            rep.models = [str(m.get("id")) for m in data if isinstance(m, dict) and m.get("id")]
+        else:
+            rep.notes.append(f"GET /models answered HTTP {resp.status_code}")
+    except (httpx.TransportError, httpx.TimeoutException) as exc:
+        rep.problems.append(f"cannot reach {rep.base_url}: {type(exc).__name__}: {exc} (is the server up? "
+                            f"the URL ends in /v1 for most servers)")
+        return False
+    except (ValueError, AttributeError) as exc:
+        rep.notes.append(f"GET /models returned no model list ({exc})")
+    if model:
+        rep.model = model
+        if rep.models is not None and model not in rep.models:
+            rep.notes.append(f"{model!r} is not among the listed models; the server may still accept it")
+    elif rep.models:
+        rep.model = rep.models[0]
+        if len(rep.models) > 1:
+            rep.notes.append(f"no --model given: using the first listed, {rep.model!r}")
+    else:
+        rep.problems.append("no model listed by the server: give --model (EQA_REMOTE_MODEL)")
+        return False
+    return True
+
+
+def _probe_image_chat(client: httpx.Client, rep: ProbeReport) -> bool:
+    """One image + Yes/No chat completion asking for logprobs: whether the model takes an image and returns
+    logprobs, into ``rep``; False when the probe cannot go on."""
+    payload = {
+        "model": rep.model,
+        "messages": [{"role": "user", "content": [
+            {"type": "image_url", "image_url": {"url": png_data_url(_probe_image())}},
+            {"type": "text", "text": PROBE_TEXT}]}],
+        "max_tokens": 1,
+        "temperature": 0.0,
+        "logprobs": True,
+        "top_logprobs": 5,
+    }
+    try:
+        resp = client.post(rep.base_url + "/chat/completions", json=payload)
+    except (httpx.TransportError, httpx.TimeoutException) as exc:
+        rep.problems.append(f"chat completion with an image failed: {type(exc).__name__}: {exc}")
+        return False
+    if resp.status_code != 200:
+        rep.problems.append(f"chat completion with an image refused: HTTP {resp.status_code}: "
+                            f"{resp.text[:200]} (is {rep.model!r} a vision-language model?)")
+        return False
+    rep.image_ok = True
+    try:
+        read_top_logprobs(resp.json())
+        rep.logprobs = True
+    except NoLogprobs:
+        rep.logprobs = False
+    except (RemoteError, ValueError) as exc:
+        rep.problems.append(f"malformed chat-completions response: {exc}")
+        return False
+    return True
+
+
+def _probe_step(rep: ProbeReport, api_key: str | None, timeout_s: float, samples: int, temperature: float) -> None:
+    """One full scoring step of a synthetic frame in ``rep.mode`` through :class:`RemoteBackend`, timed, with
+    the HTTP calls it took, into ``rep``."""
     from eqa.messages import PromptPoint, Question, ScoreRequest
 
-    rep = ProbeReport(base_url=base_url.rstrip("/"), samples=samples)
-    headers = {"Authorization": f"Bearer {api_key}"} if api_key else {}
-    with httpx.Client(timeout=httpx.Timeout(timeout_s), headers=headers) as client:
-        try:
-            resp = client.get(rep.base_url + "/models")
-            if resp.status_code == 200:
-                data = resp.json().get("data", [])
-                rep.models = [str(m.get("id")) for m in data if isinstance(m, dict) and m.get("id")]
-            else:
-                rep.notes.append(f"GET /models answered HTTP {resp.status_code}")
-        except (httpx.TransportError, httpx.TimeoutException) as exc:
-            rep.problems.append(f"cannot reach {rep.base_url}: {type(exc).__name__}: {exc} (is the server up? "
-                                f"the URL ends in /v1 for most servers)")
-            return rep
-        except (ValueError, AttributeError) as exc:
-            rep.notes.append(f"GET /models returned no model list ({exc})")
-        if model:
-            rep.model = model
-            if rep.models is not None and model not in rep.models:
-                rep.notes.append(f"{model!r} is not among the listed models; the server may still accept it")
-        elif rep.models:
-            rep.model = rep.models[0]
-            if len(rep.models) > 1:
-                rep.notes.append(f"no --model given: using the first listed, {rep.model!r}")
-        else:
-            rep.problems.append("no model listed by the server: give --model (EQA_REMOTE_MODEL)")
-            return rep
-        payload = {
-            "model": rep.model,
-            "messages": [{"role": "user", "content": [
-                {"type": "image_url", "image_url": {"url": png_data_url(_probe_image())}},
-                {"type": "text", "text": PROBE_TEXT}]}],
-            "max_tokens": 1,
-            "temperature": 0.0,
-            "logprobs": True,
-            "top_logprobs": 5,
-        }
-        try:
-            resp = client.post(rep.base_url + "/chat/completions", json=payload)
-        except (httpx.TransportError, httpx.TimeoutException) as exc:
-            rep.problems.append(f"chat completion with an image failed: {type(exc).__name__}: {exc}")
-            return rep
-        if resp.status_code != 200:
-            rep.problems.append(f"chat completion with an image refused: HTTP {resp.status_code}: "
-                                f"{resp.text[:200]} (is {rep.model!r} a vision-language model?)")
-            return rep
-        rep.image_ok = True
-        try:
-            read_top_logprobs(resp.json())
-            rep.logprobs = True
-        except NoLogprobs:
-            rep.logprobs = False
-        except (RemoteError, ValueError) as exc:
-            rep.problems.append(f"malformed chat-completions response: {exc}")
-            return rep
-    if mode == "logprobs" and not rep.logprobs:
-        rep.problems.append("EQA_REMOTE_MODE=logprobs but the endpoint returns no logprobs: set "
-                            "EQA_REMOTE_MODE=sampling (or auto)")
-        return rep
-    rep.mode = "logprobs" if (rep.logprobs and mode != "sampling") else "sampling"
-    if not score_step:
-        return rep
     backend = RemoteBackend(rep.base_url, rep.model, api_key, timeout_s, max_retries=1,
                             mode=rep.mode, samples=samples, temperature=temperature)  # type: ignore[arg-type]
     rgb = np.ascontiguousarray(np.tile(_probe_image(), (2, 2, 1))[:96, :128])
@@ -528,4 +520,31 @@ def probe_endpoint(
         rep.problems.append(f"one scoring step in {rep.mode} mode failed: {exc}")
     finally:
         backend.close()
+
+
+def probe_endpoint(
+    base_url: str,
+    model: str | None = None,
+    api_key: str | None = None,
+    timeout_s: float = 30.0,
+    mode: Mode = "auto",
+    samples: int = 8,
+    temperature: float = 1.0,
+    score_step: bool = True,
+) -> ProbeReport:
+    """Probe an OpenAI-compatible endpoint: ``GET /models``, one image + Yes/No chat completion asking for
+    logprobs, then (``score_step``) one full scoring step of a synthetic frame in the chosen mode, timed.
+    Never raises for what the endpoint does: findings go to :attr:`ProbeReport.problems`."""
+    rep = ProbeReport(base_url=base_url.rstrip("/"), samples=samples)
+    headers = {"Authorization": f"Bearer {api_key}"} if api_key else {}
+    with httpx.Client(timeout=httpx.Timeout(timeout_s), headers=headers) as client:
+        if not (_probe_models(client, rep, model) and _probe_image_chat(client, rep)):
+            return rep
+    if mode == "logprobs" and not rep.logprobs:
+        rep.problems.append("EQA_REMOTE_MODE=logprobs but the endpoint returns no logprobs: set "
+                            "EQA_REMOTE_MODE=sampling (or auto)")
+        return rep
+    rep.mode = "logprobs" if (rep.logprobs and mode != "sampling") else "sampling"
+    if score_step:
+        _probe_step(rep, api_key, timeout_s, samples, temperature)
     return rep
