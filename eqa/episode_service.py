@@ -220,8 +220,8 @@ class EpisodeService(Service, Generic[S]):
         self.every(min(1.0, self.hold_ttl_s / 4), self._expire_held)
 
     def teardown(self) -> None:
-        for rec in self.recorders.values():
-            rec.close()
+        for recorder in self.recorders.values():
+            recorder.close()
         self.recorders.clear()
 
     def on_step(self, pair: Pair, handler: Callable[[str, S, Any], None], resend: bool = True,
@@ -308,9 +308,9 @@ class EpisodeService(Service, Generic[S]):
         self.store.delete(episode_state_key(self.name, episode_id))
         if meta is not None and meta.parts:
             self._delete_parts(episode_id, meta.parts)
-        rec = self.recorders.pop(episode_id, None)
-        if rec is not None:
-            rec.close()
+        recorder = self.recorders.pop(episode_id, None)
+        if recorder is not None:
+            recorder.close()
 
     def _forget_claims(self, episode_id: str, upto_step: int) -> None:
         """Delete the step claims of an ended episode (they would expire; not wait for it)."""
@@ -515,9 +515,9 @@ class EpisodeService(Service, Generic[S]):
         self.episodes.pop(episode_id, None)
         self.meta.pop(episode_id, None)
         self._held.pop(episode_id, None)
-        rec = self.recorders.pop(episode_id, None)
-        if rec is not None:
-            rec.close()
+        recorder = self.recorders.pop(episode_id, None)
+        if recorder is not None:
+            recorder.close()
 
     def wants(self, robot: str) -> bool:
         """Decode the step inputs of robots this instance owns, or owned within ``LOST_GRACE_S`` (it finishes the

@@ -25,8 +25,8 @@ def test_the_final_status_is_stored_before_the_end_event(settings: Settings, hub
             events = store.read(ev_key(episode_id), count=1000) if episode_id else []
             if events:
                 kind = json.loads(events[-1][1])["kind"]
-                rec = manager.load(episode_id)
-                seen.append((kind, rec.status.state if rec else "?"))
+                episode = manager.load(episode_id)
+                seen.append((kind, episode.status.state if episode else "?"))
 
         episode_id = ""
         manager.notify = notify

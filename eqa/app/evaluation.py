@@ -250,7 +250,7 @@ class Replay:
 
 def replay(trace: Trace, stop: StopConfig, calibration: CalibrationChoice | None = None) -> Replay:
     """Run the stopper's decision rule over a recorded trace, step by step, as the service would."""
-    rec = EpisodeRecord(
+    episode = EpisodeRecord(
         episode_id="replay",
         robot="replay",
         question={"text": "replay", "choices": trace.choices, "scene": trace.scene, "answer": trace.answer},
@@ -266,13 +266,13 @@ def replay(trace: Trace, stop: StopConfig, calibration: CalibrationChoice | None
     m = trace.memory_steps
     memory = [MemoryScore(answer_probs=s.answer_probs, relevance=s.relevance) for s in trace.steps[:m]]
     for t, s in enumerate(trace.steps[m:]):
-        d = decide(rec, StepScores(episode_id="replay", step=t, answer_probs=s.answer_probs, relevance=s.relevance,
+        d = decide(episode, StepScores(episode_id="replay", step=t, answer_probs=s.answer_probs, relevance=s.relevance,
                                    memory=memory if t == 0 else []))
         if d is not None and d.stop:
             return Replay(d.answer, t + 1, trace.max_steps, d.answer == trace.answer, tuple(d.prediction_set))
     # The run ended before the stop rule fired (the planner found nothing left to explore): fallback answer.
-    answer = rec.fallback()
-    return Replay(answer, len(trace.steps) - m, trace.max_steps, answer == trace.answer, tuple(rec.running or ()))
+    answer = episode.fallback()
+    return Replay(answer, len(trace.steps) - m, trace.max_steps, answer == trace.answer, tuple(episode.running or ()))
 
 
 @dataclass(frozen=True)

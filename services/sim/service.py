@@ -440,43 +440,43 @@ class SimService(EpisodeService[_Episode]):
                         ep.collisions)
 
     def _log_static(self, ep: _Episode) -> None:
-        rec = self.recorders.get(ep.episode_id)
-        if rec is None or not rec.enabled:
+        recorder = self.recorders.get(ep.episode_id)
+        if recorder is None or not recorder.enabled:
             return
         import rerun as rr
 
         sc = ep.scene
         if sc.triangle_colors is not None and len(sc.triangles) < 200_000:
-            rec.log("world/scene", rr.Mesh3D(vertex_positions=sc.vertices[sc.triangles].reshape(-1, 3),
+            recorder.log("world/scene", rr.Mesh3D(vertex_positions=sc.vertices[sc.triangles].reshape(-1, 3),
                                              vertex_colors=np.repeat(sc.triangle_colors, 3, axis=0)), static=True)
 
     def _log_step(self, ep: _Episode, frame: Frame) -> None:
-        rec = self.recorders.get(ep.episode_id)
-        if rec is None or not rec.enabled:
+        recorder = self.recorders.get(ep.episode_id)
+        if recorder is None or not recorder.enabled:
             return
         import rerun as rr
 
-        rec.set_step(frame.step)
-        rec.log("camera/rgb", rr.Image(frame.rgb))
-        rec.log("camera/depth", rr.DepthImage(frame.depth, meter=1.0))
+        recorder.set_step(frame.step)
+        recorder.log("camera/rgb", rr.Image(frame.rgb))
+        recorder.log("camera/depth", rr.DepthImage(frame.depth, meter=1.0))
         T = frame.camera_pose
-        rec.log("world/camera", rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]))
-        rec.log("world/camera", rr.Pinhole(image_from_camera=frame.intrinsics,
+        recorder.log("world/camera", rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]))
+        recorder.log("world/camera", rr.Pinhole(image_from_camera=frame.intrinsics,
                                            resolution=[frame.rgb.shape[1], frame.rgb.shape[0]]))
         p = frame.pose
-        rec.log("world/robot", rr.Arrows3D(origins=[[p.x, p.y, 0.05]],
+        recorder.log("world/robot", rr.Arrows3D(origins=[[p.x, p.y, 0.05]],
                                            vectors=[[0.5 * np.cos(p.yaw), 0.5 * np.sin(p.yaw), 0.0]]))
         pts = [[x, y, 0.05] for x, y in ep.trajectory]
-        rec.log("world/trajectory", rr.LineStrips3D([pts]))
+        recorder.log("world/trajectory", rr.LineStrips3D([pts]))
         if frame.skill is not None:
             s = frame.skill
-            rec.log("sim/task", rr.TextLog(f"{s.skill} {'succeeded' if s.success else 'failed'}: {s.reason}"))
+            recorder.log("sim/task", rr.TextLog(f"{s.skill} {'succeeded' if s.success else 'failed'}: {s.reason}"))
         if ep.task is not None and ep.task.episode.trace:
             e = ep.task.episode.trace[-1]
             nums = ", ".join(f"{k} {v:.3g}" for k, v in e["numbers"].items())
             text = (f"step {e['step']}: {e['phase'] or 'start'}" + (f", {e['skill']}" if e["skill"] else "")
                     + (f" on #{e['target']}" if e["target"] is not None else "") + (f" ({nums})" if nums else "")
                     + (" -- COLLISION" if e["collided"] else ""))
-            rec.log(ENTITIES["task_phase"], rr.TextLog(text, level="WARN" if e["collided"] else "INFO"))
+            recorder.log(ENTITIES["task_phase"], rr.TextLog(text, level="WARN" if e["collided"] else "INFO"))
             for k in ("FindObj", "Pick", "FindRec", "Place", "collisions", "pick_attempts"):
-                rec.log(f"{ENTITIES['task_flags']}/{k}", rr.Scalars([float(e[k])]))
+                recorder.log(f"{ENTITIES['task_flags']}/{k}", rr.Scalars([float(e[k])]))
