@@ -65,6 +65,14 @@ def lone_gateway_settings(data_dir: Path, tokens: list[str], **update: Any) -> S
     return Settings(**{**base, **update})
 
 
+def tenant_gateway_settings(tmp: Path, **update: Any) -> Settings:
+    """A fleet-less gateway with the four tenants of ``gateway_helpers.TOKENS`` (two submitters, an admin, a
+    reader) and an episode timeout long enough that its episodes, which nothing runs, stay "running"."""
+    from gateway_helpers import TOKENS
+
+    return lone_gateway_settings(tmp / "var", TOKENS, **{"episode_timeout_s": 3600.0, **update})
+
+
 def clear_gateway_state(settings: Settings) -> int:
     """Delete the gateway's records (``gw:*``: episodes, event streams, robot locks, queues) from the store of
     ``settings``, leaving the services' keys alone; returns how many keys went."""

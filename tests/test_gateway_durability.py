@@ -17,8 +17,8 @@ from pathlib import Path
 
 import httpx
 import pytest
-from fleet_support import GatewayThread, wait_for
-from test_hostile_http import A, Q, gw_settings
+from fleet_support import GatewayThread, tenant_gateway_settings, wait_for
+from gateway_helpers import A, Q
 
 from eqa.launcher import free_port
 from eqa.store import RedisStore
@@ -66,7 +66,7 @@ def _status(c: httpx.Client, eid: str) -> int:
 
 
 def test_status_is_503_while_redis_restarts_and_nothing_is_lost(tmp_path: Path, redis: Redis) -> None:
-    s = gw_settings(tmp_path, redis_url=redis.url, queue_max_per_robot=10, queue_max_per_token=10)
+    s = tenant_gateway_settings(tmp_path, redis_url=redis.url, queue_max_per_robot=10, queue_max_per_token=10)
     with GatewayThread(s) as g, httpx.Client(base_url=g.url, timeout=30) as c:
         ended = []
         for _ in range(3):

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_mapper_service import Collector
+from support.mapper import Collector
 
 from eqa import homes, keys
 from eqa.app.evaluation import replay

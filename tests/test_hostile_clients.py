@@ -16,8 +16,8 @@ from pathlib import Path
 
 import httpx
 import pytest
-from fleet_support import GatewayThread
-from test_hostile_http import ADMIN, A, B, Q, gw_settings
+from fleet_support import GatewayThread, tenant_gateway_settings
+from gateway_helpers import ADMIN, A, B, Q
 
 from gateway.auth import client_ip, parse_networks
 
@@ -33,7 +33,7 @@ def _codes(c: httpx.Client, n: int, token: str, xff: str | None = None) -> list[
 
 
 def test_valid_tokens_are_never_refused_for_other_callers_failures(tmp_path: Path) -> None:
-    with GatewayThread(gw_settings(tmp_path, auth_failures_per_min=5)) as g, \
+    with GatewayThread(tenant_gateway_settings(tmp_path, auth_failures_per_min=5)) as g, \
             httpx.Client(base_url=g.url, timeout=10) as c:
         wrong = [c.get("/v1/episodes", headers={"Authorization": f"Bearer guess{i:03d}"}).status_code
                  for i in range(20)]
@@ -48,7 +48,7 @@ def test_valid_tokens_are_never_refused_for_other_callers_failures(tmp_path: Pat
 
 
 def test_wrong_tokens_are_limited_per_prefix_from_any_address(tmp_path: Path) -> None:
-    s = gw_settings(tmp_path, auth_failures_per_min=100, auth_failures_per_prefix_per_min=4,
+    s = tenant_gateway_settings(tmp_path, auth_failures_per_min=100, auth_failures_per_prefix_per_min=4,
                     trusted_proxies=["127.0.0.1/32"])
     with GatewayThread(s) as g, httpx.Client(base_url=g.url, timeout=10) as c:
         got = [_codes(c, 1, f"tok-a-{i}", xff=f"203.0.113.{i}")[0] for i in range(8)]  # 8 addresses, one prefix
@@ -58,12 +58,13 @@ def test_wrong_tokens_are_limited_per_prefix_from_any_address(tmp_path: Path) ->
 
 
 def test_forwarded_for_counts_only_from_a_trusted_proxy(tmp_path: Path) -> None:
-    with GatewayThread(gw_settings(tmp_path, auth_failures_per_min=3)) as g, \
+    with GatewayThread(tenant_gateway_settings(tmp_path, auth_failures_per_min=3)) as g, \
             httpx.Client(base_url=g.url, timeout=10) as c:
         # no trusted proxy: the header is the client's word, ignored; every request is the peer 127.0.0.1
         got = [_codes(c, 1, f"wrong{i}", xff=f"198.51.100.{i}")[0] for i in range(5)]
         assert got == [401, 401, 401, 429, 429], got
-    s = gw_settings(tmp_path / "trusted", auth_failures_per_min=3, trusted_proxies=["127.0.0.0/8", "10.0.0.0/8"])
+    s = tenant_gateway_settings(tmp_path / "trusted",
+                                auth_failures_per_min=3, trusted_proxies=["127.0.0.0/8", "10.0.0.0/8"])
     with GatewayThread(s) as g, httpx.Client(base_url=g.url, timeout=10) as c:
         assert _codes(c, 4, "wrong", xff="198.51.100.7") == [401, 401, 401, 429]
         assert _codes(c, 2, "wrong2", xff="198.51.100.8") == [401, 401]  # another client behind the proxy
@@ -84,7 +85,7 @@ def test_client_ip_reads_forwarded_for_from_trusted_peers_only() -> None:
     assert client_ip("::1", ["2001:db8::1"], trusted) == "2001:db8::1"
     assert client_ip("10.0.0.2", ["203.0.113.5"], ()) == "10.0.0.2"  # nothing trusted: never read
     with pytest.raises(ValueError, match="CIDR"):
-        gw_settings(Path("/tmp"), trusted_proxies=["10.0.0.0/33"])
+        tenant_gateway_settings(Path("/tmp"), trusted_proxies=["10.0.0.0/33"])
 
 
 # ---- slow, short and many bodies -------------------------------------------------------------------------
@@ -115,7 +116,7 @@ def _answer_and_close(sock: socket.socket, timeout: float) -> tuple[int, bool]:
 
 
 def test_a_body_shorter_than_its_length_gets_408_and_the_connection_closes(tmp_path: Path) -> None:
-    with GatewayThread(gw_settings(tmp_path, body_timeout_s=2.0)) as g:
+    with GatewayThread(tenant_gateway_settings(tmp_path, body_timeout_s=2.0)) as g:
         with socket.create_connection(("127.0.0.1", g.port), timeout=10) as sock:
             sock.sendall(_head(200) + b'{"question": "where')  # 19 of 200 bytes, then nothing
             t0 = time.monotonic()
@@ -129,7 +130,7 @@ def test_a_body_shorter_than_its_length_gets_408_and_the_connection_closes(tmp_p
 def test_slow_loris_uploads_are_cut_off_and_capped(tmp_path: Path) -> None:
     """30 connections sending one byte of a 200-byte body every 2 s: those over the upload cap are refused at
     once (503), the others get 408 at the body deadline and are closed; health stays fast meanwhile."""
-    s = gw_settings(tmp_path, body_timeout_s=4.0, max_concurrent_uploads=20)
+    s = tenant_gateway_settings(tmp_path, body_timeout_s=4.0, max_concurrent_uploads=20)
     with GatewayThread(s) as g:
         socks = [socket.create_connection(("127.0.0.1", g.port), timeout=10) for _ in range(30)]
         results: dict[int, tuple[int, bool, float]] = {}
@@ -197,7 +198,8 @@ STRICT_BODIES: list[tuple[str, dict[str, object], str]] = [
 
 @pytest.fixture(scope="module")
 def gw(tmp_path_factory: pytest.TempPathFactory):
-    s = gw_settings(tmp_path_factory.mktemp("hostile-clients"), queue_max_per_robot=100, queue_max_per_token=100,
+    s = tenant_gateway_settings(tmp_path_factory.mktemp("hostile-clients"),
+                                queue_max_per_robot=100, queue_max_per_token=100,
                     sse_max_per_token=2)
     with GatewayThread(s) as g, httpx.Client(base_url=g.url, timeout=30) as c:
         yield g, c

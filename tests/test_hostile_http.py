@@ -21,20 +21,15 @@ from pathlib import Path
 
 import httpx
 import pytest
-from fleet_support import GatewayThread, lone_gateway_settings, wait_for
-from gateway_helpers import ADMIN, READER, SCENE, TOKENS, A, B, Q
+from fleet_support import GatewayThread, tenant_gateway_settings, wait_for
+from gateway_helpers import ADMIN, READER, SCENE, A, B, Q
 
 from eqa.launcher import free_port
-from eqa.settings import Settings
-
-
-def gw_settings(tmp: Path, **update: object) -> Settings:
-    return lone_gateway_settings(tmp / "var", TOKENS, **{"episode_timeout_s": 3600.0, **update})
 
 
 @pytest.fixture(scope="module")
 def gw(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[GatewayThread, httpx.Client]]:
-    s = gw_settings(tmp_path_factory.mktemp("hostile"), queue_max_per_robot=100, queue_max_per_token=100)
+    s = tenant_gateway_settings(tmp_path_factory.mktemp("hostile"), queue_max_per_robot=100, queue_max_per_token=100)
     with GatewayThread(s) as g, httpx.Client(base_url=g.url, timeout=30) as c:
         yield g, c
 
@@ -208,7 +203,7 @@ def test_ready_without_a_token_says_only_ready_or_not(gw) -> None:
 
 
 def test_failed_authentication_is_rate_limited_per_client(tmp_path: Path) -> None:
-    s = gw_settings(tmp_path, auth_failures_per_min=5)
+    s = tenant_gateway_settings(tmp_path, auth_failures_per_min=5)
     with GatewayThread(s) as g, httpx.Client(base_url=g.url, timeout=10) as c:
         codes = [c.get("/v1/episodes", headers={"Authorization": f"Bearer guess-{i}"}).status_code for i in range(8)]
         assert codes[:5] == [401] * 5 and codes[5:] == [429] * 3, codes
@@ -219,7 +214,7 @@ def test_failed_authentication_is_rate_limited_per_client(tmp_path: Path) -> Non
 
 
 def test_queue_floods_get_429_with_retry_after_and_stay_fast(tmp_path: Path) -> None:
-    s = gw_settings(tmp_path, queue_max_per_robot=3, queue_max_per_token=3)
+    s = tenant_gateway_settings(tmp_path, queue_max_per_robot=3, queue_max_per_token=3)
     with GatewayThread(s) as g, httpx.Client(base_url=g.url, timeout=10) as c:
         got = [c.post("/v1/questions", json=Q, headers=A).status_code for _ in range(3)]
         assert got == [202, 202, 202]
@@ -251,7 +246,7 @@ def own_redis(tmp_path: Path) -> Iterator[tuple[subprocess.Popen[bytes], str]]:
 
 def test_store_down_gives_503_with_retry_after(tmp_path: Path, own_redis) -> None:
     proc, url = own_redis
-    s = gw_settings(tmp_path, redis_url=url)
+    s = tenant_gateway_settings(tmp_path, redis_url=url)
     with GatewayThread(s) as g, httpx.Client(base_url=g.url, timeout=30) as c:
         eid = c.post("/v1/questions", json=Q, headers=A).json()["episode_id"]
         proc.send_signal(signal.SIGSTOP)  # frozen: a call times out (3 s) instead of hanging for 10 s
@@ -302,7 +297,7 @@ def test_scenes_new_to_the_gateway_are_rate_limited_per_token(tmp_path: Path) ->
     without limit. Scenes new to the gateway are limited per token (NEW_SCENES_PER_MIN)."""
     from gateway.manager import NEW_SCENES_PER_MIN
 
-    with GatewayThread(gw_settings(tmp_path)) as g, httpx.Client(base_url=g.url, timeout=30) as c:
+    with GatewayThread(tenant_gateway_settings(tmp_path)) as g, httpx.Client(base_url=g.url, timeout=30) as c:
         codes = [c.post("/v1/questions", json={**Q, "scene": f"room-{i}"}, headers=A).status_code
                  for i in range(NEW_SCENES_PER_MIN + 3)]
         assert codes[:NEW_SCENES_PER_MIN] == [422] * NEW_SCENES_PER_MIN and codes[-1] == 429, codes
@@ -319,7 +314,8 @@ def test_sigterm_with_an_open_event_stream_exits_within_the_grace(tmp_path: Path
 
     from fleet_support import GatewayProcess
 
-    gw = GatewayProcess(gw_settings(tmp_path, gateway_shutdown_grace_s=1.0), log_path=tmp_path / "gw.log").start()
+    gw = GatewayProcess(tenant_gateway_settings(tmp_path,
+                                                gateway_shutdown_grace_s=1.0), log_path=tmp_path / "gw.log").start()
     try:
         eid = httpx.post(f"{gw.url}/v1/questions", json=Q, headers=A, timeout=30).json()["episode_id"]
         opened, ended = threading.Event(), threading.Event()

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 import os
-import queue
 import signal
 import subprocess
 import sys
@@ -14,21 +13,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 from fleet_support import wait_for
-from support.scenes import rendered_frame
+from support.mapper import ROBOT, Collector, H, frame, start_msg
 from support.services import serving
 
 from eqa import keys
 from eqa.bus import Bus
 from eqa.messages import (
-    EpisodeStart,
-    ErrorReply,
-    Frame,
-    MapUpdate,
-    Pose2D,
-    Question,
     ScoreRequest,
     ScoreResult,
-    StepScores,
 )
 from eqa.settings import Settings
 from services.mapper.episode_map import EpisodeMap
@@ -37,40 +29,11 @@ from services.sim.library import load_or_generate
 from services.sim.render import Renderer
 
 REPO = Path(__file__).resolve().parents[1]
-W, H = 160, 120
-ROBOT = "r0"
 
 
 @pytest.fixture(scope="module")
 def renderer(tmp_path_factory: pytest.TempPathFactory) -> Renderer:
     return Renderer(load_or_generate("gen-00007", Path(tmp_path_factory.mktemp("scenes"))))
-
-
-def frame(renderer: Renderer, episode_id: str, step: int, x: float = 8.75, y: float = 4.35) -> Frame:
-    return rendered_frame(renderer, Pose2D(x=x, y=y, yaw=step * math.pi / 4), episode_id, step, W, H, instances=True)
-
-
-def start_msg(episode_id: str) -> EpisodeStart:
-    q = Question(text="Is the TV on?", choices=["yes", "no"], scene="gen-00007", answer="A", evidence_ids=[3])
-    return EpisodeStart(episode_id=episode_id, robot=ROBOT, question=q, max_steps=20, record=False)
-
-
-class Collector:
-    """Subscribes to the mapper's outputs of one robot."""
-
-    def __init__(self, bus: Bus) -> None:
-        self.maps: queue.Queue[MapUpdate] = queue.Queue()
-        self.scores: queue.Queue[StepScores] = queue.Queue()
-        self.errors: queue.Queue[ErrorReply] = queue.Queue()
-        bus.subscribe(keys.stream(ROBOT, keys.MAPPER_MAP), MapUpdate, lambda k, m: self.maps.put(m))
-        bus.subscribe(keys.stream(ROBOT, keys.MAPPER_SCORES), StepScores, lambda k, m: self.scores.put(m))
-        bus.subscribe(keys.stream(ROBOT, keys.MAPPER_ERROR), ErrorReply, lambda k, m: self.errors.put(m))
-
-    def step(self, step: int) -> tuple[MapUpdate, StepScores]:
-        """The map update and scores of ``step`` (the next ones to arrive)."""
-        m, s = self.maps.get(timeout=60), self.scores.get(timeout=60)
-        assert m.step == step and s.step == step, (m.step, s.step)
-        return m, s
 
 
 def preferring_left_scorer(calls: list[ScoreRequest]):

@@ -7,12 +7,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import httpx
-from fleet_support import GatewayThread
-from test_hostile_http import A, Q, gw_settings
+from fleet_support import GatewayThread, tenant_gateway_settings
+from gateway_helpers import A, Q
 
 
 def test_a_wrong_token_is_refused_before_routing_and_a_valid_one_is_admitted_once(tmp_path: Path) -> None:
-    s = gw_settings(tmp_path, rate_limit_per_s=4.0)
+    s = tenant_gateway_settings(tmp_path, rate_limit_per_s=4.0)
     with GatewayThread(s) as g, httpx.Client(base_url=g.url, timeout=10) as c:
         r = c.get("/v1/no-such-route", headers={"Authorization": "Bearer guess"})
         assert r.status_code == 401, r.text  # refused before the router could answer 404
@@ -28,7 +28,7 @@ def test_a_wrong_token_is_refused_before_routing_and_a_valid_one_is_admitted_onc
 
 
 def test_a_submission_against_full_queues_is_refused_before_its_body_is_parsed(tmp_path: Path) -> None:
-    s = gw_settings(tmp_path, queue_max_per_robot=1, queue_max_per_token=100)
+    s = tenant_gateway_settings(tmp_path, queue_max_per_robot=1, queue_max_per_token=100)
     with GatewayThread(s) as g, httpx.Client(base_url=g.url, timeout=10) as c:
         assert [c.post("/v1/questions", json=Q, headers=A).status_code for _ in range(2)] == [202, 202]
         r = c.post("/v1/questions", json={"question": 7}, headers=A)  # invalid, but every queue is full

@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 from exactly_once import StepLedger
 from fleet_support import wait_for
-from test_mapper_service import Collector, frame, start_msg
+from support.mapper import Collector, frame, start_msg
 
 from eqa import keys, sharding
 from eqa.bus import Bus
