@@ -13,9 +13,9 @@ demo: setup
 	$(VENV)/bin/eqa ask
 
 test: setup
-	@# the real OpenAI-compatible server of tests/test_scorer_serve.py in its own venv (~5.5 GB, a few
+	@# the real OpenAI-compatible server of tests/scorer/test_scorer_serve.py in its own venv (~5.5 GB, a few
 	@# minutes the first time, then a stamp check): set-up time, not suite time. If it fails, that test skips saying why.
-	@bash scripts/setup-serve.sh || echo "setup: transformers serve could not be installed; tests/test_scorer_serve.py will skip" >&2
+	@bash scripts/setup-serve.sh || echo "setup: transformers serve could not be installed; tests/scorer/test_scorer_serve.py will skip" >&2
 	$(PY) -m ruff check .
 	$(PY) -m pytest -q -p no:cacheprovider
 

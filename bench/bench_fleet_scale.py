@@ -8,7 +8,7 @@ houses, 320x240, recording off). Configurations alternate ``--rounds`` times (A 
 machine's load drifts over both alike. Per run:
 
 * episodes/min = episodes ended / wall minutes from the first start to the last end;
-* exactly once (tests/exactly_once.py): each step integrated, decided and planned once, none skipped;
+* exactly once (tests/support/exactly_once.py): each step integrated, decided and planned once, none skipped;
 * CPU seconds per step of each service = the sum over its processes of user+system time (``/proc``) during
   the run / steps run. 1 / that = steps per second one core of that service sustains; the service with the
   highest CPU per step saturates first.
@@ -42,7 +42,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 import numpy as np
-from exactly_once import Ends, StepLedger
+from support.exactly_once import Ends, StepLedger
 from tqdm import tqdm
 
 from eqa import keys

@@ -42,9 +42,9 @@ from tqdm import tqdm
 
 os.environ.setdefault("RERUN_TELEMETRY_ENABLED", "false")
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # test support: tests/fleet_support.py
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # test support: tests/support/fleet.py
 
-from fleet_support import GatewayProcess, fleet_settings, wait_for
+from support.fleet import GatewayProcess, fleet_settings, wait_for
 
 from eqa.launcher import Fleet, LaunchError, free_port
 from eqa.settings import Settings

@@ -177,7 +177,7 @@ def part_memory(args: argparse.Namespace) -> dict:
 
 
 def part_fusion(args: argparse.Namespace) -> dict:
-    from objects_support import detect, fuse, instances_near, ring_views
+    from support.objects import detect, fuse, instances_near, ring_views
 
     from services.sim.housegen import generate_house
     from services.sim.render import Renderer

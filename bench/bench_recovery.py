@@ -10,7 +10,7 @@ and the next round begins once the restarted process is up. The join: ``--robots
 second instance of ``--join-service`` starts, and for each robot whose owner changed the time from the
 newcomer's liveliness token to the robot's next new step is taken.
 
-Exactly once is checked over every episode (tests/exactly_once.py: each step integrated, decided and planned
+Exactly once is checked over every episode (tests/support/exactly_once.py: each step integrated, decided and planned
 once, none skipped). ``EQA_STEP_RESEND_S`` stays at its default (30 s): what is measured is the re-drive on
 membership changes, not the resend timer.
 
@@ -46,8 +46,8 @@ os.environ.setdefault("RERUN_TELEMETRY_ENABLED", "false")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-from exactly_once import StepLedger, wait_on
-from scorer_helpers import stop_process
+from support.exactly_once import StepLedger, wait_on
+from support.scorer import stop_process
 
 from eqa import keys, sharding
 from eqa.launcher import PIPELINE, STEADY_S, Fleet, free_port

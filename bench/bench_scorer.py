@@ -46,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     h, w = (int(v) for v in args.size.split("x"))
 
     import torch
-    from scorer_helpers import frame_request
+    from support.scorer import frame_request
 
     from services.vlm_scorer import prompts
     from services.vlm_scorer.backends.hf import HFBackend

@@ -60,7 +60,7 @@ def _pct(v: list[float], q: float) -> float:
 
 
 def _requests(robots: int, steps: int, h: int, w: int) -> list[list[ScoreRequest]]:
-    from scorer_helpers import frame_request
+    from support.scorer import frame_request
 
     out = []
     for r in range(robots):

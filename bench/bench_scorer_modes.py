@@ -6,7 +6,7 @@ coverage on held-out episodes.
 
 Latency (round-robin, one step of each mode in turn, so load changes hit every mode alike; the machine is shared
 and noisy, read the ratios): ``hf`` (the tiny model in-process, probabilities read from the logits),
-``remote`` logprobs mode against the OpenAI-compatible double (tests/scorer_helpers.py, returns top_logprobs:
+``remote`` logprobs mode against the OpenAI-compatible double (tests/support/scorer.py, returns top_logprobs:
 protocol cost only, no model), ``remote`` sampling mode against ``transformers serve`` (no logprobs) with k
 samples. Calibration: ``--cal`` calibration-split and ``--test`` test-split questions of benchmark seed 0 run full
 length through a real fleet whose scorer is ``remote`` in sampling mode on ``transformers serve``; q_hat from the
@@ -30,7 +30,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "tests"))
 sys.path.insert(0, str(REPO))
 
-from scorer_helpers import (  # noqa: E402
+from support.scorer import (  # noqa: E402
     OpenAIDouble,
     frame_request,
     install_serve,

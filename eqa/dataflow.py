@@ -3,7 +3,7 @@ that publishes it and the processes that consume it; the scorer query; the proce
 
 Derived from this: the launcher's process lists (:mod:`eqa.launcher`), the gateway's list of services an
 episode needs, the stream table of docs/architecture.md (:func:`stream_table`). Checked against this
-(``tests/test_dataflow.py``): :data:`eqa.messages.STREAM_TYPES`, :data:`eqa.keys.SERVICES`, the ACL's stream
+(``tests/kernel/test_dataflow.py``): :data:`eqa.messages.STREAM_TYPES`, :data:`eqa.keys.SERVICES`, the ACL's stream
 owners (:mod:`eqa.security`), the compose file, and the code itself (which stream each service subscribes to
 and publishes on, read from its source).
 
@@ -107,7 +107,7 @@ def consumed_by(service: str) -> set[tuple[str, str]]:
 
 
 def stream_table() -> str:
-    """The table of streams (``tests/test_dataflow.py`` checks that docs/architecture.md holds it verbatim)."""
+    """The table of streams (``tests/kernel/test_dataflow.py`` checks that docs/architecture.md holds it verbatim)."""
     rows = ["| stream (`eqa/v1/{robot}/...`) | message | published by | consumed by | what |", "|---|---|---|---|---|"]
     for s in STREAMS:
         types = ", ".join(t.__name__ for t in s.types)

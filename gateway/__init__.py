@@ -19,5 +19,5 @@ indexes and retention, queueing and limits, tenants, watchdog, restart reconcili
 summaries), :mod:`gateway.auth` (tokens with scopes, tenants, rate and failed-auth limits),
 :mod:`gateway.limits` (body cap and authentication before a body is read), :mod:`gateway.recordings`
 (``rerun rrd merge``) and :mod:`gateway.routers` (HTTP). Test support (the gateway in a thread or a
-process next to a real fleet, an SSE client) is ``tests/fleet_support.py``, outside the package.
+process next to a real fleet, an SSE client) is ``tests/support/fleet.py``, outside the package.
 """

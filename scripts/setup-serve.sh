@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # A separate virtualenv with `transformers serve` (transformers[serving]), the real OpenAI-compatible server the
-# remote-scorer test drives (tests/test_scorer_serve.py). Separate because it needs torch==2.14.1 with
+# remote-scorer test drives (tests/scorer/test_scorer_serve.py). Separate because it needs torch==2.14.1 with
 # torchvision==0.29.1 (the Qwen2-VL processor loads a video processor that needs torchvision, and the only
 # torchvision wheels on the registries are CUDA builds matching a CUDA torch): about 5.5 GB, while the project's
 # .venv keeps the CPU torch 2.13.0. The CPU torch 2.13.0 with torchvision 0.28.0 makes a 1.3 GB venv, but that

@@ -9,7 +9,7 @@ its JUnit report); at the end the pass counts per test, then the recovery figure
 
 A test that fails even once here has a bug (in the code or the test): fix it; never add a retry.
 
-    python scripts/stress.py [--runs 30] [--tests tests/test_sharding.py,tests/test_step_resend.py]
+    python scripts/stress.py [--runs 30] [--tests tests/fleet/test_sharding.py,tests/fleet/test_step_resend.py]
 
 Exit status 0 when every test passed every run (skips count as neither), 1 otherwise.
 """
@@ -28,14 +28,14 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_TESTS = (
-    "tests/test_sharding.py",
-    "tests/test_takeover.py",
-    "tests/test_redrive.py",
-    "tests/test_sharding_fleet.py",
-    "tests/test_step_resend.py",
-    "tests/test_gateway_restart.py",
-    "tests/test_mapper_service.py::test_killed_mapper_resumes_from_snapshot",
-    "tests/test_fleet_netns.py",
+    "tests/fleet/test_sharding.py",
+    "tests/fleet/test_takeover.py",
+    "tests/fleet/test_redrive.py",
+    "tests/fleet/test_sharding_fleet.py",
+    "tests/fleet/test_step_resend.py",
+    "tests/gateway/test_gateway_restart.py",
+    "tests/mapper/test_mapper_service.py::test_killed_mapper_resumes_from_snapshot",
+    "tests/fleet/test_fleet_netns.py",
 )
 BUSY = "import os\nos.nice(0)\nwhile True:\n    pass\n"
 

@@ -17,8 +17,8 @@ os.environ.setdefault("RERUN_TELEMETRY_ENABLED", "false")
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
 
-from fleet_support import clear_gateway_state, fleet_settings
-from gateway_helpers import SCENE, TOKEN
+from support.fleet import clear_gateway_state, fleet_settings
+from support.gateway import SCENE, TOKEN
 
 from eqa.launcher import Fleet, free_port
 from eqa.settings import Settings

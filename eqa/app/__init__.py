@@ -3,5 +3,5 @@
 ``eqa`` command line (``cli.py``), one question end to end (``ask.py``), the benchmark runner that drives many
 questions through a fleet and collects their traces (``benchmark_runner.py``), conformal calibration
 (``calibrate.py``), the paper's comparisons (``bench_cli.py``, ``evaluation.py``, ``plots.py``).
-Nothing in the kernel, the services or the gateway imports this package (``tests/test_layers.py``).
+Nothing in the kernel, the services or the gateway imports this package (``tests/kernel/test_layers.py``).
 """

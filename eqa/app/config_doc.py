@@ -1,7 +1,7 @@
 """``docs/configuration.md``, generated from the settings class (:class:`eqa.settings.Settings`).
 
 The settings class is the one home of every ``EQA_*`` variable; this page is derived from it so that it cannot
-drift: ``tests/test_config_doc.py`` regenerates it and compares. Sections follow the ``# --- name ---`` comments
+drift: ``tests/kernel/test_config_doc.py`` regenerates it and compares. Sections follow the ``# --- name ---`` comments
 of the settings groups (a group's docstring says what it is for); a setting's text is its ``description=``,
 else the comment on its line or the comment block right above it.
 
@@ -181,7 +181,7 @@ def render(cls: type | None = None, source: str | None = None) -> str:
         "knobs are groups of their own: benchmark settings, not deployment settings.",
         "",
         f"This page is generated from `eqa/settings.py`: `{REGENERATE}`",
-        "(`tests/test_config_doc.py` fails when it is stale).",
+        "(`tests/kernel/test_config_doc.py` fails when it is stale).",
         "",
     ]
     order: list[str] = []

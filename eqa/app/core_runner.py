@@ -8,7 +8,7 @@ the mapper's :class:`services.mapper.episode_map.EpisodeMap` (integrate, Eq. 3 v
 scorer backend's ``score`` (the question without its ground truth, as the mapper sends it) and the planner's
 step with the planner service's refusal policy (:mod:`services.planner.refusals`). Seeds are the fleet's
 (:func:`eqa.app.benchmark_runner.question_seed`, per-step planner generators), so a question gives the same
-trace either way up to float32 rounding (``tests/test_core_runner_golden.py`` runs tuning-seed questions
+trace either way up to float32 rounding (``tests/fleet/test_core_runner_golden.py`` runs tuning-seed questions
 through both). Every in-process runner (:func:`core_episode`, :mod:`eqa.app.stop_sensitivity`,
 ``bench/tune_oracle.py``, ``bench/tune_explore.py``, ``bench/bench_object_evidence.py``) is this loop with its
 own :class:`StepHooks`. It is not a replacement for the fleet's end-to-end test, and figures say which runner

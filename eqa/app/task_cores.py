@@ -22,7 +22,7 @@ questions:
 
 The question's own scores (Explore-EQA's layer) are not computed: in a task episode no decision reads them (the
 frontiers take their values from the task layer of the phase, the stopper's rule is ``max_steps``). With the
-fleet's episode id and seed a task gives the same trace either way (``tests/test_task_cores.py`` runs tuning-seed
+fleet's episode id and seed a task gives the same trace either way (``tests/tasks/test_task_cores.py`` runs tuning-seed
 tasks through both); the detector draws from (seed, episode id, step), so two runs with different episode ids are
 two draws of the simulated detector.
 """

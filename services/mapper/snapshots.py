@@ -16,7 +16,7 @@ together outweigh the full part ``compact_bytes`` times, the step writes a new *
 episode start, the grid, every observed voxel column and every plane, uncompressed: zlib would cost more
 than it saves on float noise) and the old parts are deleted after the header that no longer names them
 (:class:`eqa.episode_service.StateParts`). :func:`restore` = full part + deltas in order + header:
-the same arrays, planes, frontiers and prompt points as the live map (tests/test_snapshot_log.py).
+the same arrays, planes, frontiers and prompt points as the live map (tests/mapper/test_snapshot_log.py).
 """
 
 from __future__ import annotations

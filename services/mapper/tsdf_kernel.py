@@ -2,7 +2,7 @@
 
 Per candidate voxel (the columns inside the frame's 2D frustum shadow, every layer) it does what the
 vectorised numpy reference :func:`integrate_reference` does, in the same float32 / float64 arithmetic and
-the same order, so the result is bit-identical (tests/test_tsdf_kernel.py): project the voxel centre
+the same order, so the result is bit-identical (tests/mapper/test_tsdf_kernel.py): project the voxel centre
 ``p_c = a(col) + z * b`` (camera frame), keep it if in front and inside the image, read the depth ``D`` of its
 pixel, and where ``D > 0`` and ``D - z_c >= -mu`` update the projective TSDF as the running weighted mean of
 ``min(1, (D - z_c) / mu)`` (Curless & Levoy eq. 2-3; Explore-EQA section IV-B), stamp the column, and mark
@@ -204,7 +204,7 @@ def integrate_reference(
     col_stamp: np.ndarray, stamp: int,
 ) -> int:
     """The vectorised numpy version (the code integrate ran before the kernel): the specification the
-    kernel is tested against (tests/test_tsdf_kernel.py). Same arguments as :func:`integrate_columns`, so
+    kernel is tested against (tests/mapper/test_tsdf_kernel.py). Same arguments as :func:`integrate_columns`, so
     it can stand in for it (``TSDFVolume.kernel``); arrays updated in place; returns the voxels updated."""
     h, w = dimg.shape
     nz = zc.shape[0]

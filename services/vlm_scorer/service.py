@@ -12,7 +12,8 @@ rest. Scale with replicas.
 Dynamic batching (``EQA_SCORER_BATCH_MAX`` > 1, ``EQA_SCORER_BATCH_WINDOW_MS``): the worker takes the requests
 that queued while it was busy (and, with a window, those that arrive within it) as one batch, and the steps of
 several robots go through the model in one forward pass (:meth:`handle_many`); each request still gets its own
-reply or error. On the hf backend the values are the same per request as unbatched (tests/test_scorer_batching.py).
+reply or error. On the hf backend the values are the same per request as unbatched
+(tests/scorer/test_scorer_batching.py).
 
 Errors are replies, never crashes: a malformed request, a bad image, an empty question, too many choices or
 a backend that could not load (missing model directory, not a vision-language model) give an

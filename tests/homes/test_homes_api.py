@@ -1,0 +1,347 @@
+"""The homes API over real HTTP (uvicorn on loopback) with a real Redis: ``home`` on questions and tasks, the
+list, one home's summary, reset, tenant isolation, the per-tenant bound under a hostile client, 409 while an
+episode of the home runs, retention.
+
+The gateway runs in this process with a private Zenoh port and no services: an episode it starts stays
+"running" (nothing answers), which is what the 409 case needs. The home's memory is written here through the
+contract the mapper writes it with (:func:`eqa.homes.write_summary` and keys under :func:`eqa.homes.prefix`).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import pytest
+from support.fleet import GatewayThread, clear_gateway_state, lone_gateway_settings, wait_for
+from support.gateway import ADMIN, READER, SCENE, TOKENS, A, B, Q
+
+from eqa import homes, keys
+from eqa.bus import Bus
+from eqa.messages import EpisodeStart
+from eqa.settings import Settings
+from eqa.store import open_store
+
+CAP = 5
+
+
+def _settings(tmp: Path, redis_url: str, **update: object) -> Settings:
+    base = {"redis_url": redis_url, "episode_timeout_s": 3600.0, "robots": ["robot0", "robot1"],
+            "queue_max_per_robot": 50, "queue_max_per_token": 50, "homes_max_per_tenant": CAP}
+    return lone_gateway_settings(tmp / "var", TOKENS, **{**base, **update})
+
+
+def _clear(s: Settings) -> None:
+    clear_gateway_state(s)
+    with open_store(s) as store:
+        store.delete_many(store.keys(homes.PREFIX))
+
+
+@pytest.fixture
+def gw(tmp_path: Path, redis_url: str) -> Iterator[tuple[GatewayThread, httpx.Client]]:
+    s = _settings(tmp_path, redis_url)
+    _clear(s)
+    with GatewayThread(s) as g, httpx.Client(base_url=g.url, timeout=30) as c:
+        yield g, c
+        for h in (A, B, ADMIN):
+            for ep in c.get("/v1/episodes", headers=h).json()["episodes"]:
+                if ep["state"] in ("queued", "running"):
+                    c.delete(f"/v1/episodes/{ep['episode_id']}", headers=h)
+    _clear(s)
+
+
+def _tenant(token: str) -> str:
+    from gateway.auth import tenant_of
+
+    return tenant_of(token)
+
+
+def _starts(s: Settings) -> tuple[list[EpisodeStart], Bus]:
+    """EpisodeStarts the gateway publishes, as the services receive them."""
+    got: list[EpisodeStart] = []
+    lock = threading.Lock()
+    bus = Bus(s.model_copy(update={"zenoh_listen": [], "zenoh_connect": s.zenoh_listen}), "sim", "test")
+    bus.__enter__()
+
+    def on(_k: str, m: EpisodeStart) -> None:
+        with lock:
+            got.append(m)
+
+    bus.subscribe(keys.any_robot(keys.EPISODE_START), EpisodeStart, on)
+    return got, bus
+
+
+
+
+def test_home_round_trip_question_task_list_get_delete(gw) -> None:
+    g, c = gw
+    starts, bus = _starts(g.settings)
+    try:
+        time.sleep(1.0)  # the subscriber's link to the gateway's session
+        r = c.post("/v1/questions", json={**Q, "home": "flat-1"}, headers=A)
+        assert r.status_code == 202, r.text
+        eid = r.json()["episode_id"]
+        hid = homes.home_id(_tenant("tok-a"), "flat-1")
+        assert wait_for(lambda: any(s.episode_id == eid for s in starts), 15.0)
+        start = next(s for s in starts if s.episode_id == eid)
+        assert start.home == hid and hid != "flat-1"  # the services see the internal id only
+        plain = c.post("/v1/questions", json=Q, headers=A).json()["episode_id"]
+        assert wait_for(lambda: any(s.episode_id == plain for s in starts), 15.0)
+        assert next(s for s in starts if s.episode_id == plain).home is None  # no home: no memory
+    finally:
+        bus.__exit__(None, None, None)
+
+    info = c.get("/v1/homes/flat-1", headers=A).json()
+    assert info["name"] == "flat-1" and info["episodes_submitted"] == 1 and info["memory"] is None
+    assert info["active_episodes"] == [eid] and info["age_s"] >= 0
+    # a task naming the same home: one home, two episodes
+    t = c.post("/v1/tasks", json={"instruction": "Find a mug", "scene": SCENE, "home": "flat-1", "record": False},
+               headers=A)
+    assert t.status_code == 202, t.text
+    info = c.get("/v1/homes/flat-1", headers=A).json()
+    assert info["episodes_submitted"] == 2 and set(info["active_episodes"]) == {eid, t.json()["episode_id"]}
+
+    # what the mapper stores of the home shows in the summary
+    with open_store(g.settings) as store:
+        homes.write_summary(store, homes.HomeSummary(home=hid, episodes=1, views=12, bytes=34567, scenes=[SCENE]))
+        store.set(homes.prefix(hid) + "views", b"x" * 100)
+    mem = c.get("/v1/homes/flat-1", headers=A).json()["memory"]
+    assert (mem["views"], mem["bytes"], mem["episodes"], mem["scenes"]) == (12, 34567, 1, [SCENE])
+
+    # the list: newest first, paged, with the summaries
+    c.post("/v1/questions", json={**Q, "home": "flat-2"}, headers=A)
+    listed = c.get("/v1/homes", headers=A).json()
+    assert [h["name"] for h in listed["homes"]] == ["flat-2", "flat-1"] and listed["total"] == 2
+    assert listed["homes"][1]["memory"]["views"] == 12
+    page = c.get("/v1/homes", params={"limit": 1, "offset": 1}, headers=A).json()
+    assert [h["name"] for h in page["homes"]] == ["flat-1"] and (page["limit"], page["offset"]) == (1, 1)
+
+    # reset: refused while its episodes run, then the memory and the name go
+    r = c.delete("/v1/homes/flat-1", headers=A)
+    assert r.status_code == 409 and eid in r.json()["detail"], r.text
+    assert c.get("/v1/homes/flat-1", headers=A).json()["memory"]["views"] == 12  # nothing lost by the refusal
+    for e in info["active_episodes"]:
+        assert c.delete(f"/v1/episodes/{e}", headers=A).json()["state"] == "cancelled"
+    r = c.delete("/v1/homes/flat-1", headers=A)
+    assert r.status_code == 200 and r.json() == {"name": "flat-1", "deleted_keys": 2}
+    with open_store(g.settings) as store:
+        assert store.keys(homes.prefix(hid)) == []
+    assert c.get("/v1/homes/flat-1", headers=A).status_code == 404
+    assert c.delete("/v1/homes/flat-1", headers=A).status_code == 404
+    assert [h["name"] for h in c.get("/v1/homes", headers=A).json()["homes"]] == ["flat-2"]
+    # naming it again makes a new, empty home
+    c.post("/v1/questions", json={**Q, "home": "flat-1"}, headers=A)
+    again = c.get("/v1/homes/flat-1", headers=A).json()
+    assert again["episodes_submitted"] == 1 and again["memory"] is None
+
+
+def test_a_home_is_one_house(gw) -> None:
+    """A home's memory is of one house: the same home in another scene is a 409 (nothing written); the house
+    after changes (gen-<seed>-c<k>) is the same house."""
+    _g, c = gw
+    assert c.post("/v1/questions", json={**Q, "home": "flat"}, headers=A).status_code == 202
+    n = len(c.get("/v1/episodes", headers=A).json()["episodes"])
+    for path, body in (("/v1/questions", {**Q, "scene": "gen-00002", "home": "flat"}),
+                       ("/v1/tasks", {"instruction": "Find a mug", "scene": "gen-00002", "home": "flat"})):
+        r = c.post(path, json=body, headers=A)
+        assert r.status_code == 409 and "is the house gen-00001" in r.json()["detail"], r.text
+    assert len(c.get("/v1/episodes", headers=A).json()["episodes"]) == n
+    info = c.get("/v1/homes/flat", headers=A).json()
+    assert info["house"] == SCENE and info["episodes_submitted"] == 1
+    r = c.post("/v1/questions", json={**Q, "scene": "gen-00001-c2", "home": "flat"}, headers=A)
+    assert r.status_code == 202, r.text
+    assert c.get("/v1/homes/flat", headers=A).json()["episodes_submitted"] == 2
+    # a real robot's world (no scene) is a house of its own
+    r = c.post("/v1/questions", json={"question": "Where is it?", "robot": "robot1", "home": "flat"}, headers=A)
+    assert r.status_code == 409 and "no scene" in r.json()["detail"]
+
+
+def test_homes_belong_to_their_tenant(gw) -> None:
+    g, c = gw
+    r = c.post("/v1/questions", json={**Q, "home": "shared-name"}, headers=A)
+    assert r.status_code == 202
+    eid = r.json()["episode_id"]
+    a_home = homes.home_id(_tenant("tok-a"), "shared-name")
+    with open_store(g.settings) as store:
+        homes.write_summary(store, homes.HomeSummary(home=a_home, views=3))
+    # B cannot read, list or delete A's home; the same name under B is B's own (new) home
+    for method in ("GET", "DELETE"):
+        r = c.request(method, "/v1/homes/shared-name", headers=B)
+        assert r.status_code == 404 and "no home" in r.text, (method, r.text)
+    assert c.get("/v1/homes", headers=B).json() == {"homes": [], "total": 0, "offset": 0, "limit": 50}
+    assert c.get("/v1/homes/shared-name", headers=READER).status_code == 404
+    assert c.delete("/v1/homes/shared-name", headers=READER).status_code == 403  # reset needs submit
+    rb = c.post("/v1/questions", json={**Q, "home": "shared-name"}, headers=B)
+    assert rb.status_code == 202
+    b_info = c.get("/v1/homes/shared-name", headers=B).json()
+    assert b_info["memory"] is None and b_info["active_episodes"] == [rb.json()["episode_id"]]
+    assert c.get("/v1/homes/shared-name", headers=A).json()["memory"]["views"] == 3  # A's untouched
+    assert c.get("/v1/homes/shared-name", headers=A).json()["active_episodes"] == [eid]
+    # admin: homes are per tenant, so its own names only
+    assert c.get("/v1/homes/shared-name", headers=ADMIN).status_code == 404
+    c.delete(f"/v1/episodes/{rb.json()['episode_id']}", headers=B)
+    assert c.delete("/v1/homes/shared-name", headers=B).status_code == 200
+    assert c.get("/v1/homes/shared-name", headers=A).json()["memory"]["views"] == 3
+
+
+BAD_HOMES = [
+    ("huge name", "h" * 100_000),
+    ("65 characters", "h" * 65),
+    ("trailing newline", "flat\n"),
+    ("path", "../eqa:home:x"),
+    ("key pattern", "flat*"),
+    ("colon", "a:b"),
+    ("empty", ""),
+    ("unicode", "wohnung-ü"),
+]
+
+
+@pytest.mark.parametrize(("case", "name"), BAD_HOMES, ids=[c for c, _ in BAD_HOMES])
+def test_bad_home_names_get_a_422_and_change_nothing(gw, case: str, name: str) -> None:
+    _g, c = gw
+    for path, body in (("/v1/questions", {**Q, "home": name}),
+                       ("/v1/tasks", {"instruction": "Find a mug", "scene": SCENE, "home": name})):
+        r = c.post(path, json=body, headers=A)
+        assert r.status_code in (413, 422), (case, path, r.status_code, r.text[:200])
+        if r.status_code == 422:
+            assert any("home" in [str(p) for p in d["loc"]] for d in r.json()["detail"]), r.text[:300]
+    for body in ({**Q, "home": 7}, {**Q, "home": ["a"]}, {**Q, "home": None, "extra": 1}):
+        assert c.post("/v1/questions", json=body, headers=A).status_code == 422
+    assert c.get("/v1/episodes", headers=A).json()["episodes"] == []
+    assert c.get("/v1/homes", headers=A).json()["total"] == 0
+
+
+@pytest.mark.parametrize("path", ["/v1/homes/a%0A", "/v1/homes/" + "x" * 65, "/v1/homes/a*", "/v1/homes/%00"])
+def test_bad_home_paths_are_refused(gw, path: str) -> None:
+    _g, c = gw
+    for method in ("GET", "DELETE"):
+        r = c.request(method, path, headers=A)
+        assert r.status_code in (404, 422), (method, path, r.status_code)
+    for params in ({"limit": 0}, {"limit": 1001}, {"offset": -1}, {"offset": 100_001}, {"limit": "x"}, {"limt": 5},
+                   {"": "null"}):
+        assert c.get("/v1/homes", params=params, headers=A).status_code == 422, params
+
+
+def test_many_homes_hit_the_tenant_bound_and_nothing_else_is_lost(gw) -> None:
+    """A hostile client names new homes until the bound: each past it gets a 429 naming the setting, stores no
+    episode and no home; its homes, the old names and the other tenants' homes go on working."""
+    g, c = gw
+    ids = []
+    for k in range(CAP):
+        r = c.post("/v1/questions", json={**Q, "home": f"h{k}"}, headers=A)
+        assert r.status_code == 202, r.text
+        ids.append(r.json()["episode_id"])
+    n_episodes = len(c.get("/v1/episodes", headers=A).json()["episodes"])
+    for k in range(CAP, CAP + 30):
+        r = c.post("/v1/questions", json={**Q, "home": f"h{k}"}, headers=A)
+        assert r.status_code == 429 and "EQA_HOMES_MAX_PER_TENANT=5" in r.json()["detail"], r.text
+        t = c.post("/v1/tasks", json={"instruction": "Find a mug", "scene": SCENE, "home": f"h{k}"}, headers=A)
+        assert t.status_code == 429
+    assert len(c.get("/v1/episodes", headers=A).json()["episodes"]) == n_episodes
+    listed = c.get("/v1/homes", params={"limit": 1000}, headers=A).json()
+    assert listed["total"] == CAP and sorted(h["name"] for h in listed["homes"]) == [f"h{k}" for k in range(CAP)]
+    with open_store(g.settings) as store:
+        assert len(store.keys("gw:home:")) == CAP
+    # an existing home is still usable, no home at all too, and another tenant has its own bound
+    assert c.post("/v1/questions", json={**Q, "home": "h0"}, headers=A).status_code == 202
+    assert c.post("/v1/questions", json=Q, headers=A).status_code == 202
+    assert c.post("/v1/questions", json={**Q, "home": "h9"}, headers=B).status_code == 202
+    # a delete frees a slot
+    for e in ids[1:2]:
+        c.delete(f"/v1/episodes/{e}", headers=A)
+    assert c.delete("/v1/homes/h1", headers=A).status_code == 200
+    assert c.post("/v1/questions", json={**Q, "home": "fresh"}, headers=A).status_code == 202
+    assert c.post("/v1/questions", json={**Q, "home": "fresh2"}, headers=A).status_code == 429
+
+
+def test_concurrent_new_homes_never_pass_the_bound(gw) -> None:
+    """40 submissions naming 40 new homes at once (a hostile client in parallel): exactly the bound succeed."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    g, c = gw
+
+    def post(k: int) -> int:
+        with httpx.Client(base_url=g.url, timeout=30) as own:
+            return own.post("/v1/questions", json={**Q, "home": f"p{k}"}, headers=A).status_code
+
+    with ThreadPoolExecutor(max_workers=16) as pool:
+        codes = list(pool.map(post, range(40)))
+    assert sorted(codes) == [202] * CAP + [429] * (40 - CAP), codes
+    assert c.get("/v1/homes", headers=A).json()["total"] == CAP
+    assert len(c.get("/v1/episodes", headers=A).json()["episodes"]) == CAP
+    with open_store(g.settings) as store:
+        assert len(store.keys("gw:home:")) == CAP
+
+
+def test_unused_homes_are_deleted_after_retention(gw) -> None:
+    g, c = gw
+    r = c.post("/v1/questions", json={**Q, "home": "old"}, headers=A)
+    c.post("/v1/questions", json={**Q, "home": "busy"}, headers=A)
+    c.delete(f"/v1/episodes/{r.json()['episode_id']}", headers=A)
+    hid = homes.home_id(_tenant("tok-a"), "old")
+    with open_store(g.settings) as store:
+        homes.write_summary(store, homes.HomeSummary(home=hid, views=1))
+    from gateway.manager import EpisodeManager
+
+    manager: EpisodeManager = g.server.config.app.state.manager  # the running gateway's own manager
+    later = time.time() + g.settings.homes_retention_days * 86400.0 + 60
+    assert manager.prune_homes(now=time.time()) == 0
+    assert manager.prune_homes(now=later) == 1  # "busy" has a running episode: kept
+    assert c.get("/v1/homes/old", headers=A).status_code == 404
+    assert c.get("/v1/homes/busy", headers=A).status_code == 200
+    with open_store(g.settings) as store:
+        assert store.keys(homes.prefix(hid)) == []
+
+
+def test_a_restarted_gateway_keeps_homes_and_their_running_episodes(tmp_path: Path, redis_url: str) -> None:
+    """Home records and the episodes that hold a home are in the store: a gateway restarted on the same Redis
+    lists the home, shows its running episode and still refuses its reset."""
+    s = _settings(tmp_path, redis_url)
+    _clear(s)
+    try:
+        with GatewayThread(s) as g, httpx.Client(base_url=g.url, timeout=30) as c:
+            eid = c.post("/v1/questions", json={**Q, "home": "kept"}, headers=A).json()["episode_id"]
+            for k in range(CAP - 1):
+                assert c.post("/v1/questions", json={**Q, "home": f"k{k}"}, headers=A).status_code == 202
+        with GatewayThread(s) as g, httpx.Client(base_url=g.url, timeout=30) as c:
+            info = c.get("/v1/homes/kept", headers=A).json()
+            assert info["active_episodes"] == [eid] and info["episodes_submitted"] == 1
+            assert c.delete("/v1/homes/kept", headers=A).status_code == 409
+            assert c.get("/v1/homes", headers=A).json()["total"] == CAP
+            assert c.post("/v1/questions", json={**Q, "home": "one-more"}, headers=A).status_code == 429
+            assert c.delete(f"/v1/episodes/{eid}", headers=A).json()["state"] == "cancelled"
+            assert c.delete("/v1/homes/kept", headers=A).status_code == 200
+    finally:
+        _clear(s)
+
+
+def test_openapi_documents_the_homes_routes(gw) -> None:
+    _g, c = gw
+    spec = c.get("/openapi.json", headers=A).json()
+    want = {
+        ("/v1/homes", "get"): {"200", "401", "403", "422", "429", "503"},
+        ("/v1/homes/{name}", "get"): {"200", "401", "403", "404", "422", "429", "503"},
+        ("/v1/homes/{name}", "delete"): {"200", "400", "401", "403", "404", "408", "409", "413", "422", "429",
+                                         "503"},
+    }
+    for (path, method), codes in want.items():
+        assert set(spec["paths"][path][method]["responses"]) == codes, (path, method)
+    for model in ("QuestionRequest", "TaskRequest"):
+        assert "home" in spec["components"]["schemas"][model]["properties"]
+
+
+def test_eqa_ask_sends_the_home(tmp_path: Path) -> None:
+    import argparse
+
+    from eqa.app import ask
+
+    parser = argparse.ArgumentParser()
+    ask.register(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(["ask", "Where is it?", "--choice", "a", "--choice", "b", "--scene", SCENE,
+                              "--home", "flat-1"])
+    body, _ = ask._body(args, tmp_path)
+    assert body["home"] == "flat-1" and body["scene"] == SCENE
+    assert "home" not in ask._body(parser.parse_args(["ask", "Where is it?", "--scene", SCENE]), tmp_path)[0]

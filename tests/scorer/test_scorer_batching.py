@@ -1,0 +1,154 @@
+"""Dynamic batching in a scorer replica: requests of several robots in one backend call, each answered alone.
+
+* the hf backend on a tiny random Qwen2-VL: the merged forward pass gives every request exactly the values it
+  gets alone (byte for byte), and a bad request in a batch gets its own error while its batch mates are scored;
+* over real Zenoh: a replica with ``scorer_batch_max`` > 1 answers concurrent requests of several episodes in
+  batches (the backend sees batches of more than one), every reply goes to its own request, a malformed query
+  in the middle gets its error, and the values are those of the same replica without batching.
+"""
+
+from __future__ import annotations
+
+import threading
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import pytest
+from support.scorer import frame_request
+
+from eqa import keys
+from eqa.bus import Bus
+from eqa.messages import ErrorReply, Question, ScoreRequest, decode
+from eqa.scorer_client import ScorerClient, ScorerError
+from services.vlm_scorer.backends.base import BadRequest, Scores
+from services.vlm_scorer.backends.oracle import OracleBackend
+from services.vlm_scorer.service import ScorerService
+
+QUESTIONS = ["What color is the sofa?", "Is the stove in the kitchen turned off right now?", "Where is the mug?"]
+
+
+def _requests(n: int, h: int = 60, w: int = 80) -> list[ScoreRequest]:
+    out = []
+    for i in range(n):
+        q = Question(id=f"q{i}", text=QUESTIONS[i % 3], choices=["Blue", "Red", "Green", "White"][: 2 + i % 3],
+                     scene="s0", query={"type": "identification", "category": "sofa"})
+        out.append(frame_request(step=i, h=h, w=w, episode=f"ep{i}", question=q))
+    return out
+
+
+def _numbers(s: Scores) -> tuple:
+    return (tuple(s.answer_probs), tuple(s.lsv), s.gsv, s.relevance)
+
+
+@pytest.fixture(scope="module")
+def tiny_hf(tmp_path_factory: pytest.TempPathFactory):
+    import torch
+
+    from services.vlm_scorer.backends.hf import HFBackend
+    from services.vlm_scorer.tiny import build_tiny_qwen2vl
+
+    torch.set_num_threads(1)
+    return HFBackend(build_tiny_qwen2vl(tmp_path_factory.mktemp("tiny") / "qwen2vl"))
+
+
+def test_hf_merged_forward_pass_gives_each_request_its_own_values(tiny_hf) -> None:
+    reqs = _requests(6)
+    alone = [_numbers(tiny_hf.score(r)) for r in reqs]
+    merged = tiny_hf.score_many(reqs)
+    assert all(isinstance(m, Scores) for m in merged)
+    assert [_numbers(m) for m in merged] == alone  # exactly, not approximately
+
+
+def test_a_bad_request_fails_alone_in_its_batch(tiny_hf) -> None:
+    reqs = _requests(4)
+    bad = reqs[2].model_copy()
+    bad.rgb = np.zeros((20, 30), np.uint8)
+    batch = [reqs[0], reqs[1], bad, reqs[3]]
+    out = tiny_hf.score_many(batch)
+    assert isinstance(out[2], BadRequest) and "HxWx3" in str(out[2])
+    for i in (0, 1, 3):
+        assert isinstance(out[i], Scores)
+        assert _numbers(out[i]) == _numbers(tiny_hf.score(batch[i]))
+
+
+class _Recording(OracleBackend):
+    """The real simulated perception model, recording the size of each batch it is given."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.batches: list[int] = []
+        self.lock = threading.Lock()
+        self.gate = threading.Event()
+
+    def score_many(self, reqs: list[ScoreRequest]) -> list[Scores | Exception]:
+        with self.lock:
+            self.batches.append(len(reqs))
+        return super().score_many(reqs)
+
+    def score(self, req: ScoreRequest) -> Scores:
+        self.gate.wait(timeout=10)  # the first request holds the worker until the others have queued
+        return super().score(req)
+
+
+def _serve(settings, backend, replica: str, batch_max: int) -> ScorerService:
+    s = settings.model_copy(update={"scorer_replica": replica, "scorer_batch_max": batch_max,
+                                    "scorer_batch_window_ms": 0.0})
+    svc = ScorerService(s, backend=backend)
+    svc.start()
+    return svc
+
+
+def test_a_replica_batches_concurrent_requests_of_several_robots(hub_settings, settings) -> None:
+    reqs = _requests(12)
+    with Bus(hub_settings, "gateway", "client") as bus:
+        reference = _Recording()
+        reference.gate.set()
+        plain = _serve(settings, reference, "plain", batch_max=1)
+        try:
+            client = ScorerClient(bus, settings.model_copy(update={"scorer_timeout_s": 20.0}), timeout_s=20)
+            assert client.wait_for_replicas(1, timeout=10)
+            expected = {r.request_id: client.score(r) for r in reqs}
+        finally:
+            plain.stop()
+        assert reference.batches == []  # batching off: never handed a batch
+
+        backend = _Recording()
+        svc = _serve(settings, backend, "batching", batch_max=8)
+        try:
+            assert client.wait_for_replicas(1, timeout=10)
+            key = keys.scorer_replica("batching")
+            with ThreadPoolExecutor(len(reqs) + 1) as pool:
+                futures = [pool.submit(client.score, r) for r in reqs]
+                garbage = pool.submit(lambda: [decode(x.ok.payload.to_bytes())
+                                               for x in bus.session.get(key, payload=b"\x00junk", timeout=20)])
+                threading.Timer(1.0, backend.gate.set).start()  # let the others queue behind the first
+                results = [f.result(timeout=60) for f in futures]
+                bad = garbage.result(timeout=60)
+            assert isinstance(bad[0], ErrorReply) and "msgpack" in bad[0].reason
+            for req, res in zip(reqs, results, strict=True):
+                assert res.request_id == req.request_id and res.episode_id == req.episode_id
+                ref = expected[req.request_id]
+                assert (res.answer_probs, res.lsv, res.gsv, res.relevance) == (
+                    ref.answer_probs, ref.lsv, ref.gsv, ref.relevance)
+            assert max(backend.batches) > 1, f"never batched: {backend.batches}"
+            assert max(backend.batches) <= 8
+            with pytest.raises(ScorerError, match="HxWx3"):  # still serving, and errors stay per request
+                bad_req = reqs[0].model_copy()
+                bad_req.rgb = np.zeros((5, 5), np.uint8)
+                client.score(bad_req)
+        finally:
+            backend.gate.set()
+            svc.stop()
+
+
+def test_batch_settings_are_bounded() -> None:
+    from pydantic import ValidationError
+
+    from eqa.settings import Settings
+
+    with pytest.raises(ValidationError):
+        Settings(scorer_batch_max=0)
+    with pytest.raises(ValidationError):
+        Settings(scorer_batch_max=65)
+    with pytest.raises(ValidationError):
+        Settings(scorer_batch_window_ms=-1)
