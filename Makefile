@@ -18,7 +18,7 @@ demo: setup
 
 test: setup
 	@# the real OpenAI-compatible server with logprobs of tests/test_scorer_llamacpp.py: llama.cpp's llama-server,
-	@# built from source into ~/.cache/eqa/llama-cpp (a 37 MB download and 10-20 minutes on 2 cores the first
+	@# built from source into ~/.cache/eqa/llama-cpp (a 37 MB download and 6-25 minutes on 2 cores the first
 	@# time, then a stamp check): set-up time, not suite time. If it cannot be built, that test skips saying why.
 	@bash scripts/setup-llama.sh >/dev/null || echo "setup: llama-server could not be set up; tests/test_scorer_llamacpp.py will skip or fail saying why" >&2
 	$(PY) -m ruff check .

@@ -57,7 +57,7 @@ if [ ! -f "$server_stamp" ] || [ ! -x "$SERVER" ]; then
   fi
   jobs=${LLAMA_BUILD_JOBS:-$(nproc)}
   log="$LLAMA_HOME/build-$VERSION.log"
-  say "building llama-server in $BUILD with $jobs jobs (CPU only; 10-20 minutes on 2 idle cores; log $log)"
+  say "building llama-server in $BUILD with $jobs jobs (CPU only; 11 CPU-minutes: 6-12 minutes on 2 idle cores; log $log)"
   t0=$(date +%s)
   { cmake -S "$SRC" -B "$BUILD" "${CMAKE_FLAGS[@]}" && cmake --build "$BUILD" --target llama-server -j "$jobs"; } \
     >>"$log" 2>&1 || { tail -20 "$log" >&2; say "the build failed (log $log)"; exit 1; }

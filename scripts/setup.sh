@@ -36,8 +36,12 @@ stamp="$VENV/.eqa-installed-$(cat pyproject.toml | sha1sum | cut -c1-12)"
 if [ ! -f "$stamp" ]; then
   echo "setup: installing the project into $VENV (torch is pinned to the CPU build)"
   "$VENV/bin/python" -m pip install -q --upgrade pip 2>&1 | grep -v '^WARNING: Location' || true
-  # torch first and pinned, so nothing pulls a CUDA build.
-  "$VENV/bin/python" -m pip install -q "torch==2.13.0" 2>&1 | grep -v '^WARNING: Location' || true
+  # torch first and pinned, so nothing pulls a CUDA build. PyPI's Linux torch 2.13.0 is the CUDA build (527 MB
+  # plus 2.2 GB of nvidia-* and triton wheels); PyTorch's CPU index has 2.13.0+cpu (192 MB), which pip prefers
+  # (a local version sorts above the plain one) and which still satisfies torch==2.13.0. Where that index cannot
+  # be reached pip falls back to the CUDA build (or to a wheel in a configured find-links directory).
+  "$VENV/bin/python" -m pip install -q "torch==2.13.0" --extra-index-url https://download.pytorch.org/whl/cpu 2>&1 \
+    | grep -v '^WARNING: Location' || true
   "$VENV/bin/python" -m pip install -q -e '.[dev]' 2>&1 | grep -v '^WARNING: Location' || true
   "$VENV/bin/python" -c 'import open3d, zenoh, rerun, torch, transformers' \
     || { echo "setup: the install did not complete (see pip output above)" >&2; exit 1; }
