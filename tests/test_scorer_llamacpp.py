@@ -63,6 +63,9 @@ def _chat(url: str, text: str, image: bool = True, top: int = TOP_LOGPROBS) -> h
         "temperature": 0.0, "logprobs": True, "top_logprobs": top})
 
 
+# The first test to use the set-up bears it: a first-time build of llama-server (6-25 minutes) when pytest runs
+# before `make test` has built it; afterwards a stamp check.
+@pytest.mark.timeout(3600)
 def test_gguf_has_what_the_scorer_reads(llama_paths):
     """The converted files: a Llama with the SentencePiece-style vocabulary holding every answer token, the
     ChatML template, and a Pixtral vision projector."""
