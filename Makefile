@@ -3,8 +3,12 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 export RERUN_TELEMETRY_ENABLED := false
 export HF_HUB_OFFLINE := 1
+# Selenium Manager posts usage statistics to an analytics host unless told not to (tests/browser_helpers.py sets
+# these for the browser it starts; here for anything else that runs Selenium under make)
+export SE_AVOID_STATS := true
+export SE_OFFLINE := true
 
-.PHONY: setup demo test lint bench up clean compose-smoke
+.PHONY: setup demo test test-servers lint bench up clean compose-smoke
 
 setup:
 	@VENV=$(VENV) bash scripts/setup.sh
@@ -13,11 +17,19 @@ demo: setup
 	$(VENV)/bin/eqa ask
 
 test: setup
-	@# the real OpenAI-compatible server of tests/scorer/test_scorer_serve.py in its own venv (~5.5 GB, a few
-	@# minutes the first time, then a stamp check): set-up time, not suite time. If it fails, that test skips saying why.
-	@bash scripts/setup-serve.sh || echo "setup: transformers serve could not be installed; tests/scorer/test_scorer_serve.py will skip" >&2
+	@# the real OpenAI-compatible server with logprobs of tests/test_scorer_llamacpp.py: llama.cpp's llama-server,
+	@# built from source into ~/.cache/eqa/llama-cpp (a 37 MB download and 6-25 minutes on 2 cores the first
+	@# time, then a stamp check): set-up time, not suite time. If it cannot be built, that test skips saying why.
+	@bash scripts/setup-llama.sh >/dev/null || echo "setup: llama-server could not be set up; tests/test_scorer_llamacpp.py will skip or fail saying why" >&2
 	$(PY) -m ruff check .
 	$(PY) -m pytest -q -p no:cacheprovider
+
+# The real model servers' tests only, `transformers serve` included: its own venv (var/venv-serve, ~5.5 GB, a few
+# minutes the first time), so it is not part of `make test`.
+test-servers: setup
+	@bash scripts/setup-serve.sh
+	@bash scripts/setup-llama.sh >/dev/null
+	TEST_SERVERS=1 $(PY) -m pytest -q -p no:cacheprovider tests/test_scorer_serve.py tests/test_scorer_llamacpp.py
 
 lint: setup
 	$(PY) -m ruff check .

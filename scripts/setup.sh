@@ -36,8 +36,15 @@ stamp="$VENV/.eqa-installed-$(cat pyproject.toml | sha1sum | cut -c1-12)"
 if [ ! -f "$stamp" ]; then
   echo "setup: installing the project into $VENV (torch is pinned to the CPU build)"
   "$VENV/bin/python" -m pip install -q --upgrade pip 2>&1 | grep -v '^WARNING: Location' || true
-  # torch first and pinned, so nothing pulls a CUDA build.
-  "$VENV/bin/python" -m pip install -q "torch==2.13.0" 2>&1 | grep -v '^WARNING: Location' || true
+  # torch first and pinned, so nothing pulls a CUDA build. PyPI's Linux torch 2.13.0 is the CUDA build (527 MB
+  # plus 2.2 GB of nvidia-* and triton wheels); PyTorch's CPU index has 2.13.0+cpu (192 MB), which pip prefers
+  # (a local version sorts above the plain one) and which still satisfies torch==2.13.0. Where that index cannot
+  # be reached pip falls back to the CUDA build (or to a wheel in a configured find-links directory); it is probed
+  # first because pip asks an extra index for every package and retries an unreachable one for each (a minute).
+  torch_index=()
+  "$VENV/bin/python" -c 'import urllib.request as u; u.urlopen("https://download.pytorch.org/whl/cpu/torch/", timeout=10)' \
+    >/dev/null 2>&1 && torch_index=(--extra-index-url https://download.pytorch.org/whl/cpu)
+  "$VENV/bin/python" -m pip install -q "torch==2.13.0" "${torch_index[@]}" 2>&1 | grep -v '^WARNING: Location' || true
   "$VENV/bin/python" -m pip install -q -e '.[dev]' 2>&1 | grep -v '^WARNING: Location' || true
   "$VENV/bin/python" -c 'import open3d, zenoh, rerun, torch, transformers' \
     || { echo "setup: the install did not complete (see pip output above)" >&2; exit 1; }

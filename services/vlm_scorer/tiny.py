@@ -144,84 +144,108 @@ def build_tiny_qwen2vl(path: str | Path, letters: str | None = None, seed: int =
     return out
 
 
-def build_tiny_llama_gguf(path: str | Path, seed: int = 0) -> Path:
-    """Write a tiny random Llama (transformers ``LlamaForCausalLM``, 2 layers of width 32) with the byte-level
-    BPE tokenizer and ChatML template of :func:`build_tiny_qwen2vl` as one GGUF file (``gguf`` writer, F32), for
-    llama.cpp's server: text only, no vision projector. Returns the file."""
-    import json
-    import tempfile
+# The tiny LLaVA's tokens: SentencePiece-style specials, the ChatML turn markers of CHAT_TEMPLATE and Pixtral's
+# image tokens (llama.cpp's Pixtral projector needs [IMG_BREAK] and ends each image with [IMG_END]).
+LLAVA_SPECIAL_TOKENS = ["<unk>", "<s>", "</s>", "<|im_start|>", "<|im_end|>", "[IMG]", "[IMG_BREAK]", "[IMG_END]"]
+ANSWER_TOKENS = ("A", "B", "C", "D", "Yes", "No")  # what the scorer reads from a top-token list (remote backend)
 
-    import gguf
-    import numpy as np
+
+def build_tiny_pixtral(path: str | Path, seed: int = 0) -> Path:
+    """Write a tiny random LLaVA (transformers ``LlavaForConditionalGeneration``: a 3-layer Pixtral vision tower
+    of width 32 on 64 px images, 16 px patches, and a 2-layer Llama of width 32) to ``path`` and return it.
+
+    Its tokenizer is a byte-fallback BPE over SentencePiece-style words ("▁" marks a word start), trained on the
+    scorer's prompts: llama.cpp's converter reads that kind (the Llama-2 tokenizer.json layout) without the check
+    it applies to GPT-2-style BPE tokenizers, whose pre-tokenizer it recognises only by hashing its output on a
+    fixed text against known models, so a tokenizer trained here would be refused. Every choice letter and
+    Yes/No is one token (with a word-start mark: "▁A", "▁Yes"). The chat template is :data:`TEXT_CHAT_TEMPLATE`
+    (llama-server turns each image part into a text marker before rendering). Pixtral rather than Qwen2-VL:
+    its converter path keeps the Llama text model (and so this tokenizer), and it has a vision projector that
+    llama.cpp converts (``--mmproj``); llama-server refuses image parts without one."""
     import torch
-    from transformers import LlamaConfig, LlamaForCausalLM, PreTrainedTokenizerFast
+    from tokenizers import Tokenizer, decoders, models, pre_tokenizers, trainers
+    from transformers import (
+        LlamaConfig,
+        LlavaConfig,
+        LlavaForConditionalGeneration,
+        PixtralVisionConfig,
+        PreTrainedTokenizerFast,
+    )
+    from transformers.models.pixtral.image_processing_pil_pixtral import PixtralImageProcessorPil
 
     out = Path(path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory() as tmp:
-        tok_dir = Path(tmp) / "tok"
-        tok_dir.mkdir()
-        build_tiny_qwen2vl(tok_dir)
-        tokenizer = PreTrainedTokenizerFast.from_pretrained(tok_dir)
-        spec = json.loads((tok_dir / "tokenizer.json").read_text())
-    vocab = len(tokenizer)
-    ids = {t: tokenizer.convert_tokens_to_ids(t) for t in SPECIAL_TOKENS}
-    cfg = LlamaConfig(vocab_size=vocab, hidden_size=32, intermediate_size=64, num_hidden_layers=2,
-                      num_attention_heads=2, num_key_value_heads=1, max_position_embeddings=2048,
-                      rms_norm_eps=1e-5, bos_token_id=ids["<|endoftext|>"], eos_token_id=ids["<|im_end|>"])
+    out.mkdir(parents=True, exist_ok=True)
+    tok = Tokenizer(models.BPE(unk_token="<unk>", byte_fallback=True, fuse_unk=True))
+    tok.pre_tokenizer = pre_tokenizers.Metaspace(replacement="\u2581", prepend_scheme="first", split=True)
+    tok.decoder = decoders.Sequence([decoders.Replace("\u2581", " "), decoders.ByteFallback(), decoders.Fuse(),
+                                     decoders.Strip(" ", 1, 0)])
+    byte_tokens = [f"<0x{i:02X}>" for i in range(256)]  # byte fallback: any text has tokens
+    trainer = trainers.BpeTrainer(vocab_size=700, special_tokens=LLAVA_SPECIAL_TOKENS + byte_tokens)
+    tok.train_from_iterator(_corpus() + [" ".join(ANSWER_TOKENS) + " A. B. C. D. Yes. No."] * 20, trainer)
+    tokenizer = PreTrainedTokenizerFast(tokenizer_object=tok, bos_token="<s>", eos_token="<|im_end|>",
+                                        unk_token="<unk>", pad_token="<unk>")
+    tokenizer.chat_template = TEXT_CHAT_TEMPLATE
+    tokenizer.save_pretrained(out)
+    vocab = tokenizer.get_vocab()
+    missing = [t for t in ANSWER_TOKENS if t not in vocab and "\u2581" + t not in vocab]
+    if missing:
+        raise RuntimeError(f"tiny tokenizer lacks the answer tokens {missing}")
+    PixtralImageProcessorPil(size={"longest_edge": 64}, patch_size=16).save_pretrained(out)
+    text = LlamaConfig(vocab_size=len(tokenizer), hidden_size=32, intermediate_size=64, num_hidden_layers=2,
+                       num_attention_heads=2, num_key_value_heads=1, head_dim=16, max_position_embeddings=2048,
+                       rms_norm_eps=1e-5, bos_token_id=vocab["<s>"], eos_token_id=vocab["<|im_end|>"])
+    # 3 vision layers: the converter maps the projector's linear_1 / linear_2 by layer index, so it needs >= 3
+    vision = PixtralVisionConfig(hidden_size=32, intermediate_size=64, num_hidden_layers=3, num_attention_heads=2,
+                                 head_dim=16, image_size=64, patch_size=16, num_channels=3, hidden_act="gelu")
+    config = LlavaConfig(vision_config=vision, text_config=text, image_token_index=vocab["[IMG]"],
+                         projector_hidden_act="gelu", vision_feature_layer=-1,
+                         vision_feature_select_strategy="full", multimodal_projector_bias=True)
     torch.manual_seed(seed)
-    sd = {k: v.detach().float().numpy() for k, v in LlamaForCausalLM(cfg).state_dict().items()}
-    head_dim = cfg.hidden_size // cfg.num_attention_heads
+    LlavaForConditionalGeneration(config).eval().save_pretrained(out)
+    return out
 
-    def permute(w: np.ndarray, heads: int) -> np.ndarray:  # HF's rotary layout -> GGML's (as convert_hf_to_gguf)
-        return w.reshape(heads, 2, w.shape[0] // heads // 2, *w.shape[1:]).swapaxes(1, 2).reshape(w.shape)
 
-    w = gguf.GGUFWriter(str(out), "llama")
-    w.add_name("eqa-tiny-llama")
-    w.add_context_length(cfg.max_position_embeddings)
-    w.add_embedding_length(cfg.hidden_size)
-    w.add_block_count(cfg.num_hidden_layers)
-    w.add_feed_forward_length(cfg.intermediate_size)
-    w.add_head_count(cfg.num_attention_heads)
-    w.add_head_count_kv(cfg.num_key_value_heads)
-    w.add_rope_dimension_count(head_dim)
-    w.add_layer_norm_rms_eps(cfg.rms_norm_eps)
-    w.add_file_type(gguf.LlamaFileType.ALL_F32)
-    w.add_vocab_size(vocab)
-    w.add_tokenizer_model("gpt2")
-    w.add_tokenizer_pre("default")
-    by_id = {i: t for t, i in tokenizer.get_vocab().items()}
-    w.add_token_list([by_id[i] for i in range(vocab)])
-    special = set(ids.values())
-    w.add_token_types([gguf.TokenType.CONTROL if i in special else gguf.TokenType.NORMAL for i in range(vocab)])
-    merges = spec["model"]["merges"]
-    w.add_token_merges([m if isinstance(m, str) else " ".join(m) for m in merges])
-    w.add_bos_token_id(ids["<|endoftext|>"])
-    w.add_eos_token_id(ids["<|im_end|>"])
-    w.add_pad_token_id(ids["<|endoftext|>"])
-    w.add_add_bos_token(False)
-    w.add_chat_template(TEXT_CHAT_TEMPLATE)
-    names = {"model.embed_tokens.weight": "token_embd.weight", "model.norm.weight": "output_norm.weight",
-             "lm_head.weight": "output.weight"}
-    per_layer = {"input_layernorm": "attn_norm", "self_attn.q_proj": "attn_q", "self_attn.k_proj": "attn_k",
-                 "self_attn.v_proj": "attn_v", "self_attn.o_proj": "attn_output",
-                 "post_attention_layernorm": "ffn_norm", "mlp.gate_proj": "ffn_gate", "mlp.up_proj": "ffn_up",
-                 "mlp.down_proj": "ffn_down"}
-    for name, arr in sd.items():
-        if name in names:
-            w.add_tensor(names[name], arr)
-            continue
-        _, _, layer, *rest = name.split(".")
-        part = ".".join(rest[:-1])
-        if part == "self_attn.q_proj":
-            arr = permute(arr, cfg.num_attention_heads)
-        elif part == "self_attn.k_proj":
-            arr = permute(arr, cfg.num_key_value_heads)
-        w.add_tensor(f"blk.{layer}.{per_layer[part]}.weight", np.ascontiguousarray(arr, dtype=np.float32))
-    w.write_header_to_file()
-    w.write_kv_data_to_file()
-    w.write_tensors_to_file()
-    w.close()
+def build_tiny_llama_gguf(path: str | Path, llama_cpp_dir: str | Path, seed: int = 0) -> tuple[Path, Path]:
+    """The tiny LLaVA of :func:`build_tiny_pixtral` as llama.cpp files, converted by llama.cpp's own
+    ``convert_hf_to_gguf.py`` from ``llama_cpp_dir`` (a llama.cpp source tree; its ``gguf-py`` is used), run with
+    this interpreter (it needs torch, transformers, numpy, sentencepiece): ``path/model.gguf`` (the Llama, F32) and
+    ``path/mmproj.gguf`` (the Pixtral projector) for ``llama-server -m model.gguf --mmproj mmproj.gguf``."""
+    import subprocess
+    import sys
+
+    out = Path(path)
+    hf = build_tiny_pixtral(out / "hf", seed=seed)
+    convert = Path(llama_cpp_dir) / "convert_hf_to_gguf.py"
+    if not convert.is_file():
+        raise FileNotFoundError(f"{convert} is missing (is {llama_cpp_dir} a llama.cpp source tree?)")
+    files = (out / "model.gguf", out / "mmproj.gguf")
+    for target, src, extra in zip(files, (hf, _mmproj_input(hf, out / "hf-mmproj")), ([], ["--mmproj"]), strict=True):
+        proc = subprocess.run([sys.executable, str(convert), str(src), "--outtype", "f32", "--outfile", str(target),
+                               *extra], capture_output=True, text=True, check=False)
+        if proc.returncode != 0 or not target.is_file():
+            raise RuntimeError(f"convert_hf_to_gguf.py {' '.join(extra)} failed: {proc.stderr[-1500:]}")
+    return files
+
+
+def _mmproj_input(hf: Path, out: Path) -> Path:
+    """The checkpoint the converter's ``--mmproj`` pass reads: the vision tower and projector, and the text
+    model's token embedding under a name without ``language_model.``. llama.cpp's Pixtral projector needs the
+    [IMG_BREAK] row of that embedding (``v.token_embd.img_break``; llama-server refuses the projector without
+    it), and the converter's projector pass drops every tensor named ``language_model.`` before it looks for
+    ``embed_tokens.weight``, and a LLaVA checkpoint keeps it as ``language_model.model.embed_tokens``."""
+    import shutil
+
+    from safetensors.torch import load_file, save_file
+
+    out.mkdir(parents=True, exist_ok=True)
+    for f in hf.iterdir():
+        if f.suffix != ".safetensors":
+            shutil.copy(f, out / f.name)
+    tensors = load_file(hf / "model.safetensors")
+    keep = {k: v for k, v in tensors.items() if "language_model." not in k and "lm_head" not in k}
+    keep["embed_tokens.weight"] = next(v for k, v in tensors.items() if k.endswith("language_model.model.embed_tokens"
+                                                                                     ".weight"))
+    save_file(keep, out / "model.safetensors", metadata={"format": "pt"})
     return out
 
 

@@ -276,3 +276,50 @@ def stop_process(proc: subprocess.Popen[bytes]) -> None:
     except subprocess.TimeoutExpired:
         proc.kill()
         proc.wait(timeout=10)
+
+
+# ---- llama.cpp's llama-server (built from source with a tiny GGUF by scripts/setup-llama.sh) ---------------
+LLAMA_ALIAS = "tiny-llava"
+
+
+def setup_llama(timeout_s: float = 3600) -> tuple[dict[str, str] | None, bool, str]:
+    """Run scripts/setup-llama.sh (guarded, quick when done): ``(paths, built, last lines of its messages)``;
+    paths has LLAMA_SERVER, LLAMA_MODEL, LLAMA_MMPROJ, or is None when the set-up failed; ``built`` is False when
+    it was the server that could not be had (the script's exit status 1; 2 is a failed GGUF conversion)."""
+    proc = subprocess.run(["bash", str(REPO / "scripts" / "setup-llama.sh")], cwd=REPO, capture_output=True,
+                          text=True, timeout=timeout_s, check=False)
+    paths = dict(line.split("=", 1) for line in proc.stdout.splitlines() if line.startswith("LLAMA_"))
+    ok = proc.returncode == 0 and all(Path(paths.get(k, "")).is_file()
+                                      for k in ("LLAMA_SERVER", "LLAMA_MODEL", "LLAMA_MMPROJ"))
+    return (paths if ok else None), proc.returncode != 1, proc.stderr[-800:]
+
+
+def start_llama_server(paths: dict[str, str], log_path: Path, mmproj: bool = True,
+                       timeout_s: float = 120.0) -> tuple[subprocess.Popen[bytes], str, str]:
+    """``llama-server`` with the tiny GGUF (and its vision projector unless ``mmproj=False``) on a free loopback
+    port, waited for (``GET /health``): ``(process, base_url, model id)``. RuntimeError with its log if it does
+    not come up. One thread: the machine's cores are shared, and the tiny model needs no more."""
+    import time
+
+    import httpx
+
+    from eqa.launcher import free_port
+
+    port = free_port()
+    cmd = [paths["LLAMA_SERVER"], "-m", paths["LLAMA_MODEL"], "--host", "127.0.0.1", "--port", str(port),
+           "--alias", LLAMA_ALIAS, "--jinja", "-c", "4096", "-t", "1", "--no-webui"]
+    if mmproj:
+        cmd += ["--mmproj", paths["LLAMA_MMPROJ"]]
+    with log_path.open("wb") as log_file:
+        proc = subprocess.Popen(cmd, stdout=log_file, stderr=subprocess.STDOUT)
+    url = f"http://127.0.0.1:{port}/v1"
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and proc.poll() is None:
+        try:
+            if httpx.get(f"http://127.0.0.1:{port}/health", timeout=2).status_code == 200:
+                return proc, url, LLAMA_ALIAS
+        except httpx.HTTPError:
+            pass
+        time.sleep(0.3)
+    stop_process(proc)
+    raise RuntimeError(f"llama-server did not come up: {log_path.read_text(errors='replace')[-1500:]}")
