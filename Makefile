@@ -3,7 +3,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 export RERUN_TELEMETRY_ENABLED := false
 export HF_HUB_OFFLINE := 1
-# Selenium Manager posts usage statistics to an analytics host unless told not to (tests/browser_helpers.py sets
+# Selenium Manager posts usage statistics to an analytics host unless told not to (tests/support/browser.py sets
 # these for the browser it starts; here for anything else that runs Selenium under make)
 export SE_AVOID_STATS := true
 export SE_OFFLINE := true
@@ -17,10 +17,10 @@ demo: setup
 	$(VENV)/bin/eqa ask
 
 test: setup
-	@# the real OpenAI-compatible server with logprobs of tests/test_scorer_llamacpp.py: llama.cpp's llama-server,
+	@# the real OpenAI-compatible server with logprobs of tests/scorer/test_scorer_llamacpp.py: llama.cpp's llama-server,
 	@# built from source into ~/.cache/eqa/llama-cpp (a 37 MB download and 6-25 minutes on 2 cores the first
 	@# time, then a stamp check): set-up time, not suite time. If it cannot be built, that test skips saying why.
-	@bash scripts/setup-llama.sh >/dev/null || echo "setup: llama-server could not be set up; tests/test_scorer_llamacpp.py will skip or fail saying why" >&2
+	@bash scripts/setup-llama.sh >/dev/null || echo "setup: llama-server could not be set up; tests/scorer/test_scorer_llamacpp.py will skip or fail saying why" >&2
 	$(PY) -m ruff check .
 	$(PY) -m pytest -q -p no:cacheprovider
 
@@ -29,7 +29,7 @@ test: setup
 test-servers: setup
 	@bash scripts/setup-serve.sh
 	@bash scripts/setup-llama.sh >/dev/null
-	TEST_SERVERS=1 $(PY) -m pytest -q -p no:cacheprovider tests/test_scorer_serve.py tests/test_scorer_llamacpp.py
+	TEST_SERVERS=1 $(PY) -m pytest -q -p no:cacheprovider tests/scorer/test_scorer_serve.py tests/scorer/test_scorer_llamacpp.py
 
 lint: setup
 	$(PY) -m ruff check .

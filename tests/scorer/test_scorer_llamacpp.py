@@ -19,7 +19,7 @@ from pathlib import Path
 
 import httpx
 import pytest
-from scorer_helpers import (
+from support.scorer import (
     LLAMA_ALIAS,
     REPO,
     frame_request,
