@@ -59,6 +59,31 @@ def test_hf_merged_forward_pass_gives_each_request_its_own_values(tiny_hf) -> No
     assert [_numbers(m) for m in merged] == alone  # exactly, not approximately
 
 
+def test_hf_inputs_are_the_tokenizers_encoding_of_the_expanded_chats(tiny_hf) -> None:
+    """The backend tokenizes each prompt once with one image placeholder and repeats that token for the image:
+    the ids and masks must be what the tokenizer makes of the chats with every placeholder written out, left
+    padded to a multiple of the pad length, alone and in a batch of prompts of different lengths."""
+    from services.vlm_scorer import prompts
+    from services.vlm_scorer.backends.hf import IMAGE_PAD, PAD_MULTIPLE, qwen_chat
+
+    rgb = np.zeros((60, 80, 3), np.uint8)
+    wide = np.zeros((120, 160, 3), np.uint8)
+    q = Question(text=QUESTIONS[1], choices=["Yes", "No"], scene="s0")
+    texts = [query.text for query in prompts.step_queries(q, list(q.choices), 3)] + [QUESTIONS[0], "x"]
+    images = [(rgb, wide)[k % 2] for k in range(len(texts))]
+    for rows in ([0], [1], list(range(len(texts)))):
+        for multiple in (None, PAD_MULTIPLE):
+            got = tiny_hf._inputs([images[k] for k in rows], [texts[k] for k in rows], pad_multiple=multiple)
+            grid = got["image_grid_thw"]
+            chats = [qwen_chat(texts[k]).replace(IMAGE_PAD, IMAGE_PAD * (int(grid[i].prod()) // tiny_hf.merge**2))
+                     for i, k in enumerate(rows)]
+            ref = tiny_hf.tokenizer(chats, padding=True, pad_to_multiple_of=multiple, return_tensors="pt",
+                                    add_special_tokens=False)
+            assert got["input_ids"].dtype == ref["input_ids"].dtype
+            assert got["input_ids"].tolist() == ref["input_ids"].tolist()
+            assert got["attention_mask"].tolist() == ref["attention_mask"].tolist()
+
+
 def test_a_bad_request_fails_alone_in_its_batch(tiny_hf) -> None:
     reqs = _requests(4)
     bad = reqs[2].model_copy()
