@@ -177,3 +177,69 @@ def test_batch_settings_are_bounded() -> None:
         Settings(scorer_batch_max=65)
     with pytest.raises(ValidationError):
         Settings(scorer_batch_window_ms=-1)
+
+
+class _Query:
+    def drop(self) -> None:
+        pass
+
+
+def test_a_batch_waits_for_the_requests_in_flight_and_a_lone_one_for_no_one() -> None:
+    """With a window, a lone requester is answered at once (not after the window); the requests in flight are
+    the batch just answered plus those queued behind it; and requesters that come back one by one after their
+    replies are merged into one batch again, which goes as soon as all of them are in (not at the window's end)."""
+    import time
+
+    from eqa.bus import _SerialQueryable
+
+    batches: list[tuple[float, int]] = []
+    started = threading.Event()
+    done = threading.Event()
+
+    def answer(batch: list[_Query]) -> None:
+        batches.append((time.monotonic(), len(batch)))
+        started.set()
+        time.sleep(0.05)
+        done.set()
+
+    sq = _SerialQueryable("test", answer, batch_max=8, window_s=0.5)
+
+    def served(k: int) -> None:
+        deadline = time.monotonic() + 5
+        while len(batches) < k and time.monotonic() < deadline:
+            time.sleep(0.005)
+        done.wait(2)
+        time.sleep(0.02)
+
+    try:
+        t0 = time.monotonic()
+        done.clear()
+        sq.put(_Query())
+        served(1)
+        assert batches[0][0] - t0 < 0.3, "a lone request waited for the window"
+        # one request, three more while it is served: four in flight when it is answered
+        started.clear()
+        done.clear()
+        sq.put(_Query())
+        assert started.wait(2)
+        for _ in range(3):
+            sq.put(_Query())
+        served(2)
+        assert batches[1][1] == 1 and sq.in_flight == 4
+        # (the three queued ones are batch 3, which waits the window for a fourth that does not come)
+        done.clear()
+        served(3)
+        assert batches[2][1] == 3
+        sq.in_flight = 4
+        # four come back one by one, 20 ms apart: one batch of four, sent once the fourth is in
+        done.clear()
+        t0 = time.monotonic()
+        for _ in range(4):
+            sq.put(_Query())
+            time.sleep(0.02)
+        served(4)
+        assert [n for _, n in batches[3:]] == [4]
+        assert batches[3][0] - t0 < 0.3, "a full batch waited for the window"
+    finally:
+        sq.jobs.put(sq._STOP)
+        sq._thread.join(timeout=5)
