@@ -6,7 +6,9 @@ thread each) run side by side: ``off`` with ``EQA_SCORER_BATCH_MAX=1``, ``on`` w
 the other (a robot waits for its step's scores before the next, as the mapper does), every robot with its own
 question; the same requests go to ``off`` and to ``on`` in alternating rounds, so a load drift hits both alike,
 and only one replica works at a time. Printed per robot count and mode: steps/s of the replica, p50 / p95
-latency per step, and whether every request got the same values from both replicas (byte for byte).
+latency per step, the replica process's CPU time per step (``/proc``; what a saturated replica's steps/s per
+core is: the robots' threads share one client process here, so the wall rate is bounded by the client's
+turnaround too), and whether every request got the same values from both replicas (byte for byte).
 
 The tiny model is not a real VLM: the figure says what merging the steps of several robots saves in the
 replica's per-call work on this CPU (image processing, Python and kernel overheads), not what a GPU serving a
@@ -34,6 +36,8 @@ os.environ.setdefault("RERUN_TELEMETRY_ENABLED", "false")
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "tests"))
+
+from bench_fleet_scale import cpu_seconds  # noqa: E402
 
 from eqa import keys  # noqa: E402
 from eqa.bus import Bus  # noqa: E402
@@ -71,8 +75,8 @@ def _requests(robots: int, steps: int, h: int, w: int) -> list[list[ScoreRequest
     return out
 
 
-def _run(bus: Bus, replica: str, per_robot: list[list[ScoreRequest]], timeout: float
-         ) -> tuple[float, list[float], dict[str, tuple]]:
+def _run(bus: Bus, replica: str, per_robot: list[list[ScoreRequest]], timeout: float, pid: int = 0
+         ) -> tuple[float, list[float], dict[str, tuple], float]:
     key = keys.scorer_replica(replica)
     latencies: list[float] = []
     values: dict[str, tuple] = {}
@@ -87,11 +91,14 @@ def _run(bus: Bus, replica: str, per_robot: list[list[ScoreRequest]], timeout: f
                 raise RuntimeError(f"{replica}: no result for {req.request_id}: {res}")
             values[req.request_id] = (tuple(res.answer_probs), tuple(res.lsv), res.gsv, res.relevance)
 
+    cpu0 = cpu_seconds(pid) if pid else 0.0
     t0 = time.perf_counter()
     with ThreadPoolExecutor(len(per_robot)) as pool:
         list(pool.map(robot, per_robot))
     wall = time.perf_counter() - t0
-    return sum(len(r) for r in per_robot) / wall, latencies, values
+    steps = sum(len(r) for r in per_robot)
+    cpu = (cpu_seconds(pid) - cpu0) if pid else float("nan")
+    return steps / wall, latencies, values, cpu / steps
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -130,27 +137,32 @@ def main(argv: list[str] | None = None) -> int:
             if not ScorerClient(bus, base).wait_for_replicas(2, timeout=180):
                 print("error: the two replicas did not come up", file=sys.stderr)
                 return 1
+            pids = {m: p.pid for m, p in zip(modes, procs, strict=True)}
             warm = _requests(2, 2, h, w)
             for m in modes:
                 _run(bus, f"b-{m}", warm, 120)
             for n in args.robots:
                 reqs = _requests(n, args.steps, h, w)
                 rates: dict[str, list[float]] = {m: [] for m in modes}
+                cpus: dict[str, list[float]] = {m: [] for m in modes}
                 lats: dict[str, list[float]] = {m: [] for m in modes}
                 vals: dict[str, dict[str, tuple]] = {}
                 for rnd in range(args.rounds):
                     order = list(modes) if rnd % 2 == 0 else list(reversed(modes))
                     for m in order:
-                        rate, lat, v = _run(bus, f"b-{m}", reqs, 120)
+                        rate, lat, v, cpu = _run(bus, f"b-{m}", reqs, 120, pids[m])
                         rates[m].append(rate)
+                        cpus[m].append(cpu)
                         lats[m].extend(lat)
                         vals.setdefault(m, v)
                 same = vals["off"] == vals["on"]
                 identical &= same
                 rows.append((n, {m: statistics.median(rates[m]) for m in modes},
-                             {m: (_pct(lats[m], 50), _pct(lats[m], 95)) for m in modes}, same))
+                             {m: (_pct(lats[m], 50), _pct(lats[m], 95)) for m in modes}, same,
+                             {m: statistics.median(cpus[m]) * 1e3 for m in modes}))
                 r = rows[-1]
-                print(f"  {n:3d} robots: off {r[1]['off']:6.1f} steps/s, on {r[1]['on']:6.1f} steps/s", flush=True)
+                print(f"  {n:3d} robots: off {r[1]['off']:6.1f} steps/s {r[4]['off']:5.1f} CPU ms/step, on "
+                      f"{r[1]['on']:6.1f} steps/s {r[4]['on']:5.1f} CPU ms/step", flush=True)
         finally:
             for p in procs:
                 p.terminate()
@@ -160,11 +172,13 @@ def main(argv: list[str] | None = None) -> int:
           f"{args.batch_max}, window {args.window_ms:g} ms; {args.steps} steps per robot x {args.rounds} rounds; "
           f"{os.cpu_count()} CPUs, load {' '.join(f'{x:.1f}' for x in os.getloadavg())}")
     print(f"{'robots':>6} {'off steps/s':>12} {'on steps/s':>11} {'on/off':>7} {'off p50/p95 ms':>16} "
-          f"{'on p50/p95 ms':>15}  same values")
-    for n, rate, lat, same in rows:
+          f"{'on p50/p95 ms':>15} {'replica CPU ms/step off':>24} {'on':>5} {'off/on':>7}  same values")
+    for n, rate, lat, same, cpu in rows:
         print(f"{n:6d} {rate['off']:12.1f} {rate['on']:11.1f} {rate['on'] / rate['off']:7.2f} "
-              f"{lat['off'][0]:8.0f}/{lat['off'][1]:<7.0f} {lat['on'][0]:7.0f}/{lat['on'][1]:<7.0f}  "
-              f"{'yes' if same else 'NO'}")
+              f"{lat['off'][0]:8.0f}/{lat['off'][1]:<7.0f} {lat['on'][0]:7.0f}/{lat['on'][1]:<7.0f} "
+              f"{cpu['off']:24.2f} {cpu['on']:5.2f} {cpu['off'] / cpu['on']:7.2f}  {'yes' if same else 'NO'}")
+    print("replica CPU ms/step: user+system time of the replica process per step served (median over rounds); "
+          "1000 / it = steps per second one core of a saturated replica sustains")
     return 0 if identical else 1
 
 

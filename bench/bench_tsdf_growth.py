@@ -7,7 +7,8 @@ noise, which is what a tail made by the algorithm (copying the whole volume when
 Printed per tree: p50 / p95 / max over frames, p95/p50, the frames that grew the grid against the others, and
 of a growing frame's time the part spent growing the grid (``ensure``: the copy into larger arrays), which says
 whether the tail is the growth or the frames themselves (a frame that sees new territory also fuses more
-voxels); then whether the two trees' volumes are bit-identical after every frame.
+voxels), and how many of the frames at or above p95 grew the grid with p95/p50 over the frames that did not; then
+whether the two trees' volumes are bit-identical after every frame.
 
     python bench/bench_tsdf_growth.py [--scenes gen-00007 gen-00042] [--steps 40] [--repeats 5] [--baseline REV]
 """
@@ -118,6 +119,13 @@ def main(argv: list[str] | None = None) -> int:
               f"{pct(list(c[g]), 50):10.2f}{pct(list(c[~g]), 50):10.2f}"
               f"{pct(list(np.concatenate(growth[name])[g]), 50):11.2f}  {label}")
     print(f"frames that grew the grid: {int(g.sum())} of {g.size}")
+    for name in trees:  # what sets the tail: the growth, or frames that fuse more voxels
+        c = np.concatenate(cost[name])
+        tail = c >= np.percentile(c, 95)
+        rest = c[~g]
+        print(f"{name}: of the {int(tail.sum())} frames at or above p95, {int((tail & g).sum())} grew the grid; "
+              f"without the growing frames p50 {pct(list(rest), 50):.2f}, p95 {pct(list(rest), 95):.2f}, "
+              f"p95/p50 {pct(list(rest), 95) / pct(list(rest), 50):.2f}")
     print(f"bit-identical volumes after every frame: {'yes' if identical else 'NO'}")
     return 0 if identical else 1
 

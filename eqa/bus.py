@@ -55,7 +55,8 @@ class _SerialQueryable:
     """A queryable whose queries one worker thread answers in order (``Bus.declare_queryable(serial=True)``).
 
     With ``batch_max > 1`` the worker answers them in batches: it takes the first waiting query, then every
-    query already queued, then (``window_s > 0``) waits up to ``window_s`` after the first for more, up to
+    query already queued, then (``window_s > 0``) waits up to ``window_s`` after the first for more while the
+    batch holds fewer than were in flight when the previous batch was answered (see :meth:`_batch`), up to
     ``batch_max`` in all, and hands the batch to ``answer`` as one list. With ``window_s = 0`` a batch holds what
     queued while the previous one was served, so a lone request never waits for batch mates."""
 
@@ -69,19 +70,30 @@ class _SerialQueryable:
         self._answer = answer
         self.batch_max = max(1, int(batch_max))
         self.window_s = max(0.0, float(window_s))
+        self.in_flight = 1  # queries in flight when the last batch was answered (see _batch)
         self._thread = threading.Thread(target=self._serve, name=f"queryable {key}", daemon=True)
         self._thread.start()
 
     def _batch(self, first: Any) -> tuple[list[Any], bool]:
-        """``first`` and the queries that join it; True when the stop marker was met."""
+        """``first`` and the queries that join it; True when the stop marker was met. Every query already queued
+        joins (up to ``batch_max``); with a window the batch waits for more only while it holds fewer than were
+        in flight when the previous batch was answered (that batch and the queries queued behind it): robots
+        that each wait for their reply before sending again come back one by one as their replies go out, and
+        without the wait the first back would be served alone, the rest queue behind it, and the batches split
+        into small ones that share little; a lone robot's request waits for no one."""
         batch = [first]
         deadline = time.monotonic() + self.window_s
         while len(batch) < self.batch_max:
             try:
-                wait = deadline - time.monotonic()
-                query = self.jobs.get(timeout=wait) if wait > 0 else self.jobs.get_nowait()
+                query = self.jobs.get_nowait()
             except queue.Empty:
-                break
+                wait = deadline - time.monotonic()
+                if wait <= 0 or len(batch) >= self.in_flight:
+                    break
+                try:
+                    query = self.jobs.get(timeout=wait)
+                except queue.Empty:
+                    break
             if query is self._STOP:
                 return batch, True
             batch.append(query)
@@ -106,6 +118,7 @@ class _SerialQueryable:
                 # logged exception's traceback may keep it alive, and the client would wait for its timeout
                 for q in batch:
                     q.drop()
+                self.in_flight = len(batch) + self.jobs.qsize()
             if stop:
                 return
 

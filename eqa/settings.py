@@ -131,7 +131,9 @@ class ScorerSettings(SettingsGroup):
         "dynamic batching in a replica: up to this many queued requests (of any robots) in one backend call; "
         "1 = off"))
     scorer_batch_window_ms: float = Field(default=0.0, ge=0.0, le=1000.0, description=(
-        "how long a batch's first request waits for batch mates (ms); 0 = only those already queued"))
+        "how long a batch's first request waits for batch mates (ms), and only while the batch holds fewer "
+        "requests than were in flight when the previous batch was answered (a lone robot waits for no one); "
+        "0 = only those already queued"))
     hf_model_path: Path | None = None
     hf_device: str = "cpu"
     remote_base_url: str | None = None

@@ -23,39 +23,12 @@ start does not compile.
 
 from __future__ import annotations
 
-import os
-import tempfile
-from pathlib import Path
-
 import numba
 import numpy as np
 
+from eqa.numba_cache import cache_dir_candidates, choose_cache_dir  # noqa: F401 (cache_dir_candidates: API)
 
-def cache_dir_candidates() -> list[Path]:
-    """Where numba's cache may go, in order of preference (never next to this file)."""
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    uid = os.getuid() if hasattr(os, "getuid") else 0
-    return [Path(base) / "eqa" / "numba", Path(tempfile.gettempdir()) / f"eqa-numba-cache-{uid}"]
-
-
-def _choose_cache_dir() -> None:
-    """Point numba's cache at the first writable candidate, unless ``NUMBA_CACHE_DIR`` already says where.
-
-    numba looks for a user-provided directory first and then falls back to ``__pycache__`` beside the source;
-    setting ``numba.config.CACHE_DIR`` before the eager ``njit`` calls below keeps it out of the tree."""
-    if os.environ.get("NUMBA_CACHE_DIR"):
-        return
-    for target in cache_dir_candidates():
-        try:
-            target.mkdir(parents=True, exist_ok=True)
-        except OSError:
-            continue
-        if os.access(target, os.W_OK):
-            numba.config.CACHE_DIR = str(target.resolve())
-            return
-
-
-_choose_cache_dir()
+choose_cache_dir()  # before the eager njit calls below (eqa.numba_cache)
 
 
 def _ro(dtype: object, ndim: int) -> object:

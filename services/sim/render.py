@@ -16,6 +16,7 @@ import numpy as np
 import open3d as o3d
 
 from eqa.messages import InstanceLabel
+from services.sim.render_kernel import flat_frame, world_rays
 from services.sim.scene import Scene
 
 LIGHT = np.array([0.35, 0.65, 0.68])
@@ -66,15 +67,18 @@ class Renderer:
         self._max_id = int(ids.max()) if ids.size else -1
         self._hidden_rc: dict[frozenset[int], tuple[Any, np.ndarray]] = {}  # scenes without a held object
 
-    def _camera_rays(self, K: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
-        """Cached camera-frame directions ``(3, H*W)`` and a reusable ``(H*W, 6)`` ray buffer for one image size."""
+    def _camera_rays(self, K: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Cached camera-frame ray coordinates of one image size: ``u`` per column, ``v`` per row (float32; the
+        direction of pixel ``(row, col)`` is ``(u[col], v[row], 1)``), and a reusable ``(H*W, 6)`` ray buffer."""
         key = (np.asarray(K, np.float64).tobytes(), int(width), int(height))
         cached = self._rays.get(key)
         if cached is None:
             if len(self._rays) > 8:
                 self._rays.clear()
             dirs = camera_rays(K, width, height)
-            cached = self._rays[key] = (np.ascontiguousarray(dirs.T), np.empty((dirs.shape[0], 6), np.float32))
+            u = np.ascontiguousarray(dirs[:width, 0])
+            v = np.ascontiguousarray(dirs[::width, 1])
+            cached = self._rays[key] = (u, v, np.empty((dirs.shape[0], 6), np.float32))
         return cached
 
     def _without(self, hidden: frozenset[int]) -> tuple[Any, np.ndarray]:
@@ -101,19 +105,12 @@ class Renderer:
         T = np.asarray(camera_pose, np.float64)
         if T.shape != (4, 4) or not np.isfinite(T).all():
             raise ValueError("camera_pose must be a finite 4x4 matrix")
-        dirs_t, rays = self._camera_rays(K, width, height)
-        rays[:, :3] = T[:3, 3]
-        # World directions R @ d, one output column at a time with element-wise products. Not a BLAS matmul: its
-        # threads keep spinning after the call and steal the cores from open3d's ray cast (measured: a 640x480
-        # cast went from 22 to 45 ms after a 2 ms matmul on 2 cores). With d = (u(col), v(row), 1) the products
-        # are taken once per image column and row, then summed per pixel in the order (u R0 + v R1) + R2 (the
-        # float32 operations of the per-pixel form, so the same bits).
-        R = T[:3, :3].astype(np.float32)
-        u, v = dirs_t[0, :width], dirs_t[1, ::width]
-        for j in range(3):
-            out = rays[:, 3 + j].reshape(height, width)
-            np.add((u * R[j, 0])[None, :], (v * R[j, 1])[:, None], out=out)
-            out += R[j, 2]
+        u, v, rays = self._camera_rays(K, width, height)
+        # World directions R @ d per pixel with element-wise float32 products, d = (u(col), v(row), 1), summed in
+        # the order (u R0 + v R1) + R2 (render_kernel.world_rays). Not a BLAS matmul: its threads keep spinning
+        # after the call and steal the cores from open3d's ray cast (measured: a 640x480 cast went from 22 to
+        # 45 ms after a 2 ms matmul on 2 cores).
+        world_rays(u, v, np.ascontiguousarray(T[:3, :3], np.float32), T[:3, 3].astype(np.float32), rays)
         if not hidden:
             out = self._rc.cast_rays(o3d.core.Tensor.from_numpy(rays))
             return {k: out[k].numpy() for k in ("t_hit", "primitive_ids", "primitive_uvs")}
@@ -132,11 +129,17 @@ class Renderer:
         instances ``hidden`` (the object a task robot holds)."""
         hit = self.cast(camera_pose, K, width, height, hidden)
         t = hit["t_hit"]
+        if self._flat:  # one pass over the pixels (render_kernel.flat_frame), no temporaries
+            n = width * height
+            depth, instances, rgb = np.empty(n, np.float32), np.empty(n, np.int32), np.empty((n, 3), np.uint8)
+            flat_frame(t, hit["primitive_ids"], self._miss, self._tri_instance, self._tri_rgb, depth, instances, rgb)
+            return Rendered(rgb=rgb.reshape(height, width, 3), depth=depth.reshape(height, width),
+                            instances=instances.reshape(height, width))
         ok = np.isfinite(t)
         depth = np.where(ok, t, np.float32(0.0)).astype(np.float32, copy=False).reshape(height, width)
         prim = np.where(ok, hit["primitive_ids"], np.uint32(self._miss)).astype(np.intp, copy=False)
         instances = np.take(self._tri_instance, prim).reshape(height, width)
-        rgb = np.take(self._tri_rgb, prim, axis=0) if self._flat else self._surface_rgb(prim, hit["primitive_uvs"], ok)
+        rgb = self._surface_rgb(prim, hit["primitive_uvs"], ok)
         return Rendered(rgb=rgb.reshape(height, width, 3), depth=depth, instances=instances)
 
     def _surface_rgb(self, prim: np.ndarray, uvs: np.ndarray, ok: np.ndarray) -> np.ndarray:

@@ -59,6 +59,31 @@ def test_hf_merged_forward_pass_gives_each_request_its_own_values(tiny_hf) -> No
     assert [_numbers(m) for m in merged] == alone  # exactly, not approximately
 
 
+def test_hf_inputs_are_the_tokenizers_encoding_of_the_expanded_chats(tiny_hf) -> None:
+    """The backend tokenizes each prompt once with one image placeholder and repeats that token for the image:
+    the ids and masks must be what the tokenizer makes of the chats with every placeholder written out, left
+    padded to a multiple of the pad length, alone and in a batch of prompts of different lengths."""
+    from services.vlm_scorer import prompts
+    from services.vlm_scorer.backends.hf import IMAGE_PAD, PAD_MULTIPLE, qwen_chat
+
+    rgb = np.zeros((60, 80, 3), np.uint8)
+    wide = np.zeros((120, 160, 3), np.uint8)
+    q = Question(text=QUESTIONS[1], choices=["Yes", "No"], scene="s0")
+    texts = [query.text for query in prompts.step_queries(q, list(q.choices), 3)] + [QUESTIONS[0], "x"]
+    images = [(rgb, wide)[k % 2] for k in range(len(texts))]
+    for rows in ([0], [1], list(range(len(texts)))):
+        for multiple in (None, PAD_MULTIPLE):
+            got = tiny_hf._inputs([images[k] for k in rows], [texts[k] for k in rows], pad_multiple=multiple)
+            grid = got["image_grid_thw"]
+            chats = [qwen_chat(texts[k]).replace(IMAGE_PAD, IMAGE_PAD * (int(grid[i].prod()) // tiny_hf.merge**2))
+                     for i, k in enumerate(rows)]
+            ref = tiny_hf.tokenizer(chats, padding=True, pad_to_multiple_of=multiple, return_tensors="pt",
+                                    add_special_tokens=False)
+            assert got["input_ids"].dtype == ref["input_ids"].dtype
+            assert got["input_ids"].tolist() == ref["input_ids"].tolist()
+            assert got["attention_mask"].tolist() == ref["attention_mask"].tolist()
+
+
 def test_a_bad_request_fails_alone_in_its_batch(tiny_hf) -> None:
     reqs = _requests(4)
     bad = reqs[2].model_copy()
@@ -152,3 +177,69 @@ def test_batch_settings_are_bounded() -> None:
         Settings(scorer_batch_max=65)
     with pytest.raises(ValidationError):
         Settings(scorer_batch_window_ms=-1)
+
+
+class _Query:
+    def drop(self) -> None:
+        pass
+
+
+def test_a_batch_waits_for_the_requests_in_flight_and_a_lone_one_for_no_one() -> None:
+    """With a window, a lone requester is answered at once (not after the window); the requests in flight are
+    the batch just answered plus those queued behind it; and requesters that come back one by one after their
+    replies are merged into one batch again, which goes as soon as all of them are in (not at the window's end)."""
+    import time
+
+    from eqa.bus import _SerialQueryable
+
+    batches: list[tuple[float, int]] = []
+    started = threading.Event()
+    done = threading.Event()
+
+    def answer(batch: list[_Query]) -> None:
+        batches.append((time.monotonic(), len(batch)))
+        started.set()
+        time.sleep(0.05)
+        done.set()
+
+    sq = _SerialQueryable("test", answer, batch_max=8, window_s=0.5)
+
+    def served(k: int) -> None:
+        deadline = time.monotonic() + 5
+        while len(batches) < k and time.monotonic() < deadline:
+            time.sleep(0.005)
+        done.wait(2)
+        time.sleep(0.02)
+
+    try:
+        t0 = time.monotonic()
+        done.clear()
+        sq.put(_Query())
+        served(1)
+        assert batches[0][0] - t0 < 0.3, "a lone request waited for the window"
+        # one request, three more while it is served: four in flight when it is answered
+        started.clear()
+        done.clear()
+        sq.put(_Query())
+        assert started.wait(2)
+        for _ in range(3):
+            sq.put(_Query())
+        served(2)
+        assert batches[1][1] == 1 and sq.in_flight == 4
+        # (the three queued ones are batch 3, which waits the window for a fourth that does not come)
+        done.clear()
+        served(3)
+        assert batches[2][1] == 3
+        sq.in_flight = 4
+        # four come back one by one, 20 ms apart: one batch of four, sent once the fourth is in
+        done.clear()
+        t0 = time.monotonic()
+        for _ in range(4):
+            sq.put(_Query())
+            time.sleep(0.02)
+        served(4)
+        assert [n for _, n in batches[3:]] == [4]
+        assert batches[3][0] - t0 < 0.3, "a full batch waited for the window"
+    finally:
+        sq.jobs.put(sq._STOP)
+        sq._thread.join(timeout=5)

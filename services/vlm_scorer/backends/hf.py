@@ -114,6 +114,8 @@ class HFBackend(ModelBackend):
         self._lock = threading.Lock()
         self._token_cache: dict[str, int] = {}
         self._grid_cache: dict[tuple[int, int], int] = {}
+        self._chat_cache: dict[str, tuple[list[int], int]] = {}
+        self.image_pad_id = int(self.tokenizer.convert_tokens_to_ids(IMAGE_PAD))
         log.info("hf backend: %s (%s) on %s", self.path, model_type, self.device)
 
     def token_id(self, text: str) -> int:
@@ -122,10 +124,10 @@ class HFBackend(ModelBackend):
         return self._token_cache[text]
 
     # ---- inputs ---------------------------------------------------------------------------------------
-    def _pixels(self, images: list[np.ndarray]) -> tuple[object, object]:
-        """``pixel_values`` and ``image_grid_thw`` of ``images``, each distinct array processed once: a step's
-        plain image serves three of its four prompts (and a merged batch holds several steps), and the image
-        processor works image by image, so repeating an image's patches is the same as processing it again."""
+    def _pixels(self, images: list[np.ndarray]) -> tuple[object, object, list[int]]:
+        """``pixel_values`` and ``image_grid_thw`` of the distinct arrays of ``images`` (each processed once: a
+        step's plain image serves three of its four prompts, and a merged batch holds several steps), and for
+        each image the index of its distinct one."""
         from PIL import Image
 
         slot: dict[int, int] = {}
@@ -135,34 +137,73 @@ class HFBackend(ModelBackend):
                 slot[id(im)] = len(distinct)
                 distinct.append(im)
         vis = self.image_processor(images=[Image.fromarray(i) for i in distinct], return_tensors="pt")
-        grid, pixels = vis["image_grid_thw"], vis["pixel_values"]
-        if len(distinct) == len(images):
-            return pixels, grid
-        per_image = self.torch.split(pixels, [int(g.prod().item()) for g in grid])
-        order = [slot[id(im)] for im in images]
-        return self.torch.cat([per_image[k] for k in order]), grid[order]
+        return vis["pixel_values"], vis["image_grid_thw"], [slot[id(im)] for im in images]
 
-    def _chats(self, grid: object, texts: list[str]) -> list[str]:
-        out = []
+    def _per_row(self, pixels: object, grid: object, order: list[int]) -> object:
+        """The rows' ``pixel_values`` from the distinct images' (the image processor works image by image, so
+        repeating an image's patches is the same as processing it again)."""
+        if order == list(range(len(order))):
+            return pixels
+        per_image = self.torch.split(pixels, [int(g.prod().item()) for g in grid])  # type: ignore[attr-defined]
+        return self.torch.cat([per_image[k] for k in order])
+
+    def _chat_ids(self, text: str) -> tuple[list[int], int]:
+        """Token ids of the chat of ``text`` with one ``<|image_pad|>``, and where that token is. A replica sees
+        the same few prompt texts over and over (four per question), so they are tokenized once: the tokenizer
+        was a third of a step's time on the tiny model, and it is work per request that batching cannot share."""
+        got = self._chat_cache.get(text)
+        if got is None:
+            ids = list(self.tokenizer(qwen_chat(text), add_special_tokens=False)["input_ids"])
+            if ids.count(self.image_pad_id) != 1:
+                raise BadRequest("the prompt text must not contain the image placeholder token")
+            if len(self._chat_cache) >= 4096:
+                self._chat_cache.clear()
+            got = self._chat_cache[text] = (ids, ids.index(self.image_pad_id))
+        return got
+
+    def _inputs(self, images: list[np.ndarray], texts: list[str], pad_multiple: int | None = None,
+                encode_distinct: bool = False) -> dict[str, object]:
+        """The model's inputs for ``(image, text)`` rows, left-padded to the longest row (rounded up to a multiple
+        of ``pad_multiple``). ``<|image_pad|>`` is a special token, which the tokenizer splits off before it
+        encodes the text around it, so the chat with the image's ``n`` pad tokens encodes as the chat with one,
+        that one repeated ``n`` times (tests/test_scorer_batching.py checks it against the tokenizer).
+
+        ``encode_distinct``: the vision tower runs once per distinct image (its output for an image depends on
+        that image alone: attention within each image), and every row gets its image's features
+        (``mm_encoder_outputs``) instead of pixels; a step's four prompts share two images, so this halves the
+        vision work per step, alone or merged."""
+        torch = self.torch
+        pixels, distinct_grid, order = self._pixels(images)
+        grid = distinct_grid[order]  # type: ignore[index]
+        rows = []
         for k, text in enumerate(texts):
+            ids, at = self._chat_ids(text)
             n = int(grid[k].prod().item()) // (self.merge**2)  # type: ignore[index]
-            out.append(qwen_chat(text).replace(IMAGE_PAD, IMAGE_PAD * n))
-        return out
-
-    def _inputs(self, images: list[np.ndarray], texts: list[str], pad_multiple: int | None = None
-                ) -> dict[str, object]:
-        pixel_values, grid = self._pixels(images)
-        chats = self._chats(grid, texts)
-        enc = self.tokenizer(chats, padding=True, pad_to_multiple_of=pad_multiple, return_tensors="pt",
-                             add_special_tokens=False)
-        ids = enc["input_ids"]
-        return {
-            "input_ids": ids.to(self.device),
-            "attention_mask": enc["attention_mask"].to(self.device),
-            "mm_token_type_ids": (ids == self.image_token_id).to(self.torch.int32).to(self.device),
-            "pixel_values": pixel_values.to(self.device),  # type: ignore[attr-defined]
+            rows.append(ids[:at] + [self.image_pad_id] * n + ids[at + 1:])
+        length = max(len(r) for r in rows)
+        if pad_multiple:
+            length = -(-length // pad_multiple) * pad_multiple
+        pad = int(self.tokenizer.pad_token_id)
+        ids_t = torch.full((len(rows), length), pad, dtype=torch.long)
+        mask = torch.zeros((len(rows), length), dtype=torch.long)
+        for k, r in enumerate(rows):
+            ids_t[k, length - len(r):] = torch.tensor(r, dtype=torch.long)
+            mask[k, length - len(r):] = 1
+        out: dict[str, object] = {
+            "input_ids": ids_t.to(self.device),
+            "attention_mask": mask.to(self.device),
+            "mm_token_type_ids": (ids_t == self.image_token_id).to(torch.int32).to(self.device),
             "image_grid_thw": grid.to(self.device),  # type: ignore[attr-defined]
         }
+        if not encode_distinct:
+            out["pixel_values"] = self._per_row(pixels, distinct_grid, order).to(self.device)  # type: ignore[attr-defined]
+            return out
+        with self._lock, torch.inference_mode():
+            enc = self.net.model.get_image_features(pixels.to(self.device),  # type: ignore[attr-defined]
+                                                    distinct_grid.to(self.device), return_dict=True)  # type: ignore[attr-defined]
+        enc.pooler_output = tuple(enc.pooler_output[k] for k in order)
+        out["mm_encoder_outputs"] = {"image": enc}
+        return out
 
     def answer_from_views(self, images: list[np.ndarray], question: object, choices: list[str]) -> list[float]:
         """Answer memory: the answer distribution over ``choices`` from one prompt holding every
@@ -211,7 +252,8 @@ class HFBackend(ModelBackend):
         """One left-padded forward pass over ``(image, query)`` rows, padded to a multiple of
         :data:`PAD_MULTIPLE` tokens; softmax of the last logits over each query's candidates."""
         cand_ids = [[self.token_id(c) for c in q.candidates] for _, q in flat]
-        inputs = self._inputs([im for im, _ in flat], [q.text for _, q in flat], pad_multiple=PAD_MULTIPLE)
+        inputs = self._inputs([im for im, _ in flat], [q.text for _, q in flat], pad_multiple=PAD_MULTIPLE,
+                             encode_distinct=True)
         with self._lock, self.torch.inference_mode():
             logits = self.net(**inputs).logits[:, -1, :].float()
         out = []
@@ -250,8 +292,7 @@ class HFBackend(ModelBackend):
         for im, q in rows:
             h, w = im.shape[:2]
             # <|image_pad|> is one special token: the chat with one of them, plus the image's other n - 1
-            n = len(self.tokenizer(qwen_chat(q.text), add_special_tokens=False)["input_ids"])
-            longest = max(longest, n + self._image_tokens(h, w) - 1)
+            longest = max(longest, len(self._chat_ids(q.text)[0]) + self._image_tokens(h, w) - 1)
         return -(-longest // PAD_MULTIPLE) * PAD_MULTIPLE
 
     def _image_tokens(self, h: int, w: int) -> int:
