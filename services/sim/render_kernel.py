@@ -1,7 +1,7 @@
 """Compiled per-pixel loops of :class:`services.sim.render.Renderer` (numba): the world rays of a view and the
 frame from the ray cast's hits. Each does, pixel by pixel, the float32 operations of the numpy form it replaces
 in the same order, so the frames are byte-identical (``python bench/bench_sim.py --identical-to REV``,
-tests/test_sim_render.py); what it saves is numpy's strided column writes and temporaries (about 1 ms of a
+tests/sim/test_sim_render.py); what it saves is numpy's strided column writes and temporaries (about 1 ms of a
 320x240 frame, most of what the sim spends outside open3d's ray cast).
 
 Eager signatures with ``cache=True`` (cache outside the source tree: :mod:`eqa.numba_cache`), so a sim's first

@@ -166,7 +166,7 @@ class HFBackend(ModelBackend):
         """The model's inputs for ``(image, text)`` rows, left-padded to the longest row (rounded up to a multiple
         of ``pad_multiple``). ``<|image_pad|>`` is a special token, which the tokenizer splits off before it
         encodes the text around it, so the chat with the image's ``n`` pad tokens encodes as the chat with one,
-        that one repeated ``n`` times (tests/test_scorer_batching.py checks it against the tokenizer).
+        that one repeated ``n`` times (tests/scorer/test_scorer_batching.py checks it against the tokenizer).
 
         ``encode_distinct``: the vision tower runs once per distinct image (its output for an image depends on
         that image alone: attention within each image), and every row gets its image's features
