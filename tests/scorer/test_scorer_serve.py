@@ -3,11 +3,11 @@ own server, a separate process on a free loopback port) serving the tiny offline
 
 The server lives in its own virtualenv (``scripts/setup-serve.sh``: torch 2.14.1 + torchvision 0.29.1 +
 transformers[serving]; the project's .venv keeps the CPU torch 2.13.0), about 5.5 GB, so it is opt-in: ``make
-test-servers`` installs it and runs this module (``TEST_SERVERS=1``); elsewhere, ``make test`` included, the
-module skips saying so (the suite's real server with logprobs is llama.cpp's,
-tests/scorer/test_scorer_llamacpp.py). When opted in and the venv is missing, the first test installs it (a few
-minutes) and the module skips, saying why, only when that install fails. The tiny model's weights are random: only the plumbing is checked (the server takes
-our chat with an image, answers without logprobs, the scorer switches to sampling), never the numbers.
+test-servers`` installs it and runs this module (``TEST_SERVERS=1``); elsewhere, ``make test`` included, the module
+skips saying so (the suite's real server with logprobs is llama.cpp's, tests/scorer/test_scorer_llamacpp.py). When
+opted in and the venv is missing, the first test installs it (a few minutes) and the module skips, saying why, only
+when that install fails. The tiny model's weights are random: only the plumbing is checked (the server takes our chat
+with an image, answers without logprobs, the scorer switches to sampling), never the numbers.
 """
 
 from __future__ import annotations
