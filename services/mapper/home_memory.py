@@ -352,11 +352,22 @@ class ObservedChange:
 
 
 def _surface_points(depth: np.ndarray, intrinsics: np.ndarray, camera_pose: np.ndarray, stride: int,
-                    max_depth: float) -> np.ndarray:
-    d = np.asarray(depth, dtype=np.float64)[::stride, ::stride]
+                    max_depth: float, flat_tol: float | None = None) -> np.ndarray:
+    """World points of the depth image's pixels (every ``stride``-th); with ``flat_tol`` only those whose 3x3
+    neighbourhood spans less than it in depth (not on a depth edge or a structure thinner than a pixel: a shelf
+    board or a chair leg seen from elsewhere falls between the other view's pixels)."""
+    from scipy import ndimage
+
+    full = np.asarray(depth, dtype=np.float64)
+    valid = np.isfinite(full) & (full > 0.05) & (full <= max_depth)
+    if flat_tol is not None:
+        hi = ndimage.maximum_filter(np.where(valid, full, np.inf), size=3, mode="nearest")
+        lo = ndimage.minimum_filter(np.where(valid, full, -np.inf), size=3, mode="nearest")
+        valid &= (hi - lo) < flat_tol
+    d = full[::stride, ::stride]
     h, w = d.shape
     vv, uu = np.mgrid[0:h, 0:w]
-    ok = np.isfinite(d) & (d > 0.05) & (d <= max_depth)
+    ok = valid[::stride, ::stride]
     z = d[ok]
     K = np.asarray(intrinsics, dtype=np.float64)
     pc = np.stack([(uu[ok] * stride - K[0, 2]) * z / K[0, 0], (vv[ok] * stride - K[1, 2]) * z / K[1, 1], z], axis=1)
@@ -399,10 +410,11 @@ def disagreement(remembered: Keyframe, current: Any, resolution: float, tol: flo
     A surface the remembered view saw that the current view now sees through (something was taken away or moved
     from there), or a surface the current view sees in space the remembered view saw through (something was
     put there). Free-space violation is the test because it needs no correspondence and no detector, only the
-    two depth images and cameras; a surface merely hidden from one of the views violates nothing. Fewer than
-    ``min_points`` disagreeing samples are no change (aliasing at depth edges)."""
-    a = _surface_points(remembered.depth, remembered.intrinsics, remembered.camera_pose, stride, max_depth)
-    b = _surface_points(current.depth, current.intrinsics, current.camera_pose, stride, max_depth)
+    two depth images and cameras; a surface merely hidden from one of the views violates nothing. Only points on
+    locally flat surface are tested (depth edges and sub-pixel structures alias between two viewpoints), and
+    fewer than ``min_points`` disagreeing samples are no change."""
+    a = _surface_points(remembered.depth, remembered.intrinsics, remembered.camera_pose, stride, max_depth, tol)
+    b = _surface_points(current.depth, current.intrinsics, current.camera_pose, stride, max_depth, tol)
     bad = [a[_seen_through(a, current.depth, current.intrinsics, current.camera_pose, tol, max_depth)],
            b[_seen_through(b, remembered.depth, remembered.intrinsics, remembered.camera_pose, tol, max_depth)]]
     pts = np.concatenate(bad)
