@@ -312,12 +312,19 @@ def run(args: argparse.Namespace, settings: Any) -> dict[str, Any]:
     warm_cal_choice = _calibration(warm_q[args.eps], args.eps)
     stop = StopConfig(rule="cp", eps=args.eps)
     rows = []
+    diagnosis = {"warm": 0, "warm_with_cold_table": 0, "warm_without_memory_steps": 0, "cold": 0}
     for (s, i), seq in sorted(warm_test.items()):
         for r in seq:
             wt = Trace.model_validate(r["trace"])
             ct = cold[wt.question_id]
             w = ev.replay(wt, stop, cold_cal if r["position"] == 1 else warm_cal_choice)
             c = ev.replay(ct, stop, cold_cal)
+            if r["position"] > 1:  # what the warm steps owe to the warm table and to the memory steps
+                bare = wt.model_copy(update={"steps": wt.steps[wt.memory_steps:], "memory_steps": 0})
+                diagnosis["warm"] += w.steps
+                diagnosis["warm_with_cold_table"] += ev.replay(wt, stop, cold_cal).steps
+                diagnosis["warm_without_memory_steps"] += ev.replay(bare, stop, warm_cal_choice).steps
+                diagnosis["cold"] += c.steps
             imp = impact[(s, i)][r["position"] - 1]
             rows.append({"seed": s, "house": i, "position": r["position"], "question": wt.question_id,
                          "category": wt.category, "cold_steps": c.steps, "warm_steps": w.steps,
@@ -333,6 +340,9 @@ def run(args: argparse.Namespace, settings: Any) -> dict[str, Any]:
                          if r["position"] > 1])
     results["seed_roles"] = {str(s): seed_role(s) for s in args.seeds}
     results["n_calibration"] = {"cold": len(cal_cold), "warm": len(cal_warm)}
+    # steps of positions 2.. over the cold steps, the warm traces replayed with the cold table (not calibrated
+    # for them: a diagnosis of how much the warm table's larger q_hat costs) and without their memory steps
+    results["steps_diagnosis"] = {k: v / max(diagnosis["cold"], 1) for k, v in diagnosis.items()}
     (out / "home.json").write_text(json.dumps(results, indent=2))
     (out / "rows.json").write_text(json.dumps(rows, indent=1))
     return results
@@ -468,6 +478,8 @@ def print_results(res: dict[str, Any]) -> None:
                   f" cold {w['cold_success']:.3f}")
     for c in res["warm_coverage"]:
         print(f"warm coverage eps {c['eps']:g}: {c['coverage']:.3f} +- {c['se']:.3f} vs {c['target']:.2f} (n {c['n']})")
+    if "steps_diagnosis" in res:
+        print("steps over cold, positions 2..: " + ", ".join(f"{k} {v:.3f}" for k, v in res["steps_diagnosis"].items()))
     print(f"memory: {res['memory']['views_mean']:.1f} views, {res['memory']['bytes_mean'] / 1e6:.2f} MB mean per home")
 
 
