@@ -437,7 +437,7 @@ class HomeSettings(SettingsGroup):
         "least EQA_HOMES_RETENTION_DAYS, after which the gateway deletes an unused home)",
     )
     home_stale_weight: float = Field(
-        default=1.0, ge=0.0, le=1.0,
+        default=0.0, ge=0.0, le=1.0,
         description="warm start: a remembered view older than a change the robot saw (a frame contradicting the "
         "view's geometry) or than EQA_HOME_STALE_AGE_S gives the stopper its evidence with its relevance times "
         "this (0 = it constrains nothing: the robot looks again; 1 = stale evidence counts in full, no change check)",
