@@ -21,6 +21,10 @@ Passes (each episode's result is a JSON file under ``--out/runs``; a run again s
 4. the warm CP table from their warm traces of positions 2.. (the memory steps in them);
 5. warm sequences of the test houses, homes written back at the warm table's stops.
 
+With ``--changes K`` the house changes K seeded rounds between questions (:func:`sequence`), and the questions
+the changes affect are reported apart: their wrong-singleton rate (:func:`wrong_singleton`), warm vs cold on the
+same questions (:func:`singletons`).
+
 Reported (``home.json``): steps to stop and success per position, cold vs warm on the same test questions,
 paired (sign tests on steps and on success, with the success difference's interval), the steps ratio of
 positions 2..N, CP coverage per eps on warm test episodes against 1 - eps (Wilson intervals), memory size.
