@@ -444,6 +444,17 @@ class HomeSettings(SettingsGroup):
         description="a home's stored parts expire this long after the last episode that updated it (keep it at "
         "least EQA_HOMES_RETENTION_DAYS, after which the gateway deletes an unused home)",
     )
+    home_stale_weight: float = Field(
+        default=0.0, ge=0.0, le=1.0,
+        description="warm start: a remembered view older than a change the robot saw (a frame contradicting the "
+        "view's geometry) or than EQA_HOME_STALE_AGE_S gives the stopper its evidence with its relevance times "
+        "this (0 = it constrains nothing: the robot looks again; 1 = stale evidence counts in full, no change check)",
+    )
+    home_stale_age_s: float = Field(
+        default=0.0, ge=0.0,
+        description="warm start: a remembered view older than this (seconds) is stale (EQA_HOME_STALE_WEIGHT); "
+        "0 = no age limit, only observed changes make a view stale",
+    )
     home_calibration_name: str = Field(
         default="",
         description="CP calibration table of episodes in a home (warm starts: memory steps in their traces); "

@@ -21,6 +21,10 @@ Passes (each episode's result is a JSON file under ``--out/runs``; a run again s
 4. the warm CP table from their warm traces of positions 2.. (the memory steps in them);
 5. warm sequences of the test houses, homes written back at the warm table's stops.
 
+With ``--changes K`` the house changes K seeded rounds between questions (:func:`sequence`), and the questions
+the changes affect are reported apart: their wrong-singleton rate (:func:`wrong_singleton`), warm vs cold on the
+same questions (:func:`singletons`).
+
 Reported (``home.json``): steps to stop and success per position, cold vs warm on the same test questions,
 paired (sign tests on steps and on success, with the success difference's interval), the steps ratio of
 positions 2..N, CP coverage per eps on warm test episodes against 1 - eps (Wilson intervals), memory size.
@@ -47,13 +51,64 @@ log = logging.getLogger(__name__)
 EPS_GRID = (0.1, 0.2, 0.3)  # CP tables of the bench (0.1 needs >= 9 calibration episodes)
 
 
-def sequence(seed: int, index: int, n: int, scenes_dir: Path) -> list[Any]:
+def sequence(seed: int, index: int, n: int, scenes_dir: Path, changes: int = 0) -> list[Any]:
     """The ``n`` questions asked in house ``index`` of benchmark ``seed``: the house's candidates, one category
-    after the other in the benchmark's category order, the first question of each category first."""
+    after the other in the benchmark's category order, the first question of each category first. With
+    ``changes`` = K > 0 the house changes between questions: question ``p`` (1-based) is asked in the house after
+    ``(p - 1) * K`` rounds of :mod:`services.sim.changes` (``gen-<seed>-c<k>``), with that house's ground truth
+    (:func:`services.sim.change_impact.rederive`); a candidate without one there is passed over."""
+    return [q for q, _ in changed_sequence(seed, index, n, scenes_dir, changes)]
+
+
+def changed_sequence(seed: int, index: int, n: int, scenes_dir: Path, changes: int = 0) -> list[tuple[Any, Any]]:
+    """:func:`sequence` as pairs (the question asked, the same question in the base house)."""
+    from services.sim.change_impact import rederive
+    from services.sim.changes import changed_scene_id
+    from services.sim.library import load_or_generate
     from services.sim.questions import CATEGORIES, benchmark_candidates, category_round_robin
 
     cands = benchmark_candidates(seed, index, scenes_dir)
-    return category_round_robin([q for c in CATEGORIES for q in cands[c]], n, categories=CATEGORIES)
+    order: list[Any] = category_round_robin([q for c in CATEGORIES for q in cands[c]], None, categories=CATEGORIES)
+    if changes <= 0:
+        return [(q, q) for q in order[:n]]
+    out: list[tuple[Any, Any]] = []
+    rest = iter(order)
+    for pos in range(n):
+        k = pos * changes
+        scene = load_or_generate(changed_scene_id(order[0].scene, k), scenes_dir)
+        for q in rest:
+            asked = q if k == 0 else rederive(q, scene)
+            if asked is not None:
+                out.append((asked, q))
+                break
+        else:
+            break
+    return out
+
+
+def impacts(seed: int, index: int, n: int, scenes_dir: Path, changes: int) -> list[dict[str, Any]]:
+    """Per question of the changed sequence: its rounds ``k`` and whether the changes since the home's first
+    question affect it (:func:`services.sim.change_impact.impact`: its answer or its evidence changed, so a view
+    the home remembers may show what is no longer true)."""
+    from services.sim.change_impact import impact
+    from services.sim.changes import changes_of, parse_changed_id
+    from services.sim.library import load_or_generate
+
+    pairs = changed_sequence(seed, index, n, scenes_dir, changes)
+    if changes <= 0 or not pairs:
+        return [{"k": 0, "affected": False, "answer_changed": False} for _ in pairs]
+    base = load_or_generate(pairs[0][1].scene, scenes_dir)
+    made = changes_of(base, changes * (len(pairs) - 1))
+    out = []
+    for asked, q in pairs:
+        parsed = parse_changed_id(asked.scene)
+        k = 0 if parsed is None else parsed[1]
+        if k == 0:
+            out.append({"k": 0, "affected": False, "answer_changed": False})
+            continue
+        imp = impact(q, [c for c in made if c.round <= k], load_or_generate(asked.scene, scenes_dir))
+        out.append({"k": k, "affected": imp.affected, "answer_changed": imp.answer_changed})
+    return out
 
 
 def _calibration(q_hat: float | None, eps: float) -> Any:
@@ -96,7 +151,7 @@ class _Warm(StepHooks):
                 self.committed = self.memory.finish(self.emap)  # the home as the robot had it when it answered
 
 
-def run_house(args: tuple[int, int, int, str, float, float | None, dict[str, Any], str]) -> list[dict[str, Any]]:
+def run_house(args: tuple[int, int, int, str, float, float | None, dict[str, Any], str, int]) -> list[dict[str, Any]]:
     """The warm sequence of one house: per question its trace (memory steps first) and the home after it."""
     from eqa.app.benchmark_runner import question_seed
     from eqa.app.core_runner import EpisodeCores, run_episode_loop
@@ -112,12 +167,12 @@ def run_house(args: tuple[int, int, int, str, float, float | None, dict[str, Any
     from services.stopper.state import EpisodeRecord
     from services.vlm_scorer.backends import make_backend
 
-    seed, index, n, strategy, eps, warm_q_hat, settings_dump, cold_q_hat_text = args
+    seed, index, n, strategy, eps, warm_q_hat, settings_dump, cold_q_hat_text, changes = args
     cold_q_hat = float(cold_q_hat_text)
     settings = Settings.model_validate(settings_dump)
-    questions = sequence(seed, index, n, settings.scenes_path)
-    scene = load_or_generate(questions[0].scene, settings.scenes_path)
-    renderer, scorer = Renderer(scene), make_backend(settings)
+    questions = sequence(seed, index, n, settings.scenes_path, changes)
+    scorer = make_backend(settings)
+    scene = renderer = None
     home = f"h-bench-{seed}-{index}"
     out = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -125,6 +180,9 @@ def run_house(args: tuple[int, int, int, str, float, float | None, dict[str, Any
         memory = HomeMemory(settings, lambda: store, lambda: scorer.score)
         try:
             for pos, q in enumerate(questions):
+                if scene is None or scene.id != q.scene:  # a house that changed since the last question
+                    scene = load_or_generate(q.scene, settings.scenes_path)
+                    renderer = Renderer(scene)
                 qseed = question_seed(q.id)
                 start = EpisodeStart(episode_id=f"home-{q.id}", robot="cores", question=q, strategy=strategy,
                                      max_steps=q.max_steps, seed=qseed, record=False, home=home,
@@ -210,7 +268,9 @@ def run(args: argparse.Namespace, settings: Any) -> dict[str, Any]:
     runs.mkdir(parents=True, exist_ok=True)
     dump = settings.model_dump(mode="json")
     houses = _houses(args.seeds, args.cal_houses, args.test_houses)
-    seqs = {(s, i): sequence(s, i, args.questions, settings.scenes_path) for s, i, _ in houses}
+    changes = int(getattr(args, "changes", 0) or 0)
+    seqs = {(s, i): sequence(s, i, args.questions, settings.scenes_path, changes) for s, i, _ in houses}
+    impact = {(s, i): impacts(s, i, args.questions, settings.scenes_path, changes) for s, i, _ in houses}
     size = f"{settings.sim_width}x{settings.sim_height}"
 
     # 1. cold traces of every question
@@ -229,10 +289,12 @@ def run(args: argparse.Namespace, settings: Any) -> dict[str, Any]:
     def warm_runs(role: str, warm_q_hat: float | None) -> dict[tuple[int, int], list[dict[str, Any]]]:
         knobs = [cold_q[args.eps], warm_q_hat, size, args.questions, args.strategy, settings.home_max_views,
                  settings.home_warm_views, settings.home_memory_steps]
+        if changes or settings.home_stale_weight < 1.0:  # (without them the tags of earlier runs stay valid)
+            knobs += [changes, settings.home_stale_weight, settings.home_stale_age_s]
         tag = hashlib.sha256(json.dumps(knobs).encode()).hexdigest()[:10]
         todo = [(s, i) for (s, i, r) in houses if r == role]
         paths = {h: runs / f"warm-{role}-s{h[0]}-h{h[1]}-{tag}.json" for h in todo}
-        jobs = [(s, i, args.questions, args.strategy, args.eps, warm_q_hat, dump, repr(cold_q[args.eps]))
+        jobs = [(s, i, args.questions, args.strategy, args.eps, warm_q_hat, dump, repr(cold_q[args.eps]), changes)
                 for (s, i) in todo if not paths[(s, i)].is_file()]
         _run_all(run_house, jobs, [paths[(j[0], j[1])] for j in jobs], args.workers)
         return {h: json.loads(paths[h].read_text()) for h in todo}
@@ -250,25 +312,67 @@ def run(args: argparse.Namespace, settings: Any) -> dict[str, Any]:
     warm_cal_choice = _calibration(warm_q[args.eps], args.eps)
     stop = StopConfig(rule="cp", eps=args.eps)
     rows = []
+    diagnosis = {"warm": 0, "warm_with_cold_table": 0, "warm_without_memory_steps": 0, "cold": 0}
     for (s, i), seq in sorted(warm_test.items()):
         for r in seq:
             wt = Trace.model_validate(r["trace"])
             ct = cold[wt.question_id]
             w = ev.replay(wt, stop, cold_cal if r["position"] == 1 else warm_cal_choice)
             c = ev.replay(ct, stop, cold_cal)
+            if r["position"] > 1:  # what the warm steps owe to the warm table and to the memory steps
+                bare = wt.model_copy(update={"steps": wt.steps[wt.memory_steps:], "memory_steps": 0})
+                diagnosis["warm"] += w.steps
+                diagnosis["warm_with_cold_table"] += ev.replay(wt, stop, cold_cal).steps
+                diagnosis["warm_without_memory_steps"] += ev.replay(bare, stop, warm_cal_choice).steps
+                diagnosis["cold"] += c.steps
+            imp = impact[(s, i)][r["position"] - 1]
             rows.append({"seed": s, "house": i, "position": r["position"], "question": wt.question_id,
                          "category": wt.category, "cold_steps": c.steps, "warm_steps": w.steps,
                          "cold_correct": c.correct, "warm_correct": w.correct, "memory_steps": wt.memory_steps,
                          "max_steps": wt.max_steps, "views": r["views"], "bytes": r["bytes"],
-                         "loaded_cells": r["loaded_cells"]})
+                         "loaded_cells": r["loaded_cells"], "k": imp["k"], "affected": imp["affected"],
+                         "answer_changed": imp["answer_changed"], "answer": wt.answer,
+                         "cold_set": list(c.prediction_set), "warm_set": list(w.prediction_set),
+                         "cold_wrong_singleton": wrong_singleton(c.prediction_set, wt.answer),
+                         "warm_wrong_singleton": wrong_singleton(w.prediction_set, wt.answer)})
     results = summarise(rows, args, settings, cold_table, warm_table,
                         [Trace.model_validate(r["trace"]) for seq in warm_test.values() for r in seq
                          if r["position"] > 1])
     results["seed_roles"] = {str(s): seed_role(s) for s in args.seeds}
     results["n_calibration"] = {"cold": len(cal_cold), "warm": len(cal_warm)}
+    # steps of positions 2.. over the cold steps, the warm traces replayed with the cold table (not calibrated
+    # for them: a diagnosis of how much the warm table's larger q_hat costs) and without their memory steps
+    results["steps_diagnosis"] = {k: v / max(diagnosis["cold"], 1) for k, v in diagnosis.items()}
     (out / "home.json").write_text(json.dumps(results, indent=2))
     (out / "rows.json").write_text(json.dumps(rows, indent=1))
     return results
+
+
+def wrong_singleton(prediction_set: Any, answer: str) -> bool:
+    """The episode ended with one answer in its CP prediction set, and not the true one: a wrong answer given
+    with the rule's full confidence."""
+    return len(prediction_set) == 1 and prediction_set[0] != answer
+
+
+def singletons(sel: list[dict[str, Any]]) -> dict[str, Any]:
+    """Wrong-singleton rates (:func:`wrong_singleton`), warm vs cold on the same questions: Wilson intervals, the
+    paired sign test over the questions where only one of them is a wrong singleton, the difference's interval."""
+    from eqa.app import evaluation as ev
+
+    n = len(sel)
+    if n == 0:
+        return {"n": 0}
+    kc = sum(r["cold_wrong_singleton"] for r in sel)
+    kw = sum(r["warm_wrong_singleton"] for r in sel)
+    w_only = sum(1 for r in sel if r["warm_wrong_singleton"] and not r["cold_wrong_singleton"])
+    c_only = sum(1 for r in sel if r["cold_wrong_singleton"] and not r["warm_wrong_singleton"])
+    diff, lo, hi = ev.paired_diff_ci(w_only, c_only, n)
+    kwc, kcc = sum(r["warm_correct"] for r in sel), sum(r["cold_correct"] for r in sel)
+    return {"n": n, "cold_wrong_singleton": kc / n, "warm_wrong_singleton": kw / n,
+            "cold_ci": list(ev.wilson_ci(kc, n)), "warm_ci": list(ev.wilson_ci(kw, n)),
+            "paired": {"warm_only": w_only, "cold_only": c_only, "p_value": ev.sign_test_p(w_only, c_only),
+                       "diff": diff, "ci_low": lo, "ci_high": hi},
+            "cold_success": kcc / n, "warm_success": kwc / n}
 
 
 def summarise(rows: list[dict[str, Any]], args: argparse.Namespace, settings: Any, cold_table: Any, warm_table: Any,
@@ -331,6 +435,13 @@ def summarise(rows: list[dict[str, Any]], args: argparse.Namespace, settings: An
         "q_hat": {"cold": {f"{e.eps:g}": e.q_hat for e in cold_table.entries},
                   "warm": {f"{e.eps:g}": e.q_hat for e in warm_table.entries}},
         "positions": per_position, "positions_2_on": later, "warm_coverage": coverage,
+        "changes": getattr(args, "changes", 0) or 0,
+        "home_stale_weight": settings.home_stale_weight, "home_stale_age_s": settings.home_stale_age_s,
+        "wrong_singletons": {
+            "changed": singletons([r for r in rows if r["position"] > 1 and r.get("affected")]),
+            "unchanged": singletons([r for r in rows if r["position"] > 1 and not r.get("affected")]),
+            "positions_2_on": singletons([r for r in rows if r["position"] > 1]),
+        },
         "memory": {"views_mean": float(np.mean([r["views"] for r in sizes])) if sizes else 0.0,
                    "bytes_mean": float(np.mean([r["bytes"] for r in sizes])) if sizes else 0.0,
                    "bytes_max": int(max((r["bytes"] for r in sizes), default=0))},
@@ -344,7 +455,8 @@ def summarise(rows: list[dict[str, Any]], args: argparse.Namespace, settings: An
 
 def print_results(res: dict[str, Any]) -> None:
     print(f"home sequences: seeds {res['seeds']}, {res['test_houses']} test houses per seed, "
-          f"{res['questions_per_house']} questions each, eps {res['eps']} ({res['scorer']})")
+          f"{res['questions_per_house']} questions each, eps {res['eps']}, {res['changes']} rounds of changes "
+          f"between questions, stale weight {res['home_stale_weight']:g} ({res['scorer']})")
     print("position  n   cold steps  warm steps  ratio  cold succ  warm succ  memory steps")
     for pos, p in res["positions"].items():
         if p.get("n"):
@@ -357,8 +469,17 @@ def print_results(res: dict[str, Any]) -> None:
               f"{later['steps_sign_test']['p_value']:.3g}; success warm-cold {later['success_paired']['diff']:+.3f} "
               f"[{later['success_paired']['ci_low']:+.3f}, {later['success_paired']['ci_high']:+.3f}] p "
               f"{later['success_paired']['p_value']:.3g}")
+    for name, w in res["wrong_singletons"].items():
+        if w.get("n"):
+            print(f"wrong singletons, {name} questions (n {w['n']}): warm {w['warm_wrong_singleton']:.3f} "
+                  f"{[round(v, 3) for v in w['warm_ci']]} vs cold {w['cold_wrong_singleton']:.3f} "
+                  f"{[round(v, 3) for v in w['cold_ci']]}; warm-only {w['paired']['warm_only']}, cold-only "
+                  f"{w['paired']['cold_only']}, p {w['paired']['p_value']:.3g}; success warm {w['warm_success']:.3f}"
+                  f" cold {w['cold_success']:.3f}")
     for c in res["warm_coverage"]:
         print(f"warm coverage eps {c['eps']:g}: {c['coverage']:.3f} +- {c['se']:.3f} vs {c['target']:.2f} (n {c['n']})")
+    if "steps_diagnosis" in res:
+        print("steps over cold, positions 2..: " + ", ".join(f"{k} {v:.3f}" for k, v in res["steps_diagnosis"].items()))
     print(f"memory: {res['memory']['views_mean']:.1f} views, {res['memory']['bytes_mean'] / 1e6:.2f} MB mean per home")
 
 
@@ -366,11 +487,16 @@ def cmd_home(args: argparse.Namespace) -> int:
     from eqa.app.bench_common import _settings
     from eqa.app.cli import UsageError
     from eqa.service import setup_logging
+    from services.sim.changes import MAX_ROUNDS
 
     if not (1 <= args.cal_houses <= 100 and 1 <= args.test_houses <= 100 and 1 <= args.questions <= 10):
         raise UsageError("--cal-houses and --test-houses must be 1..100, --questions 1..10")
     if not 0 < args.eps < 1 or not 1 <= args.workers <= 16:
         raise UsageError("--eps must be in (0, 1), --workers 1..16")
+    if args.changes < 0 or args.changes * (args.questions - 1) > MAX_ROUNDS:
+        raise UsageError(f"--changes times (--questions - 1) must be 0..{MAX_ROUNDS} (rounds of a changed house)")
+    if args.stale_weight is not None and not 0 <= args.stale_weight <= 1:
+        raise UsageError("--stale-weight must be in [0, 1]")
     for name in ("home_views", "memory_steps"):
         if getattr(args, name) is not None and not 0 <= getattr(args, name) <= 256:
             raise UsageError(f"--{name.replace('_', '-')} must be 0..256")
@@ -379,6 +505,8 @@ def cmd_home(args: argparse.Namespace) -> int:
         settings = settings.model_copy(update={"home_max_views": args.home_views, "home_warm_views": args.home_views})
     if args.memory_steps is not None:
         settings = settings.model_copy(update={"home_memory_steps": args.memory_steps})
+    if args.stale_weight is not None:
+        settings = settings.model_copy(update={"home_stale_weight": args.stale_weight})
     setup_logging(settings.log_level, "eqa-bench")
     logging.getLogger("services.mapper.home_shell").setLevel(logging.WARNING)
     res = run(args, settings)
@@ -401,6 +529,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="view memory size (EQA_HOME_MAX_VIEWS and EQA_HOME_WARM_VIEWS; default from the environment)")
     p.add_argument("--memory-steps", type=int, default=None,
                    help="memory steps given to the stopper (EQA_HOME_MEMORY_STEPS; default from the environment)")
+    p.add_argument("--changes", type=int, default=0, metavar="K",
+                   help="rounds of seeded house changes between questions (services.sim.changes: question p is asked "
+                   "in gen-<seed>-c<(p-1)K>); reports the wrong-singleton rate on questions the changes affect")
+    p.add_argument("--stale-weight", type=float, default=None,
+                   help="weight of stale remembered views' evidence (EQA_HOME_STALE_WEIGHT; default from the "
+                   "environment)")
     p.add_argument("--size", default="160x120", help="camera image size WxH (default 160x120)")
     p.add_argument("--scorer", choices=("oracle", "hf", "remote"), default=None,
                    help="scorer backend (default EQA_SCORER_BACKEND, normally oracle)")

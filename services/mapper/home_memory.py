@@ -322,6 +322,135 @@ class HomeMap:
                    traversed)
 
 
+
+# ---- stale evidence ---------------------------------------------------------------------------------------------
+CHANGE_TOL_M = 0.10  # depth disagreement (m) that counts: well above the mapper's voxel (0.05 m), below objects
+CHANGE_MIN_POINTS = 3  # disagreeing sample points a change needs (one or two are a depth edge's aliasing)
+CHANGE_STRIDE = 1  # every pixel: a mug at 3 m is about 16 pixels of a 160x120 image, too few to sample sparser
+CHANGE_VIEWS = 4  # remembered views a frame is checked against (those sharing most floor cells): ~8 ms each
+MAX_CHANGES = 64  # observed changes a home keeps (the newest)
+
+
+@dataclass
+class ObservedChange:
+    """A change of the house the robot saw itself: when (unix seconds), which floor cells it touched, and the
+    remembered views the current frame contradicted (a view that saw through a spot where something now stands
+    covers the wall behind it, not the spot's cells)."""
+
+    t: float
+    cells: np.ndarray  # int32 (n, 2)
+    views: tuple[str, ...] = ()
+
+    def to_json(self) -> dict[str, Any]:
+        return {"t": self.t, "cells": packed_array(np.ascontiguousarray(self.cells, dtype=np.int32)),
+                "views": list(self.views)}
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> ObservedChange:
+        return cls(t=float(d["t"]), cells=np.asarray(d["cells"], dtype=np.int32).reshape(-1, 2),
+                   views=tuple(str(v) for v in d.get("views", ())))
+
+
+def _surface_points(depth: np.ndarray, intrinsics: np.ndarray, camera_pose: np.ndarray, stride: int,
+                    max_depth: float, flat_tol: float | None = None) -> np.ndarray:
+    """World points of the depth image's pixels (every ``stride``-th); with ``flat_tol`` only those whose 3x3
+    neighbourhood spans less than it in depth (not on a depth edge or a structure thinner than a pixel: a shelf
+    board or a chair leg seen from elsewhere falls between the other view's pixels)."""
+    from scipy import ndimage
+
+    full = np.asarray(depth, dtype=np.float64)
+    valid = np.isfinite(full) & (full > 0.05) & (full <= max_depth)
+    if flat_tol is not None:
+        hi = ndimage.maximum_filter(np.where(valid, full, np.inf), size=3, mode="nearest")
+        lo = ndimage.minimum_filter(np.where(valid, full, -np.inf), size=3, mode="nearest")
+        valid &= (hi - lo) < flat_tol
+    d = full[::stride, ::stride]
+    h, w = d.shape
+    vv, uu = np.mgrid[0:h, 0:w]
+    ok = valid[::stride, ::stride]
+    z = d[ok]
+    K = np.asarray(intrinsics, dtype=np.float64)
+    pc = np.stack([(uu[ok] * stride - K[0, 2]) * z / K[0, 0], (vv[ok] * stride - K[1, 2]) * z / K[1, 1], z], axis=1)
+    T = np.asarray(camera_pose, dtype=np.float64)
+    return pc @ T[:3, :3].T + T[:3, 3]
+
+
+def _seen_through(points: np.ndarray, depth: np.ndarray, intrinsics: np.ndarray, camera_pose: np.ndarray,
+                  tol: float, max_depth: float) -> np.ndarray:
+    """Mask of world ``points`` that the view (depth, camera) sees *through*: inside its image, and every ray of
+    the 3x3 pixels around the point's projection ends more than ``tol`` beyond it (the neighbourhood keeps a
+    point on a depth edge from counting; a pixel without depth says nothing, so it never counts)."""
+    from scipy import ndimage
+
+    T = np.asarray(camera_pose, dtype=np.float64)
+    pc = (points - T[:3, 3]) @ T[:3, :3]
+    K = np.asarray(intrinsics, dtype=np.float64)
+    d = np.asarray(depth, dtype=np.float64)
+    h, w = d.shape
+    z = pc[:, 2]
+    front = z > 0.05
+    u = np.full(len(points), -1)
+    v = np.full(len(points), -1)
+    u[front] = np.round(K[0, 0] * pc[front, 0] / z[front] + K[0, 2]).astype(int)
+    v[front] = np.round(K[1, 1] * pc[front, 1] / z[front] + K[1, 2]).astype(int)
+    inside = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    valid = np.where(np.isfinite(d) & (d > 0.05) & (d <= max_depth), d, -np.inf)
+    nearest = ndimage.minimum_filter(valid, size=3, mode="constant", cval=-np.inf)
+    out = np.zeros(len(points), dtype=bool)
+    out[inside] = nearest[v[inside], u[inside]] > z[inside] + tol
+    return out
+
+
+def disagreement(remembered: Keyframe, current: Any, resolution: float, tol: float = CHANGE_TOL_M,
+                 min_points: int = CHANGE_MIN_POINTS, stride: int = CHANGE_STRIDE,
+                 max_depth: float = 10.0) -> np.ndarray:
+    """The floor cells where a current frame contradicts a remembered view's geometry, int32 ``(n, 2)`` (empty:
+    they agree, or they do not see the same space).
+
+    A surface the remembered view saw that the current view now sees through (something was taken away or moved
+    from there), or a surface the current view sees in space the remembered view saw through (something was
+    put there). Free-space violation is the test because it needs no correspondence and no detector, only the
+    two depth images and cameras; a surface merely hidden from one of the views violates nothing. Only points on
+    locally flat surface are tested (depth edges and sub-pixel structures alias between two viewpoints), and
+    fewer than ``min_points`` disagreeing samples are no change."""
+    a = _surface_points(remembered.depth, remembered.intrinsics, remembered.camera_pose, stride, max_depth, tol)
+    b = _surface_points(current.depth, current.intrinsics, current.camera_pose, stride, max_depth, tol)
+    bad = [a[_seen_through(a, current.depth, current.intrinsics, current.camera_pose, tol, max_depth)],
+           b[_seen_through(b, remembered.depth, remembered.intrinsics, remembered.camera_pose, tol, max_depth)]]
+    pts = np.concatenate(bad)
+    if len(pts) < min_points:
+        return np.zeros((0, 2), dtype=np.int32)
+    return np.unique(np.floor(pts[:, :2] / resolution).astype(np.int64), axis=0).astype(np.int32)
+
+
+def stale_weights(views: Sequence[ViewInfo], now: float, changes: Sequence[ObservedChange], max_age_s: float,
+                  weight: float) -> list[float]:
+    """The weight of each remembered view's evidence for a new question: 1 for a fresh view, ``weight`` for a
+    stale one.
+
+    A view is stale when it is older than ``max_age_s`` (0 = no age limit), or older than a change the robot
+    itself observed (:func:`disagreement`) on a floor cell the view covers or in the view itself.
+
+    Why: a view's re-scored answer is evidence about the house as it was when the view was taken, and the
+    stopper's running intersection treats a memory step like a step seen now, so a stale view of an object that
+    has since moved can leave a single wrong answer with full confidence. The weight multiplies the view's
+    relevance (``Rel``, Eq. 5), and ``rho = Rel * (f - 1)`` (Eq. 8) goes to 0 with it: at weight 0 the view's
+    prediction set holds every answer (it constrains nothing), so the question is answered by what the robot
+    sees again, while the view's semantic values still lead it back to look. A change is known where it was
+    seen; one nobody saw is caught only by the age limit."""
+    if not 0.0 <= weight <= 1.0:
+        raise ValueError(f"stale weight must be in [0, 1], not {weight}")
+    change_sets = [(c.t, cell_keys(c.cells), set(c.views)) for c in changes]
+    out = []
+    for v in views:
+        stale = max_age_s > 0 and now - v.t > max_age_s
+        if not stale and change_sets:
+            mine = cell_keys(v.cells)
+            stale = any(t > v.t and (v.view_id in ids or not mine.isdisjoint(cells)) for t, cells, ids in change_sets)
+        out.append(weight if stale else 1.0)
+    return out
+
+
 # ---- the home's index ---------------------------------------------------------------------------------------
 @dataclass
 class HomeIndex:
@@ -334,6 +463,7 @@ class HomeIndex:
     scenes: list[str] = field(default_factory=list)
     map_bytes: int = 0
     created_at: float = field(default_factory=time.time)
+    changes: list[ObservedChange] = field(default_factory=list)  # seen by its episodes, newest last
 
     @property
     def view_bytes(self) -> int:
@@ -342,7 +472,7 @@ class HomeIndex:
     def to_bytes(self) -> bytes:
         return packb({"version": self.version, "views": [v.to_json() for v in self.views],
                       "episodes": self.episodes, "scenes": self.scenes, "map_bytes": self.map_bytes,
-                      "created_at": self.created_at})
+                      "created_at": self.created_at, "changes": [c.to_json() for c in self.changes]})
 
     @classmethod
     def from_bytes(cls, data: bytes) -> HomeIndex:
@@ -351,4 +481,5 @@ class HomeIndex:
             raise ValueError("not a home index")
         return cls(version=int(b["version"]), views=[ViewInfo.from_json(v) for v in b["views"]],
                    episodes=int(b["episodes"]), scenes=[str(s) for s in b["scenes"]],
-                   map_bytes=int(b.get("map_bytes", 0)), created_at=float(b.get("created_at", time.time())))
+                   map_bytes=int(b.get("map_bytes", 0)), created_at=float(b.get("created_at", time.time())),
+                   changes=[ObservedChange.from_json(c) for c in b.get("changes", [])])

@@ -35,6 +35,7 @@ with step 0 (:attr:`eqa.messages.StepScores.memory`).
 from __future__ import annotations
 
 import logging
+import math
 import time
 import zlib
 from collections.abc import Callable
@@ -42,12 +43,27 @@ from concurrent.futures import ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
+
 from eqa import homes
 from eqa.messages import EpisodeStart, ErrorReply, Frame, MemoryScore, ScoreRequest, ScoreResult
 from eqa.settings import Settings
 from eqa.store import Store
 from services.mapper import snapshots
-from services.mapper.home_memory import HomeIndex, HomeMap, Keyframe, ViewInfo, ViewPool, select_views
+from services.mapper.home_memory import (
+    CHANGE_VIEWS,
+    MAX_CHANGES,
+    HomeIndex,
+    HomeMap,
+    Keyframe,
+    ObservedChange,
+    ViewInfo,
+    ViewPool,
+    cell_keys,
+    disagreement,
+    select_views,
+    stale_weights,
+)
 from services.mapper.prompt_points import prompt_points
 
 log = logging.getLogger(__name__)
@@ -89,12 +105,14 @@ class EpisodeHome:
     warm_ids: list[str] = field(default_factory=list)  # committed views to re-score at the first frame
     memory: list[MemoryScore] | None = None  # the memory steps, once scored (None: not yet)
     loaded_cells: int = 0  # floor cells explored in the home map it started from
+    changes: list[ObservedChange] = field(default_factory=list)  # changes its frames showed against the memory
 
     def dump(self) -> dict[str, Any]:
         return {"home": self.home, "base_version": self.base_version,
                 "pool": [{"view_id": v.view_id, "t": v.t, "nbytes": v.nbytes, "step": v.step} for v in self.pool.views],
                 "warm_ids": self.warm_ids, "loaded_cells": self.loaded_cells,
-                "memory": None if self.memory is None else [m.model_dump() for m in self.memory]}
+                "memory": None if self.memory is None else [m.model_dump() for m in self.memory],
+                "changes": [c.to_json() for c in self.changes]}
 
 
 class HomeMemory:
@@ -106,6 +124,10 @@ class HomeMemory:
         self._store = store  # the service's store, opened when first used
         self.scorer = scorer
         self.episodes: dict[str, EpisodeHome] = {}
+        # the remembered views a running episode's frames are checked against for changes (read again from the
+        # store after a restore: not part of the episode state)
+        self._remembered: dict[str, list[Keyframe]] = {}
+        self.clock: Callable[[], float] = time.time  # a view's time and a change's (a benchmark sets its own)
 
     @property
     def store(self) -> Store:
@@ -170,8 +192,13 @@ class HomeMemory:
         ep = self.episodes.get(em.episode_id)
         if ep is None or self.settings.home_max_views == 0:
             return
-        kf = Keyframe.from_frame(frame, f"{em.episode_id}-{frame.step}", em.resolution,
+        kf = Keyframe.from_frame(frame, f"{em.episode_id}-{frame.step}", em.resolution, t=self.clock(),
                                  max_depth=em.config.volume.max_depth)
+        if ep.memory is not None:  # warm start done: the views it used are what this frame may contradict
+            if em.episode_id not in self._remembered:
+                self._remembered[em.episode_id] = [k for k in (self.read_view(ep.home, v) for v in ep.warm_ids)
+                                                   if k is not None]
+            self._check(ep, em, kf, self._remembered[em.episode_id])
         blob = kf.to_bytes()
         kept, evicted = ep.pool.offer(kf.info(len(blob)))
         ttl = self.settings.home_ttl_s
@@ -179,6 +206,26 @@ class HomeMemory:
             self.store.set(view_key(ep.home, kf.view_id), blob, ttl_s=ttl)
         if evicted:
             self.store.delete_many([view_key(ep.home, v) for v in evicted])
+
+    def _check(self, ep: EpisodeHome, em: Any, current: Keyframe, views: list[Keyframe]) -> None:
+        """Record a change when ``current`` contradicts a remembered view that sees the same floor cells."""
+        if self.settings.home_stale_weight >= 1.0:  # stale evidence not down-weighted: nothing to look for
+            return
+        mine = cell_keys(current.cells)
+        shared = sorted(((len(mine & cell_keys(kf.cells)), kf.view_id, kf) for kf in views),
+                        key=lambda s: (-s[0], s[1]))
+        cells, ids = [], []
+        for n, _, kf in shared[:CHANGE_VIEWS]:
+            if n == 0:
+                break
+            bad = disagreement(kf, current, em.resolution, max_depth=em.config.volume.max_depth)
+            if len(bad):
+                cells.append(bad)
+                ids.append(kf.view_id)
+        if ids:
+            ep.changes.append(ObservedChange(current.t, np.unique(np.concatenate(cells), axis=0), tuple(ids)))
+            log.info("episode %s: step %d contradicts %d remembered views (%d cells): their evidence is stale",
+                     em.episode_id, current.step, len(ids), len(ep.changes[-1].cells))
 
     def memory(self, episode_id: str) -> list[MemoryScore]:
         ep = self.episodes.get(episode_id)
@@ -194,6 +241,15 @@ class HomeMemory:
         if not ep.warm_ids or em.maps is None:
             return []
         views = [kf for kf in (self.read_view(ep.home, v) for v in ep.warm_ids) if kf is not None]
+        self._remembered[em.episode_id] = views
+        now = self.clock()
+        if frame.step == 0 and views:  # the first frame may already show a change
+            self._check(ep, em, Keyframe.from_frame(frame, "", em.resolution, t=now,
+                                                    max_depth=em.config.volume.max_depth), views)
+        index = self.read_index(ep.home)
+        weights = dict(zip([kf.view_id for kf in views], stale_weights(
+            [kf.info(0) for kf in views], now, [*(index.changes if index else []), *ep.changes],
+            self.settings.home_stale_age_s, self.settings.home_stale_weight), strict=True))
         blind = em.start.question.without_ground_truth()
         requests = []
         for kf in views:
@@ -227,19 +283,23 @@ class HomeMemory:
             except ValueError as exc:
                 log.warning("episode %s: values of remembered view %s not written: %s", em.episode_id, kf.view_id,
                             exc)
+        def relevance(s: tuple[Keyframe, Any, ScoreResult]) -> float:  # stale evidence down-weighted
+            return float(s[2].relevance) * weights[s[0].view_id]
+
         if 0 < self.settings.home_memory_steps < len(scored):
             # the stopper gets the most relevant views only: each memory step is one more term of Eq. 9's running
             # intersection (and of the calibration's min over steps), so views that do not bear on the question
             # would only make q_hat larger; a warm table is calibrated with the same rule
-            scored = sorted(scored, key=lambda s: (-float(s[2].relevance), s[0].view_id))
+            scored = sorted(scored, key=lambda s: (-relevance(s), s[0].view_id))
             scored = scored[: self.settings.home_memory_steps]
         scored.sort(key=lambda s: (s[0].t, s[0].view_id))  # oldest first: the order they were seen in
         out = []
         for kf, _, result in scored:
-            out.append(MemoryScore(answer_probs=list(result.answer_probs), relevance=float(result.relevance),
+            out.append(MemoryScore(answer_probs=list(result.answer_probs), relevance=relevance((kf, None, result)),
                                    view_step=kf.step, seen_at=kf.t))
         ep.memory = out
-        log.info("episode %s: warm start from %d of %d remembered views", em.episode_id, len(out), len(views))
+        log.info("episode %s: warm start from %d of %d remembered views (%d stale)", em.episode_id, len(out),
+                 len(views), sum(1 for w in weights.values() if w < 1.0))
         return list(out)
 
     # ---- persistence within the episode -----------------------------------------------------------------
@@ -265,12 +325,14 @@ class HomeMemory:
         self.episodes[episode_id] = EpisodeHome(
             home=home, base_version=int(part["base_version"]), pool=self._pool(views),
             warm_ids=[str(v) for v in part.get("warm_ids", [])], loaded_cells=int(part.get("loaded_cells", 0)),
-            memory=None if memory is None else [MemoryScore.model_validate(m) for m in memory])
+            memory=None if memory is None else [MemoryScore.model_validate(m) for m in memory],
+            changes=[ObservedChange.from_json(c) for c in part.get("changes", [])])
 
     # ---- the end: write the home back -------------------------------------------------------------------
     def finish(self, em: Any) -> HomeIndex | None:
         """Commit the episode's map and views to its home (see the module's doc); the new index."""
         ep = self.episodes.pop(em.episode_id, None)
+        self._remembered.pop(em.episode_id, None)
         if ep is None:
             return None
         if em.step < 0:  # no frame integrated: nothing new to remember
@@ -319,7 +381,10 @@ class HomeMemory:
         else:
             self.store.delete(map_key(ep.home))
         scene = em.start.question.scene
-        new = HomeIndex(version=index.version + 1, views=chosen, episodes=index.episodes + 1,
+        # a change matters to views older than it: one older than every kept view is forgotten
+        oldest = min((v.t for v in chosen), default=math.inf)
+        changes = [c for c in [*index.changes, *ep.changes] if c.t > oldest][-MAX_CHANGES:]
+        new = HomeIndex(version=index.version + 1, views=chosen, episodes=index.episodes + 1, changes=changes,
                         scenes=(index.scenes + ([scene] if scene not in index.scenes else []))[-64:],
                         map_bytes=len(map_bytes) if len(map_bytes) <= s.home_max_bytes else 0,
                         created_at=index.created_at)

@@ -305,3 +305,38 @@ def test_bench_sequences_are_one_house_round_robin_over_categories(tmp_path: Pat
     qs = sequence(11, 0, 5, tmp_path)
     assert len(qs) == 5 and len({q.scene for q in qs}) == 1 and len({q.category for q in qs}) == 5
     assert [q.id for q in sequence(11, 0, 7, tmp_path)][:5] == [q.id for q in qs]  # the same order, longer
+
+
+def test_bench_changes_ask_each_question_in_the_changed_house_with_its_ground_truth(tmp_path: Path) -> None:
+    from eqa.app.home_bench import changed_sequence, impacts
+    from services.sim.change_impact import impact, rederive
+    from services.sim.changes import changes_of
+
+    pairs = changed_sequence(11, 2, 3, tmp_path, changes=2)
+    assert [a.scene for a, _ in pairs] == ["gen-110002", "gen-110002-c2", "gen-110002-c4"]
+    order = [q.id for q, _ in changed_sequence(11, 2, 10, tmp_path)]  # unchanged: the asked ones are the base ones
+    ranks = [order.index(b.id) for _, b in pairs]
+    assert ranks == sorted(ranks) and ranks[0] == 0  # in the benchmark's order (one without truth passed over)
+    assert [a.id for a, _ in pairs][1:] == [f"{b.id}-c{k}" for (_, b), k in zip(pairs[1:], (2, 4), strict=True)]
+    base = load_or_generate("gen-110002", tmp_path)
+    made = changes_of(base, 4)
+    for (asked, q), imp in zip(pairs, impacts(11, 2, 3, tmp_path, 2), strict=True):
+        if imp["k"]:
+            house = load_or_generate(asked.scene, tmp_path)
+            assert asked.answer == rederive(q, house).answer  # the changed house's truth is what is scored
+            truth = impact(q, [c for c in made if c.round <= imp["k"]], house)
+            assert (imp["affected"], imp["answer_changed"]) == (truth.affected, truth.answer_changed)
+            assert imp["answer_changed"] == (asked.answer != q.answer)
+
+
+def test_bench_wrong_singletons_are_paired_on_the_same_questions() -> None:
+    from eqa.app.home_bench import singletons, wrong_singleton
+
+    assert wrong_singleton(("B",), "A") and not wrong_singleton(("A",), "A") and not wrong_singleton(("A", "B"), "B")
+    rows = [{"cold_wrong_singleton": c, "warm_wrong_singleton": w, "cold_correct": not c, "warm_correct": not w}
+            for c, w in [(False, True)] * 5 + [(True, True), (False, False), (True, False)]]
+    res = singletons(rows)
+    assert res["n"] == 8 and res["warm_wrong_singleton"] == 6 / 8 and res["cold_wrong_singleton"] == 2 / 8
+    assert (res["paired"]["warm_only"], res["paired"]["cold_only"]) == (5, 1)
+    assert res["paired"]["diff"] == pytest.approx(4 / 8) and 0 < res["paired"]["p_value"] < 0.25
+    assert singletons([]) == {"n": 0}
