@@ -124,3 +124,24 @@ def test_a_refused_skill_pose_is_not_planned_again() -> None:
     x, y = st.plan.pose.x, st.plan.pose.y
     assert math.hypot(x - 3.0, y - 4.4) > PlannerParams().refused_radius_m - 0.05
     assert math.hypot(max(abs(x - 3.0) - 0.1, 0.0), max(abs(y - 5.0) - 0.1, 0.0)) <= 0.7  # within reach
+
+
+def test_a_kept_path_keeps_the_collision_radius_from_the_edge_of_a_mapped_cell() -> None:
+    """The clearance is measured between cell centres of the mapper's grid (0.1 m cells, its voxel size): a
+    mapped obstacle fills its cell up to half a cell beyond the centre and a path point lies up to half a cell
+    from its own cell's centre. A path along x = 2.21 next to an occupied cell spanning x in [2.0, 2.1] lies in
+    cells whose centres are 0.2 m from the obstacle's centre, 0.11 m from its edge: inside the collision radius,
+    the path must be cut before it."""
+    from eqa import robot as body
+    from services.mapper.tsdf import VolumeConfig
+    from services.planner.task_step import clearance_field, safe_prefix
+
+    assert GRID.resolution == VolumeConfig().voxel_size  # the task map's cells (this test's grid)
+    occ = np.zeros((100, 100), bool)
+    occ[50, 20] = True  # the cell x in [2.0, 2.1], y in [5.0, 5.1]
+    field = clearance_field(GRID, occ)
+    path, whole = safe_prefix([(2.21, 3.0), (2.21, 7.0)], field, GRID)
+    assert not whole
+    for x, y in path:
+        edge = math.hypot(max(abs(x - 2.05) - 0.05, 0.0), max(abs(y - 5.05) - 0.05, 0.0))
+        assert edge >= body.COLLISION_RADIUS_M, (x, y, edge)
