@@ -2,9 +2,14 @@
 
 * :data:`COLLISION_RADIUS_M` -- the robot's collision radius: a base motion collides when its path passes
   closer than this to a wall or furniture of the true scene (the sim's count, ``services.sim.skills``);
-* :data:`MAP_MARGIN_M` -- the margin the planner keeps on top of that radius on its *mapped* occupancy (the map
-  is built from depth and misses or misplaces obstacle edges by about a voxel, 0.05 m): paths, gaze points and
-  skill poses of task episodes keep :func:`mapped_clearance_m` from mapped occupied cells;
+* :data:`MAP_MARGIN_M` -- the margin the planner keeps on top of that radius on its *mapped* occupancy: paths,
+  gaze points and skill poses of task episodes keep :func:`mapped_clearance_m` from mapped occupied cells. The
+  clearance is measured from cell centre to cell centre on the mapper's 2D grid (its voxel size, 0.1 m,
+  ``services.mapper.tsdf.VolumeConfig``): an obstacle fills up to half a cell beyond its cell's centre and a path
+  point lies up to half a cell from its own cell's centre, so along an axis the robot can be one cell closer to
+  the obstacle's edge than the centre distance says. The margin is that cell: with half of it (0.05 m) a path
+  kept 0.2 m from the centres may pass 0.1 m from the edge of mapped furniture or a wall, inside the collision
+  radius (the collisions of the tuning seed 11 at mapped corners, docs/results/helios-collisions.md);
 * :data:`REACH_M` -- the oracle pick's reach, from the base centre to the object's box, horizontally;
 * :data:`OBSTACLE_MIN_Z_M` -- what rises above this height is an obstacle the base collides with (lower is
   floor: rugs, thresholds): the sim's navigable grid and the task mapper's obstacle band both start here;
@@ -16,7 +21,7 @@ What counts as a collision against OVMM's definition is written in ``docs/result
 from __future__ import annotations
 
 COLLISION_RADIUS_M = 0.15  # robot body with a margin for the arm
-MAP_MARGIN_M = 0.05  # one voxel of the mapper's occupancy
+MAP_MARGIN_M = 0.1  # one cell of the mapper's 2D grid (its voxel size)
 REACH_M = 0.9  # arm reach of a mobile manipulator base
 OBSTACLE_MIN_Z_M = 0.05
 

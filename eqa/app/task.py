@@ -2,7 +2,7 @@
 
     eqa task "Move the mug from the kitchen counter to the dining table" --scene gen-15000
     eqa task "Find a potted plant" --scene gen-15000 --ablation trusting
-    eqa task                                   # the first task of the tuning seed 11's benchmark (gen-115000)
+    eqa task                                   # a typical task of the tuning seed 11 (gen-115010, demo_task)
 
 Without ``--url`` it starts the whole fleet (every service as its own process, over Zenoh, and the gateway on a
 free port), submits the task to ``POST /v1/tasks``, follows the episode's events (the phases: searching, local
@@ -30,13 +30,23 @@ SIMULATED = ("perception: oracle detector = a simulated perception model reading
              "visible pixels, not a detector")
 
 
+DEMO_POOL = 24  # the tuning seed's pick-and-place tasks the demo is chosen among (its tuning table's)
+
+
 def demo_task(scenes_dir: Path) -> tuple[str, str, Pose2D | None]:
-    """The demo: the first pick-and-place task of the tuning seed's task benchmark (``eqa bench ovmm --seeds
-    11``'s first row; :data:`eqa.seeds.TUNING_SEED`): instruction, scene, start pose."""
+    """The demo: a typical pick-and-place task of the tuning seed (:data:`eqa.seeds.TUNING_SEED`), chosen by a
+    property of the task, never by its outcome: among the seed's first :data:`DEMO_POOL` tasks (the rows of
+    ``eqa bench ovmm --seeds 11 --tasks 24``), the first whose step budget (6 sqrt(floor area)) is their median
+    (the lower one): a house of typical size, with a typical run time. The first task of the seed is in the
+    largest house (145 steps), which made the demo the longest run of the table. Returns the instruction,
+    scene and start pose."""
     from eqa.seeds import TUNING_SEED
     from services.sim.tasks import task_benchmark
 
-    task = task_benchmark(TUNING_SEED, pick_place=1, find=0, scenes_dir=scenes_dir).tasks[0]
+    tasks = task_benchmark(TUNING_SEED, pick_place=DEMO_POOL, find=0, scenes_dir=scenes_dir).tasks
+    budgets = sorted(t.max_steps or 0 for t in tasks)
+    median = budgets[(len(budgets) - 1) // 2]
+    task = next(t for t in tasks if (t.max_steps or 0) == median)
     return task.text, task.scene, task.start_pose
 
 
@@ -58,7 +68,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("instruction", nargs="?",
                    help="'Move the <object> from the <start receptacle> to the <goal receptacle>' or "
-                   "'Find a <object>'; omit it for the first task of the tuning seed 11")
+                   "'Find a <object>'; omit it for a typical task of the tuning seed 11 (the median house size)")
     p.add_argument("--scene", help="scene id, e.g. gen-15000 (a generated house)")
     p.add_argument("--pose", type=parse_pose, help="start pose x,y[,yaw]; default: sampled")
     p.add_argument("--ablation", default="helios", choices=["helios", "no_global", "trusting"],

@@ -125,7 +125,7 @@ def _near(points: list[tuple[float, float]], x: float, y: float, r: float) -> bo
     return any(math.hypot(px - x, py - y) <= r for px, py in points)
 
 
-def _disk_mask(grid: GridSpec, points: list[tuple[float, float]], r: float) -> np.ndarray | None:
+def disk_mask(grid: GridSpec, points: list[tuple[float, float]], r: float) -> np.ndarray | None:
     if not points or r <= 0:
         return None
     mask = np.zeros((grid.rows, grid.cols), dtype=bool)
@@ -215,7 +215,7 @@ def _reach(grid: GridSpec, free: np.ndarray, occupied: np.ndarray, pose: Pose2D,
            ok: np.ndarray, mem: Memory, params: PlannerParams, timing: dict[str, float]) -> _Reach:
     """Search the reachable space at each clearance in turn until a candidate is reachable (rules 2-3)."""
     n = len(frontiers)
-    extra = _disk_mask(grid, mem.refused, params.refused_radius_m)
+    extra = disk_mask(grid, mem.refused, params.refused_radius_m)
     pg: PlanningGrid | None = None
     approach: list[tuple[int, int] | None] = [None] * n
     geo = np.full(n, np.inf)

@@ -38,7 +38,7 @@ from eqa import robot as body
 from eqa.messages import Frontier, GridSpec, Pose2D
 from services.planner.helios import FrontierOption
 from services.planner.paths import MapError, check_map, planning_grid, truncate
-from services.planner.step import Memory, PlannerParams, StepPlan, plan_step, wrap
+from services.planner.step import Memory, PlannerParams, StepPlan, disk_mask, plan_step, wrap
 from services.planner.task_fsm import Action, SeenObject, SkillOutcome, TaskMachine
 
 ARRIVE_TOLERANCE_M = 0.5  # a gaze pose is reached from the nearest traversable point within this
@@ -107,14 +107,18 @@ def _box_distance(x: np.ndarray, y: np.ndarray, near: tuple[float, float, float,
 def plan_to_pose(grid: GridSpec, free: np.ndarray, occupied: np.ndarray, robot: Pose2D,
                  target: tuple[float, float, float], params: PlannerParams | None = None,
                  near: tuple[float, float, float, float] | None = None,
-                 dist_field: np.ndarray | None = None) -> PoseStep:
+                 dist_field: np.ndarray | None = None,
+                 refused: list[tuple[float, float]] | None = None) -> PoseStep:
     """A path from ``robot`` to the pose ``target = (x, y, yaw)`` with clearance (tried at each of
     ``params.clearances_m``), cut at ``params.max_step_m`` and before it comes closer than the mapped clearance
     to an occupied cell (module doc; ``dist_field``: :func:`clearance_field`, computed when not given). On arrival
     the robot stands at the target (or the nearest traversable point within :data:`ARRIVE_TOLERANCE_M`)
     facing ``yaw``. ``near = (x, y, half_x, half_y)``: a skill pose for that object footprint -- the
     reachable point within :data:`SKILL_REACH_M` of it keeping the mapped clearance, nearest the target,
-    facing the object's centre (module doc)."""
+    facing the object's centre (module doc). ``refused``: goal positions the simulator refused in this episode
+    (``Memory.refused``); the path and the pose keep ``params.refused_radius_m`` from them, as frontier steps
+    do -- without it a refused skill or gaze pose is planned again at every attempt and every step (the same
+    block stays the nearest to the preferred pose), and the robot turns in place to the end of the episode."""
     params = params or PlannerParams()
     try:
         check_map(grid, free, occupied)
@@ -134,8 +138,9 @@ def plan_to_pose(grid: GridSpec, free: np.ndarray, occupied: np.ndarray, robot: 
         pose = Pose2D(x=robot.x, y=robot.y, yaw=wrap(tyaw))
         return PoseStep(StepPlan("move", "at the pose: turning to face it", pose=pose,
                                  path=[(robot.x, robot.y)]), True, "arrived")
+    extra = disk_mask(grid, list(refused or ()), params.refused_radius_m)
     for clearance in params.clearances_m:
-        pg = planning_grid(grid, free, occupied, clearance, params.coarse_m, params.max_blocks)
+        pg = planning_grid(grid, free, occupied, clearance, params.coarse_m, params.max_blocks, extra)
         if not pg.search_from(robot.x, robot.y, params.snap_radius_m) or pg.dist is None:
             continue
         R, C = pg.dist.shape
@@ -259,7 +264,8 @@ def task_step(machine: TaskMachine, grid: GridSpec, free: np.ndarray, occupied: 
             plan.reason = f"{act.reason}; {plan.reason}"
             return TaskStep(plan, "move", None, act.phase, plan.memory)
         assert act.pose is not None
-        ps = plan_to_pose(grid, free, occupied, pose, act.pose, params, near=act.near, dist_field=dist_field)
+        ps = plan_to_pose(grid, free, occupied, pose, act.pose, params, near=act.near, dist_field=dist_field,
+                          refused=memory.refused)
         if ps.plan is None:
             if act.ref is not None:
                 machine.unreachable(act.ref, act)

@@ -95,3 +95,53 @@ def test_the_frontier_on_the_way_stays_the_choice_until_reached() -> None:
     assert mem.target is None and math.hypot(pose.x - 8.0, pose.y - 2.0) < 0.6  # A reached
     after = task_step(m, GRID, free, occ, pose, [b_up], [], None, mem, rng)
     assert after.plan.frontier is not None and after.plan.frontier.y == 8.0  # then B
+
+
+
+def test_a_refused_skill_pose_is_not_planned_again() -> None:
+    """The simulator refuses a goal pose within its robot radius of the true scene; the refused position is
+    remembered (``Memory.refused``) and the next attempt of a skill or gaze pose keeps away from it, as frontier
+    steps do. Planned again at the same block, a refused skill pose came back at every attempt and every step
+    (tuning seed 11: the trusting agent turned in place for 130 steps next to its detection). Here the
+    simulator refuses every pose within 0.2 m of (3.0, 4.4), the preferred pose of the pick."""
+    from services.planner.refusals import MAX_REFUSALS, Refusals
+
+    free, occ = _room()
+    mug = SeenObject(20, "mug", {"mug": (0.7, 0.1, 0.6)}, 3.0, 5.0, 1.0, (Gaze(3.0, 4.2, math.pi / 2),))
+    robot = Pose2D(x=3.0, y=3.0)
+    m = TaskMachine("pick_place", "mug", "table", "counter", ablation="trusting")
+    refusals = Refusals(0, robot, 0, Memory())
+    before = m.to_json()
+    for _ in range(MAX_REFUSALS + 1):
+        machine = TaskMachine.from_json(before)
+        st = task_step(machine, GRID, free, occ, robot, [], [mug], None, refusals.memory(), np.random.default_rng(0))
+        p = st.plan.pose
+        if math.hypot(p.x - 3.0, p.y - 4.4) > 0.2:
+            break
+        assert refusals.refuse(st.plan, "goal refused: in collision") is None, "refusals ran out on one pose"
+    assert (st.skill, st.target, st.plan.kind) == ("pick", 20, "move"), st.plan.reason
+    assert refusals.attempt == 1  # one refusal, then another pose within reach
+    x, y = st.plan.pose.x, st.plan.pose.y
+    assert math.hypot(x - 3.0, y - 4.4) > PlannerParams().refused_radius_m - 0.05
+    assert math.hypot(max(abs(x - 3.0) - 0.1, 0.0), max(abs(y - 5.0) - 0.1, 0.0)) <= 0.7  # within reach
+
+
+def test_a_kept_path_keeps_the_collision_radius_from_the_edge_of_a_mapped_cell() -> None:
+    """The clearance is measured between cell centres of the mapper's grid (0.1 m cells, its voxel size): a
+    mapped obstacle fills its cell up to half a cell beyond the centre and a path point lies up to half a cell
+    from its own cell's centre. A path along x = 2.21 next to an occupied cell spanning x in [2.0, 2.1] lies in
+    cells whose centres are 0.2 m from the obstacle's centre, 0.11 m from its edge: inside the collision radius,
+    the path must be cut before it."""
+    from eqa import robot as body
+    from services.mapper.tsdf import VolumeConfig
+    from services.planner.task_step import clearance_field, safe_prefix
+
+    assert GRID.resolution == VolumeConfig().voxel_size  # the task map's cells (this test's grid)
+    occ = np.zeros((100, 100), bool)
+    occ[50, 20] = True  # the cell x in [2.0, 2.1], y in [5.0, 5.1]
+    field = clearance_field(GRID, occ)
+    path, whole = safe_prefix([(2.21, 3.0), (2.21, 7.0)], field, GRID)
+    assert not whole
+    for x, y in path:
+        edge = math.hypot(max(abs(x - 2.05) - 0.05, 0.0), max(abs(y - 5.05) - 0.05, 0.0))
+        assert edge >= body.COLLISION_RADIUS_M, (x, y, edge)
