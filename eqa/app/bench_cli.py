@@ -16,8 +16,8 @@ Seeds are a benchmark axis (``--seeds``): each seed is its own benchmark of 500 
 generated houses (``eqa.seeds``: seed 11 is the tuning seed, 1 2 3 the evaluation seeds, 0 the legacy seed of the
 first figures). Results are given pooled over the seeds and per seed, with Wilson 95 % intervals on success
 rates and, for each pair of strategies, the exact sign test and a 95 % interval of the paired difference.
-``--limit`` applies per seed. The yardsticks ``target_oracle`` and ``perfect_sv`` (upper bounds that read the
-ground truth) run only here, when named in ``--strategies``.
+``--limit`` applies per seed. The yardsticks ``target_oracle``, ``perfect_sv``, ``perfect_vlfm`` and ``perfect_gain``
+(upper bounds that read the ground truth) run only here, when named in ``--strategies``.
 
 Traces are exported to ``<--out>/traces/<set>.jsonl.gz`` (one set per strategy, scorer, size and seed) and
 imported from there on the next run, so ``--out bench/results`` replays the published runs in seconds.
@@ -44,7 +44,8 @@ from eqa.app.bench_common import _quantile_defined, _settings, scorer_label
 log = logging.getLogger(__name__)
 
 STRATEGIES = ("fbe", "semantic", "no_lsv", "no_gsv")
-BOUNDS = ("target_oracle", "perfect_sv")  # benchmark-only yardsticks (upper bounds reading ground truth)
+# benchmark-only yardsticks (upper bounds reading ground truth; the perfect_* ones: eqa.messages.PERFECT_VALUE_RULE)
+BOUNDS = ("target_oracle", "perfect_sv", "perfect_vlfm", "perfect_gain")
 RULES = ("vlfm", "gain", "topo")  # deterministic frontier rules beyond Eq. A6 (services/planner/frontier_rules.py)
 CDF_BUDGETS = tuple(round(0.05 * k, 2) for k in range(1, 21))
 ENTROPY_SWEEP = (0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 0.9, 1.1, 1.3)
@@ -516,7 +517,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="questions: the 200 test ones or all 500 (default all)")
     e.add_argument("--strategies", nargs="+", choices=STRATEGIES + RULES + BOUNDS, default=list(STRATEGIES),
                    help="strategies to run (default: the four of Fig. 7; vlfm, gain and topo are the deterministic "
-                        "frontier rules of docs/results/exploration-strategies.md); target_oracle and perfect_sv are "
+                        "frontier rules of docs/results/exploration-strategies.md); target_oracle and perfect_sv / "
+                        "perfect_vlfm / perfect_gain (Eq. A6 / vlfm / gain on ground-truth semantic values) are "
                         "benchmark-only yardsticks (upper bounds that read the ground-truth target positions)")
     e.add_argument("--ceiling", action="store_true",
                    help="also compute the evidence ceiling (eqa/app/ceiling.py): the share of questions whose evidence "
