@@ -318,9 +318,9 @@ def cmd_explore(args: argparse.Namespace) -> int:
 
     groups = {"category": sorted({str(t.category) for r in runs.values() for ts in r.values() for t in ts}),
               "size": [c for c in ev.SIZE_CLASSES if c in set(sizes.values())]}
-    for base in ("semantic", "fbe"):
-        if base not in runs:
-            continue
+    # semantic against every other run, every run against fbe and against each --versus strategy
+    results["paired_bases"] = [b for b in dict.fromkeys(("semantic", "fbe", *getattr(args, "versus", []))) if b in runs]
+    for base in results["paired_bases"]:
         others = [k for k in runs if k != base]
         results[f"paired_vs_{base}_by_group"] = {
             kind: {g: {k: (paired_in(base, k, kind, g) if base == "semantic" else paired_in(k, base, kind, g))
@@ -407,7 +407,8 @@ def _print_explore(results: dict[str, Any]) -> None:
         if s:
             print(f"  {name:<{width}} {s['success_seen']:.3f} ({s['n_seen']}) / {s['success_unseen']:.3f} "
                   f"({s['n_unseen']}); lift {s['lift']:+.3f}")
-    for base, what in (("semantic", "semantic against each other run"), ("fbe", "each run against fbe")):
+    for base in results.get("paired_bases", ("semantic", "fbe")):
+        what = "semantic against each other run" if base == "semantic" else f"each run against {base}"
         paired = results.get(f"paired_vs_{base}", {})
         if not paired:
             continue
@@ -520,6 +521,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "frontier rules of docs/results/exploration-strategies.md); target_oracle and perfect_sv / "
                         "perfect_vlfm / perfect_gain (Eq. A6 / vlfm / gain on ground-truth semantic values) are "
                         "benchmark-only yardsticks (upper bounds that read the ground-truth target positions)")
+    e.add_argument("--versus", nargs="*", default=[], metavar="STRATEGY",
+                   help="also pair every run with these (each run against it, as against fbe), e.g. --versus gain "
+                        "to compare a yardstick with the rule it runs")
     e.add_argument("--ceiling", action="store_true",
                    help="also compute the evidence ceiling (eqa/app/ceiling.py): the share of questions whose evidence "
                         "can be perceived at all within each budget (ground truth, kept in <--out>/ceiling.json)")
