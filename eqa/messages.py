@@ -47,10 +47,14 @@ PADDING_CHOICE = "(Do not choose this option)"
 NOT_LISTED_CHOICE = "An option not listed here"
 
 Strategy = Literal["fbe", "semantic", "no_lsv", "no_gsv", "nearest", "target_oracle", "perfect_sv", "cp_guided",
-                   "vlfm", "gain", "topo"]
+                   "vlfm", "gain", "topo", "perfect_vlfm", "perfect_gain"]
+# Perfect-value yardsticks -> the product strategy whose choice rule they run: the mapper writes the LSV / GSV
+# of the ground truth (services.mapper.semantic_map.ground_truth_scores) in place of the scorer's, the planner
+# applies that strategy's rule unchanged, so the pair separates what the values cost from what the rule costs.
+PERFECT_VALUE_RULE: dict[str, str] = {"perfect_sv": "semantic", "perfect_vlfm": "vlfm", "perfect_gain": "gain"}
 # Benchmark-only yardsticks (upper bounds, never product behaviour): they read the question's ground truth
 # (``Question.targets``). The gateway and the CLI refuse them; only ``eqa bench`` runs them.
-BOUND_STRATEGIES: frozenset[str] = frozenset({"target_oracle", "perfect_sv"})
+BOUND_STRATEGIES: frozenset[str] = frozenset({"target_oracle", *PERFECT_VALUE_RULE})
 StopRule = Literal["cp", "entropy", "relevance", "max_steps"]
 EpisodeState = Literal["queued", "running", "stopped", "failed", "cancelled"]
 ScorerBackend = Literal["oracle", "hf", "remote"]

@@ -16,8 +16,8 @@ Seeds are a benchmark axis (``--seeds``): each seed is its own benchmark of 500 
 generated houses (``eqa.seeds``: seed 11 is the tuning seed, 1 2 3 the evaluation seeds, 0 the legacy seed of the
 first figures). Results are given pooled over the seeds and per seed, with Wilson 95 % intervals on success
 rates and, for each pair of strategies, the exact sign test and a 95 % interval of the paired difference.
-``--limit`` applies per seed. The yardsticks ``target_oracle`` and ``perfect_sv`` (upper bounds that read the
-ground truth) run only here, when named in ``--strategies``.
+``--limit`` applies per seed. The yardsticks ``target_oracle``, ``perfect_sv``, ``perfect_vlfm`` and ``perfect_gain``
+(upper bounds that read the ground truth) run only here, when named in ``--strategies``.
 
 Traces are exported to ``<--out>/traces/<set>.jsonl.gz`` (one set per strategy, scorer, size and seed) and
 imported from there on the next run, so ``--out bench/results`` replays the published runs in seconds.
@@ -44,7 +44,8 @@ from eqa.app.bench_common import _quantile_defined, _settings, scorer_label
 log = logging.getLogger(__name__)
 
 STRATEGIES = ("fbe", "semantic", "no_lsv", "no_gsv")
-BOUNDS = ("target_oracle", "perfect_sv")  # benchmark-only yardsticks (upper bounds reading ground truth)
+# benchmark-only yardsticks (upper bounds reading ground truth; the perfect_* ones: eqa.messages.PERFECT_VALUE_RULE)
+BOUNDS = ("target_oracle", "perfect_sv", "perfect_vlfm", "perfect_gain")
 RULES = ("vlfm", "gain", "topo")  # deterministic frontier rules beyond Eq. A6 (services/planner/frontier_rules.py)
 CDF_BUDGETS = tuple(round(0.05 * k, 2) for k in range(1, 21))
 ENTROPY_SWEEP = (0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 0.9, 1.1, 1.3)
@@ -317,9 +318,9 @@ def cmd_explore(args: argparse.Namespace) -> int:
 
     groups = {"category": sorted({str(t.category) for r in runs.values() for ts in r.values() for t in ts}),
               "size": [c for c in ev.SIZE_CLASSES if c in set(sizes.values())]}
-    for base in ("semantic", "fbe"):
-        if base not in runs:
-            continue
+    # semantic against every other run, every run against fbe and against each --versus strategy
+    results["paired_bases"] = [b for b in dict.fromkeys(("semantic", "fbe", *getattr(args, "versus", []))) if b in runs]
+    for base in results["paired_bases"]:
         others = [k for k in runs if k != base]
         results[f"paired_vs_{base}_by_group"] = {
             kind: {g: {k: (paired_in(base, k, kind, g) if base == "semantic" else paired_in(k, base, kind, g))
@@ -406,7 +407,8 @@ def _print_explore(results: dict[str, Any]) -> None:
         if s:
             print(f"  {name:<{width}} {s['success_seen']:.3f} ({s['n_seen']}) / {s['success_unseen']:.3f} "
                   f"({s['n_unseen']}); lift {s['lift']:+.3f}")
-    for base, what in (("semantic", "semantic against each other run"), ("fbe", "each run against fbe")):
+    for base in results.get("paired_bases", ("semantic", "fbe")):
+        what = "semantic against each other run" if base == "semantic" else f"each run against {base}"
         paired = results.get(f"paired_vs_{base}", {})
         if not paired:
             continue
@@ -516,8 +518,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="questions: the 200 test ones or all 500 (default all)")
     e.add_argument("--strategies", nargs="+", choices=STRATEGIES + RULES + BOUNDS, default=list(STRATEGIES),
                    help="strategies to run (default: the four of Fig. 7; vlfm, gain and topo are the deterministic "
-                        "frontier rules of docs/results/exploration-strategies.md); target_oracle and perfect_sv are "
+                        "frontier rules of docs/results/exploration-strategies.md); target_oracle and perfect_sv / "
+                        "perfect_vlfm / perfect_gain (Eq. A6 / vlfm / gain on ground-truth semantic values) are "
                         "benchmark-only yardsticks (upper bounds that read the ground-truth target positions)")
+    e.add_argument("--versus", nargs="*", default=[], metavar="STRATEGY",
+                   help="also pair every run with these (each run against it, as against fbe), e.g. --versus gain "
+                        "to compare a yardstick with the rule it runs")
     e.add_argument("--ceiling", action="store_true",
                    help="also compute the evidence ceiling (eqa/app/ceiling.py): the share of questions whose evidence "
                         "can be perceived at all within each budget (ground truth, kept in <--out>/ceiling.json)")

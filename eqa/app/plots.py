@@ -13,6 +13,7 @@ import matplotlib.pyplot as plt
 COLORS = {"semantic": "tab:red", "fbe": "tab:blue", "no_lsv": "tab:orange", "no_gsv": "tab:green",
           "target_oracle": "black", "perfect_sv": "tab:purple",
           "vlfm": "tab:brown", "gain": "tab:olive", "topo": "tab:cyan",
+          "perfect_vlfm": "indigo", "perfect_gain": "darkolivegreen",
           "cp": "tab:red", "entropy": "tab:blue", "relevance": "tab:green"}
 
 

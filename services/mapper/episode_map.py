@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from eqa.codec import packb, packed_array, unpackb
-from eqa.messages import EpisodeStart, Frame, Frontier, GridSpec, MapUpdate, Pose2D, PromptPoint
+from eqa.messages import PERFECT_VALUE_RULE, EpisodeStart, Frame, Frontier, GridSpec, MapUpdate, Pose2D, PromptPoint
 from services.mapper.frontiers import FrontierConfig, find_frontiers, target_weights, weigh_frontiers
 from services.mapper.projection import Maps2D, ProjectionConfig, project
 from services.mapper.prompt_points import PromptConfig, prompt_points
@@ -157,7 +157,7 @@ class EpisodeMap:
             return []
         if len(lsv) != len(pts):
             raise ValueError(f"{len(lsv)} LSV values for {len(pts)} prompt points")
-        if self.strategy == "perfect_sv":  # yardstick: the ground truth's values replace the scorer's
+        if self.strategy in PERFECT_VALUE_RULE:  # yardstick: the ground truth's values replace the scorer's
             cam = (self.pose.x, self.pose.y) if self.pose is not None else (0.0, 0.0)
             lsv, gsv = ground_truth_scores([(p.x, p.y) for p in pts], list(self.start.question.targets), cam)
         sv = [semantic_value(lv, gsv, temps[0], temps[1]) for lv in lsv]

@@ -13,7 +13,8 @@ order in which the robot happened to look at a region. Never-scored cells hold 0
 Strategies (``EpisodeStart.strategy``): ``semantic`` uses both terms, ``no_lsv`` treats ``tau_LSV`` as 0,
 ``no_gsv`` treats ``tau_GSV`` as 0, ``fbe`` / ``nearest`` write nothing (every frontier weighs 1); ``vlfm``,
 ``gain`` and ``topo`` use both terms (the planner ranks the frontiers by value instead of sampling Eq. A6).
-``perfect_sv`` (benchmark-only yardstick) uses both terms with LSV / GSV from the ground truth
+The perfect-value yardsticks (benchmark-only; ``perfect_sv`` for Eq. A6, ``perfect_vlfm`` / ``perfect_gain`` for
+those rules: :data:`eqa.messages.PERFECT_VALUE_RULE`) use both terms with LSV / GSV from the ground truth
 (:func:`ground_truth_scores`) instead of the scorer's.
 """
 
@@ -25,15 +26,17 @@ from collections.abc import Iterator
 import numpy as np
 
 from eqa import grid
+from eqa.messages import PERFECT_VALUE_RULE
 
 # vlfm / gain / topo (services/planner/frontier_rules.py) read the same values as semantic, by other rules
-SEMANTIC_STRATEGIES = ("semantic", "no_lsv", "no_gsv", "perfect_sv", "cp_guided", "vlfm", "gain", "topo")
+SEMANTIC_STRATEGIES = ("semantic", "no_lsv", "no_gsv", "cp_guided", "vlfm", "gain", "topo", *PERFECT_VALUE_RULE)
 QUESTION_LAYER = "question"
 
 
 def temperatures(strategy: str, tau_lsv: float, tau_gsv: float) -> tuple[float, float] | None:
     """(tau_LSV, tau_GSV) of a strategy, or None when the strategy uses no semantic values."""
-    if strategy in ("semantic", "perfect_sv", "cp_guided", "vlfm", "gain", "topo"):  # cp_guided: the planner re-tempers
+    strategy = PERFECT_VALUE_RULE.get(strategy, strategy)  # a perfect-value yardstick: its rule's temperatures
+    if strategy in ("semantic", "cp_guided", "vlfm", "gain", "topo"):  # cp_guided: the planner re-tempers
         return tau_lsv, tau_gsv
     if strategy == "no_lsv":
         return 0.0, tau_gsv
@@ -49,7 +52,7 @@ def ground_truth_scores(
     points: list[tuple[float, float]], targets: list[tuple[float, float]], camera_xy: tuple[float, float]
 ) -> tuple[list[float], float]:
     """LSV (Eq. 1) and GSV (Eq. 2) a perfect model would give, from the ground-truth target positions (the
-    ``perfect_sv`` yardstick, an upper bound, never product behaviour): LSV is the softmax over the prompt
+    perfect-value yardsticks, upper bounds, never product behaviour): LSV is the softmax over the prompt
     points of ``-d_p / 1 m`` (``d_p``: straight-line distance from point ``p`` to the nearest target), so the
     point nearest a target takes most of the mass; GSV = 1 when some prompt point is nearer a target than the
     camera ("a direction worth exploring is in view"), else 0."""

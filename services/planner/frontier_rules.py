@@ -21,6 +21,10 @@ All three read the same per-frontier semantic value the mapper writes for ``sema
   which is a doorway or an opening). The frontier's cost is then counted along the graph of rooms, not in
   straight-line or path metres only: a room is finished before the robot crosses into the next.
 
+Perfect-value yardsticks (benchmark-only, :data:`eqa.messages.PERFECT_VALUE_RULE`): ``perfect_vlfm`` and
+``perfect_gain`` are ``vlfm`` and ``gain`` unchanged, on the values the mapper computed from the ground-truth
+target positions instead of the scorer's (:func:`rule_of` names the rule a strategy runs).
+
 Commitment (all three): the frontier chosen earlier (``Memory.target``, which carries its value when chosen)
 is kept while a candidate lies within ``commit_radius_m`` of it, its value has not dropped by more than
 ``commit_margin`` since it was chosen, and its score is within ``commit_margin`` of the best score of the step
@@ -38,10 +42,17 @@ import numpy as np
 from scipy import ndimage
 
 from eqa import grid as gridm
-from eqa.messages import Frontier, GridSpec
+from eqa.messages import PERFECT_VALUE_RULE, Frontier, GridSpec
 
 RULES: frozenset[str] = frozenset({"vlfm", "gain", "topo"})
 _EIGHT = np.ones((3, 3), dtype=bool)
+
+
+def rule_of(strategy: str) -> str | None:
+    """The rule (one of :data:`RULES`) a strategy chooses its frontier by, None for a strategy that samples or
+    has a rule of its own: a rule's own name, or the rule a perfect-value yardstick runs."""
+    rule = PERFECT_VALUE_RULE.get(strategy, strategy)
+    return rule if rule in RULES else None
 
 
 def frontier_value(f: Frontier) -> float:
@@ -163,17 +174,19 @@ def doorways(frontiers: list[Frontier], grid: GridSpec, free: np.ndarray, robot_
 def scores(strategy: str, frontiers: list[Frontier], candidates: np.ndarray, geodesic_m: np.ndarray,
            grid: GridSpec, free: np.ndarray, occupied: np.ndarray, explored: np.ndarray | None,
            robot_xy: tuple[float, float], p: RuleParams) -> tuple[np.ndarray, np.ndarray]:
-    """(score per frontier, -inf for non-candidates; value ``v_p`` per frontier) of a rule (module doc)."""
-    if strategy not in RULES:
+    """(score per frontier, -inf for non-candidates; value ``v_p`` per frontier) of a rule (module doc);
+    ``strategy``: a rule or a yardstick that runs one (:func:`rule_of`)."""
+    rule = rule_of(strategy)
+    if rule is None:
         raise ValueError(f"{strategy!r} is not a frontier rule ({', '.join(sorted(RULES))})")
     v = np.array([frontier_value(f) for f in frontiers], dtype=np.float64)
     d = np.asarray(geodesic_m, dtype=np.float64)
     s = v - p.cost_per_m * np.where(np.isfinite(d), d, 0.0)
-    if strategy == "gain":
+    if rule == "gain":
         # without the explored plane (a map from before the planner read it) free space is the explored part
         seen = explored if explored is not None else free
         s = s + p.gain_weight * unknown_share(frontiers, grid, seen, occupied, p.gain_radius_m)
-    elif strategy == "topo":
+    elif rule == "topo":
         s = s - p.topo_hop_cost * doorways(frontiers, grid, free, robot_xy, p.topo_core_m)
     ok = np.asarray(candidates, dtype=bool) & np.isfinite(d) & np.isfinite(s)
     return np.where(ok, s, -np.inf), v

@@ -13,8 +13,9 @@ Rules, in order:
 4. The committed far target of earlier steps is kept while a candidate lies within ``commit_radius_m`` of
    it; otherwise a new frontier is chosen by the strategy (:mod:`services.planner.sampling`), its weight
    multiplied by ``exp(-geodesic distance / distance_decay_m)`` for every strategy. The deterministic rules
-   ``vlfm``, ``gain`` and ``topo`` rank the frontiers by value and distance instead and also drop a commitment
-   whose value fell (:mod:`services.planner.frontier_rules`).
+   ``vlfm``, ``gain`` and ``topo`` (and the yardsticks ``perfect_vlfm`` / ``perfect_gain`` that run them on
+   ground-truth values) rank the frontiers by value and distance instead and also drop a commitment whose
+   value fell (:mod:`services.planner.frontier_rules`).
 5. The robot moves along the path at most ``max_step_m`` (3 m). On arrival at the approach point it faces
    along the frontier normal (into the unknown) and the frontier is marked visited; on the way it faces
    along the path.
@@ -282,7 +283,7 @@ def _choose(frontiers: list[Frontier], reached: _Reach, strategy: Strategy, mem:
     (:mod:`services.planner.frontier_rules`); ``maps``: (grid, free, occupied, explored) for them."""
     n = len(frontiers)
     probs = np.zeros(n)
-    if strategy in frontier_rules.RULES:
+    if frontier_rules.rule_of(strategy) is not None:
         committed = mem.target if mem.committed_steps < params.max_commit_steps else None
         idx_r, probs, note, fresh = frontier_rules.choose(
             strategy, frontiers, reached.reachable, reached.geodesic, *maps, (pose.x, pose.y),
@@ -321,7 +322,7 @@ def _advance(mem: Memory, frontier: Frontier, path: list[tuple[float, float]], a
     (ax, ay), (bx, by) = path[-2], path[-1]
     yaw = math.atan2(by - ay, bx - ax) if math.hypot(bx - ax, by - ay) > 1e-6 else pose.yaw
     mem.target = frontier
-    if strategy in frontier_rules.RULES and not sampled and committed is not None:
+    if frontier_rules.rule_of(strategy) is not None and not sampled and committed is not None:
         # the rules compare a kept target's value with its value when it was chosen
         mem.target = frontier.model_copy(update={"sv": committed.sv, "sv_normal": committed.sv_normal})
     mem.committed_steps += 1

@@ -1,5 +1,5 @@
-"""Benchmark-only yardsticks: target_oracle and perfect_sv read ground truth, the product refuses them,
-and the tuning tools refuse the evaluation seeds."""
+"""Benchmark-only yardsticks: target_oracle and the perfect-value ones (perfect_sv, perfect_vlfm, perfect_gain)
+read ground truth, the product refuses them, and the tuning tools refuse the evaluation seeds."""
 
 from __future__ import annotations
 
@@ -11,11 +11,12 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from eqa.messages import BOUND_STRATEGIES, EpisodeStart, Frontier, Pose2D, PromptPoint, Question
+from eqa.messages import BOUND_STRATEGIES, EpisodeStart, Frontier, GridSpec, Pose2D, PromptPoint, Question
 from services.mapper.episode_map import EpisodeMap
-from services.mapper.frontiers import target_weights
-from services.mapper.semantic_map import ground_truth_scores
-from services.planner import sampling
+from services.mapper.frontiers import target_weights, weigh_frontiers
+from services.mapper.semantic_map import QUESTION_LAYER, ground_truth_scores
+from services.planner import frontier_rules, sampling
+from services.planner.step import Memory, PlannerParams, plan_step
 
 
 def _start(strategy: str, targets: list[tuple[float, float]]) -> EpisodeStart:
@@ -62,10 +63,55 @@ def test_perfect_sv_writes_ground_truth_values_not_the_scorers() -> None:
     assert sv2[0] > sv2[1]  # semantic keeps the scorer's values
 
 
+def _valued_frontiers(strategy: str) -> list[Frontier]:
+    """Two frontiers valued by the mapper of a ``strategy`` episode from one view where the scorer favours the
+    prompt point A (0, 4) and the ground truth, a target at (6, 0), the point B (5, 0): frontier 0 lies beyond
+    A, frontier 1 beyond B."""
+    em = EpisodeMap(_start(strategy, [(6.0, 0.0)]))
+    em.pose = Pose2D(x=0.0, y=0.0, yaw=0.0)
+    em.volume.ensure(-10.0, 10.0, -10.0, 10.0)
+    em.prompts = [PromptPoint(label="A", x=0.0, y=4.0, u=10, v=10), PromptPoint(label="B", x=5.0, y=0.0, u=20, v=10)]
+    em.apply_scores([0.99, 0.01], 0.0)
+    fs = [Frontier(x=0.0, y=4.5, nx=0.0, ny=1.0, size=10), Frontier(x=5.5, y=0.0, nx=1.0, ny=0.0, size=10)]
+    c = em.config
+    return weigh_frontiers(fs, em.layer(QUESTION_LAYER), em.origin, em.resolution, c.tau_sv, c.tau_sv_normal,
+                           c.frontier.d_sv, c.frontier.normal_scored_only, c.frontier.unscored_sv)
+
+
+def test_perfect_value_rules_go_for_the_frontier_nearest_the_target() -> None:
+    # an open, fully explored 20 m x 20 m map: no unknown area, so gain's exploration term is 0 for both
+    res = 0.1
+    grid = GridSpec(origin_x=-10.0, origin_y=-10.0, resolution=res, rows=200, cols=200)
+    free = np.ones((200, 200), dtype=bool)
+    occ = np.zeros_like(free)
+    params = PlannerParams().rule_params()
+    geo = np.array([4.0, 5.0])  # the frontier nearest the target is the farther one
+    cand = np.ones(2, dtype=bool)
+    for rule, perfect in (("vlfm", "perfect_vlfm"), ("gain", "perfect_gain")):
+        assert frontier_rules.rule_of(perfect) == rule and frontier_rules.rule_of(rule) == rule
+        fs = _valued_frontiers(perfect)
+        assert fs[1].sv > fs[0].sv  # the ground truth's values, not the scorer's
+        i, probs, note, fresh = frontier_rules.choose(perfect, fs, cand, geo, grid, free, occ, free, (0.0, 0.0),
+                                                      params, None, 1.0)
+        assert i == 1 and probs.tolist() == [0.0, 1.0] and fresh and note.startswith(perfect)
+        # the same rule on the scorer's values goes the other way: the yardstick differs by its values only
+        scored = _valued_frontiers(rule)
+        assert scored[0].sv > scored[1].sv
+        assert frontier_rules.choose(rule, scored, cand, geo, grid, free, occ, free, (0.0, 0.0), params, None,
+                                     1.0)[0] == 0
+        # through the planner's step: the yardstick plans exactly as its rule does on the same values
+        pose = Pose2D(x=1.0, y=1.0, yaw=0.0)
+        a = plan_step(grid, free, occ, pose, fs, perfect, Memory(), sampling.step_rng(0, 0), explored=free)  # type: ignore[arg-type]
+        b = plan_step(grid, free, occ, pose, fs, rule, Memory(), sampling.step_rng(0, 0), explored=free)  # type: ignore[arg-type]
+        assert a.kind == b.kind == "move" and a.frontier_index == b.frontier_index == 1
+        assert a.pose == b.pose and a.probabilities == b.probabilities
+    assert frontier_rules.rule_of("perfect_sv") is None and frontier_rules.rule_of("semantic") is None
+
+
 def test_the_product_refuses_the_yardsticks() -> None:
     from gateway.schemas import QuestionRequest
 
-    assert {"target_oracle", "perfect_sv"} <= BOUND_STRATEGIES
+    assert {"target_oracle", "perfect_sv", "perfect_vlfm", "perfect_gain"} <= BOUND_STRATEGIES
     for s in sorted(BOUND_STRATEGIES):
         with pytest.raises(ValidationError, match="yardstick"):
             QuestionRequest(question="Where is the mug?", scene="gen-00001", strategy=s)  # type: ignore[arg-type]

@@ -222,3 +222,17 @@ def test_sets_read_from_other_result_directories_are_used_not_copied(settings, t
     got = _collect(qs, settings, "fbe", "set-b", args)
     assert len(got) == 3 and got[2].steps[2].relevance == 0.6  # the third from the other directory
     assert len(list(read_jsonl(tmp_path / "out" / "traces" / "set-b.jsonl.gz"))) == 3  # --out's own set, exported
+
+
+def test_explore_printout_pairs_with_every_named_base(capsys: pytest.CaptureFixture[str]) -> None:
+    """``--versus``: the paired rows against each extra base strategy are printed after semantic's and fbe's."""
+    from eqa.app.bench_cli import _print_explore
+
+    row = {"budget": 0.5, "a_only": 7, "b_only": 2, "p_value": 0.18, "ci_low": -0.01, "ci_high": 0.1}
+    strategy = {"n": 9, "success": [0.5], "evidence_share": 0.4, "first_evidence_at": 0.3}
+    results = {"scorer": "oracle", "size": "320x240", "budgets": [0.5], "seeds": [1],
+               "strategies": {"gain": strategy, "perfect_gain": strategy},
+               "paired_bases": ["gain"], "paired_vs_gain": {"perfect_gain": [row]}}
+    _print_explore(results)
+    out = capsys.readouterr().out
+    assert "each run against gain" in out and "  7 / 2" in out
