@@ -209,9 +209,9 @@ def _limit_metrics(results: list[TaskResult], kind: str, variants: tuple[str, ..
         lim: {v: {r.task_id: r for r in results if r.variant == v and r.pick_limit == lim} for v in variants}
         for lim in limits}
     have = {lim: set.intersection(*(set(d) for d in by[lim].values())) if variants else set() for lim in limits}
-    base = have[None] if have.get(None) else set.intersection(*(have[lim] for lim in limits if have[lim])) \
-        if any(have.values()) else set()
-    common = sorted(base)
+    # the table's tasks: those of the limit every variant ran most often (unlimited on a tie, as it derives the
+    # others), so a few stray runs under another limit cannot shrink it
+    common = sorted(max((have[lim] for lim in (None, *limits)), key=len) if any(have.values()) else set())
     out: MetricsByLimit = {}
     post_hoc: dict[int | None, bool] = {}
     for lim in limits:

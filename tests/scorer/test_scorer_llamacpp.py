@@ -23,6 +23,7 @@ from support.scorer import (
     LLAMA_ALIAS,
     REPO,
     frame_request,
+    remote_fleet_episode,
     setup_llama,
     start_llama_server,
     start_replica,
@@ -181,22 +182,5 @@ def test_images_refused_without_the_projector(llama_paths, tmp_path):
 def test_episode_through_the_fleet(llama, tmp_path):
     """An episode through a real fleet (sim, mapper, planner, stopper, a scorer replica as separate processes)
     whose scorer is the remote backend on llama-server, in logprobs mode."""
-    from eqa.app.benchmark_runner import Runner
-    from eqa.settings import Settings
-    from services.sim.questions import benchmark
-
     url, model = llama
-    s = Settings(data_dir=tmp_path, zenoh_listen=[], zenoh_connect=[], sim_width=160, sim_height=120,
-                 scorer_backend="remote", remote_base_url=url, remote_model=model, remote_mode="logprobs",
-                 remote_timeout_s=120.0, scorer_timeout_s=300.0)
-    question = benchmark(seed=0, scenes_dir=s.scenes_path).calibration[0].model_copy(update={"max_steps": 3})
-    with Runner(s, robots=1, scorers=1, step_timeout_s=240) as runner:
-        results = list(runner.run([question]))
-    assert len(results) == 1
-    res = results[0]
-    assert res.end is not None and not res.reason.startswith("failed"), res.reason
-    assert res.steps and [st.step for st in res.steps] == list(range(len(res.steps)))
-    modes = {st.mode for st in res.steps} - {""}  # steps filled in from the stopper's stored trace carry none
-    assert modes == {"logprobs"}, modes
-    for st in res.steps:
-        assert len(st.answer_probs) == len(question.choices) and abs(sum(st.answer_probs) - 1) < 1e-6
+    remote_fleet_episode(tmp_path, url, model, "logprobs", remote_mode="logprobs")

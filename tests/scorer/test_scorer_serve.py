@@ -20,6 +20,7 @@ from support.scorer import (
     VENV_SERVE,
     frame_request,
     install_serve,
+    remote_fleet_episode,
     serve_installed,
     start_replica,
     start_serve,
@@ -95,22 +96,5 @@ def test_replica_through_the_pool(serve, hub_settings, settings):
 def test_episode_through_the_fleet(serve, tmp_path):
     """An episode through a real fleet (sim, mapper, planner, stopper, a scorer replica as separate processes)
     whose scorer is the remote backend on transformers serve, in sampling mode (auto, no logprobs)."""
-    from eqa.app.benchmark_runner import Runner
-    from eqa.settings import Settings
-    from services.sim.questions import benchmark
-
     url, model = serve
-    s = Settings(data_dir=tmp_path, zenoh_listen=[], zenoh_connect=[], sim_width=160, sim_height=120,
-                 scorer_backend="remote", remote_base_url=url, remote_model=model, remote_samples=2,
-                 remote_timeout_s=120.0, scorer_timeout_s=300.0)
-    question = benchmark(seed=0, scenes_dir=s.scenes_path).calibration[0].model_copy(update={"max_steps": 3})
-    with Runner(s, robots=1, scorers=1, step_timeout_s=240) as runner:
-        results = list(runner.run([question]))
-    assert len(results) == 1
-    res = results[0]
-    assert res.end is not None and not res.reason.startswith("failed"), res.reason
-    assert res.steps and [st.step for st in res.steps] == list(range(len(res.steps)))
-    modes = {st.mode for st in res.steps} - {""}  # steps filled in from the stopper's stored trace carry none
-    assert modes == {"sampling"}, modes
-    for st in res.steps:
-        assert len(st.answer_probs) == len(question.choices) and abs(sum(st.answer_probs) - 1) < 1e-6
+    remote_fleet_episode(tmp_path, url, model, "sampling", remote_samples=2)

@@ -323,3 +323,26 @@ def start_llama_server(paths: dict[str, str], log_path: Path, mmproj: bool = Tru
         time.sleep(0.3)
     stop_process(proc)
     raise RuntimeError(f"llama-server did not come up: {log_path.read_text(errors='replace')[-1500:]}")
+
+
+def remote_fleet_episode(tmp_path: Path, url: str, model: str, mode: str, **remote: object) -> None:
+    """One 3-step benchmark question through a real fleet (sim, mapper, planner, stopper, a scorer replica as
+    separate processes) whose scorer is the remote backend on the server at ``url``; every step must have been
+    scored in ``mode`` ("logprobs" or "sampling") with a probability vector over the question's choices."""
+    from eqa.app.benchmark_runner import Runner
+    from services.sim.questions import benchmark
+
+    s = Settings(data_dir=tmp_path, zenoh_listen=[], zenoh_connect=[], sim_width=160, sim_height=120,
+                 scorer_backend="remote", remote_base_url=url, remote_model=model, remote_timeout_s=120.0,
+                 scorer_timeout_s=300.0, **remote)  # type: ignore[arg-type]
+    question = benchmark(seed=0, scenes_dir=s.scenes_path).calibration[0].model_copy(update={"max_steps": 3})
+    with Runner(s, robots=1, scorers=1, step_timeout_s=240) as runner:
+        results = list(runner.run([question]))
+    assert len(results) == 1
+    res = results[0]
+    assert res.end is not None and not res.reason.startswith("failed"), res.reason
+    assert res.steps and [st.step for st in res.steps] == list(range(len(res.steps)))
+    modes = {st.mode for st in res.steps} - {""}  # steps filled in from the stopper's stored trace carry none
+    assert modes == {mode}, modes
+    for st in res.steps:
+        assert len(st.answer_probs) == len(question.choices) and abs(sum(st.answer_probs) - 1) < 1e-6

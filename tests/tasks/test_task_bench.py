@@ -64,6 +64,18 @@ def test_a_limit_run_enforced_is_read_from_its_runs_else_derived_post_hoc() -> N
     assert {(x["variant"], x["picks"]): x for x in t["rows"]}[("helios", 1)]["FindObj"][0] == 0.0
 
 
+def test_a_few_stray_unlimited_runs_do_not_shrink_the_table_of_an_enforced_limit() -> None:
+    def r(tid: str, v: str, limit: int | None, **m: float) -> TaskResult:
+        return TaskResult(tid, "pick_place", v, 30, dict(m), "stopped", "", 1.0, limit)
+
+    res = [r(t, v, 1, SR=float(t == "a" and v == "helios")) for t in "abcd" for v in ("trusting", "helios")]
+    res += [r("a", "trusting", None, SR=0.0), r("a", "helios", None, SR=1.0)]  # one task also run unlimited
+    t = summarise("pick_place", res, ("trusting", "helios"))
+    rows = {(x["variant"], x["picks"]): x for x in t["rows"]}
+    assert t["n"] == 4 and rows[("helios", 1)]["SR"][0] == 0.25 and rows[("helios", 1)]["post_hoc"] is False
+    assert ("helios", "unlimited") not in rows  # 1 of 4 tasks run unlimited: no row rather than a row of n 1
+
+
 def test_enforced_limits_traces_and_replay_through_the_services(tmp_path: Path, redis_url: str,
                                                                  capsys: pytest.CaptureFixture[str]) -> None:
     """The first tuning-seed task on a real fleet, with pick limit 1 enforced and unlimited: each run carries
