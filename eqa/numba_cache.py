@@ -1,4 +1,5 @@
-"""Where numba's machine-code cache goes (every ``cache=True`` kernel of the project imports this first).
+"""Where numba's machine-code cache goes (every ``cache=True`` kernel module calls :func:`choose_cache_dir`
+before its ``njit`` definitions).
 
 Never into the source tree (a read-only install cannot write there, a checkout would get dirty):
 ``NUMBA_CACHE_DIR`` when set, else ``$XDG_CACHE_HOME/eqa/numba`` (``~/.cache/eqa/numba``), else
@@ -36,6 +37,3 @@ def choose_cache_dir() -> None:
         if os.access(target, os.W_OK):
             numba.config.CACHE_DIR = str(target.resolve())
             return
-
-
-choose_cache_dir()

@@ -26,7 +26,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from eqa.numba_cache import cache_dir_candidates, choose_cache_dir  # noqa: F401 (cache_dir_candidates: API)
+from eqa.numba_cache import choose_cache_dir
 
 choose_cache_dir()  # before the eager njit calls below (eqa.numba_cache)
 
