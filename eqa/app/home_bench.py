@@ -86,15 +86,15 @@ def changed_sequence(seed: int, index: int, n: int, scenes_dir: Path, changes: i
     return out
 
 
-def impacts(seed: int, index: int, n: int, scenes_dir: Path, changes: int) -> list[dict[str, Any]]:
-    """Per question of the changed sequence: its rounds ``k`` and whether the changes since the home's first
-    question affect it (:func:`services.sim.change_impact.impact`: its answer or its evidence changed, so a view
-    the home remembers may show what is no longer true)."""
+def impacts(pairs: list[tuple[Any, Any]], scenes_dir: Path, changes: int) -> list[dict[str, Any]]:
+    """Per question of a changed sequence (``pairs`` from :func:`changed_sequence` with ``changes`` rounds between
+    questions): its rounds ``k`` and whether the changes since the home's first question affect it
+    (:func:`services.sim.change_impact.impact`: its answer or its evidence changed, so a view the home remembers
+    may show what is no longer true)."""
     from services.sim.change_impact import impact
     from services.sim.changes import changes_of, parse_changed_id
     from services.sim.library import load_or_generate
 
-    pairs = changed_sequence(seed, index, n, scenes_dir, changes)
     if changes <= 0 or not pairs:
         return [{"k": 0, "affected": False, "answer_changed": False} for _ in pairs]
     base = load_or_generate(pairs[0][1].scene, scenes_dir)
@@ -269,8 +269,9 @@ def run(args: argparse.Namespace, settings: Any) -> dict[str, Any]:
     dump = settings.model_dump(mode="json")
     houses = _houses(args.seeds, args.cal_houses, args.test_houses)
     changes = int(getattr(args, "changes", 0) or 0)
-    seqs = {(s, i): sequence(s, i, args.questions, settings.scenes_path, changes) for s, i, _ in houses}
-    impact = {(s, i): impacts(s, i, args.questions, settings.scenes_path, changes) for s, i, _ in houses}
+    pairs = {(s, i): changed_sequence(s, i, args.questions, settings.scenes_path, changes) for s, i, _ in houses}
+    seqs = {house: [q for q, _ in p] for house, p in pairs.items()}
+    impact = {house: impacts(p, settings.scenes_path, changes) for house, p in pairs.items()}
     size = f"{settings.sim_width}x{settings.sim_height}"
 
     # 1. cold traces of every question

@@ -320,7 +320,7 @@ def test_bench_changes_ask_each_question_in_the_changed_house_with_its_ground_tr
     assert [a.id for a, _ in pairs][1:] == [f"{b.id}-c{k}" for (_, b), k in zip(pairs[1:], (2, 4), strict=True)]
     base = load_or_generate("gen-110002", tmp_path)
     made = changes_of(base, 4)
-    for (asked, q), imp in zip(pairs, impacts(11, 2, 3, tmp_path, 2), strict=True):
+    for (asked, q), imp in zip(pairs, impacts(pairs, tmp_path, 2), strict=True):
         if imp["k"]:
             house = load_or_generate(asked.scene, tmp_path)
             assert asked.answer == rederive(q, house).answer  # the changed house's truth is what is scored
