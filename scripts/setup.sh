@@ -10,16 +10,8 @@ ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0' || need_apt+=(libusb-1.0-0) 
 command -v redis-server >/dev/null 2>&1 || need_apt+=(redis-server)                 # tests run a private one
 command -v chromium >/dev/null 2>&1 || need_apt+=(chromium)                         # browser tests (docs, console)
 command -v chromedriver >/dev/null 2>&1 || need_apt+=(chromium-driver)              # ... driven by selenium
-if [ ${#need_apt[@]} -gt 0 ]; then
-  echo "setup: installing Debian packages: ${need_apt[*]}"
-  SUDO=""
-  if [ "$(id -u)" != 0 ]; then
-    command -v sudo >/dev/null 2>&1 || { echo "setup: need root (or sudo) to apt-get install ${need_apt[*]}" >&2; exit 1; }
-    SUDO=sudo
-  fi
-  $SUDO apt-get update -qq
-  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "${need_apt[@]}" >/dev/null
-fi
+. scripts/apt.sh
+apt_install setup "${need_apt[@]}"
 
 PY=${PYTHON:-}
 if [ -z "$PY" ]; then
