@@ -26,6 +26,7 @@ from eqa.store import episode_end_key, open_store
 from gateway.app import create_app
 from gateway.cli import uvicorn_options
 from services.sim.library import floor_area
+from support.gateway import TOKENS
 
 if TYPE_CHECKING:
     from eqa.launcher import Fleet
@@ -68,8 +69,6 @@ def lone_gateway_settings(data_dir: Path, tokens: list[str], **update: Any) -> S
 def tenant_gateway_settings(tmp: Path, **update: Any) -> Settings:
     """A fleet-less gateway with the four tenants of ``support.gateway.TOKENS`` (two submitters, an admin, a
     reader) and an episode timeout long enough that its episodes, which nothing runs, stay "running"."""
-    from support.gateway import TOKENS
-
     return lone_gateway_settings(tmp / "var", TOKENS, **{"episode_timeout_s": 3600.0, **update})
 
 
