@@ -91,15 +91,12 @@ class TaskCores:
 def run_task_episode(cores: TaskCores, start: EpisodeStart) -> tuple[str, str, dict[str, float], dict[str, Any]]:
     """One task episode of ``start`` in process (module doc). Returns the end state (``stopped`` / ``failed``),
     its reason, the simulator's metrics and the stored trace (:meth:`TaskEpisode.trace_doc`)."""
-    from eqa.app.core_runner import goal_refusal
     from eqa.messages import DetectResult, Frame, ValueResult
     from services.mapper.episode_map import EpisodeMap, MapperConfig
     from services.mapper.object_map import ObjectMap, ObjectMapConfig
     from services.mapper.object_map import task_classes as object_classes
     from services.mapper.object_shell import ask_objects, attach_objects, fuse_frame, task_map_config, value_layer
     from services.mapper.semantic_map import QUESTION_LAYER
-    from services.planner.refusals import Refusals
-    from services.planner.sampling import step_rng
     from services.planner.step import Memory, PlannerParams
     from services.planner.task_fsm import Thresholds
     from services.planner.task_runner import PlannerTask
@@ -187,21 +184,7 @@ def run_task_episode(cores: TaskCores, start: EpisodeStart) -> tuple[str, str, d
         if step + 1 >= start.max_steps:
             break
         # planner, with the simulator's refusals
-        refusals = Refusals(step, update.pose, len(update.frontiers), memory.copy(), params.turn_deg)
-        state_before = planner.to_json()
-        goal, plan = planner.goal(start.episode_id, update, refusals.memory(), step_rng(start.seed, step, 0), params)
-        while not plan.done:
-            refused = goal_refusal(scene, plan)
-            if refused is None:
-                break
-            forced = refusals.refuse(plan, refused)
-            if forced is None:  # planned again from the machine's state before the step
-                goal, plan = planner.goal(start.episode_id, update, refusals.memory(),
-                                          step_rng(start.seed, step, refusals.attempt), params, before=state_before)
-            else:  # the policy's turn in place (or done), published without task fields
-                plan = forced
-                goal = Goal(episode_id=start.episode_id, step=step, pose=plan.pose, path=plan.path,
-                            frontier=plan.frontier, weights=plan.probabilities, done=plan.done, reason=plan.reason)
+        goal, plan = plan_task_step(planner, scene, update, memory, params, start, step)
         if plan.done or goal.pose is None:
             sim.episode.end_reason = goal.reason[:300]
             reason = f"task ended: {goal.reason or 'the planner is done'}"
@@ -209,6 +192,33 @@ def run_task_episode(cores: TaskCores, start: EpisodeStart) -> tuple[str, str, d
         memory = plan.memory
         before, pose = pose, goal.pose
     return "stopped", reason, sim.metrics(), sim.episode.trace_doc()
+
+
+def plan_task_step(planner: Any, scene: Any, update: Any, memory: Any, params: Any, start: EpisodeStart,
+                   step: int) -> tuple[Goal, Any]:
+    """The planner service's goal for a task step (``_plan_and_publish``): the state machine's goal, planned
+    again from its state before the step while the simulator refuses it
+    (:func:`services.planner.refusals.plan_until_accepted`); the policy's own turn in place (or done) is
+    published without task fields."""
+    from eqa.app.core_runner import goal_refusal
+    from services.planner.refusals import Refusals, plan_until_accepted
+    from services.planner.sampling import step_rng
+
+    refusals = Refusals(step, update.pose, len(update.frontiers), memory.copy(), params.turn_deg)
+    state_before = planner.to_json()
+    chosen: list[tuple[Goal, Any]] = []
+
+    def attempt(r: Refusals) -> Any:
+        goal, plan = planner.goal(start.episode_id, update, r.memory(), step_rng(start.seed, step, r.attempt),
+                                  params, before=state_before if r.attempt else None)
+        chosen.append((goal, plan))
+        return plan
+
+    plan = plan_until_accepted(refusals, attempt, lambda p: goal_refusal(scene, p))
+    if chosen and chosen[-1][1] is plan:
+        return chosen[-1][0], plan
+    return Goal(episode_id=start.episode_id, step=step, pose=plan.pose, path=plan.path, frontier=plan.frontier,
+                weights=plan.probabilities, done=plan.done, reason=plan.reason), plan
 
 
 def cores_episode_id(task_id: str, max_steps: int) -> str:
