@@ -11,7 +11,11 @@ Store layout (every key of one home starts with :func:`prefix`):
 * ``eqa:home:{home}:summary``  JSON :class:`HomeSummary`, rewritten by the mapper whenever the home changes;
 * ``eqa:home:{home}:map.png``  optional: a PNG picture of the home's map, which the gateway serves and the
   console shows as it is (``GET /v1/homes/{name}/map.png``);
-* ``eqa:home:{home}:*``        the mapper's parts of the home (its map and view memory).
+* ``eqa:home:{home}:lock``     held by whoever writes or deletes the home (:func:`take_lock`);
+* ``eqa:home:{home}:*``        the mapper's parts of the home (its map and view memory);
+* ``eqa:homereset:{home}``     a token written by every reset (:func:`delete_home`), outside the home's prefix
+  so it outlives the reset: an episode that started before a reset and ends after it finds another token and
+  does not write its memory back into the home the user emptied.
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ from __future__ import annotations
 import hashlib
 import re
 import time
+import uuid
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -26,6 +31,8 @@ from eqa import keys
 from eqa.store import Store
 
 PREFIX = "eqa:home:"
+RESET_PREFIX = "eqa:homereset:"
+LOCK_TTL_S = 30.0  # a dead holder blocks the home this long at most
 # A generated house after k rounds of changes (services.sim.changes): the same house, so the same home.
 CHANGED_SCENE = re.compile(r"^(gen-\d{1,9})-c(\d{1,3})$")
 
@@ -80,9 +87,48 @@ def write_summary(store: Store, summary: HomeSummary, ttl_s: float | None = None
     store.set_json(summary_key(summary.home), summary.model_dump(mode="json"), ttl_s=ttl_s)
 
 
-def delete_home(store: Store, home: str) -> int:
-    """Delete every key of ``home``; the number of keys deleted."""
-    found = store.keys(prefix(home))
-    if found:
-        store.delete_many(found)
-    return len(found)
+class HomeBusyError(RuntimeError):
+    """The home's lock is held (its memory is being written) longer than a caller waits."""
+
+
+def lock_key(home: str) -> str:
+    return prefix(home) + "lock"
+
+
+def reset_key(home: str) -> str:
+    return f"{RESET_PREFIX}{keys.check_id(home, 'home')}"
+
+
+def take_lock(store: Store, home: str, holder: str, wait_s: float) -> bool:
+    """Take the home's lock (``set_if_absent`` with :data:`LOCK_TTL_S`), waiting up to ``wait_s``; False when
+    another holder kept it that long. The holder releases it with ``store.delete(lock_key(home))``."""
+    deadline = time.monotonic() + wait_s
+    while True:
+        if store.set_if_absent(lock_key(home), holder.encode(), ttl_s=LOCK_TTL_S):
+            return True
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.05)
+
+
+def reset_mark(store: Store, home: str) -> str | None:
+    """The token of the home's last reset (None: never reset, or so long ago that its memory expired too)."""
+    raw = store.get(reset_key(home))
+    return None if raw is None else raw.decode("ascii", "replace")
+
+
+def delete_home(store: Store, home: str, mark_ttl_s: float, wait_s: float = 2.0) -> int:
+    """Reset ``home``: under its lock, write a new reset token (kept ``mark_ttl_s``: the home's TTL, the longest
+    an episode's memory could still be written back) and delete every key of the home; the number of keys
+    deleted. :class:`HomeBusyError` when a mapper holds the lock (it is writing an episode back) past
+    ``wait_s``: nothing is deleted then."""
+    if not take_lock(store, home, "reset", wait_s):
+        raise HomeBusyError(f"home {home}: its memory is being written; try again in a few seconds")
+    try:
+        store.set(reset_key(home), uuid.uuid4().hex.encode(), ttl_s=mark_ttl_s)
+        found = [k for k in store.keys(prefix(home)) if k != lock_key(home)]
+        if found:
+            store.delete_many(found)
+        return len(found)
+    finally:
+        store.delete(lock_key(home))

@@ -93,8 +93,9 @@ class HomeDeleted(BaseModel):
 class HomeRegistry:
     """Store I/O of the gateway's home records (writes under the manager's lock)."""
 
-    def __init__(self, store: Store) -> None:
+    def __init__(self, store: Store, memory_ttl_s: float) -> None:
         self.store = store
+        self.memory_ttl_s = memory_ttl_s  # EQA_HOME_TTL_S: how long a reset's token outlives the reset
 
     def get(self, owner: str, name: str) -> HomeRecord | None:
         raw = self.store.get_json(record_key(homes.home_id(owner, name)))
@@ -161,11 +162,12 @@ class HomeRegistry:
         return raw if raw is not None and raw.startswith(PNG_SIGNATURE) else None
 
     def delete(self, entry: HomeRecord) -> int:
-        """Delete the home's memory and the gateway's record (the index entries first: the list never shows a
-        home whose memory is half gone); the number of memory keys deleted."""
+        """Delete the home's memory (:func:`eqa.homes.delete_home`), then the gateway's index entries and record;
+        the number of memory keys deleted. While a mapper writes an episode back into the home
+        :class:`eqa.homes.HomeBusyError` is raised and nothing is deleted."""
+        n = homes.delete_home(self.store, entry.home, self.memory_ttl_s)
         self.store.index_remove(idx_owner(entry.owner), [entry.home])
         self.store.index_remove(IDX_USED, [entry.home])
-        n = homes.delete_home(self.store, entry.home)
         self.store.delete(record_key(entry.home))
         return n
 
@@ -175,8 +177,12 @@ class HomeRegistry:
         out = []
         for hid, raw in zip(ids, self.store.get_many([record_key(h) for h in ids]), strict=True):
             if raw is None:
+                try:  # memory left without a record: nobody can name it
+                    homes.delete_home(self.store, hid, self.memory_ttl_s)
+                except homes.HomeBusyError:
+                    log.info("home %s: being written; its memory goes at the next retention round", hid)
+                    continue
                 self.store.index_remove(IDX_USED, [hid])
-                homes.delete_home(self.store, hid)  # memory left without a record: nobody can name it
                 continue
             out.append(HomeRecord.model_validate_json(raw))
         return out

@@ -238,7 +238,7 @@ class EpisodeManager:
         self._known_scenes: dict[str, None] = {}  # scenes loaded once (insertion order, bounded)
         self._new_scenes = RateLimiter(NEW_SCENES_PER_MIN / 60.0, burst=NEW_SCENES_PER_MIN)
         self._mean_episode_s = 60.0  # running mean of episode wall times (for Retry-After)
-        self.homes = HomeRegistry(store)
+        self.homes = HomeRegistry(store, settings.home_ttl_s)
         self.started_at = time.time()
 
     # ---- startup ----------------------------------------------------------------------------------------
@@ -674,14 +674,19 @@ class EpisodeManager:
 
     def delete_home(self, name: str, caller: Caller | None = None) -> HomeDeleted:
         """Reset the caller's home ``name``: its memory and record go. :class:`ConflictError` (409) while an
-        episode of it is queued or running (the mapper reads and writes the memory meanwhile)."""
+        episode of it is queued or running (the mapper reads and writes the memory meanwhile), :class:`BusyError`
+        (409 with Retry-After) while a mapper writes an ended episode back into it."""
         with self._lock:
             entry = self._home_record(caller, name)
             busy = self._home_episodes(entry.home)
             if busy:
                 raise ConflictError(f"home {name!r} has {len(busy)} queued or running episodes ({', '.join(busy[:5])}"
                                     f"{' ...' if len(busy) > 5 else ''}); cancel them or wait for their end")
-            n = self.homes.delete(entry)
+            try:
+                n = self.homes.delete(entry)
+            except homes_layout.HomeBusyError as exc:
+                raise BusyError(f"home {name!r}: a mapper is writing an ended episode's memory into it; "
+                                "try again in a few seconds", retry_after_s=2.0) from exc
         log.info("home %s of %s deleted (%d memory keys)", entry.home, entry.owner, n)
         return HomeDeleted(name=name, deleted_keys=n)
 
@@ -695,7 +700,10 @@ class EpisodeManager:
             for entry in self.homes.unused_since(cutoff, batch):
                 if self._home_episodes(entry.home):
                     continue
-                self.homes.delete(entry)
+                try:
+                    self.homes.delete(entry)
+                except homes_layout.HomeBusyError:
+                    continue  # being written back: the next round takes it
                 n += 1
         if n:
             log.info("retention: %d homes unused for %g days deleted", n, self.settings.homes_retention_days)

@@ -69,7 +69,6 @@ from services.mapper.prompt_points import prompt_points
 log = logging.getLogger(__name__)
 
 STATE_KEY = "home"  # this memory's part of the mapper's episode state
-LOCK_TTL_S = 30.0
 LOCK_WAIT_S = 20.0
 
 
@@ -85,10 +84,6 @@ def view_key(home: str, view_id: str) -> str:
     return homes.prefix(home) + "view:" + view_id
 
 
-def lock_key(home: str) -> str:
-    return homes.prefix(home) + "lock"
-
-
 def memory_seed(seed: int, view_id: str) -> int:
     """The scorer seed of a remembered view's request: the episode's seed and the view, so two views never share
     the draws of a seeded (simulated) perception model and the same view gets the same ones again."""
@@ -102,13 +97,14 @@ class EpisodeHome:
     home: str
     base_version: int
     pool: ViewPool
+    reset: str | None = None  # the home's reset token when the episode started (eqa.homes.delete_home)
     warm_ids: list[str] = field(default_factory=list)  # committed views to re-score at the first frame
     memory: list[MemoryScore] | None = None  # the memory steps, once scored (None: not yet)
     loaded_cells: int = 0  # floor cells explored in the home map it started from
     changes: list[ObservedChange] = field(default_factory=list)  # changes its frames showed against the memory
 
     def dump(self) -> dict[str, Any]:
-        return {"home": self.home, "base_version": self.base_version,
+        return {"home": self.home, "base_version": self.base_version, "reset": self.reset,
                 "pool": [{"view_id": v.view_id, "t": v.t, "nbytes": v.nbytes, "step": v.step} for v in self.pool.views],
                 "warm_ids": self.warm_ids, "loaded_cells": self.loaded_cells,
                 "memory": None if self.memory is None else [m.model_dump() for m in self.memory],
@@ -173,7 +169,8 @@ class HomeMemory:
         if start.home is None:
             return
         index = self.read_index(start.home)
-        ep = EpisodeHome(start.home, index.version if index else 0, self._pool())
+        ep = EpisodeHome(start.home, index.version if index else 0, self._pool(),
+                         reset=homes.reset_mark(self.store, start.home))
         if index is not None:
             home_map = self.read_map(start.home)
             if home_map is not None:
@@ -324,6 +321,7 @@ class HomeMemory:
         memory = part.get("memory")
         self.episodes[episode_id] = EpisodeHome(
             home=home, base_version=int(part["base_version"]), pool=self._pool(views),
+            reset=None if part.get("reset") is None else str(part["reset"]),
             warm_ids=[str(v) for v in part.get("warm_ids", [])], loaded_cells=int(part.get("loaded_cells", 0)),
             memory=None if memory is None else [MemoryScore.model_validate(m) for m in memory],
             changes=[ObservedChange.from_json(c) for c in part.get("changes", [])])
@@ -338,23 +336,20 @@ class HomeMemory:
         if em.step < 0:  # no frame integrated: nothing new to remember
             self.store.delete_many([view_key(ep.home, v.view_id) for v in ep.pool.views])
             return None
-        if not self._lock(ep.home):
+        if not homes.take_lock(self.store, ep.home, self.settings.instance, LOCK_WAIT_S):
             log.error("home %s: lock not obtained in %.0f s; episode %s not remembered", ep.home, LOCK_WAIT_S,
                       em.episode_id)
             return None
         try:
+            if homes.reset_mark(self.store, ep.home) != ep.reset:
+                # the user reset the home after this episode started: its memory must not come back
+                self.store.delete_many([view_key(ep.home, v.view_id) for v in ep.pool.views])
+                log.info("home %s: reset since episode %s started; the episode is not remembered", ep.home,
+                         em.episode_id)
+                return None
             return self._commit(ep, em)
         finally:
-            self.store.delete(lock_key(ep.home))
-
-    def _lock(self, home: str) -> bool:
-        deadline = time.monotonic() + LOCK_WAIT_S
-        while True:
-            if self.store.set_if_absent(lock_key(home), self.settings.instance.encode(), ttl_s=LOCK_TTL_S):
-                return True
-            if time.monotonic() > deadline:
-                return False
-            time.sleep(0.05)
+            self.store.delete(homes.lock_key(ep.home))
 
     def _commit(self, ep: EpisodeHome, em: Any) -> HomeIndex:
         s = self.settings

@@ -204,7 +204,49 @@ def test_concurrent_episodes_in_one_home_merge(house, store: Store, tmp_path: Pa
     assert summary is not None and summary.episodes == 2 and summary.views == len(second.views)
     assert summary.bytes == second.map_bytes + second.view_bytes and summary.scenes == [SCENE]
     assert calls == []  # nothing scored: neither episode started warm
-    assert homes.delete_home(store, "h-c") >= 3 and memory.read_index("h-c") is None
+    assert homes.delete_home(store, "h-c", 60.0) >= 3 and memory.read_index("h-c") is None
+
+
+def test_a_reset_after_the_episode_ended_is_not_undone_by_its_write_back(house, store: Store, tmp_path: Path) -> None:
+    """The gateway resets a home once no episode of it is queued or running, but the mapper writes an ended
+    episode back a moment later: that write must not bring the emptied home's memory back."""
+    _scene, renderer, q = house
+    memory = HomeMemory(Settings(data_dir=tmp_path / "var"), lambda: store, lambda: fake_scorer([]))
+    homes.delete_home(store, "h-r", 60.0)
+    em = EpisodeMap(start_of(q, "ep-r", "h-r"))
+    memory.start(em.start, em)
+    for k in range(3):
+        f = frame_at(renderer, "ep-r", k, turn(q.start_pose, k))
+        em.integrate(f)
+        memory.observe(em, f)
+    assert store.keys(homes.prefix("h-r") + "view:")  # its candidate views are stored as it runs
+    homes.delete_home(store, "h-r", 60.0)  # the user's reset, after the episode's end
+    assert memory.finish(em) is None
+    assert store.keys(homes.prefix("h-r")) == [] and memory.read_index("h-r") is None
+    # an episode started after the reset is remembered as usual
+    em2 = EpisodeMap(start_of(q, "ep-r2", "h-r"))
+    memory.start(em2.start, em2)
+    f = frame_at(renderer, "ep-r2", 0, q.start_pose)
+    em2.integrate(f)
+    memory.observe(em2, f)
+    index = memory.finish(em2)
+    assert index is not None and index.version == 1 and {v.episode_id for v in index.views} == {"ep-r2"}
+    homes.delete_home(store, "h-r", 60.0)
+
+
+def test_a_reset_waits_for_a_write_back_in_progress_and_deletes_nothing_when_it_lasts(store: Store) -> None:
+    home = "h-busy"
+    store.delete(homes.reset_key(home))  # a token of an earlier run in the same store
+    store.set(homes.summary_key(home), b"{}")
+    assert homes.take_lock(store, home, "mapper-1", 0.0)  # a mapper writing an episode back
+    t0 = time.monotonic()
+    with pytest.raises(homes.HomeBusyError, match="being written"):
+        homes.delete_home(store, home, 60.0, wait_s=0.3)
+    assert time.monotonic() - t0 >= 0.3
+    assert store.get(homes.summary_key(home)) == b"{}" and homes.reset_mark(store, home) is None  # nothing lost
+    store.delete(homes.lock_key(home))
+    assert homes.delete_home(store, home, 60.0) == 1 and store.keys(homes.prefix(home)) == []
+    assert homes.reset_mark(store, home) is not None
 
 
 # ---- the service over Zenoh ---------------------------------------------------------------------------------
@@ -226,7 +268,7 @@ def test_home_carried_over_warm_started_through_a_scorer_replica_and_continued_e
         other: MapperService | None = None
         try:
             store = mapper.store
-            homes.delete_home(store, home)
+            homes.delete_home(store, home, 60.0)
             time.sleep(0.5)
             # episode 1 in the home: four views turning on the spot, then its end writes the home
             bus.publish(keys.stream(ROBOT, keys.EPISODE_START), start_of(q, "ep-h1", home))

@@ -138,6 +138,24 @@ def test_home_round_trip_question_task_list_get_delete(gw) -> None:
     assert again["episodes_submitted"] == 1 and again["memory"] is None
 
 
+def test_a_reset_while_a_mapper_writes_the_home_back_is_refused_and_loses_nothing(gw) -> None:
+    g, c = gw
+    eid = c.post("/v1/questions", json={**Q, "home": "flat-w"}, headers=A).json()["episode_id"]
+    assert c.delete(f"/v1/episodes/{eid}", headers=A).json()["state"] == "cancelled"
+    hid = homes.home_id(_tenant("tok-a"), "flat-w")
+    with open_store(g.settings) as store:
+        homes.write_summary(store, homes.HomeSummary(home=hid, episodes=1, views=3, bytes=99))
+        assert homes.take_lock(store, hid, "mapper-1", 0.0)  # the mapper writes the ended episode back
+        r = c.delete("/v1/homes/flat-w", headers=A)
+        assert r.status_code == 409 and "try again" in r.json()["detail"] and r.headers["retry-after"], r.text
+        assert c.get("/v1/homes/flat-w", headers=A).json()["memory"]["views"] == 3  # nothing lost
+        assert "flat-w" in [h["name"] for h in c.get("/v1/homes", headers=A).json()["homes"]]
+        store.delete(homes.lock_key(hid))
+    r = c.delete("/v1/homes/flat-w", headers=A)
+    assert r.status_code == 200 and r.json()["deleted_keys"] == 1, r.text
+    assert c.get("/v1/homes/flat-w", headers=A).status_code == 404
+
+
 def test_a_home_is_one_house(gw) -> None:
     """A home's memory is of one house: the same home in another scene is a 409 (nothing written); the house
     after changes (gen-<seed>-c<k>) is the same house."""
