@@ -252,6 +252,8 @@ class Fleet:
             self._alive_changed.notify_all()
 
     def _spawn(self, child: Child) -> None:
+        with self._alive_changed:
+            child.up_at = None  # set by its token's arrival (_on_alive)
         out = open(child.log_path, "ab")  # noqa: SIM115 - handed to the child, closed with it
         child.proc = subprocess.Popen(
             [sys.executable, "-m", module_of(child.service)],
@@ -262,14 +264,20 @@ class Fleet:
         )
         out.close()
         child.started_at = time.monotonic()
-        child.up_at = None
         port = int(child.env.get("EQA_METRICS_PORT", "0"))
         log.info("started %s (pid %d), log %s%s", child.instance, child.proc.pid, child.log_path,
                  f", metrics on port {port}" if port else "")
 
+    def _is_up(self, child: Child) -> bool:
+        """``child``'s process runs and has declared its liveliness token since it was started (call with
+        ``_alive_changed`` held). The token alone is not enough: a killed process's token stays visible until
+        the bus notices its session is gone, and a standby promoted in its place declares the same token."""
+        return ((child.service, child.instance) in self._alive and child.up_at is not None
+                and child.proc is not None and child.proc.poll() is None)
+
     def missing(self) -> list[Child]:
         with self._alive_changed:
-            return [c for c in self.children if (c.service, c.instance) not in self._alive]
+            return [c for c in self.children if not self._is_up(c)]
 
     def wait_alive(self, timeout: float = 90.0, children: list[Child] | None = None) -> None:
         """Block until every child (or the given ones) holds its liveliness token."""
@@ -277,7 +285,7 @@ class Fleet:
         wanted = children or self.children
         with self._alive_changed:
             while True:
-                missing = [c for c in wanted if (c.service, c.instance) not in self._alive]
+                missing = [c for c in wanted if not self._is_up(c)]
                 if not missing:
                     return
                 # a dead child the supervisor is about to replace (a restart, or its standby once the dead
@@ -383,6 +391,11 @@ class Fleet:
         line = standby.Promotion(env=env, unset=unset, log_path=child.log_path.resolve()).encode()
         del self.standbys[child.service]
         metrics.gauge_set(metrics.STANDBY_READY, 0.0, child.service)
+        # the child is the standby's from here: its token, declared as soon as the line is read, marks it up
+        with self._alive_changed:
+            child.proc = spare.proc
+            child.started_at = time.monotonic()
+            child.up_at = None
         stdin = spare.proc.stdin
         try:
             if stdin is None:
@@ -396,9 +409,6 @@ class Fleet:
             _end(spare.proc)
             self._standby_due[child.service] = time.monotonic()
             return False
-        child.proc = spare.proc
-        child.started_at = time.monotonic()
-        child.up_at = None
         child.history.append(f"standby pid {spare.proc.pid} promoted")
         self.promotions += 1
         metrics.inc(metrics.STANDBY_PROMOTIONS, child.service)

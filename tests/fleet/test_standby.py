@@ -112,3 +112,19 @@ def test_waiting_for_the_fleet_right_after_a_kill_waits_for_the_replacement(flee
     f.kill("stopper")
     f.wait_alive(timeout=60)  # raised LaunchError while the promotion waited for the dead token to go
     assert f.child("stopper").proc.pid == spare_pid
+
+
+def test_a_dead_process_is_not_up_while_the_bus_still_shows_its_token(tmp_path) -> None:
+    """A killed process's liveliness token stays visible until the bus notices its session is gone: waiting for
+    the fleet then must not count the dead process as up (here nothing replaces it, so the wait says so)."""
+    from eqa.launcher import Child, LaunchError
+
+    f = Fleet(Settings(data_dir=tmp_path), services=["stopper"], restart=False)
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait(timeout=30)
+    child = Child("stopper", "stopper-0", {}, tmp_path / "stopper.log", proc=dead, up_at=time.monotonic())
+    f.children.append(child)
+    f._alive.add(("stopper", "stopper-0"))  # the token the bus has not dropped yet
+    with pytest.raises(LaunchError, match="exited with code 0 before it was up"):
+        f.wait_alive(timeout=2.0)
+    assert f.missing() == [child]
