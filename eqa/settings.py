@@ -289,7 +289,8 @@ class HeliosSettings(SettingsGroup):
     # --- HELIOS ---
     helios_alpha_cs: float = Field(default=1.0, ge=0.0, description="alpha_cs: uncertainty weight, Eq. 7/11")
     helios_alpha_d: float = Field(default=0.001, ge=0.0, description="alpha_d: distance weight, Eq. 8/10")
-    helios_tau_g: float = Field(default=0.5, description="tau_g: Psi_g threshold to pick the object")
+    helios_tau_g: float = Field(default=0.4, description="tau_g: Psi_g threshold to pick the object (Table 3: 0.5; "
+                                "0.4 chosen on tuning seed 11, docs/results/helios-tables.md)")
     helios_tau_b: float = Field(default=0.5, description="tau_b: Psi_b threshold to place on a goal receptacle")
     helios_tau_inc: float = Field(default=0.05, ge=0.0, description="tau_inc: least gain in Psi to look again")
     helios_od_a: float = Field(default=0.35, ge=0.0, le=1.0, description="detector threshold, start receptacle")

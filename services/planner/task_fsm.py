@@ -133,7 +133,8 @@ class Action:
 
 @dataclass(frozen=True)
 class Thresholds:
-    """Table 3 values (``eqa.settings.Settings.helios_*``)."""
+    """The paper's Table 3 values. The product takes its thresholds from ``eqa.settings.Settings.helios_*``
+    (:meth:`from_settings`), whose ``tau_g`` default, 0.4, was chosen on the tuning seed 11."""
 
     alpha_d: float = 0.001
     tau_g: float = 0.5
