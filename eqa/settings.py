@@ -291,6 +291,9 @@ class HeliosSettings(SettingsGroup):
     helios_alpha_d: float = Field(default=0.001, ge=0.0, description="alpha_d: distance weight, Eq. 8/10")
     helios_tau_g: float = Field(default=0.4, description="tau_g: Psi_g threshold to pick the object (Table 3: 0.5; "
                                 "0.4 chosen on tuning seed 11, docs/results/helios-tables.md)")
+    helios_tau_stop: float = Field(default=0.6, description="tau_g of an object search: Psi_g threshold to stop at "
+                                   "the object (section 4.2; Table 3: 0.5; chosen on tuning seed 11, "
+                                   "docs/results/helios-tables.md)")
     helios_tau_b: float = Field(default=0.5, description="tau_b: Psi_b threshold to place on a goal receptacle")
     helios_tau_inc: float = Field(default=0.05, ge=0.0, description="tau_inc: least gain in Psi to look again")
     helios_od_a: float = Field(default=0.35, ge=0.0, le=1.0, description="detector threshold, start receptacle")

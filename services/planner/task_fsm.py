@@ -134,7 +134,9 @@ class Action:
 @dataclass(frozen=True)
 class Thresholds:
     """The paper's Table 3 values. The product takes its thresholds from ``eqa.settings.Settings.helios_*``
-    (:meth:`from_settings`), whose ``tau_g`` default, 0.4, was chosen on the tuning seed 11."""
+    (:meth:`from_settings`), whose ``tau_g`` (the pick) and ``tau_stop`` (the end of an object search) defaults
+    were chosen on the tuning seed 11, each on its own kind of task. The paper names one tau_g for both: the
+    two decisions cost differently when wrong (a wrong pick spends the pick, a wrong stop ends the episode)."""
 
     alpha_d: float = 0.001
     tau_g: float = 0.5
@@ -143,11 +145,12 @@ class Thresholds:
     cs_a: float = 0.3
     cs_g: float = 0.3
     cs_b: float = 0.3
+    tau_stop: float = 0.5  # Psi_g to stop an object search at (section 4.2; Table 3's tau_g)
 
     @classmethod
     def from_settings(cls, s: Any) -> Thresholds:
         return cls(s.helios_alpha_d, s.helios_tau_g, s.helios_tau_b, s.helios_tau_inc, s.helios_cs_a, s.helios_cs_g,
-                   s.helios_cs_b)
+                   s.helios_cs_b, s.helios_tau_stop)
 
 
 @dataclass
@@ -409,10 +412,10 @@ class TaskMachine:
         around the object and then only stops if the uncertainty-weighted object score is high enough". A
         candidate confident enough to stop at (Eq. 11's act) is first seen again from its best gaze point
         (once; ``checking``), then the decision is taken again on the updated layer. The trusting agent stops
-        at once. (With two classes, target and ``other``, one clean view already gives Psi ~0.6 >= tau_g 0.5:
+        at once. (With two classes, target and ``other``, one clean view already gives Psi ~0.6 >= tau_stop 0.5:
         without the look the stop decision was the trusting one.)"""
         if self.ablation != "trusting":
-            d = decide(self._scored(objects, self.object, self._ruled_out()), self.th.tau_g, self.th.tau_inc,
+            d = decide(self._scored(objects, self.object, self._ruled_out()), self.th.tau_stop, self.th.tau_inc,
                        self.th.cs_g)
             if d.action == "act" and d.instance_id is not None:
                 if self.checking == d.instance_id:  # went to its gaze point (or as near as the map allowed)
@@ -424,7 +427,7 @@ class TaskMachine:
                     if look is not None:
                         self.checking = d.instance_id
                         return look
-        a = self._act_or_look("stop", robot, objects, self.object, self._ruled_out(), self.th.tau_g, self.th.cs_g)
+        a = self._act_or_look("stop", robot, objects, self.object, self._ruled_out(), self.th.tau_stop, self.th.cs_g)
         if a is not None:
             return a
         return self._best_frontier(robot, frontiers, "object search: frontier of highest value", objects)

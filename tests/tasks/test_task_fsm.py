@@ -7,8 +7,9 @@ import math
 
 import pytest
 
+from eqa.settings import Settings
 from services.planner.helios import FrontierOption
-from services.planner.task_fsm import Gaze, SeenObject, SkillOutcome, TaskMachine
+from services.planner.task_fsm import Gaze, SeenObject, SkillOutcome, TaskMachine, Thresholds
 
 ROBOT = (0.0, 0.0, 0.0)
 FRONTIER = [FrontierOption(0, 5.0, 0.0, 0.2), FrontierOption(1, -5.0, 0.0, 0.9)]
@@ -105,6 +106,17 @@ def test_find_object_stops_when_confident() -> None:
     a = m.step((1.5, 1.2, 0.0), FRONTIER, [_mug(0.6)])
     assert a.kind == "stop" and a.ref == 20
     assert m.step(ROBOT, FRONTIER, [], SkillOutcome("stop", True, 20, "near a mug")).success
+
+
+def test_an_object_search_stops_at_tau_stop_and_a_pick_waits_for_tau_g() -> None:
+    """The search's stop and the pick have a threshold each (Thresholds docstring): Psi 0.45 between them."""
+    th = Thresholds(tau_g=0.5, tau_stop=0.4)
+    find = TaskMachine("find_object", "mug", th=th)
+    find.step(ROBOT, FRONTIER, [_mug(0.45)])  # a view from a gaze point first
+    assert find.step((1.5, 1.2, 0.0), FRONTIER, [_mug(0.45)]).kind == "stop"
+    pick = _machine(th=th)
+    assert pick.step(ROBOT, FRONTIER, [_mug(0.45)]).kind != "pick"
+    assert Thresholds.from_settings(Settings(helios_tau_stop=0.7)).tau_stop == 0.7
 
 
 def test_the_machine_survives_a_restart_mid_task() -> None:
