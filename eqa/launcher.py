@@ -280,7 +280,7 @@ class Fleet:
             return [c for c in self.children if not self._is_up(c)]
 
     def wait_alive(self, timeout: float = 90.0, children: list[Child] | None = None) -> None:
-        """Block until every child (or the given ones) holds its liveliness token."""
+        """Block until every child (or the given ones) is up (:meth:`_is_up`)."""
         deadline = time.monotonic() + timeout
         wanted = children or self.children
         with self._alive_changed:
@@ -437,7 +437,7 @@ class Fleet:
         for service, due in list(self._standby_due.items()):
             promoted = self._standby_wait_for.get(service)
             with self._alive_changed:
-                up = promoted is not None and (promoted.service, promoted.instance) in self._alive
+                up = promoted is not None and self._is_up(promoted)
             if now < due and not up:
                 continue  # the promoted standby first has the cores to itself while it joins the bus
             del self._standby_due[service]
