@@ -443,6 +443,13 @@ class HomeSettings(SettingsGroup):
         description="warm start: score requests of remembered views in flight at once (the scorer pool batches "
         "concurrent requests)",
     )
+    home_warm_budget: float = Field(
+        default=0.15, ge=0.0, le=1.0,
+        description="warm start: a question in a home whose map explored part of the house gets appendix B's step "
+        "budget for the floor left, 3 sqrt(A - A_explored) with A = (max_steps / 3)^2 (eqa/budget.py), and at "
+        "least this share of max_steps for looking again (0.15 chosen on tuning seed 11: docs/homes.md); 1 = the full "
+        "max_steps",
+    )
     home_ttl_s: float = Field(
         default=90 * 24 * 3600.0, gt=0,
         description="a home's stored parts expire this long after the last episode that updated it (keep it at "

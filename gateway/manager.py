@@ -58,6 +58,7 @@ from typing import Any
 
 from eqa import dataflow, keys
 from eqa import homes as homes_layout
+from eqa.budget import STEPS_PER_SQRT_M2, TASK_STEPS_PER_SQRT_M2, steps_for
 from eqa.bus import Bus
 from eqa.event_log import JOURNAL_SERVICES, Identity, event_identity, missing_events
 from eqa.messages import (
@@ -185,12 +186,10 @@ def _scene_area(scene_area: SceneArea, scene: str, scenes_path: Path, hm3d_dir: 
     return float(scene_area(scene, scenes_path, hm3d_dir))
 
 
-QUESTION_STEPS_PER_SQRT_M2 = 3.0  # Explore-EQA section VI: T = 3 * sqrt(scene area)
-TASK_STEPS_PER_SQRT_M2 = 6.0  # a HELIOS task's budget, the task benchmark's (services.sim.tasks.STEPS_PER_SQRT_M2)
 
 
 def step_budget(settings: Settings, req: QuestionRequest, scene_area: SceneArea | None = None,
-                per_sqrt_m2: float = QUESTION_STEPS_PER_SQRT_M2) -> int:
+                per_sqrt_m2: float = STEPS_PER_SQRT_M2) -> int:
     """``max_steps`` of an episode: the request's budget, else ``int(per_sqrt_m2 * sqrt(floor area))`` (a
     question: Explore-EQA section VI, T = 3 * sqrt(scene area); a task: 6, as the task benchmark), else
     :data:`DEFAULT_MAX_STEPS`. The scene is checked in every case,
@@ -214,7 +213,7 @@ def step_budget(settings: Settings, req: QuestionRequest, scene_area: SceneArea 
         return req.max_steps
     if area is None or not math.isfinite(area) or area <= 0:
         return DEFAULT_MAX_STEPS
-    return max(1, int(per_sqrt_m2 * math.sqrt(area)))
+    return steps_for(area, per_sqrt_m2)
 
 
 class EpisodeManager:
@@ -526,7 +525,7 @@ class EpisodeManager:
             raise InvalidError(f"unknown robot {req.robot!r}; known: {', '.join(self.settings.robots)}", field="robot")
         self._check_new_scene(req.scene, owner)
         budget = step_budget(self.settings, req, self.scene_area,
-                             TASK_STEPS_PER_SQRT_M2 if task is not None else QUESTION_STEPS_PER_SQRT_M2)
+                             TASK_STEPS_PER_SQRT_M2 if task is not None else STEPS_PER_SQRT_M2)
         episode_id = new_id("ep")
         question = Question(
             text=req.question,

@@ -143,9 +143,10 @@ class _Warm(StepHooks):
             self.steps += [self.step_type(answer_probs=m.answer_probs, relevance=m.relevance) for m in mem]
         self.steps.append(self.step_type(answer_probs=list(scores.answer_probs), relevance=float(scores.relevance)))
         if self.stop_step is None and self.record is not None:
+            limit = self.memory.step_limit(self.emap.episode_id) if step == 0 else None
             d = decide(self.record, StepScores(episode_id=self.emap.episode_id, step=step,
                                                answer_probs=scores.answer_probs, relevance=scores.relevance,
-                                               memory=mem))
+                                               memory=mem, step_limit=limit))
             if d is not None and d.stop:
                 self.stop_step = step
                 self.committed = self.memory.finish(self.emap)  # the home as the robot had it when it answered
@@ -202,9 +203,12 @@ def run_house(args: tuple[int, int, int, str, float, float | None, dict[str, Any
                                           episode_id=start.episode_id, seed=qseed, hooks=hooks)
                 if hooks.stop_step is None:
                     hooks.committed = memory.finish(emap)
+                # a warm budget (EQA_HOME_WARM_BUDGET) is the trace's max_steps: what the episode could have run
+                limit = record.max_steps
                 trace = Trace(question_id=q.id, scene=q.scene, category=q.category, choices=q.choices, answer=q.answer,
-                              max_steps=q.max_steps, strategy=strategy, steps=hooks.steps, episode_id=start.episode_id,
-                              end_reason=reason, stop_rule="max_steps", memory_steps=hooks.memory_steps)
+                              max_steps=limit, strategy=strategy, steps=hooks.steps[: hooks.memory_steps + limit],
+                              episode_id=start.episode_id, end_reason=reason, stop_rule="max_steps",
+                              memory_steps=hooks.memory_steps)
                 index_after = hooks.committed
                 out.append({"position": pos + 1, "trace": trace.model_dump(mode="json"), "loaded_cells": loaded,
                             "views": 0 if index_after is None else len(index_after.views),
@@ -292,6 +296,8 @@ def run(args: argparse.Namespace, settings: Any) -> dict[str, Any]:
                  settings.home_warm_views, settings.home_memory_steps]
         if changes or settings.home_stale_weight < 1.0:  # (without them the tags of earlier runs stay valid)
             knobs += [changes, settings.home_stale_weight, settings.home_stale_age_s]
+        if settings.home_warm_budget < 1.0:
+            knobs += ["budget", settings.home_warm_budget]
         tag = hashlib.sha256(json.dumps(knobs).encode()).hexdigest()[:10]
         todo = [(s, i) for (s, i, r) in houses if r == role]
         paths = {h: runs / f"warm-{role}-s{h[0]}-h{h[1]}-{tag}.json" for h in todo}
@@ -330,7 +336,8 @@ def run(args: argparse.Namespace, settings: Any) -> dict[str, Any]:
             rows.append({"seed": s, "house": i, "position": r["position"], "question": wt.question_id,
                          "category": wt.category, "cold_steps": c.steps, "warm_steps": w.steps,
                          "cold_correct": c.correct, "warm_correct": w.correct, "memory_steps": wt.memory_steps,
-                         "max_steps": wt.max_steps, "views": r["views"], "bytes": r["bytes"],
+                         "max_steps": ct.max_steps, "warm_max_steps": wt.max_steps, "views": r["views"],
+                         "bytes": r["bytes"],
                          "loaded_cells": r["loaded_cells"], "k": imp["k"], "affected": imp["affected"],
                          "answer_changed": imp["answer_changed"], "answer": wt.answer,
                          "cold_set": list(c.prediction_set), "warm_set": list(w.prediction_set),
@@ -438,6 +445,7 @@ def summarise(rows: list[dict[str, Any]], args: argparse.Namespace, settings: An
         "positions": per_position, "positions_2_on": later, "warm_coverage": coverage,
         "changes": getattr(args, "changes", 0) or 0,
         "home_stale_weight": settings.home_stale_weight, "home_stale_age_s": settings.home_stale_age_s,
+        "home_warm_budget": settings.home_warm_budget,
         "wrong_singletons": {
             "changed": singletons([r for r in rows if r["position"] > 1 and r.get("affected")]),
             "unchanged": singletons([r for r in rows if r["position"] > 1 and not r.get("affected")]),
@@ -457,7 +465,8 @@ def summarise(rows: list[dict[str, Any]], args: argparse.Namespace, settings: An
 def print_results(res: dict[str, Any]) -> None:
     print(f"home sequences: seeds {res['seeds']}, {res['test_houses']} test houses per seed, "
           f"{res['questions_per_house']} questions each, eps {res['eps']}, {res['changes']} rounds of changes "
-          f"between questions, stale weight {res['home_stale_weight']:g} ({res['scorer']})")
+          f"between questions, stale weight {res['home_stale_weight']:g}, warm budget "
+          f"{res.get('home_warm_budget', 1.0):g} ({res['scorer']})")
     print("position  n   cold steps  warm steps  ratio  cold succ  warm succ  memory steps")
     for pos, p in res["positions"].items():
         if p.get("n"):
@@ -496,8 +505,9 @@ def cmd_home(args: argparse.Namespace) -> int:
         raise UsageError("--eps must be in (0, 1), --workers 1..16")
     if args.changes < 0 or args.changes * (args.questions - 1) > MAX_ROUNDS:
         raise UsageError(f"--changes times (--questions - 1) must be 0..{MAX_ROUNDS} (rounds of a changed house)")
-    if args.stale_weight is not None and not 0 <= args.stale_weight <= 1:
-        raise UsageError("--stale-weight must be in [0, 1]")
+    for name in ("stale_weight", "warm_budget"):
+        if getattr(args, name) is not None and not 0 <= getattr(args, name) <= 1:
+            raise UsageError(f"--{name.replace('_', '-')} must be in [0, 1]")
     for name in ("home_views", "memory_steps"):
         if getattr(args, name) is not None and not 0 <= getattr(args, name) <= 256:
             raise UsageError(f"--{name.replace('_', '-')} must be 0..256")
@@ -508,6 +518,8 @@ def cmd_home(args: argparse.Namespace) -> int:
         settings = settings.model_copy(update={"home_memory_steps": args.memory_steps})
     if args.stale_weight is not None:
         settings = settings.model_copy(update={"home_stale_weight": args.stale_weight})
+    if args.warm_budget is not None:
+        settings = settings.model_copy(update={"home_warm_budget": args.warm_budget})
     setup_logging(settings.log_level, "eqa-bench")
     logging.getLogger("services.mapper.home_shell").setLevel(logging.WARNING)
     res = run(args, settings)
@@ -536,6 +548,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--stale-weight", type=float, default=None,
                    help="weight of stale remembered views' evidence (EQA_HOME_STALE_WEIGHT; default from the "
                    "environment)")
+    p.add_argument("--warm-budget", type=float, default=None,
+                   help="least share of max_steps of a warm question (EQA_HOME_WARM_BUDGET, eqa/budget.py; 1 = the "
+                   "full budget; default from the environment)")
     p.add_argument("--size", default="160x120", help="camera image size WxH (default 160x120)")
     p.add_argument("--scorer", choices=("oracle", "hf", "remote"), default=None,
                    help="scorer backend (default EQA_SCORER_BACKEND, normally oracle)")

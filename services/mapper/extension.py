@@ -157,6 +157,7 @@ class StepOutputs:
     object_evidence: ObjectEvidence | None = None  # StepScores.object_evidence
     answer_views: list[int] = field(default_factory=list)  # StepScores.answer_views
     memory: list[MemoryScore] = field(default_factory=list)  # StepScores.memory (the home's warm start)
+    step_limit: int | None = None  # StepScores.step_limit (a question's budget in a known home)
 
 
 class MapperExtension(Protocol):

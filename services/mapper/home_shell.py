@@ -46,6 +46,7 @@ from typing import Any
 import numpy as np
 
 from eqa import homes
+from eqa.budget import warm_step_limit
 from eqa.messages import EpisodeStart, ErrorReply, Frame, MemoryScore, ScoreRequest, ScoreResult
 from eqa.settings import Settings
 from eqa.store import Store
@@ -101,12 +102,13 @@ class EpisodeHome:
     warm_ids: list[str] = field(default_factory=list)  # committed views to re-score at the first frame
     memory: list[MemoryScore] | None = None  # the memory steps, once scored (None: not yet)
     loaded_cells: int = 0  # floor cells explored in the home map it started from
+    step_limit: int | None = None  # a question's budget in the explored house (eqa.budget.warm_step_limit)
     changes: list[ObservedChange] = field(default_factory=list)  # changes its frames showed against the memory
 
     def dump(self) -> dict[str, Any]:
         return {"home": self.home, "base_version": self.base_version, "reset": self.reset,
                 "pool": [{"view_id": v.view_id, "t": v.t, "nbytes": v.nbytes, "step": v.step} for v in self.pool.views],
-                "warm_ids": self.warm_ids, "loaded_cells": self.loaded_cells,
+                "warm_ids": self.warm_ids, "loaded_cells": self.loaded_cells, "step_limit": self.step_limit,
                 "memory": None if self.memory is None else [m.model_dump() for m in self.memory],
                 "changes": [c.to_json() for c in self.changes]}
 
@@ -177,12 +179,27 @@ class HomeMemory:
                 try:
                     home_map.apply_to(em)
                     ep.loaded_cells = home_map.explored_cells()
+                    ep.step_limit = self._step_limit(start, ep.loaded_cells * float(em.resolution) ** 2)
                 except ValueError as exc:
                     log.error("episode %s: home %s map not used: %s", start.episode_id, start.home, exc)
             ep.warm_ids = [v.view_id for v in index.views[: self.settings.home_warm_views]]
         self.episodes[start.episode_id] = ep
-        log.info("episode %s: home %s (version %d): %d explored cells, %d views to re-score", start.episode_id,
-                 start.home, ep.base_version, ep.loaded_cells, len(ep.warm_ids))
+        log.info("episode %s: home %s (version %d): %d explored cells, %d views to re-score, step limit %s",
+                 start.episode_id, start.home, ep.base_version, ep.loaded_cells, len(ep.warm_ids),
+                 ep.step_limit or start.max_steps)
+
+    def _step_limit(self, start: EpisodeStart, explored_m2: float) -> int | None:
+        """A question's step limit in a house the home map explored ``explored_m2`` of (None: ``max_steps``);
+        tasks keep theirs (their planner ends them)."""
+        if start.task is not None:
+            return None
+        limit = warm_step_limit(start.max_steps, explored_m2, self.settings.home_warm_budget)
+        return limit if limit < start.max_steps else None
+
+    def step_limit(self, episode_id: str) -> int | None:
+        """The episode's step limit for the stopper (:attr:`eqa.messages.StepScores.step_limit`), None: its own."""
+        ep = self.episodes.get(episode_id)
+        return None if ep is None else ep.step_limit
 
     def observe(self, em: Any, frame: Frame) -> None:
         """A frame just integrated: a candidate keyframe of the episode's pool (written when kept)."""
@@ -323,6 +340,7 @@ class HomeMemory:
             home=home, base_version=int(part["base_version"]), pool=self._pool(views),
             reset=None if part.get("reset") is None else str(part["reset"]),
             warm_ids=[str(v) for v in part.get("warm_ids", [])], loaded_cells=int(part.get("loaded_cells", 0)),
+            step_limit=None if part.get("step_limit") is None else int(part["step_limit"]),
             memory=None if memory is None else [MemoryScore.model_validate(m) for m in memory],
             changes=[ObservedChange.from_json(c) for c in part.get("changes", [])])
 

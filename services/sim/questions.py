@@ -16,7 +16,6 @@ view of the tilted camera; :func:`services.sim.visibility.witness_poses` returns
 from __future__ import annotations
 
 import logging
-import math
 from collections import Counter, defaultdict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -24,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from eqa.budget import max_steps_for
 from eqa.messages import PADDING_CHOICE, Pose2D, Question
 from services.sim import catalog
 from services.sim.benchfile import load_json, save_json
@@ -41,11 +41,6 @@ NUMBER_WORDS = ("None", "One", "Two", "Three", "Four", "Five", "Six", "Seven", "
 BENCHMARK_SIZE = 500
 CALIBRATION_SIZE = 300
 QUESTIONS_PER_HOUSE = 3
-
-
-def max_steps_for(area_m2: float) -> int:
-    """Step limit ``T = int(3 * sqrt(area))`` (Explore-EQA appendix B)."""
-    return max(1, int(3.0 * math.sqrt(max(area_m2, 0.0))))
 
 
 # ---- question generation ----------------------------------------------------------------------------------

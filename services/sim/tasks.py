@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from eqa import grid as gridm
+from eqa.budget import task_steps_for
 from eqa.messages import Pose2D, Task
 from eqa.seeds import seed_role
 from services.sim import catalog
@@ -55,14 +56,9 @@ GOAL_RECEPTACLES: frozenset[str] = frozenset(
 )
 FIND_SUCCESS_M = 1.0  # find_object: stop within this of an instance's box (HM3D ObjectNav: 1 m)
 MIN_FIND_PATH_M = 1.0  # find_object: the start is farther than this (geodesic) from every success pose
-STEPS_PER_SQRT_M2 = 6.0  # step budget = STEPS_PER_SQRT_M2 * sqrt(floor area) (questions use 3; tasks do more)
 TASK_HOUSE_OFFSET = 5000
 PICK_PLACE_PER_HOUSE = 2
 FIND_PER_HOUSE = 1
-
-
-def task_steps_for(area_m2: float) -> int:
-    return max(1, int(STEPS_PER_SQRT_M2 * math.sqrt(max(area_m2, 0.0))))
 
 
 def instruction(obj: str, start: str | None = None, goal: str | None = None) -> str:

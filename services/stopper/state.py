@@ -404,6 +404,11 @@ def decide(episode: EpisodeRecord, scores: StepScores) -> Decision | None:
     if scores.step <= episode.last_step:
         return None
     rule = STOP_RULES[episode.stop.rule]
+    if scores.step_limit is not None and not episode.probs and not episode.task:
+        # a question in a home whose map explored part of the house: its budget is what appendix B gives the
+        # floor left (eqa.budget.warm_step_limit); the trace's max_steps is this limit, so a table calibrated on
+        # such traces saw the same budget
+        episode.max_steps = min(episode.max_steps, int(scores.step_limit))
     if scores.memory and not episode.probs:
         # Warm start: the home's remembered views re-scored for this question are the episode's first steps
         # (the same rule, the same running intersection of Eq. 9), so a question the memory already answers

@@ -15,6 +15,7 @@ from support.mapper import Collector
 
 from eqa import homes, keys
 from eqa.app.evaluation import replay
+from eqa.budget import warm_step_limit
 from eqa.bus import Bus
 from eqa.messages import (
     EpisodeEnd,
@@ -162,6 +163,38 @@ def test_memory_steps_are_decided_before_the_first_move_and_kept_in_the_trace() 
     assert rec.memory_steps == 0 and rec.trace().memory_steps == 0
 
 
+def test_a_warm_step_limit_is_the_episodes_budget_and_its_traces() -> None:
+    """StepScores.step_limit at step 0 (the mapper's eqa.budget.warm_step_limit) lowers the episode's max_steps:
+    the stopper answers at it with the fallback answer, and the trace says the budget it ran under."""
+    q = {"text": "Which color?", "choices": ["red", "blue", "green"], "scene": SCENE, "answer": "B"}
+    cal = CalibrationChoice(q_hat=1.5, eps=0.2, asked_eps=0.2, n=50, source="test")
+    start = EpisodeStart(episode_id="e", robot=ROBOT, question=q, max_steps=10, stop=StopConfig(rule="cp", eps=0.2),
+                         home="h-x")
+    vague = [0.34, 0.33, 0.33]
+    rec = EpisodeRecord.from_start(start, ROBOT)
+    rec.calibration = cal
+    d = decide(rec, StepScores(episode_id="e", step=0, answer_probs=vague, relevance=0.1, step_limit=4,
+                               memory=[MemoryScore(answer_probs=[0.1, 0.8, 0.1], relevance=0.3)]))
+    assert d is not None and not d.stop and rec.max_steps == 4
+    for t in (1, 2):
+        d = decide(rec, StepScores(episode_id="e", step=t, answer_probs=vague, relevance=0.1, step_limit=2))
+        assert d is not None and not d.stop and rec.max_steps == 4  # only step 0 carries the limit
+    d = decide(rec, StepScores(episode_id="e", step=3, answer_probs=vague, relevance=0.1))
+    assert d is not None and d.stop and "step limit" in d.reason and d.answer == "B"  # the memory's answer
+    trace = rec.trace()
+    assert trace is not None and trace.max_steps == 4 and trace.full_length
+    assert replay(trace, StopConfig(rule="cp", eps=0.2), cal).steps == 4
+    # a limit above the episode's own does not raise it; a task keeps its own (its planner ends it)
+    rec = EpisodeRecord.from_start(start, ROBOT)
+    rec.calibration = cal
+    decide(rec, StepScores(episode_id="e", step=0, answer_probs=vague, relevance=0.1, step_limit=50))
+    assert rec.max_steps == 10
+    rec = EpisodeRecord.from_start(start, ROBOT)
+    rec.calibration, rec.task = cal, True
+    decide(rec, StepScores(episode_id="e", step=0, answer_probs=vague, relevance=0.1, step_limit=3))
+    assert rec.max_steps == 10
+
+
 def fake_scorer(calls: list):
     from eqa.messages import ScoreResult
 
@@ -257,7 +290,8 @@ def end(episode_id: str, steps: int) -> EpisodeEnd:
 def test_home_carried_over_warm_started_through_a_scorer_replica_and_continued_elsewhere(
         hub_settings: Settings, settings: Settings, house, redis_url: str) -> None:
     _scene, renderer, q = house
-    settings = settings.model_copy(update={"redis_url": redis_url, "scorer_replica": "homes", "home_max_views": 3})
+    settings = settings.model_copy(update={"redis_url": redis_url, "scorer_replica": "homes", "home_max_views": 3,
+                                           "home_warm_budget": 0.3})
     home = homes.home_id("tenant-a", "kitchen-house")
     with Bus(hub_settings, "gateway") as bus:
         out = Collector(bus)
@@ -294,6 +328,9 @@ def test_home_carried_over_warm_started_through_a_scorer_replica_and_continued_e
             assert len(s0.memory) == len(index.views) and s0.backend == "oracle"
             assert all(len(mm.answer_probs) == len(q.choices) and 0 <= mm.relevance <= 1 for mm in s0.memory)
             assert [mm.seen_at for mm in s0.memory] == sorted(mm.seen_at for mm in s0.memory)
+            # its budget: appendix B's for the floor the home map left (20 steps stand for 44.4 m2), at least 6
+            explored_m2 = mapper.homes.episodes["ep-h2"].loaded_cells * m0.grid.resolution ** 2
+            assert explored_m2 > 0 and s0.step_limit == warm_step_limit(20, explored_m2, 0.3) < 20
             assert out.errors.empty(), out.errors.get()
 
             # the cold reference: the same frame without a home sees only itself, no memory steps, no home keys
@@ -305,7 +342,7 @@ def test_home_carried_over_warm_started_through_a_scorer_replica_and_continued_e
             ref.integrate(frame_at(renderer, "ep-ref", 0, q.start_pose))
             assert c0.explored_area_m2 == pytest.approx(ref.explored_area_m2())
             assert c0.explored_area_m2 < m0.explored_area_m2
-            assert cs0.memory == []
+            assert cs0.memory == [] and cs0.step_limit is None
             bus.publish(keys.stream(ROBOT, keys.EPISODE_END), end("ep-cold", 1))
             assert mapper.drain()
             time.sleep(0.3)
@@ -318,7 +355,8 @@ def test_home_carried_over_warm_started_through_a_scorer_replica_and_continued_e
             time.sleep(0.5)
             bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), frame_at(renderer, "ep-h2", 1, turn(q.start_pose, 4)))
             m1, s1 = out.step(1)
-            assert s1.memory == [] and m1.explored_area_m2 >= m0.explored_area_m2
+            assert s1.memory == [] and s1.step_limit is None and m1.explored_area_m2 >= m0.explored_area_m2
+            assert other.homes.step_limit("ep-h2") == s0.step_limit  # carried with the episode's state
             # the candidate keyframe of step 0 came over with the episode's state (cells read back from the store)
             pool = other.homes.episodes["ep-h2"].pool.views
             assert {v.view_id for v in pool} == {"ep-h2-0", "ep-h2-1"} and all(len(v.cells) for v in pool)

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from eqa.budget import max_steps_for
 from eqa.messages import EpisodeStart, Frame, Pose2D, Question
 from services.mapper.episode_map import EpisodeMap
 from services.planner.sampling import step_rng
@@ -27,7 +28,6 @@ from services.sim import camera
 from services.sim.catalog import HouseLimits
 from services.sim.housegen import generate_house
 from services.sim.motion import pose_error, reachable_map, sample_start_pose
-from services.sim.questions import max_steps_for
 from services.sim.render import Renderer
 
 W, H = 160, 120
