@@ -24,6 +24,8 @@ import hashlib
 import re
 import time
 import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -101,7 +103,8 @@ def reset_key(home: str) -> str:
 
 def take_lock(store: Store, home: str, holder: str, wait_s: float) -> bool:
     """Take the home's lock (``set_if_absent`` with :data:`LOCK_TTL_S`), waiting up to ``wait_s``; False when
-    another holder kept it that long. The holder releases it with ``store.delete(lock_key(home))``."""
+    another holder kept it that long. The holder releases it with ``store.delete(lock_key(home))``
+    (:func:`locked` does both)."""
     deadline = time.monotonic() + wait_s
     while True:
         if store.set_if_absent(lock_key(home), holder.encode(), ttl_s=LOCK_TTL_S):
@@ -109,6 +112,18 @@ def take_lock(store: Store, home: str, holder: str, wait_s: float) -> bool:
         if time.monotonic() > deadline:
             return False
         time.sleep(0.05)
+
+
+@contextmanager
+def locked(store: Store, home: str, holder: str, wait_s: float) -> Iterator[bool]:
+    """The home's lock for the ``with`` block (:func:`take_lock`): yields whether it was taken; a taken lock is
+    released at the block's end, whatever happens in it."""
+    taken = take_lock(store, home, holder, wait_s)
+    try:
+        yield taken
+    finally:
+        if taken:
+            store.delete(lock_key(home))
 
 
 def reset_mark(store: Store, home: str) -> str | None:
@@ -122,13 +137,11 @@ def delete_home(store: Store, home: str, mark_ttl_s: float, wait_s: float = 2.0)
     an episode's memory could still be written back) and delete every key of the home; the number of keys
     deleted. :class:`HomeBusyError` when a mapper holds the lock (it is writing an episode back) past
     ``wait_s``: nothing is deleted then."""
-    if not take_lock(store, home, "reset", wait_s):
-        raise HomeBusyError(f"home {home}: its memory is being written; try again in a few seconds")
-    try:
+    with locked(store, home, "reset", wait_s) as taken:
+        if not taken:
+            raise HomeBusyError(f"home {home}: its memory is being written; try again in a few seconds")
         store.set(reset_key(home), uuid.uuid4().hex.encode(), ttl_s=mark_ttl_s)
         found = [k for k in store.keys(prefix(home)) if k != lock_key(home)]
         if found:
             store.delete_many(found)
         return len(found)
-    finally:
-        store.delete(lock_key(home))

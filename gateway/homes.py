@@ -96,6 +96,7 @@ class HomeRegistry:
     def __init__(self, store: Store, memory_ttl_s: float) -> None:
         self.store = store
         self.memory_ttl_s = memory_ttl_s  # EQA_HOME_TTL_S: how long a reset's token outlives the reset
+        self.reset_wait_s = 2.0  # a reset waits this long for a mapper's write-back, then answers 409
 
     def get(self, owner: str, name: str) -> HomeRecord | None:
         raw = self.store.get_json(record_key(homes.home_id(owner, name)))
@@ -165,7 +166,7 @@ class HomeRegistry:
         """Delete the home's memory (:func:`eqa.homes.delete_home`), then the gateway's index entries and record;
         the number of memory keys deleted. While a mapper writes an episode back into the home
         :class:`eqa.homes.HomeBusyError` is raised and nothing is deleted."""
-        n = homes.delete_home(self.store, entry.home, self.memory_ttl_s)
+        n = homes.delete_home(self.store, entry.home, self.memory_ttl_s, self.reset_wait_s)
         self.store.index_remove(idx_owner(entry.owner), [entry.home])
         self.store.index_remove(IDX_USED, [entry.home])
         self.store.delete(record_key(entry.home))

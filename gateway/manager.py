@@ -238,6 +238,7 @@ class EpisodeManager:
         self._new_scenes = RateLimiter(NEW_SCENES_PER_MIN / 60.0, burst=NEW_SCENES_PER_MIN)
         self._mean_episode_s = 60.0  # running mean of episode wall times (for Retry-After)
         self.homes = HomeRegistry(store, settings.home_ttl_s)
+        self._resetting: set[str] = set()  # homes whose reset waits for a mapper's write-back (outside the lock)
         self.started_at = time.time()
 
     # ---- startup ----------------------------------------------------------------------------------------
@@ -612,6 +613,8 @@ class EpisodeManager:
         nothing is written."""
         house = homes_layout.house_of(scene)
         known = self.homes.get(owner, name)
+        if known is not None and known.home in self._resetting:
+            raise BusyError(f"home {name!r} is being reset; try again in a few seconds", retry_after_s=2.0)
         if known is not None and known.house != house:
             raise ConflictError(
                 f"home {name!r} is the house {known.house or 'of the robot (no scene)'}; this episode is in "
@@ -681,11 +684,19 @@ class EpisodeManager:
             if busy:
                 raise ConflictError(f"home {name!r} has {len(busy)} queued or running episodes ({', '.join(busy[:5])}"
                                     f"{' ...' if len(busy) > 5 else ''}); cancel them or wait for their end")
-            try:
-                n = self.homes.delete(entry)
-            except homes_layout.HomeBusyError as exc:
-                raise BusyError(f"home {name!r}: a mapper is writing an ended episode's memory into it; "
-                                "try again in a few seconds", retry_after_s=2.0) from exc
+            if entry.home in self._resetting:
+                raise BusyError(f"home {name!r} is being reset; try again in a few seconds", retry_after_s=2.0)
+            # no episode of the home is admitted until the reset is done, so the wait for a mapper's write-back
+            # (eqa.homes.delete_home) runs without the manager's lock: other requests go on meanwhile
+            self._resetting.add(entry.home)
+        try:
+            n = self.homes.delete(entry)
+        except homes_layout.HomeBusyError as exc:
+            raise BusyError(f"home {name!r}: a mapper is writing an ended episode's memory into it; "
+                            "try again in a few seconds", retry_after_s=2.0) from exc
+        finally:
+            with self._lock:
+                self._resetting.discard(entry.home)
         log.info("home %s of %s deleted (%d memory keys)", entry.home, entry.owner, n)
         return HomeDeleted(name=name, deleted_keys=n)
 

@@ -354,11 +354,11 @@ class HomeMemory:
         if em.step < 0:  # no frame integrated: nothing new to remember
             self.store.delete_many([view_key(ep.home, v.view_id) for v in ep.pool.views])
             return None
-        if not homes.take_lock(self.store, ep.home, self.settings.instance, LOCK_WAIT_S):
-            log.error("home %s: lock not obtained in %.0f s; episode %s not remembered", ep.home, LOCK_WAIT_S,
-                      em.episode_id)
-            return None
-        try:
+        with homes.locked(self.store, ep.home, self.settings.instance, LOCK_WAIT_S) as taken:
+            if not taken:
+                log.error("home %s: lock not obtained in %.0f s; episode %s not remembered", ep.home, LOCK_WAIT_S,
+                          em.episode_id)
+                return None
             if homes.reset_mark(self.store, ep.home) != ep.reset:
                 # the user reset the home after this episode started: its memory must not come back
                 self.store.delete_many([view_key(ep.home, v.view_id) for v in ep.pool.views])
@@ -366,8 +366,6 @@ class HomeMemory:
                          em.episode_id)
                 return None
             return self._commit(ep, em)
-        finally:
-            self.store.delete(homes.lock_key(ep.home))
 
     def _commit(self, ep: EpisodeHome, em: Any) -> HomeIndex:
         s = self.settings

@@ -156,6 +156,38 @@ def test_a_reset_while_a_mapper_writes_the_home_back_is_refused_and_loses_nothin
     assert c.get("/v1/homes/flat-w", headers=A).status_code == 404
 
 
+def test_a_reset_waiting_for_a_write_back_holds_up_no_other_request(gw) -> None:
+    """The reset waits (up to 2 s) for a mapper's write-back without the manager's lock: other requests answer
+    meanwhile, a question naming the home being reset gets 409 with Retry-After (it would read a memory being
+    deleted), and the reset goes through once the write-back ends."""
+    g, c = gw
+    eid = c.post("/v1/questions", json={**Q, "home": "flat-v"}, headers=A).json()["episode_id"]
+    c.delete(f"/v1/episodes/{eid}", headers=A)
+    hid = homes.home_id(_tenant("tok-a"), "flat-v")
+    manager = g.server.config.app.state.manager
+    manager.homes.reset_wait_s = 30.0  # the probes below take what they take on a loaded machine
+    with open_store(g.settings) as store:
+        homes.write_summary(store, homes.HomeSummary(home=hid, episodes=1, views=3, bytes=99))
+        assert homes.take_lock(store, hid, "mapper-1", 0.0)
+        result: dict[str, httpx.Response] = {}
+        with httpx.Client(base_url=g.url, timeout=30) as c2:
+            reset = threading.Thread(target=lambda: result.update(r=c2.delete("/v1/homes/flat-v", headers=A)))
+            reset.start()
+            try:
+                assert wait_for(lambda: hid in manager._resetting, 10.0)  # the reset waits for the write-back
+                other = c.post("/v1/questions", json={**Q, "home": "flat-u"}, headers=B)
+                listed = c.get("/v1/homes", headers=A)
+                assert other.status_code == 202 and listed.status_code == 200, (other.text, listed.text)
+                assert reset.is_alive()  # answered while the reset still waits (it held the lock for all: 2 s)
+                r = c.post("/v1/questions", json={**Q, "home": "flat-v"}, headers=A)
+                assert r.status_code == 409 and "being reset" in r.json()["detail"] and r.headers["retry-after"]
+            finally:
+                store.delete(homes.lock_key(hid))  # the write-back ends
+                reset.join(10)
+    assert result["r"].status_code == 200, result["r"].text
+    assert c.get("/v1/homes/flat-v", headers=A).status_code == 404 and hid not in manager._resetting
+
+
 def test_a_home_is_one_house(gw) -> None:
     """A home's memory is of one house: the same home in another scene is a 409 (nothing written); the house
     after changes (gen-<seed>-c<k>) is the same house."""
