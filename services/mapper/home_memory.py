@@ -237,9 +237,11 @@ class HomeMap:
         return cls(float(em.resolution), float(v.origin_x), float(v.origin_y), v.tsdf.copy(), v.weight.copy(),
                    v.explored.copy(), np.asarray(traversed, dtype=bool).copy())
 
-    def apply_to(self, em: Any) -> None:
+    def apply_to(self, em: Any, explored: bool = True) -> None:
         """Start ``em`` (a fresh :class:`services.mapper.episode_map.EpisodeMap`) from this map: its volume and
-        traversed plane; its value layers start neutral on the same grid (the view memory fills them)."""
+        traversed plane; its value layers start neutral on the same grid (the view memory fills them).
+        ``explored=False``: the geometry only (distances and weights), nothing counted as explored, so the
+        frontiers are those of the episode's own views (a task's search, which the view memory does not guide)."""
         v = em.volume
         if abs(float(em.resolution) - self.resolution) > 1e-9:
             raise ValueError(f"home map at {self.resolution} m voxels, the mapper uses {em.resolution} m")
@@ -248,7 +250,7 @@ class HomeMap:
         v.origin_x, v.origin_y = self.origin_x, self.origin_y
         v.tsdf = self.tsdf.copy()
         v.weight = self.weight.copy()
-        v.explored = self.explored.copy()
+        v.explored = self.explored.copy() if explored else np.zeros_like(self.explored)
         fresh = {}
         for name, plane in v.planes.items():
             fill = plane.flat[0] if plane.size else (False if plane.dtype == bool else 0.0)

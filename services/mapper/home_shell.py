@@ -175,14 +175,19 @@ class HomeMemory:
                          reset=homes.reset_mark(self.store, start.home))
         if index is not None:
             home_map = self.read_map(start.home)
+            task = start.task is not None
             if home_map is not None:
                 try:
-                    home_map.apply_to(em)
-                    ep.loaded_cells = home_map.explored_cells()
+                    # a task searches with the HELIOS layers of its own classes, which the home does not keep: it
+                    # starts from the remembered geometry (paths through known space) but explores as a cold
+                    # episode would; the explored map would send it past places whose objects it never detected
+                    home_map.apply_to(em, explored=not task)
+                    ep.loaded_cells = 0 if task else home_map.explored_cells()
                     ep.step_limit = self._step_limit(start, ep.loaded_cells * float(em.resolution) ** 2)
                 except ValueError as exc:
                     log.error("episode %s: home %s map not used: %s", start.episode_id, start.home, exc)
-            ep.warm_ids = [v.view_id for v in index.views[: self.settings.home_warm_views]]
+            # the view memory answers questions (Eq. 9's memory steps); a task's stopper has nothing to answer
+            ep.warm_ids = [] if task else [v.view_id for v in index.views[: self.settings.home_warm_views]]
         self.episodes[start.episode_id] = ep
         log.info("episode %s: home %s (version %d): %d explored cells, %d views to re-score, step limit %s",
                  start.episode_id, start.home, ep.base_version, ep.loaded_cells, len(ep.warm_ids),

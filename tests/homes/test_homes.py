@@ -240,6 +240,49 @@ def test_concurrent_episodes_in_one_home_merge(house, store: Store, tmp_path: Pa
     assert homes.delete_home(store, "h-c", 60.0) >= 3 and memory.read_index("h-c") is None
 
 
+def test_a_task_in_a_home_searches_on_the_remembered_geometry_with_its_own_frontiers(
+        house, store: Store, tmp_path: Path) -> None:
+    """A question in a home starts from the explored map (its view memory guides it); a task, whose HELIOS layers
+    the home does not keep, starts from the geometry only: at its first frame it has the frontiers a cold task
+    has there (the explored home map would send it past places whose objects it never detected, to the edges of
+    what earlier episodes saw), no memory steps and its own step budget."""
+    from eqa.messages import Task
+
+    _scene, renderer, q = house
+    memory = HomeMemory(Settings(data_dir=tmp_path / "var"), lambda: store, lambda: fake_scorer([]))
+    homes.delete_home(store, "h-t", 60.0)
+    first = EpisodeMap(start_of(q, "ep-t1", "h-t"))
+    memory.start(first.start, first)
+    for k in range(6):  # a full turn on the spot: all around the start is explored
+        f = frame_at(renderer, "ep-t1", k, turn(q.start_pose, k))
+        first.integrate(f)
+        memory.observe(first, f)
+    assert memory.finish(first) is not None
+    task = Task(kind="find_object", text="Find a mug", scene=SCENE, object="mug")
+
+    def first_frame(eid: str, home: str | None, with_task: bool) -> EpisodeMap:
+        start = start_of(q, eid, home)
+        if with_task:
+            start = start.model_copy(update={"task": task})
+        em = EpisodeMap(start)
+        memory.start(start, em)
+        em.integrate(frame_at(renderer, eid, 0, q.start_pose))
+        return em
+
+    cold = first_frame("ep-cold-task", None, True)
+    warm_task = first_frame("ep-t2", "h-t", True)
+    warm_question = first_frame("ep-t3", "h-t", False)
+    n_cold = len(cold.find_frontier_candidates())
+    assert n_cold >= 1
+    assert len(warm_task.find_frontier_candidates()) >= n_cold - 1  # cold's frontiers (give or take a merge)
+    assert warm_task.explored_area_m2() == pytest.approx(cold.explored_area_m2(), rel=0.05)
+    assert warm_question.explored_area_m2() > 1.5 * cold.explored_area_m2()
+    ep_task, ep_question = memory.episodes["ep-t2"], memory.episodes["ep-t3"]
+    assert ep_task.warm_ids == [] and ep_task.step_limit is None and ep_task.loaded_cells == 0
+    assert ep_question.warm_ids and ep_question.loaded_cells > 0
+    homes.delete_home(store, "h-t", 60.0)
+
+
 def test_a_reset_after_the_episode_ended_is_not_undone_by_its_write_back(house, store: Store, tmp_path: Path) -> None:
     """The gateway resets a home once no episode of it is queued or running, but the mapper writes an ended
     episode back a moment later: that write must not bring the emptied home's memory back."""
