@@ -677,28 +677,37 @@ class EpisodeManager:
     def delete_home(self, name: str, caller: Caller | None = None) -> HomeDeleted:
         """Reset the caller's home ``name``: its memory and record go. :class:`ConflictError` (409) while an
         episode of it is queued or running (the mapper reads and writes the memory meanwhile), :class:`BusyError`
-        (409 with Retry-After) while a mapper writes an ended episode back into it."""
+        (409 with Retry-After) while a mapper writes an ended episode back into it or another reset runs."""
         with self._lock:
             entry = self._home_record(caller, name)
-            busy = self._home_episodes(entry.home)
-            if busy:
-                raise ConflictError(f"home {name!r} has {len(busy)} queued or running episodes ({', '.join(busy[:5])}"
-                                    f"{' ...' if len(busy) > 5 else ''}); cancel them or wait for their end")
-            if entry.home in self._resetting:
-                raise BusyError(f"home {name!r} is being reset; try again in a few seconds", retry_after_s=2.0)
-            # no episode of the home is admitted until the reset is done, so the wait for a mapper's write-back
-            # (eqa.homes.delete_home) runs without the manager's lock: other requests go on meanwhile
-            self._resetting.add(entry.home)
         try:
-            n = self.homes.delete(entry)
+            n = self._reset_home(entry)
         except homes_layout.HomeBusyError as exc:
             raise BusyError(f"home {name!r}: a mapper is writing an ended episode's memory into it; "
                             "try again in a few seconds", retry_after_s=2.0) from exc
+        log.info("home %s of %s deleted (%d memory keys)", entry.home, entry.owner, n)
+        return HomeDeleted(name=name, deleted_keys=n)
+
+    def _reset_home(self, entry: HomeRecord) -> int:
+        """Delete a home no episode of which is queued or running (:class:`ConflictError` otherwise,
+        :class:`BusyError` while another reset of it runs); the memory keys deleted. No episode of the home is
+        admitted until the reset is done, so the wait for a mapper's write-back (:func:`eqa.homes.delete_home`,
+        :class:`eqa.homes.HomeBusyError` past it) runs without the manager's lock: other requests go on
+        meanwhile."""
+        with self._lock:
+            busy = self._home_episodes(entry.home)
+            if busy:
+                raise ConflictError(f"home {entry.name!r} has {len(busy)} queued or running episodes "
+                                    f"({', '.join(busy[:5])}{' ...' if len(busy) > 5 else ''}); cancel them or wait "
+                                    "for their end")
+            if entry.home in self._resetting:
+                raise BusyError(f"home {entry.name!r} is being reset; try again in a few seconds", retry_after_s=2.0)
+            self._resetting.add(entry.home)
+        try:
+            return self.homes.delete(entry)
         finally:
             with self._lock:
                 self._resetting.discard(entry.home)
-        log.info("home %s of %s deleted (%d memory keys)", entry.home, entry.owner, n)
-        return HomeDeleted(name=name, deleted_keys=n)
 
     def prune_homes(self, now: float | None = None, batch: int = PRUNE_BATCH) -> int:
         """Delete up to ``batch`` homes no episode used for ``EQA_HOMES_RETENTION_DAYS`` (never one with a queued
@@ -706,15 +715,12 @@ class EpisodeManager:
         now = time.time() if now is None else now
         cutoff = now - self.settings.homes_retention_days * 86400.0
         n = 0
-        with self._lock:
-            for entry in self.homes.unused_since(cutoff, batch):
-                if self._home_episodes(entry.home):
-                    continue
-                try:
-                    self.homes.delete(entry)
-                except homes_layout.HomeBusyError:
-                    continue  # being written back: the next round takes it
-                n += 1
+        for entry in self.homes.unused_since(cutoff, batch):
+            try:
+                self._reset_home(entry)
+            except (ConflictError, BusyError, homes_layout.HomeBusyError):
+                continue  # in use, or being written back: a later round takes it
+            n += 1
         if n:
             log.info("retention: %d homes unused for %g days deleted", n, self.settings.homes_retention_days)
         return n
