@@ -269,28 +269,55 @@ class HomeMap:
             return self
         if self.tsdf.size == 0:
             return other
-        x0 = min(self.origin_x, other.origin_x)
-        y0 = min(self.origin_y, other.origin_y)
-
-        def offset(m: HomeMap) -> tuple[int, int]:
-            return round((m.origin_y - y0) / res), round((m.origin_x - x0) / res)
-
-        (ra, ca), (rb, cb) = offset(self), offset(other)
-        ny = max(ra + self.shape2d[0], rb + other.shape2d[0])
-        nx = max(ca + self.shape2d[1], cb + other.shape2d[1])
+        x0, y0, (ny, nx), places = self._union(other)
         nz = self.tsdf.shape[2]
         wsum = np.zeros((ny, nx, nz), dtype=np.float64)
         dsum = np.zeros((ny, nx, nz), dtype=np.float64)
         explored = np.zeros((ny, nx, nz), dtype=bool)
         traversed = np.zeros((ny, nx), dtype=bool)
-        for m, (r, c) in ((self, (ra, ca)), (other, (rb, cb))):
-            sl = (slice(r, r + m.shape2d[0]), slice(c, c + m.shape2d[1]))
+        for m, sl in zip((self, other), places, strict=True):
             wsum[sl] += m.weight
             dsum[sl] += m.weight.astype(np.float64) * m.tsdf
             explored[sl] |= m.explored
             traversed[sl] |= m.traversed
         tsdf = np.where(wsum > 0, dsum / np.where(wsum > 0, wsum, 1.0), 0.0).astype(np.float32)
         return HomeMap(res, x0, y0, tsdf, wsum.astype(np.float32), explored, traversed)
+
+    def with_explored_of(self, other: HomeMap) -> HomeMap:
+        """This map's volume, with what ``other`` explored (and traversed) explored too: the commit of an episode
+        that started from ``other``'s geometry without its explored mask (:meth:`apply_to`), whose distances and
+        weights already hold ``other``'s observations, so only the masks are joined."""
+        if abs(other.resolution - self.resolution) > 1e-9 or other.tsdf.shape[2] != self.tsdf.shape[2]:
+            raise ValueError("home maps of different voxel grids cannot be joined")
+        if other.tsdf.size == 0:
+            return self
+        if self.tsdf.size == 0:
+            return other
+        x0, y0, (ny, nx), (mine, theirs) = self._union(other)
+        nz = self.tsdf.shape[2]
+        tsdf = np.zeros((ny, nx, nz), dtype=np.float32)
+        weight = np.zeros((ny, nx, nz), dtype=np.float32)
+        explored = np.zeros((ny, nx, nz), dtype=bool)
+        traversed = np.zeros((ny, nx), dtype=bool)
+        tsdf[mine], weight[mine] = self.tsdf, self.weight
+        explored[mine] |= self.explored
+        explored[theirs] |= other.explored
+        traversed[mine] |= self.traversed
+        traversed[theirs] |= other.traversed
+        return HomeMap(self.resolution, x0, y0, tsdf, weight, explored, traversed)
+
+    def _union(self, other: HomeMap) -> tuple[float, float, tuple[int, int], tuple[Any, Any]]:
+        """The grid holding both maps (origin, rows and columns) and where each one's cells lie in it."""
+        res = self.resolution
+        x0 = min(self.origin_x, other.origin_x)
+        y0 = min(self.origin_y, other.origin_y)
+        places = []
+        ny = nx = 0
+        for m in (self, other):
+            r, c = round((m.origin_y - y0) / res), round((m.origin_x - x0) / res)
+            places.append((slice(r, r + m.shape2d[0]), slice(c, c + m.shape2d[1])))
+            ny, nx = max(ny, r + m.shape2d[0]), max(nx, c + m.shape2d[1])
+        return x0, y0, (ny, nx), (places[0], places[1])
 
     def to_bytes(self) -> bytes:
         seen = self.weight > 0

@@ -103,12 +103,14 @@ class EpisodeHome:
     memory: list[MemoryScore] | None = None  # the memory steps, once scored (None: not yet)
     loaded_cells: int = 0  # floor cells explored in the home map it started from
     step_limit: int | None = None  # a question's budget in the explored house (eqa.budget.warm_step_limit)
+    geometry_only: bool = False  # started from the home map without its explored mask (a task)
     changes: list[ObservedChange] = field(default_factory=list)  # changes its frames showed against the memory
 
     def dump(self) -> dict[str, Any]:
         return {"home": self.home, "base_version": self.base_version, "reset": self.reset,
                 "pool": [{"view_id": v.view_id, "t": v.t, "nbytes": v.nbytes, "step": v.step} for v in self.pool.views],
                 "warm_ids": self.warm_ids, "loaded_cells": self.loaded_cells, "step_limit": self.step_limit,
+                "geometry_only": self.geometry_only,
                 "memory": None if self.memory is None else [m.model_dump() for m in self.memory],
                 "changes": [c.to_json() for c in self.changes]}
 
@@ -182,6 +184,7 @@ class HomeMemory:
                     # starts from the remembered geometry (paths through known space) but explores as a cold
                     # episode would; the explored map would send it past places whose objects it never detected
                     home_map.apply_to(em, explored=not task)
+                    ep.geometry_only = task
                     ep.loaded_cells = 0 if task else home_map.explored_cells()
                     ep.step_limit = self._step_limit(start, ep.loaded_cells * float(em.resolution) ** 2)
                 except ValueError as exc:
@@ -346,6 +349,7 @@ class HomeMemory:
             reset=None if part.get("reset") is None else str(part["reset"]),
             warm_ids=[str(v) for v in part.get("warm_ids", [])], loaded_cells=int(part.get("loaded_cells", 0)),
             step_limit=None if part.get("step_limit") is None else int(part["step_limit"]),
+            geometry_only=bool(part.get("geometry_only", False)),
             memory=None if memory is None else [MemoryScore.model_validate(m) for m in memory],
             changes=[ObservedChange.from_json(c) for c in part.get("changes", [])])
 
@@ -382,6 +386,10 @@ class HomeMemory:
                 log.info("home %s: version %d since episode %s started at %d; maps merged", ep.home, index.version,
                          em.episode_id, ep.base_version)
                 mine = stored.merge(mine)
+        elif ep.geometry_only:  # what earlier episodes explored stays explored in the home
+            stored = self.read_map(ep.home)
+            if stored is not None:
+                mine = mine.with_explored_of(stored)
         map_bytes = mine.to_bytes()
         budget = s.home_max_bytes - len(map_bytes)
         if budget < 0:

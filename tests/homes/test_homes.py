@@ -280,6 +280,12 @@ def test_a_task_in_a_home_searches_on_the_remembered_geometry_with_its_own_front
     ep_task, ep_question = memory.episodes["ep-t2"], memory.episodes["ep-t3"]
     assert ep_task.warm_ids == [] and ep_task.step_limit is None and ep_task.loaded_cells == 0
     assert ep_question.warm_ids and ep_question.loaded_cells > 0
+    # its end writes its frames into the home without forgetting what the earlier episode explored
+    before = memory.read_map("h-t")
+    assert before is not None and memory.finish(warm_task) is not None
+    after = memory.read_map("h-t")
+    assert after is not None and after.explored_cells() >= before.explored_cells()
+    assert after.explored_cells() > HomeMap.from_episode(warm_task).explored_cells()
     homes.delete_home(store, "h-t", 60.0)
 
 
