@@ -186,8 +186,6 @@ def _scene_area(scene_area: SceneArea, scene: str, scenes_path: Path, hm3d_dir: 
     return float(scene_area(scene, scenes_path, hm3d_dir))
 
 
-
-
 def step_budget(settings: Settings, req: QuestionRequest, scene_area: SceneArea | None = None,
                 per_sqrt_m2: float = STEPS_PER_SQRT_M2) -> int:
     """``max_steps`` of an episode: the request's budget, else ``int(per_sqrt_m2 * sqrt(floor area))`` (a

@@ -185,8 +185,9 @@ class HomeMemory:
                     # episode would; the explored map would send it past places whose objects it never detected
                     home_map.apply_to(em, explored=not task)
                     ep.geometry_only = task
-                    ep.loaded_cells = 0 if task else home_map.explored_cells()
-                    ep.step_limit = self._step_limit(start, ep.loaded_cells * float(em.resolution) ** 2)
+                    if not task:  # a task keeps its budget (its planner ends it) and counts nothing explored
+                        ep.loaded_cells = home_map.explored_cells()
+                        ep.step_limit = self._step_limit(start, ep.loaded_cells * float(em.resolution) ** 2)
                 except ValueError as exc:
                     log.error("episode %s: home %s map not used: %s", start.episode_id, start.home, exc)
             # the view memory answers questions (Eq. 9's memory steps); a task's stopper has nothing to answer
@@ -197,10 +198,7 @@ class HomeMemory:
                  ep.step_limit or start.max_steps)
 
     def _step_limit(self, start: EpisodeStart, explored_m2: float) -> int | None:
-        """A question's step limit in a house the home map explored ``explored_m2`` of (None: ``max_steps``);
-        tasks keep theirs (their planner ends them)."""
-        if start.task is not None:
-            return None
+        """A question's step limit in a house the home map explored ``explored_m2`` of (None: ``max_steps``)."""
         limit = warm_step_limit(start.max_steps, explored_m2, self.settings.home_warm_budget)
         return limit if limit < start.max_steps else None
 
