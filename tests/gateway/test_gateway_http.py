@@ -333,7 +333,7 @@ def test_cancel(gateway, gw_settings: Settings) -> None:
 
 def test_sim_refusal(gateway) -> None:
     _gw, c = gateway
-    # The gateway checks the scene even with an explicit budget (it used to accept unknown scenes)...
+    # The gateway checks the scene even with an explicit budget (an unknown scene never reaches the fleet)...
     r = c.post("/v1/questions", json={**Q, "scene": "missing"})
     assert r.status_code == 422 and "unknown scene 'missing'" in r.json()["detail"][0]["msg"]
     # ... and what only the sim can judge, a start pose off the floor, the real sim refuses at once.

@@ -14,8 +14,8 @@ from gateway.schemas import QuestionRequest
 
 
 def test_the_final_status_is_stored_before_the_end_event(settings: Settings, hub_settings: Settings, tmp_path) -> None:
-    """A client that reads the episode_end event and then asks for the status must get the final status (it
-    used to see "running" now and then: `eqa ask` printed "no answer" for an answered question)."""
+    """A client that reads the episode_end event and then asks for the status must get the final status (a
+    "running" status there makes `eqa ask` print "no answer" for an answered question)."""
     store = EmbeddedStore(tmp_path / "gw.sqlite")
     seen: list[tuple[str, str]] = []  # (kind of the last event, state stored at that moment)
     with Bus(hub_settings, "gateway", "test") as bus:

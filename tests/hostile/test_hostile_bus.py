@@ -146,7 +146,7 @@ def test_mapper_holds_at_most_its_byte_cap_of_early_frames(hub_settings: Setting
 
 
 def test_a_flood_does_not_hold_up_the_end(hub_settings: Settings, settings: Settings, tmp_path) -> None:
-    """A flood of data messages used to queue without bound in the gateway (an EpisodeEnd waited minutes
+    """A flood of data messages must not queue without bound in the gateway (an EpisodeEnd would wait minutes
     behind it). Messages of episodes it does not run are dropped on arrival; data messages wait at most
     INBOX_MAX_DATA deep; the end comes through."""
     from gateway.app import INBOX_MAX_DATA

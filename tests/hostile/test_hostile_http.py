@@ -293,8 +293,8 @@ def test_openapi_lists_every_answer_and_its_examples_work(gw) -> None:
 
 
 def test_scenes_new_to_the_gateway_are_rate_limited_per_token(tmp_path: Path) -> None:
-    """Each new gen-<seed> scene used to cost a house generation (~130 ms, 114 KB of disk) inside the request,
-    without limit. Scenes new to the gateway are limited per token (NEW_SCENES_PER_MIN)."""
+    """Each new gen-<seed> scene costs a house generation (~130 ms, 114 KB of disk) inside the request, so
+    scenes new to the gateway are limited per token (NEW_SCENES_PER_MIN)."""
     from gateway.manager import NEW_SCENES_PER_MIN
 
     with GatewayThread(tenant_gateway_settings(tmp_path)) as g, httpx.Client(base_url=g.url, timeout=30) as c:

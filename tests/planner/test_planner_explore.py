@@ -101,7 +101,7 @@ def test_fbe_closed_loop_covers_the_house_within_step_limit() -> None:
     runs = [run_fbe(seed) for seed in seeds]
     for seed, (T, steps, done, explored, observed) in zip(seeds, runs, strict=True):
         print(f"house {seed}: fbe, T={T}, {steps} steps: {observed:.0%} observed, {explored:.0%} explored")
-        # it never gives up while much of the house is unseen (doorways narrowed on the map used to stop it)
+        # it never gives up while much of the house is unseen (doorways the map narrows must not stop it)
         assert not done or observed >= 0.9, f"house {seed}: ended after {steps}/{T} steps with {observed:.0%}"
         assert observed >= 0.7, f"house {seed}: observed {observed:.0%} of the reachable floor in T={T}"
     mean_observed = float(np.mean([r[4] for r in runs]))
