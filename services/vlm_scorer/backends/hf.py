@@ -24,6 +24,7 @@ import numpy as np
 
 from services.vlm_scorer import prompts
 from services.vlm_scorer.backends.base import BackendUnavailable, BadRequest, ModelBackend, ProbeItem
+from services.vlm_scorer.backends.qwen_inputs import QwenPixels, mrope_position_ids
 
 log = logging.getLogger(__name__)
 
@@ -106,6 +107,7 @@ class HFBackend(ModelBackend):
         if self.tokenizer.pad_token_id is None:
             self.tokenizer.pad_token = self.tokenizer.eos_token
         self.image_processor = AutoImageProcessor.from_pretrained(self.path, local_files_only=True)
+        self.pixels = QwenPixels(self.image_processor)
         self.net = AutoModelForImageTextToText.from_pretrained(self.path, local_files_only=True)
         self.net.to(self.device).eval()
         self.image_token_id = int(config.image_token_id)
@@ -113,8 +115,8 @@ class HFBackend(ModelBackend):
         self.model_name = f"{model_type}:{self.path.name}"
         self._lock = threading.Lock()
         self._token_cache: dict[str, int] = {}
-        self._grid_cache: dict[tuple[int, int], int] = {}
         self._chat_cache: dict[str, tuple[list[int], int]] = {}
+        self._row_cache: dict[tuple[str, int], np.ndarray] = {}
         self.image_pad_id = int(self.tokenizer.convert_tokens_to_ids(IMAGE_PAD))
         log.info("hf backend: %s (%s) on %s", self.path, model_type, self.device)
 
@@ -128,16 +130,14 @@ class HFBackend(ModelBackend):
         """``pixel_values`` and ``image_grid_thw`` of the distinct arrays of ``images`` (each processed once: a
         step's plain image serves three of its four prompts, and a merged batch holds several steps), and for
         each image the index of its distinct one."""
-        from PIL import Image
-
         slot: dict[int, int] = {}
         distinct: list[np.ndarray] = []
         for im in images:
             if id(im) not in slot:
                 slot[id(im)] = len(distinct)
                 distinct.append(im)
-        vis = self.image_processor(images=[Image.fromarray(i) for i in distinct], return_tensors="pt")
-        return vis["pixel_values"], vis["image_grid_thw"], [slot[id(im)] for im in images]
+        pixels, grid = self.pixels(distinct)
+        return pixels, grid, [slot[id(im)] for im in images]
 
     def _per_row(self, pixels: object, grid: object, order: list[int]) -> object:
         """The rows' ``pixel_values`` from the distinct images' (the image processor works image by image, so
@@ -161,6 +161,19 @@ class HFBackend(ModelBackend):
             got = self._chat_cache[text] = (ids, ids.index(self.image_pad_id))
         return got
 
+    def _row_ids(self, text: str, n_image_tokens: int) -> np.ndarray:
+        """The ids of one row: the chat of ``text`` with its ``<|image_pad|>`` repeated ``n_image_tokens`` times
+        (built once per prompt text and image size; see :meth:`_inputs`)."""
+        key = (text, n_image_tokens)
+        got = self._row_cache.get(key)
+        if got is None:
+            ids, at = self._chat_ids(text)
+            if len(self._row_cache) >= 4096:
+                self._row_cache.clear()
+            got = self._row_cache[key] = np.array(ids[:at] + [self.image_pad_id] * n_image_tokens + ids[at + 1:],
+                                                  dtype=np.int64)
+        return got
+
     def _inputs(self, images: list[np.ndarray], texts: list[str], pad_multiple: int | None = None,
                 encode_distinct: bool = False) -> dict[str, object]:
         """The model's inputs for ``(image, text)`` rows, left-padded to the longest row (rounded up to a multiple
@@ -175,20 +188,17 @@ class HFBackend(ModelBackend):
         torch = self.torch
         pixels, distinct_grid, order = self._pixels(images)
         grid = distinct_grid[order]  # type: ignore[index]
-        rows = []
-        for k, text in enumerate(texts):
-            ids, at = self._chat_ids(text)
-            n = int(grid[k].prod().item()) // (self.merge**2)  # type: ignore[index]
-            rows.append(ids[:at] + [self.image_pad_id] * n + ids[at + 1:])
+        tokens = (grid.prod(1) // (self.merge**2)).tolist()  # type: ignore[attr-defined]
+        rows = [self._row_ids(text, n) for text, n in zip(texts, tokens, strict=True)]
         length = max(len(r) for r in rows)
         if pad_multiple:
             length = -(-length // pad_multiple) * pad_multiple
-        pad = int(self.tokenizer.pad_token_id)
-        ids_t = torch.full((len(rows), length), pad, dtype=torch.long)
-        mask = torch.zeros((len(rows), length), dtype=torch.long)
+        ids_np = np.full((len(rows), length), int(self.tokenizer.pad_token_id), dtype=np.int64)
+        mask_np = np.zeros((len(rows), length), dtype=np.int64)
         for k, r in enumerate(rows):
-            ids_t[k, length - len(r):] = torch.tensor(r, dtype=torch.long)
-            mask[k, length - len(r):] = 1
+            ids_np[k, length - len(r):] = r
+            mask_np[k, length - len(r):] = 1
+        ids_t, mask = torch.from_numpy(ids_np), torch.from_numpy(mask_np)
         out: dict[str, object] = {
             "input_ids": ids_t.to(self.device),
             "attention_mask": mask.to(self.device),
@@ -254,6 +264,10 @@ class HFBackend(ModelBackend):
         cand_ids = [[self.token_id(c) for c in q.candidates] for _, q in flat]
         inputs = self._inputs([im for im, _ in flat], [q.text for _, q in flat], pad_multiple=PAD_MULTIPLE,
                              encode_distinct=True)
+        # the M-RoPE positions the model would compute itself (Qwen2VLModel.get_rope_index), for the whole batch
+        # at once instead of row by row in Python
+        inputs["position_ids"], _ = mrope_position_ids(inputs["input_ids"], inputs["mm_token_type_ids"],
+                                                       inputs["image_grid_thw"], inputs["attention_mask"], self.merge)
         with self._lock, self.torch.inference_mode():
             logits = self.net(**inputs).logits[:, -1, :].float()
         out = []
@@ -297,13 +311,7 @@ class HFBackend(ModelBackend):
 
     def _image_tokens(self, h: int, w: int) -> int:
         """How many ``<|image_pad|>`` tokens an ``h`` x ``w`` image takes (the image processor's grid)."""
-        key = (h, w)
-        if key not in self._grid_cache:
-            from PIL import Image
-
-            grid = self.image_processor(images=[Image.new("RGB", (w, h))], return_tensors="pt")["image_grid_thw"]
-            self._grid_cache[key] = int(grid[0].prod().item()) // (self.merge**2)
-        return self._grid_cache[key]
+        return self.pixels.tokens(h, w)
 
     def generate(self, rgb: np.ndarray, text: str, max_new_tokens: int = 48) -> str:
         inputs = self._inputs([rgb], [text])
