@@ -247,7 +247,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--robots", type=int, nargs="+", default=[1, 2, 4, 8, 16], help="concurrent robot counts (1..64)")
     ap.add_argument("--steps", type=int, default=6, help="steps per robot per round (1..100, default 6)")
-    ap.add_argument("--rounds", type=int, default=4, 
+    ap.add_argument("--rounds", type=int, default=4,
                     help="alternating off/on rounds per robot count (1..20, default 4)")
     ap.add_argument("--clients", type=int, default=2, help="client processes the robots are spread over (1..8)")
     ap.add_argument("--batch-max", type=int, default=16, help="EQA_SCORER_BATCH_MAX of the 'on' replica (default 16)")
