@@ -269,7 +269,7 @@ class HFBackend(ModelBackend):
         inputs["position_ids"], _ = mrope_position_ids(inputs["input_ids"], inputs["mm_token_type_ids"],
                                                        inputs["image_grid_thw"], inputs["attention_mask"], self.merge)
         with self._lock, self.torch.inference_mode():
-            logits = self.net(**inputs).logits[:, -1, :].float()
+            logits = self.net(**inputs, use_cache=False, logits_to_keep=1).logits[:, -1, :].float()
         out = []
         for row, (_, q), ids in zip(logits, flat, cand_ids, strict=True):
             p = self.torch.softmax(row[ids], dim=-1).cpu().numpy()
