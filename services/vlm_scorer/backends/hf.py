@@ -19,6 +19,7 @@ from __future__ import annotations
 import logging
 import threading
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -30,6 +31,8 @@ log = logging.getLogger(__name__)
 
 QWEN_FAMILIES = {"qwen2_vl", "qwen2_5_vl"}
 IMAGE_PAD = "<|image_pad|>"
+# the vision tower's output per distinct image, their grids, and per image array (by id) its distinct image's index
+Encoded = tuple[tuple[Any, ...], Any, dict[int, int]]
 # queries are left-padded to a multiple of this many tokens, alone or batched with other robots' steps (see
 # HFBackend.candidate_probs_many): the padding a row carries changes its logits in the last bits
 PAD_MULTIPLE = 32
@@ -139,6 +142,17 @@ class HFBackend(ModelBackend):
         pixels, grid = self.pixels(distinct)
         return pixels, grid, [slot[id(im)] for im in images]
 
+    def _encode(self, images: list[np.ndarray]) -> Encoded:
+        """The vision tower's output for the distinct arrays of ``images``, run once for all of them, with their
+        grids and, per array (by ``id``), the index of its distinct image. An image's output depends on that
+        image alone (attention within each image), so a merged batch encodes the images of all its forward
+        passes in one call."""
+        pixels, grid, order = self._pixels(images)
+        with self._lock, self.torch.inference_mode():
+            enc = self.net.model.get_image_features(pixels.to(self.device),  # type: ignore[attr-defined]
+                                                    grid.to(self.device), return_dict=True)  # type: ignore[attr-defined]
+        return tuple(enc.pooler_output), grid, {id(im): k for im, k in zip(images, order, strict=True)}
+
     def _per_row(self, pixels: object, grid: object, order: list[int]) -> object:
         """The rows' ``pixel_values`` from the distinct images' (the image processor works image by image, so
         repeating an image's patches is the same as processing it again)."""
@@ -175,7 +189,7 @@ class HFBackend(ModelBackend):
         return got
 
     def _inputs(self, images: list[np.ndarray], texts: list[str], pad_multiple: int | None = None,
-                encode_distinct: bool = False) -> dict[str, object]:
+                encode_distinct: bool = False, encoded: Encoded | None = None) -> dict[str, object]:
         """The model's inputs for ``(image, text)`` rows, left-padded to the longest row (rounded up to a multiple
         of ``pad_multiple``). ``<|image_pad|>`` is a special token, which the tokenizer splits off before it
         encodes the text around it, so the chat with the image's ``n`` pad tokens encodes as the chat with one,
@@ -184,9 +198,13 @@ class HFBackend(ModelBackend):
         ``encode_distinct``: the vision tower runs once per distinct image (its output for an image depends on
         that image alone: attention within each image), and every row gets its image's features
         (``mm_encoder_outputs``) instead of pixels; a step's four prompts share two images, so this halves the
-        vision work per step, alone or merged."""
+        vision work per step, alone or merged. ``encoded``: :meth:`_encode` of a set of images that holds these."""
         torch = self.torch
-        pixels, distinct_grid, order = self._pixels(images)
+        if encode_distinct:
+            features, distinct_grid, slots = encoded if encoded is not None else self._encode(images)
+            order = [slots[id(im)] for im in images]
+        else:
+            pixels, distinct_grid, order = self._pixels(images)
         grid = distinct_grid[order]  # type: ignore[index]
         tokens = (grid.prod(1) // (self.merge**2)).tolist()  # type: ignore[attr-defined]
         rows = [self._row_ids(text, n) for text, n in zip(texts, tokens, strict=True)]
@@ -208,11 +226,10 @@ class HFBackend(ModelBackend):
         if not encode_distinct:
             out["pixel_values"] = self._per_row(pixels, distinct_grid, order).to(self.device)  # type: ignore[attr-defined]
             return out
-        with self._lock, torch.inference_mode():
-            enc = self.net.model.get_image_features(pixels.to(self.device),  # type: ignore[attr-defined]
-                                                    distinct_grid.to(self.device), return_dict=True)  # type: ignore[attr-defined]
-        enc.pooler_output = tuple(enc.pooler_output[k] for k in order)
-        out["mm_encoder_outputs"] = {"image": enc}
+        from transformers.modeling_outputs import BaseModelOutputWithPooling
+
+        rows_features = tuple(features[k] for k in order)
+        out["mm_encoder_outputs"] = {"image": BaseModelOutputWithPooling(pooler_output=rows_features)}
         return out
 
     def answer_from_views(self, images: list[np.ndarray], question: object, choices: list[str]) -> list[float]:
@@ -258,12 +275,12 @@ class HFBackend(ModelBackend):
         """One forward pass over the batch; softmax of the last logits over each query's candidates."""
         return self.candidate_probs_many([ProbeItem(rgb, annotated, queries)])[0]
 
-    def _forward(self, flat: list[tuple[np.ndarray, prompts.Query]]) -> list[dict[str, float]]:
+    def _forward(self, flat: list[tuple[np.ndarray, prompts.Query]], encoded: Encoded) -> list[dict[str, float]]:
         """One left-padded forward pass over ``(image, query)`` rows, padded to a multiple of
         :data:`PAD_MULTIPLE` tokens; softmax of the last logits over each query's candidates."""
         cand_ids = [[self.token_id(c) for c in q.candidates] for _, q in flat]
         inputs = self._inputs([im for im, _ in flat], [q.text for _, q in flat], pad_multiple=PAD_MULTIPLE,
-                             encode_distinct=True)
+                             encode_distinct=True, encoded=encoded)
         # the M-RoPE positions the model would compute itself (Qwen2VLModel.get_rope_index), for the whole batch
         # at once instead of row by row in Python
         inputs["position_ids"], _ = mrope_position_ids(inputs["input_ids"], inputs["mm_token_type_ids"],
@@ -292,8 +309,11 @@ class HFBackend(ModelBackend):
             if item_rows:
                 groups.setdefault(self._padded_length(item_rows), []).append(i)
         out: list[list[dict[str, float]]] = [[] for _ in items]
+        if not groups:
+            return out
+        encoded = self._encode([im for item_rows in rows for im, _ in item_rows])
         for members in groups.values():
-            probs = self._forward([r for i in members for r in rows[i]])
+            probs = self._forward([r for i in members for r in rows[i]], encoded)
             k = 0
             for i in members:
                 out[i] = probs[k : k + len(rows[i])]
