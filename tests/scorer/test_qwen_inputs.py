@@ -1,6 +1,6 @@
 """The batch-wide Qwen2-VL inputs of services/vlm_scorer/backends/qwen_inputs.py against transformers' own code on
-random inputs: M-RoPE positions equal ``Qwen2VLModel.get_rope_index``'s, and pixel values equal the image
-processor's, value for value."""
+random inputs: M-RoPE positions equal ``Qwen2VLModel.get_rope_index``'s, the prepared attention mask equals the
+library's causal mask, and pixel values equal the image processor's, value for value."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from services.vlm_scorer.backends.qwen_inputs import QwenPixels, mrope_position_ids
+from services.vlm_scorer.backends.qwen_inputs import QwenPixels, causal_padding_bias, mrope_position_ids
 
 
 @pytest.fixture(scope="module")
@@ -112,3 +112,31 @@ def test_pixel_value_table_covers_every_value_of_every_channel(tiny) -> None:
     image = flat.reshape(h, w, 3)
     ref = processor(images=[Image.fromarray(image)], return_tensors="pt")["pixel_values"]
     assert torch.equal(QwenPixels(processor)([image])[0], ref)
+
+
+def test_causal_padding_bias_is_the_float_form_of_the_librarys_mask(tiny) -> None:
+    """The prepared mask equals what torch's attention makes of transformers' boolean causal mask (0 where it
+    is True, -inf where False), for left- and right-padded rows and rows without padding."""
+    from transformers.masking_utils import create_causal_mask
+
+    model, _ = tiny
+    text = model.model.language_model
+    rng = np.random.default_rng(1)
+    for trial in range(40):
+        batch, length = int(rng.integers(1, 6)), int(rng.integers(2, 40))
+        mask = torch.zeros((batch, length), dtype=torch.long)
+        for b in range(batch):
+            n = int(rng.integers(1, length + 1))
+            if trial % 2 == 0:
+                mask[b, length - n:] = 1
+            else:
+                mask[b, :n] = 1
+        mask[0] = 1  # one row without padding
+        embeds = torch.zeros((batch, length, text.config.hidden_size))
+        ref = create_causal_mask(config=text.config, inputs_embeds=embeds, attention_mask=mask, past_key_values=None,
+                                 allow_is_causal_skip=False)
+        assert ref.dtype == torch.bool
+        expected = torch.zeros(ref.shape).masked_fill(~ref, float("-inf"))
+        got = causal_padding_bias(mask, torch.float32)
+        assert got.dtype == torch.float32
+        assert torch.equal(got, expected), f"trial {trial}"

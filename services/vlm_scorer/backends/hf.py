@@ -25,7 +25,7 @@ import numpy as np
 
 from services.vlm_scorer import prompts
 from services.vlm_scorer.backends.base import BackendUnavailable, BadRequest, ModelBackend, ProbeItem
-from services.vlm_scorer.backends.qwen_inputs import QwenPixels, mrope_position_ids
+from services.vlm_scorer.backends.qwen_inputs import QwenPixels, causal_padding_bias, mrope_position_ids
 
 log = logging.getLogger(__name__)
 
@@ -285,6 +285,10 @@ class HFBackend(ModelBackend):
         # at once instead of row by row in Python
         inputs["position_ids"], _ = mrope_position_ids(inputs["input_ids"], inputs["mm_token_type_ids"],
                                                        inputs["image_grid_thw"], inputs["attention_mask"], self.merge)
+        if not bool(inputs["attention_mask"].all()):  # type: ignore[attr-defined]
+            # the float mask torch would make of the library's boolean one in every layer, made once (without
+            # padding the library passes no mask at all, which is another attention path: left to it)
+            inputs["attention_mask"] = {"full_attention": causal_padding_bias(inputs["attention_mask"], self.net.dtype)}
         with self._lock, self.torch.inference_mode():
             logits = self.net(**inputs, use_cache=False, logits_to_keep=1).logits[:, -1, :].float()
         out = []

@@ -92,6 +92,23 @@ def mrope_position_ids(input_ids: Any, mm_token_type_ids: Any, image_grid_thw: A
     return position_ids, (top + 1 - counts).unsqueeze(1)
 
 
+def causal_padding_bias(attention_mask: Any, dtype: Any) -> Any:
+    """The additive 4D attention mask ``(B, 1, L, L)`` of a causal language model over padded rows: 0 where query
+    ``q`` may attend to key ``k`` (``k <= q`` and ``attention_mask[b, k]``), -inf elsewhere.
+
+    transformers builds this as a boolean mask (``masking_utils.create_causal_mask``) and torch's
+    ``scaled_dot_product_attention`` turns a boolean mask into exactly this float one (0 / -inf) in every layer
+    it is given to; building it once, as the sum of a causal and a padding term, is what saves that. The model
+    takes it as its prepared mask (``attention_mask={"full_attention": ...}``)."""
+    import torch
+
+    length = attention_mask.shape[1]
+    causal = torch.full((length, length), float("-inf"), dtype=dtype, device=attention_mask.device).triu(1)
+    padding = torch.zeros(attention_mask.shape, dtype=dtype, device=attention_mask.device)
+    padding.masked_fill_(attention_mask == 0, float("-inf"))
+    return causal[None, None] + padding[:, None, None, :]
+
+
 class QwenPixels:
     """``pixel_values`` and ``image_grid_thw`` of HxWx3 uint8 images, as the Qwen2-VL image processor
     (``Qwen2VLImageProcessorPil``) makes them, for all images of a call at once; another processor class is
