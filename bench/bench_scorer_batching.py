@@ -16,8 +16,8 @@ Printed per robot count and mode:
 * steps/s: steps answered per second of wall time, all robots together (what one replica serves on this
   machine, shared with the clients and whatever else runs: see the load average);
 * p50 / p95 latency of a step (send to reply, per request) in ms;
-* replica CPU ms per step: user + system time of the replica process (``/proc``) per step served, the median
-  over rounds; 1000 / it is the steps per second one core of a saturated replica sustains, the figure that
+* replica CPU ms per step: user + system time of the replica process (``/proc``, 10 ms ticks) over all rounds
+  per step served; 1000 / it is the steps per second one core of a saturated replica sustains, the figure that
   sizes a replica independent of what else shares the machine;
 * client CPU ms per step, all client processes together;
 * whether every request got the same values from both replicas, byte for byte, and (``--reference``) the
@@ -253,6 +253,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--batch-max", type=int, default=16, help="EQA_SCORER_BATCH_MAX of the 'on' replica (default 16)")
     ap.add_argument("--window-ms", type=float, default=0.0, help="EQA_SCORER_BATCH_WINDOW_MS of the 'on' replica")
     ap.add_argument("--size", default="120x160", help="image HxW (default 120x160)")
+    ap.add_argument("--replica-tree", type=Path, default=REPO, help="the checkout whose replicas run (default: "
+                    "this one); e.g. an export of an earlier commit, to measure it in this harness")
     ap.add_argument("--reference", type=Path, help="values recorded from an earlier tree (--record): every request "
                     "of this run that it holds must have exactly those values")
     ap.add_argument("--record", type=Path, help="write this tree's values of the requests of --robots (the largest) "
@@ -288,12 +290,12 @@ def main(argv: list[str] | None = None) -> int:
     extra = {"off": {"EQA_SCORER_BATCH_MAX": "1"},
              "on": {"EQA_SCORER_BATCH_MAX": str(args.batch_max), "EQA_SCORER_BATCH_WINDOW_MS": str(args.window_ms)}}
     print(f"scorer batching bench: robots {args.robots}, {args.steps} steps x {args.rounds} rounds, {args.clients} "
-          f"client processes, {w}x{h} frames; load {_load()}", flush=True)
+          f"client processes, {w}x{h} frames, replicas of {args.replica_tree}; load {_load()}", flush=True)
     rows = []
     identical = True
     loads: list[float] = [os.getloadavg()[0]]
     with Bus(hub, "gateway", "bench") as bus:
-        procs = {m: subprocess.Popen([sys.executable, "-m", "services.vlm_scorer"], cwd=REPO,
+        procs = {m: subprocess.Popen([sys.executable, "-m", "services.vlm_scorer"], cwd=args.replica_tree,
                                      env={**env, **extra[m], "EQA_SCORER_REPLICA": f"b-{m}", "EQA_INSTANCE": f"b-{m}"})
                  for m in MODES}
         clients: Clients | None = None
@@ -312,6 +314,7 @@ def main(argv: list[str] | None = None) -> int:
                 cpus: dict[str, list[float]] = {m: [] for m in MODES}
                 ccpus: dict[str, list[float]] = {m: [] for m in MODES}
                 lats: dict[str, list[float]] = {m: [] for m in MODES}
+                served = dict.fromkeys(MODES, 0)
                 vals: dict[str, dict[str, Any]] = {m: {} for m in MODES}
                 for rnd in range(args.rounds):
                     for m in (MODES if rnd % 2 == 0 else MODES[::-1]):
@@ -321,8 +324,9 @@ def main(argv: list[str] | None = None) -> int:
                         steps = sum(len(o["latencies"]) for o in outs)
                         wall = max(o["end"] for o in outs) - min(o["start"] for o in outs)
                         rates[m].append(steps / wall)
-                        cpus[m].append(cpu / steps)
-                        ccpus[m].append(sum(o["cpu"] for o in outs) / steps)
+                        cpus[m].append(cpu)
+                        ccpus[m].append(sum(o["cpu"] for o in outs))
+                        served[m] += steps
                         for o in outs:
                             lats[m].extend(o["latencies"])
                             for rid, v in o["values"].items():
@@ -336,8 +340,8 @@ def main(argv: list[str] | None = None) -> int:
                 identical &= same and as_ref
                 row = {"robots": n, "rate": {m: statistics.median(rates[m]) for m in MODES},
                        "lat": {m: (_pct(lats[m], 50), _pct(lats[m], 95)) for m in MODES},
-                       "cpu": {m: statistics.median(cpus[m]) * 1e3 for m in MODES},
-                       "ccpu": {m: statistics.median(ccpus[m]) * 1e3 for m in MODES},
+                       "cpu": {m: sum(cpus[m]) / served[m] * 1e3 for m in MODES},
+                       "ccpu": {m: sum(ccpus[m]) / served[m] * 1e3 for m in MODES},
                        "same": same, "ref": (len(checked), as_ref), "load": os.getloadavg()[0]}
                 rows.append(row)
                 print(f"  {n:3d} robots: off {row['rate']['off']:6.1f} steps/s {row['cpu']['off']:5.2f} CPU ms/step, "
@@ -368,8 +372,8 @@ def main(argv: list[str] | None = None) -> int:
               f"{ccpu['off']:18.2f}/{ccpu['on']:<7.2f}  {'yes' if r['same'] else 'NO':>11}"
               + (f"  {'yes' if r['ref'][1] else 'NO'} ({r['ref'][0]} requests)" if reference else ""))
     print("steps/s: all robots' steps per second of wall time (the replica and the clients share this machine's "
-          "cores); replica CPU ms/step: user+system time of the replica process per step served, median over "
-          "rounds (1000 / it = steps per second one core of a saturated replica sustains); client CPU: all client "
+          "cores), median over rounds; replica CPU ms/step: user+system time of the replica process over all "
+          "rounds per step served (1000 / it = steps per second one core of a saturated replica sustains); client CPU: all client "
           "processes together; same values: every request's values byte for byte equal between off and on")
     return 0 if identical else 1
 
