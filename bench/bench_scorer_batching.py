@@ -374,7 +374,8 @@ def main(argv: list[str] | None = None) -> int:
     print("steps/s: all robots' steps per second of wall time (the replica and the clients share this machine's "
           "cores), median over rounds; replica CPU ms/step: user+system time of the replica process over all "
           "rounds per step served (1000 / it = steps per second one core of a saturated replica sustains); client "
-          "CPU: all client processes together; same values: every request's values byte for byte equal between off and on")
+          "CPU: all client processes together; same values: every request's values byte for byte equal between "
+          "off and on")
     return 0 if identical else 1
 
 
