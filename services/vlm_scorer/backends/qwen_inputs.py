@@ -125,7 +125,7 @@ class QwenPixels:
         size = processor.size
         self.min_pixels = int(size["shortest_edge"]) if self.resize else 0
         self.max_pixels = int(size["longest_edge"]) if self.resize else 0
-        self.table = self._table(processor).ravel()  # value v of channel c at 3 * v + c
+        self.table = self._table(processor)
         self._sizes: dict[tuple[int, int], tuple[int, int]] = {}
 
     @staticmethod
@@ -195,14 +195,18 @@ class QwenPixels:
 
     def _patchify(self, batch: np.ndarray) -> np.ndarray:
         """``Qwen2VLImageProcessorPil.patchify`` of each image of ``batch`` (N x H x W x 3 uint8) after the
-        value table: rows of (channel, temporal copy, patch row, patch column), merge blocks in raster order."""
+        value table: rows of (channel, temporal copy, patch row, patch column), merge blocks in raster order.
+        The 8-bit pixels are put in patch order first (a quarter of the bytes of the float values), then each
+        channel's table is read straight into its place of the output and the temporal copy is one copy."""
         n, h, w, c = batch.shape
-        p, m = self.patch, self.merge
+        p, m, t = self.patch, self.merge, self.temporal
         gh, gw = h // p, w // p
-        at = batch.astype(np.intp)
-        at *= c
-        at += np.arange(c)
         # N, gh/m, m, p, gw/m, m, p, C  ->  N, gh/m, gw/m, m(h), m(w), C, p(h), p(w)
-        values = np.take(self.table, at).reshape(n, gh // m, m, p, gw // m, m, p, c).transpose(0, 1, 4, 2, 5, 7, 3, 6)
-        values = np.broadcast_to(values[:, :, :, :, :, :, None], (*values.shape[:6], self.temporal, p, p))
-        return values.reshape(n * gh * gw, c * self.temporal * p * p)
+        pixels = np.ascontiguousarray(
+            batch.reshape(n, gh // m, m, p, gw // m, m, p, c).transpose(0, 1, 4, 2, 5, 7, 3, 6))
+        out = np.empty((n, gh // m, gw // m, m, m, c, t, p, p), dtype=np.float32)
+        for ch in range(c):
+            np.take(self.table[:, ch], pixels[:, :, :, :, :, ch], out=out[:, :, :, :, :, ch, 0])
+        for k in range(1, t):
+            out[:, :, :, :, :, :, k] = out[:, :, :, :, :, :, 0]
+        return out.reshape(n * gh * gw, c * t * p * p)
