@@ -12,6 +12,11 @@ needs torchvision, which cannot be installed beside torch 2.13.0 here. Building 
 processor does for images: expand ``<|image_pad|>`` to ``prod(image_grid_thw) / merge_size**2`` tokens and
 mark those tokens in ``mm_token_type_ids`` (1 = image) for M-RoPE. Without torchvision
 ``AutoImageProcessor`` gives ``Qwen2VLImageProcessorPil``.
+
+What transformers computes row by row in Python around the forward pass is computed for the whole batch in array
+operations (:mod:`services.vlm_scorer.backends.qwen_inputs`, each equal to the library's, tested): the pixel
+values, the M-RoPE positions (passed as ``position_ids``) and the float attention mask (passed as the prepared
+mask). The forward pass itself is the library's, asked for the last position's logits only.
 """
 
 from __future__ import annotations
