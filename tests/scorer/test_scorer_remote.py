@@ -221,3 +221,32 @@ def test_missing_settings_are_named():
         RemoteBackend("", "m")
     with pytest.raises(BackendUnavailable, match="EQA_REMOTE_MODEL"):
         RemoteBackend("http://127.0.0.1:1/v1", "")
+
+
+def test_a_batch_of_steps_is_in_flight_together_with_each_steps_own_scores() -> None:
+    """A replica's batch of 3 steps: all 12 queries reach the server at once (each held 0.2 s), on kept
+    connections over the next batch, and every step gets the scores it gets alone; a bad request fails alone."""
+    import numpy as np
+
+    fake, wire = FakeVLM(), Wire(hold_s=0.2)
+    with _serve(fake, wire, http11=True) as url:
+        b = RemoteBackend(url, "m", timeout_s=5, max_retries=0)
+        try:
+            reqs = [frame_request(step=s, episode=f"ep{s}") for s in range(3)]
+            alone = [b.score(r) for r in reqs]
+            bad = reqs[1].model_copy()
+            bad.rgb = np.zeros((5, 5), np.uint8)
+            wire.most_in_flight = 0
+            ports = len(wire.ports)
+            merged = b.score_many([reqs[0], bad, reqs[2], reqs[1]])
+            again = b.score_many(reqs)
+        finally:
+            b.close()
+    assert isinstance(merged[1], ValueError) and "HxWx3" in str(merged[1])
+    for got, ref in zip([merged[0], merged[3], merged[2]], alone, strict=True):
+        assert (got.answer_probs, got.lsv, got.gsv, got.relevance, got.mode) == (
+            ref.answer_probs, ref.lsv, ref.gsv, ref.relevance, ref.mode)
+    assert [(s.answer_probs, s.lsv) for s in again] == [(s.answer_probs, s.lsv) for s in alone]
+    assert wire.most_in_flight == 12
+    assert len(wire.ports) == ports + 24
+    assert len(set(wire.ports[ports + 12:]) - set(wire.ports[ports:ports + 12])) == 0  # second batch: kept ones
