@@ -11,7 +11,9 @@ steps, in alternating rounds:
 * ``sequential, keep-alive``: a pool of one thread;
 * ``sequential, new connections``: both.
 
-Printed per client: p50 / p95 wall time of a step and the client process's CPU time per step. The model is
+Printed per client: p50 / p95 wall time of a step and the client process's CPU time per step. Then a replica's
+batch of ``--batch`` steps (robots): ``score_many`` (all their queries in flight together) against the steps one
+after the other, wall and CPU per step. The model is
 random and tiny: the figures are the protocol's cost and how much of the server's work the concurrency overlaps,
 not a real model's speed.
 
@@ -43,10 +45,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--steps", type=int, default=12, help="steps per client per round (1..100, default 12)")
     ap.add_argument("--rounds", type=int, default=3, help="alternating rounds (1..20, default 3)")
     ap.add_argument("--size", default="120x160", help="frame HxW (default 120x160)")
+    ap.add_argument("--batch", type=int, default=8, help="steps of one replica batch (1..8, default 8)")
     args = ap.parse_args(argv)
     h, w = (int(v) for v in args.size.split("x"))
-    if not (1 <= args.steps <= 100 and 1 <= args.rounds <= 20 and 16 <= h <= 1024 and 16 <= w <= 1024):
-        print("error: steps 1..100, rounds 1..20, sides 16..1024", file=sys.stderr)
+    if not (1 <= args.steps <= 100 and 1 <= args.rounds <= 20 and 16 <= h <= 1024 and 16 <= w <= 1024
+            and 1 <= args.batch <= 8):
+        print("error: steps 1..100, rounds 1..20, sides 16..1024, batch 1..8", file=sys.stderr)
         return 2
 
     import httpx
@@ -92,6 +96,23 @@ def main(argv: list[str] | None = None) -> int:
                 cpus[name] += time.process_time() - c0
             loads.append(os.getloadavg()[0])
             print(f"  round {rnd + 1}/{args.rounds} done; load {loads[-1]:.1f}", flush=True)
+        shipped = clients["concurrent, keep-alive"]
+        batch = [frame_request(step=s, h=h, w=w, episode=f"ep{s}") for s in range(args.batch)]
+        batch_times: dict[str, list[float]] = {"batch together (score_many)": [], "batch one by one": []}
+        batch_cpu = dict.fromkeys(batch_times, 0.0)
+        for rnd in range(args.rounds * 2):
+            for name in (list(batch_times) if rnd % 2 == 0 else list(reversed(batch_times))):
+                c0, t0 = time.process_time(), time.perf_counter()
+                if name.startswith("batch together"):
+                    got = shipped.score_many(batch)
+                    if not all(hasattr(g, "answer_probs") for g in got):
+                        raise RuntimeError(f"a step of the batch failed: {got}")
+                else:
+                    for req in batch:
+                        shipped.score(req)
+                batch_times[name].append((time.perf_counter() - t0) * 1e3)
+                batch_cpu[name] += time.process_time() - c0
+        loads.append(os.getloadavg()[0])
         for b in clients.values():
             b.close()
     finally:
@@ -103,6 +124,11 @@ def main(argv: list[str] | None = None) -> int:
     for name in clients:
         n = len(times[name])
         print(f"{name:<32} {_pct(times[name], 50):11.1f} {_pct(times[name], 95):7.1f} {cpus[name] / n * 1e3:19.2f}")
+    print(f"\na replica's batch of {args.batch} steps, {args.rounds * 2} alternating rounds (the shipped client)")
+    print(f"{'':<32} {'batch p50 ms':>12} {'ms per step':>11} {'client CPU ms/step':>19}")
+    for name, v in batch_times.items():
+        p50 = _pct(v, 50)
+        print(f"{name:<32} {p50:12.1f} {p50 / args.batch:11.1f} {batch_cpu[name] / (len(v) * args.batch) * 1e3:19.2f}")
     return 0
 
 
