@@ -243,3 +243,39 @@ def test_a_batch_waits_for_the_requests_in_flight_and_a_lone_one_for_no_one() ->
     finally:
         sq.jobs.put(sq._STOP)
         sq._thread.join(timeout=5)
+
+
+def _library_probs(hf, item) -> list[dict[str, float]]:
+    """An item's candidate probabilities the plain transformers way: the image processor, the tokenizer on the
+    chats with every image placeholder written out, and the model's own M-RoPE positions, boolean mask, vision
+    tower per row and logits over every position."""
+    import torch
+    from PIL import Image
+
+    from services.vlm_scorer.backends.hf import IMAGE_PAD, PAD_MULTIPLE, qwen_chat
+
+    images = [item.annotated if q.annotated else item.rgb for q in item.queries]
+    vis = hf.image_processor(images=[Image.fromarray(i) for i in images], return_tensors="pt")
+    tokens = [int(g.prod()) // hf.merge**2 for g in vis["image_grid_thw"]]
+    chats = [qwen_chat(q.text).replace(IMAGE_PAD, IMAGE_PAD * n) for q, n in zip(item.queries, tokens, strict=True)]
+    enc = hf.tokenizer(chats, padding=True, pad_to_multiple_of=PAD_MULTIPLE, return_tensors="pt",
+                       add_special_tokens=False)
+    with torch.inference_mode():
+        logits = hf.net(input_ids=enc["input_ids"], attention_mask=enc["attention_mask"],
+                        mm_token_type_ids=(enc["input_ids"] == hf.image_token_id).to(torch.int32),
+                        pixel_values=vis["pixel_values"], image_grid_thw=vis["image_grid_thw"]).logits[:, -1, :].float()
+    out = []
+    for row, q in zip(logits, item.queries, strict=True):
+        p = torch.softmax(row[[hf.token_id(c) for c in q.candidates]], dim=-1).numpy()
+        out.append({c: float(v) for c, v in zip(q.candidates, p, strict=True)})
+    return out
+
+
+def test_hf_values_are_the_plain_library_paths(tiny_hf) -> None:
+    """What the backend computes batch-wide (pixel values, positions, the float mask, one vision call, the last
+    position's logits) gives exactly the probabilities of the library's own path, alone and merged."""
+    reqs = _requests(5, h=120, w=160)
+    items = [tiny_hf.prepare(r)[0] for r in reqs]
+    expected = [_library_probs(tiny_hf, it) for it in items]
+    assert [tiny_hf.candidate_probs(it.rgb, it.annotated, it.queries) for it in items] == expected
+    assert tiny_hf.candidate_probs_many(items) == expected

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import threading
@@ -59,15 +60,37 @@ class FakeVLM:
         return 200, {"choices": [choice]}, {}
 
 
-@pytest.fixture
-def server() -> Iterator[tuple[str, FakeVLM]]:
-    fake = FakeVLM()
+class Wire:
+    """What the server saw of the connections: the client port of each request, and the most requests in flight
+    at once (each is held ``hold_s`` before it is answered, so concurrent ones overlap)."""
+
+    def __init__(self, hold_s: float = 0.0) -> None:
+        self.hold_s = hold_s
+        self.ports: list[int] = []
+        self.in_flight = 0
+        self.most_in_flight = 0
+        self.lock = threading.Lock()
+
+
+@contextlib.contextmanager
+def _serve(fake: FakeVLM, wire: Wire, http11: bool) -> Iterator[str]:
+    """The fake on a threading HTTP server on loopback; ``http11``: HTTP/1.1, whose connections stay open between
+    requests (HTTP/1.0 closes each after its answer)."""
 
     class Handler(BaseHTTPRequestHandler):
+        protocol_version = "HTTP/1.1" if http11 else "HTTP/1.0"
+
         def do_POST(self) -> None:
             assert self.path == "/v1/chat/completions"
             body = json.loads(self.rfile.read(int(self.headers["Content-Length"])))
             body["_auth"] = self.headers.get("Authorization")
+            with wire.lock:
+                wire.ports.append(self.client_address[1])
+                wire.in_flight += 1
+                wire.most_in_flight = max(wire.most_in_flight, wire.in_flight)
+            time.sleep(wire.hold_s)
+            with wire.lock:
+                wire.in_flight -= 1
             status, out, headers = fake.answer(body)
             data = json.dumps(out).encode()
             self.send_response(status)
@@ -82,6 +105,8 @@ def server() -> Iterator[tuple[str, FakeVLM]]:
             pass
 
     class Server(ThreadingHTTPServer):
+        daemon_threads = True
+
         def handle_error(self, request: object, client_address: object) -> None:
             pass  # a client that timed out on a deliberately slow answer resets the connection: expected
 
@@ -89,10 +114,37 @@ def server() -> Iterator[tuple[str, FakeVLM]]:
     thread = threading.Thread(target=httpd.serve_forever, daemon=True)
     thread.start()
     try:
-        yield f"http://127.0.0.1:{httpd.server_address[1]}/v1", fake
+        yield f"http://127.0.0.1:{httpd.server_address[1]}/v1"
     finally:
         httpd.shutdown()
         httpd.server_close()
+
+
+@pytest.fixture
+def server() -> Iterator[tuple[str, FakeVLM]]:
+    fake = FakeVLM()
+    with _serve(fake, Wire(), http11=False) as url:
+        yield url, fake
+
+
+def test_a_steps_queries_are_in_flight_together_on_kept_connections() -> None:
+    """The four queries of a step reach the server at the same time (each is held 0.2 s: one after the other
+    they would never overlap), and later steps reuse the connections of the first (keep-alive): 3 steps, 12
+    requests, over at most 4 connections."""
+    fake, wire = FakeVLM(), Wire(hold_s=0.2)
+    with _serve(fake, wire, http11=True) as url:
+        b = RemoteBackend(url, "m", timeout_s=5, max_retries=0)
+        try:
+            t0 = time.perf_counter()
+            for step in range(3):
+                b.score(frame_request(step=step))
+            elapsed = time.perf_counter() - t0
+        finally:
+            b.close()
+    assert len(wire.ports) == 12
+    assert wire.most_in_flight == 4
+    assert elapsed < 3 * 4 * 0.2  # less than the queries one after the other
+    assert len(set(wire.ports)) <= 4, f"{len(set(wire.ports))} connections for 12 requests"
 
 
 def test_scores_from_top_logprobs(server):
@@ -169,3 +221,32 @@ def test_missing_settings_are_named():
         RemoteBackend("", "m")
     with pytest.raises(BackendUnavailable, match="EQA_REMOTE_MODEL"):
         RemoteBackend("http://127.0.0.1:1/v1", "")
+
+
+def test_a_batch_of_steps_is_in_flight_together_with_each_steps_own_scores() -> None:
+    """A replica's batch of 3 steps: all 12 queries reach the server at once (each held 0.2 s), on kept
+    connections over the next batch, and every step gets the scores it gets alone; a bad request fails alone."""
+    import numpy as np
+
+    fake, wire = FakeVLM(), Wire(hold_s=0.2)
+    with _serve(fake, wire, http11=True) as url:
+        b = RemoteBackend(url, "m", timeout_s=5, max_retries=0)
+        try:
+            reqs = [frame_request(step=s, episode=f"ep{s}") for s in range(3)]
+            alone = [b.score(r) for r in reqs]
+            bad = reqs[1].model_copy()
+            bad.rgb = np.zeros((5, 5), np.uint8)
+            wire.most_in_flight = 0
+            ports = len(wire.ports)
+            merged = b.score_many([reqs[0], bad, reqs[2], reqs[1]])
+            again = b.score_many(reqs)
+        finally:
+            b.close()
+    assert isinstance(merged[1], ValueError) and "HxWx3" in str(merged[1])
+    for got, ref in zip([merged[0], merged[3], merged[2]], alone, strict=True):
+        assert (got.answer_probs, got.lsv, got.gsv, got.relevance, got.mode) == (
+            ref.answer_probs, ref.lsv, ref.gsv, ref.relevance, ref.mode)
+    assert [(s.answer_probs, s.lsv) for s in again] == [(s.answer_probs, s.lsv) for s in alone]
+    assert wire.most_in_flight == 12
+    assert len(wire.ports) == ports + 24
+    assert len(set(wire.ports[ports + 12:]) - set(wire.ports[ports:ports + 12])) == 0  # second batch: kept ones

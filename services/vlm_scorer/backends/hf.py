@@ -12,6 +12,11 @@ needs torchvision, which cannot be installed beside torch 2.13.0 here. Building 
 processor does for images: expand ``<|image_pad|>`` to ``prod(image_grid_thw) / merge_size**2`` tokens and
 mark those tokens in ``mm_token_type_ids`` (1 = image) for M-RoPE. Without torchvision
 ``AutoImageProcessor`` gives ``Qwen2VLImageProcessorPil``.
+
+What transformers computes row by row in Python around the forward pass is computed for the whole batch in array
+operations (:mod:`services.vlm_scorer.backends.qwen_inputs`, each equal to the library's, tested): the pixel
+values, the M-RoPE positions (passed as ``position_ids``) and the float attention mask (passed as the prepared
+mask). The forward pass itself is the library's, asked for the last position's logits only.
 """
 
 from __future__ import annotations
@@ -19,16 +24,20 @@ from __future__ import annotations
 import logging
 import threading
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from services.vlm_scorer import prompts
 from services.vlm_scorer.backends.base import BackendUnavailable, BadRequest, ModelBackend, ProbeItem
+from services.vlm_scorer.backends.qwen_inputs import QwenPixels, causal_padding_bias, mrope_position_ids
 
 log = logging.getLogger(__name__)
 
 QWEN_FAMILIES = {"qwen2_vl", "qwen2_5_vl"}
 IMAGE_PAD = "<|image_pad|>"
+# the vision tower's output per distinct image, their grids, and per image array (by id) its distinct image's index
+Encoded = tuple[tuple[Any, ...], Any, dict[int, int]]
 # queries are left-padded to a multiple of this many tokens, alone or batched with other robots' steps (see
 # HFBackend.candidate_probs_many): the padding a row carries changes its logits in the last bits
 PAD_MULTIPLE = 32
@@ -106,6 +115,7 @@ class HFBackend(ModelBackend):
         if self.tokenizer.pad_token_id is None:
             self.tokenizer.pad_token = self.tokenizer.eos_token
         self.image_processor = AutoImageProcessor.from_pretrained(self.path, local_files_only=True)
+        self.pixels = QwenPixels(self.image_processor)
         self.net = AutoModelForImageTextToText.from_pretrained(self.path, local_files_only=True)
         self.net.to(self.device).eval()
         self.image_token_id = int(config.image_token_id)
@@ -113,8 +123,8 @@ class HFBackend(ModelBackend):
         self.model_name = f"{model_type}:{self.path.name}"
         self._lock = threading.Lock()
         self._token_cache: dict[str, int] = {}
-        self._grid_cache: dict[tuple[int, int], int] = {}
         self._chat_cache: dict[str, tuple[list[int], int]] = {}
+        self._row_cache: dict[tuple[str, int], np.ndarray] = {}
         self.image_pad_id = int(self.tokenizer.convert_tokens_to_ids(IMAGE_PAD))
         log.info("hf backend: %s (%s) on %s", self.path, model_type, self.device)
 
@@ -128,16 +138,25 @@ class HFBackend(ModelBackend):
         """``pixel_values`` and ``image_grid_thw`` of the distinct arrays of ``images`` (each processed once: a
         step's plain image serves three of its four prompts, and a merged batch holds several steps), and for
         each image the index of its distinct one."""
-        from PIL import Image
-
         slot: dict[int, int] = {}
         distinct: list[np.ndarray] = []
         for im in images:
             if id(im) not in slot:
                 slot[id(im)] = len(distinct)
                 distinct.append(im)
-        vis = self.image_processor(images=[Image.fromarray(i) for i in distinct], return_tensors="pt")
-        return vis["pixel_values"], vis["image_grid_thw"], [slot[id(im)] for im in images]
+        pixels, grid = self.pixels(distinct)
+        return pixels, grid, [slot[id(im)] for im in images]
+
+    def _encode(self, images: list[np.ndarray]) -> Encoded:
+        """The vision tower's output for the distinct arrays of ``images``, run once for all of them, with their
+        grids and, per array (by ``id``), the index of its distinct image. An image's output depends on that
+        image alone (attention within each image), so a merged batch encodes the images of all its forward
+        passes in one call."""
+        pixels, grid, order = self._pixels(images)
+        with self._lock, self.torch.inference_mode():
+            enc = self.net.model.get_image_features(pixels.to(self.device),  # type: ignore[attr-defined]
+                                                    grid.to(self.device), return_dict=True)  # type: ignore[attr-defined]
+        return tuple(enc.pooler_output), grid, {id(im): k for im, k in zip(images, order, strict=True)}
 
     def _per_row(self, pixels: object, grid: object, order: list[int]) -> object:
         """The rows' ``pixel_values`` from the distinct images' (the image processor works image by image, so
@@ -161,8 +180,21 @@ class HFBackend(ModelBackend):
             got = self._chat_cache[text] = (ids, ids.index(self.image_pad_id))
         return got
 
+    def _row_ids(self, text: str, n_image_tokens: int) -> np.ndarray:
+        """The ids of one row: the chat of ``text`` with its ``<|image_pad|>`` repeated ``n_image_tokens`` times
+        (built once per prompt text and image size; see :meth:`_inputs`)."""
+        key = (text, n_image_tokens)
+        got = self._row_cache.get(key)
+        if got is None:
+            ids, at = self._chat_ids(text)
+            if len(self._row_cache) >= 4096:
+                self._row_cache.clear()
+            got = self._row_cache[key] = np.array(ids[:at] + [self.image_pad_id] * n_image_tokens + ids[at + 1:],
+                                                  dtype=np.int64)
+        return got
+
     def _inputs(self, images: list[np.ndarray], texts: list[str], pad_multiple: int | None = None,
-                encode_distinct: bool = False) -> dict[str, object]:
+                encode_distinct: bool = False, encoded: Encoded | None = None) -> dict[str, object]:
         """The model's inputs for ``(image, text)`` rows, left-padded to the longest row (rounded up to a multiple
         of ``pad_multiple``). ``<|image_pad|>`` is a special token, which the tokenizer splits off before it
         encodes the text around it, so the chat with the image's ``n`` pad tokens encodes as the chat with one,
@@ -171,24 +203,25 @@ class HFBackend(ModelBackend):
         ``encode_distinct``: the vision tower runs once per distinct image (its output for an image depends on
         that image alone: attention within each image), and every row gets its image's features
         (``mm_encoder_outputs``) instead of pixels; a step's four prompts share two images, so this halves the
-        vision work per step, alone or merged."""
+        vision work per step, alone or merged. ``encoded``: :meth:`_encode` of a set of images that holds these."""
         torch = self.torch
-        pixels, distinct_grid, order = self._pixels(images)
+        if encode_distinct:
+            features, distinct_grid, slots = encoded if encoded is not None else self._encode(images)
+            order = [slots[id(im)] for im in images]
+        else:
+            pixels, distinct_grid, order = self._pixels(images)
         grid = distinct_grid[order]  # type: ignore[index]
-        rows = []
-        for k, text in enumerate(texts):
-            ids, at = self._chat_ids(text)
-            n = int(grid[k].prod().item()) // (self.merge**2)  # type: ignore[index]
-            rows.append(ids[:at] + [self.image_pad_id] * n + ids[at + 1:])
+        tokens = (grid.prod(1) // (self.merge**2)).tolist()  # type: ignore[attr-defined]
+        rows = [self._row_ids(text, n) for text, n in zip(texts, tokens, strict=True)]
         length = max(len(r) for r in rows)
         if pad_multiple:
             length = -(-length // pad_multiple) * pad_multiple
-        pad = int(self.tokenizer.pad_token_id)
-        ids_t = torch.full((len(rows), length), pad, dtype=torch.long)
-        mask = torch.zeros((len(rows), length), dtype=torch.long)
+        ids_np = np.full((len(rows), length), int(self.tokenizer.pad_token_id), dtype=np.int64)
+        mask_np = np.zeros((len(rows), length), dtype=np.int64)
         for k, r in enumerate(rows):
-            ids_t[k, length - len(r):] = torch.tensor(r, dtype=torch.long)
-            mask[k, length - len(r):] = 1
+            ids_np[k, length - len(r):] = r
+            mask_np[k, length - len(r):] = 1
+        ids_t, mask = torch.from_numpy(ids_np), torch.from_numpy(mask_np)
         out: dict[str, object] = {
             "input_ids": ids_t.to(self.device),
             "attention_mask": mask.to(self.device),
@@ -198,11 +231,10 @@ class HFBackend(ModelBackend):
         if not encode_distinct:
             out["pixel_values"] = self._per_row(pixels, distinct_grid, order).to(self.device)  # type: ignore[attr-defined]
             return out
-        with self._lock, torch.inference_mode():
-            enc = self.net.model.get_image_features(pixels.to(self.device),  # type: ignore[attr-defined]
-                                                    distinct_grid.to(self.device), return_dict=True)  # type: ignore[attr-defined]
-        enc.pooler_output = tuple(enc.pooler_output[k] for k in order)
-        out["mm_encoder_outputs"] = {"image": enc}
+        from transformers.modeling_outputs import BaseModelOutputWithPooling
+
+        rows_features = tuple(features[k] for k in order)
+        out["mm_encoder_outputs"] = {"image": BaseModelOutputWithPooling(pooler_output=rows_features)}
         return out
 
     def answer_from_views(self, images: list[np.ndarray], question: object, choices: list[str]) -> list[float]:
@@ -248,14 +280,22 @@ class HFBackend(ModelBackend):
         """One forward pass over the batch; softmax of the last logits over each query's candidates."""
         return self.candidate_probs_many([ProbeItem(rgb, annotated, queries)])[0]
 
-    def _forward(self, flat: list[tuple[np.ndarray, prompts.Query]]) -> list[dict[str, float]]:
+    def _forward(self, flat: list[tuple[np.ndarray, prompts.Query]], encoded: Encoded) -> list[dict[str, float]]:
         """One left-padded forward pass over ``(image, query)`` rows, padded to a multiple of
         :data:`PAD_MULTIPLE` tokens; softmax of the last logits over each query's candidates."""
         cand_ids = [[self.token_id(c) for c in q.candidates] for _, q in flat]
         inputs = self._inputs([im for im, _ in flat], [q.text for _, q in flat], pad_multiple=PAD_MULTIPLE,
-                             encode_distinct=True)
+                             encode_distinct=True, encoded=encoded)
+        # the M-RoPE positions the model would compute itself (Qwen2VLModel.get_rope_index), for the whole batch
+        # at once instead of row by row in Python
+        inputs["position_ids"], _ = mrope_position_ids(inputs["input_ids"], inputs["mm_token_type_ids"],
+                                                       inputs["image_grid_thw"], inputs["attention_mask"], self.merge)
+        if not bool(inputs["attention_mask"].all()):  # type: ignore[attr-defined]
+            # the float mask torch would make of the library's boolean one in every layer, made once (without
+            # padding the library passes no mask at all, which is another attention path: left to it)
+            inputs["attention_mask"] = {"full_attention": causal_padding_bias(inputs["attention_mask"], self.net.dtype)}
         with self._lock, self.torch.inference_mode():
-            logits = self.net(**inputs).logits[:, -1, :].float()
+            logits = self.net(**inputs, use_cache=False, logits_to_keep=1).logits[:, -1, :].float()
         out = []
         for row, (_, q), ids in zip(logits, flat, cand_ids, strict=True):
             p = self.torch.softmax(row[ids], dim=-1).cpu().numpy()
@@ -278,8 +318,11 @@ class HFBackend(ModelBackend):
             if item_rows:
                 groups.setdefault(self._padded_length(item_rows), []).append(i)
         out: list[list[dict[str, float]]] = [[] for _ in items]
+        if not groups:
+            return out
+        encoded = self._encode([im for item_rows in rows for im, _ in item_rows])
         for members in groups.values():
-            probs = self._forward([r for i in members for r in rows[i]])
+            probs = self._forward([r for i in members for r in rows[i]], encoded)
             k = 0
             for i in members:
                 out[i] = probs[k : k + len(rows[i])]
@@ -297,13 +340,7 @@ class HFBackend(ModelBackend):
 
     def _image_tokens(self, h: int, w: int) -> int:
         """How many ``<|image_pad|>`` tokens an ``h`` x ``w`` image takes (the image processor's grid)."""
-        key = (h, w)
-        if key not in self._grid_cache:
-            from PIL import Image
-
-            grid = self.image_processor(images=[Image.new("RGB", (w, h))], return_tensors="pt")["image_grid_thw"]
-            self._grid_cache[key] = int(grid[0].prod().item()) // (self.merge**2)
-        return self._grid_cache[key]
+        return self.pixels.tokens(h, w)
 
     def generate(self, rgb: np.ndarray, text: str, max_new_tokens: int = 48) -> str:
         inputs = self._inputs([rgb], [text])

@@ -7,7 +7,8 @@ read from ``choices[0].logprobs.content[0].top_logprobs``: every listed token wh
 spaces, equals a candidate adds its probability to that candidate ("A" and " A" both count); the result is
 normalised over the candidates. A candidate missing from the top list gets the probability of the least
 likely listed token (an upper bound of what it could have). The four queries of a step are sent
-concurrently (chat-completions has no batch call).
+concurrently (chat-completions has no batch call), and so are those of the steps of a replica's batch
+(:meth:`RemoteBackend.score_many`), on connections kept alive between steps (one ``httpx.Client``).
 
 Timeouts are ``remote_timeout_s``; 429 and 5xx answers, timeouts and connection errors are retried up to
 ``remote_max_retries`` times with exponential backoff (``Retry-After`` honoured, capped). Other 4xx answers
@@ -45,7 +46,7 @@ import random
 import re
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -53,9 +54,10 @@ import httpx
 import numpy as np
 from PIL import Image
 
+from eqa.messages import ScoreRequest
 from eqa.settings import Settings
 from services.vlm_scorer import prompts
-from services.vlm_scorer.backends.base import BackendUnavailable, ModelBackend, Scores
+from services.vlm_scorer.backends.base import BackendUnavailable, ModelBackend, ProbeItem, Scores
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +67,8 @@ BACKOFF_MAX_S = 8.0
 SAMPLE_MAX_TOKENS = 3  # enough for "Yes", " B." etc.; only the first word counts
 MAX_SAMPLES = 64
 QUERIES_PER_STEP = 4  # answer, relevance, LSV, GSV (prompts.step_queries)
+# steps of a replica's batch whose queries are in flight at once (score_many); their connections are kept alive
+STEPS_IN_FLIGHT = 8
 
 Mode = Literal["auto", "logprobs", "sampling"]
 _FIRST_WORD = re.compile(r"[A-Za-z]+")
@@ -179,8 +183,10 @@ class RemoteBackend(ModelBackend):
         self._lock = threading.Lock()
         self._step_resolution = 0.0
         headers = {"Authorization": f"Bearer {api_key}"} if api_key else {}
-        self.client = httpx.Client(timeout=httpx.Timeout(timeout_s), headers=headers)
-        self.pool = ThreadPoolExecutor(max_workers=QUERIES_PER_STEP, thread_name_prefix="remote-scorer")
+        in_flight = QUERIES_PER_STEP * STEPS_IN_FLIGHT
+        self.client = httpx.Client(timeout=httpx.Timeout(timeout_s), headers=headers,
+                                   limits=httpx.Limits(max_connections=in_flight, max_keepalive_connections=in_flight))
+        self.pool = ThreadPoolExecutor(max_workers=in_flight, thread_name_prefix="remote-scorer")
 
     @classmethod
     def from_settings(cls, settings: Settings) -> RemoteBackend:
@@ -345,6 +351,36 @@ class RemoteBackend(ModelBackend):
         out = [f.result() for f in futures]
         self._step_resolution = max((r for _, r in out), default=0.0)
         return [m for m, _ in out]
+
+    def score_many(self, reqs: list[ScoreRequest]) -> list[Scores | Exception]:
+        """Several steps of a replica's batch: the queries of all of them in flight together (up to
+        :data:`STEPS_IN_FLIGHT` steps' worth; chat-completions has no batch call, and a server that batches
+        requests itself, like vLLM, serves concurrent ones together). Per request its :class:`Scores` with its
+        own mode and resolution, or the exception preparing or scoring it raised."""
+        out: list[Scores | Exception] = []
+        ready: list[tuple[int, ProbeItem, list[str], list[Future[tuple[dict[str, float], float]]]]] = []
+        for i, req in enumerate(reqs):
+            try:
+                item, proposed = self.prepare(req)
+                plain = png_data_url(item.rgb)
+                marked = png_data_url(item.annotated) if item.annotated is not None else plain
+            except Exception as exc:
+                out.append(exc)
+                continue
+            out.append(RuntimeError("not scored"))
+            ready.append((i, item, proposed, [self.pool.submit(self._query, marked if q.annotated else plain, q)
+                                              for q in item.queries]))
+        for i, item, proposed, futures in ready:
+            try:
+                got = [f.result() for f in futures]
+            except Exception as exc:
+                out[i] = exc
+                continue
+            scores = self.finish(reqs[i], item, proposed, [m for m, _ in got])
+            scores.mode = self.mode
+            scores.resolution = max((r for _, r in got), default=0.0)
+            out[i] = scores
+        return out
 
     def score(self, req: Any) -> Scores:
         """:meth:`ModelBackend.score`, with the mode and the step's resolution (one request at a time)."""
