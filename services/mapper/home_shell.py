@@ -153,45 +153,30 @@ class HomeMemory:
         return self._store()
 
     # ---- reading a home ---------------------------------------------------------------------------------
-    def read_index(self, home: str) -> HomeIndex | None:
-        raw = self.store.get(index_key(home))
+    def _read(self, key: str, decode: Callable[[bytes], Any], home: str, what: str, level: int = logging.ERROR) -> Any:
+        """The part at ``key`` decoded, None when absent or unusable (logged at ``level``: ``what``, and what
+        follows)."""
+        raw = self.store.get(key)
         if raw is None:
             return None
         try:
-            return HomeIndex.from_bytes(raw)
+            return decode(raw)
         except (ValueError, KeyError, TypeError) as exc:
-            log.error("home %s: stored index unusable (%s); the home starts over", home, exc)
+            log.log(level, "home %s: %s unusable (%s)", home, what, exc)
             return None
+
+    def read_index(self, home: str) -> HomeIndex | None:
+        return self._read(index_key(home), HomeIndex.from_bytes, home, "stored index (the home starts over)")
 
     def read_map(self, home: str) -> HomeMap | None:
-        raw = self.store.get(map_key(home))
-        if raw is None:
-            return None
-        try:
-            return HomeMap.from_bytes(raw)
-        except (ValueError, KeyError, TypeError) as exc:
-            log.error("home %s: stored map unusable (%s); ignored", home, exc)
-            return None
+        return self._read(map_key(home), HomeMap.from_bytes, home, "stored map (ignored)")
 
     def read_objects(self, home: str, key: str | None = None) -> HomeObjects | None:
-        raw = self.store.get(key or objects_key(home))
-        if raw is None:
-            return None
-        try:
-            return HomeObjects.from_bytes(raw)
-        except (ValueError, KeyError, TypeError) as exc:
-            log.error("home %s: stored object layer unusable (%s); ignored", home, exc)
-            return None
+        return self._read(key or objects_key(home), HomeObjects.from_bytes, home, "stored object layer (ignored)")
 
     def read_view(self, home: str, view_id: str) -> Keyframe | None:
-        raw = self.store.get(view_key(home, view_id))
-        if raw is None:
-            return None
-        try:
-            return Keyframe.from_bytes(raw)
-        except (ValueError, KeyError, TypeError) as exc:
-            log.warning("home %s: view %s unusable (%s); skipped", home, view_id, exc)
-            return None
+        return self._read(view_key(home, view_id), Keyframe.from_bytes, home, f"view {view_id} (skipped)",
+                          logging.WARNING)
 
     # ---- an episode -------------------------------------------------------------------------------------
     def _pool(self, views: list[ViewInfo] | None = None) -> ViewPool:
