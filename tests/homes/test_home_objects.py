@@ -331,3 +331,111 @@ def test_the_home_layer_stays_within_its_count_and_bytes(house, store: Store, tm
     assert memory.episodes["ep-b3"].objects_base is False
     assert memory.finish(em3, om3) is not None and memory.read_objects("h-b") is not None
     homes.delete_home(store, "h-b", 60.0)
+
+
+# ---- through the mapper service over Zenoh: a task continued by another instance ------------------------------
+def fake_values(req):
+    from eqa.messages import ValueResult
+
+    return ValueResult(request_id=req.request_id, episode_id=req.episode_id, step=req.step,
+                       values=[0.5] * len(req.targets), backend="test", model="test", replica="test")
+
+
+def test_a_task_in_a_home_through_the_mapper_service_restarted_mid_task(
+        hub_settings: Settings, settings: Settings, house, redis_url: str) -> None:
+    """Real services over Zenoh and Redis: task 1 in a home sees its target and ends; task 2 for the same class
+    publishes, at its first step, an instance of the target above tau_g and counts explored floor; the mapper
+    dies, a second instance continues task 2 from the store and commits it (the home's layer grows, the copy of
+    the layer it started from is deleted); a task for a class never asked re-detects the remembered views
+    through the detector at its first frame."""
+    import time
+
+    from support.mapper import Collector
+
+    from eqa import keys
+    from eqa.bus import Bus
+    from eqa.messages import EpisodeEnd
+    from services.mapper.service import MapperService
+    from services.vlm_scorer.service import ScorerService
+
+    scene, renderer = house
+    obj, pose = seen_object(scene, renderer)
+    settings = settings.model_copy(update={"redis_url": redis_url, "scorer_replica": "homes-obj",
+                                           "home_max_views": 4})
+    home = homes.home_id("tenant-a", "task-house")
+    detect = GroundTruthDetector()
+
+    def turned(k: int) -> Pose2D:
+        return Pose2D(x=pose.x, y=pose.y, yaw=pose.yaw + k * math.pi / 3)
+
+    def ended(eid: str, steps: int) -> EpisodeEnd:
+        return EpisodeEnd(episode_id=eid, robot="r0", state="stopped", reason="test", steps=steps)
+
+    def wait_version(service: MapperService, version: int) -> None:
+        deadline = time.time() + 30
+        while time.time() < deadline:
+            index = service.homes.read_index(home)
+            if index is not None and index.version >= version:
+                return
+            time.sleep(0.05)
+        raise AssertionError(f"home not at version {version}")
+
+    with Bus(hub_settings, "gateway") as bus:
+        out = Collector(bus)
+        scorer = ScorerService(settings)  # the oracle backend: simulated perception model, not a VLM
+        scorer.start()
+        mapper = MapperService(settings, detector=detect, values=fake_values)
+        mapper.start()
+        other: MapperService | None = None
+        try:
+            store = mapper.store
+            homes.delete_home(store, home, 60.0)
+            time.sleep(0.5)
+            bus.publish(keys.stream("r0", keys.EPISODE_START), task_start("ep-s1", obj, home, pose))
+            for k in range(6):
+                bus.publish(keys.stream("r0", keys.SIM_FRAME), frame_at(renderer, "ep-s1", k, turned(k)))
+                m, _ = out.step(k)
+            assert max((o.scores[obj][2] for o in m.objects), default=-1.0) > settings.helios_tau_g
+            bus.publish(keys.stream("r0", keys.EPISODE_END), ended("ep-s1", 6))
+            wait_version(mapper, 1)
+            index = mapper.homes.read_index(home)
+            assert index is not None and index.gaussians > 0
+
+            bus.publish(keys.stream("r0", keys.EPISODE_START), task_start("ep-s2", obj, home, pose))
+            bus.publish(keys.stream("r0", keys.SIM_FRAME), frame_at(renderer, "ep-s2", 0, turned(3)))
+            m0, _ = out.step(0)  # facing away from where task 1 started looking: the layer remembers
+            assert max((o.scores[obj][2] for o in m0.objects), default=-1.0) > settings.helios_tau_g
+            assert mapper.homes.episodes["ep-s2"].loaded_cells > 0
+            assert store.get(objects_base_key(home, "ep-s2")) is not None
+
+            mapper.stop()  # dies mid-task; another instance takes the robot over from the store
+            other = MapperService(settings.model_copy(update={"instance": "mapper-b"}), detector=detect,
+                                  values=fake_values)
+            other.start()
+            time.sleep(0.5)
+            bus.publish(keys.stream("r0", keys.SIM_FRAME), frame_at(renderer, "ep-s2", 1, turned(4)))
+            m1, _ = out.step(1)
+            assert max((o.scores[obj][2] for o in m1.objects), default=-1.0) > settings.helios_tau_g
+            assert other.homes.episodes["ep-s2"].objects_base
+            bus.publish(keys.stream("r0", keys.EPISODE_END), ended("ep-s2", 2))
+            wait_version(other, 2)
+            assert store.get(objects_base_key(home, "ep-s2")) is None
+            after = other.homes.read_index(home)
+            assert after is not None and after.episodes == 2 and after.gaussians >= index.gaussians
+
+            n_calls = len(detect.calls)
+            bus.publish(keys.stream("r0", keys.EPISODE_START), task_start("ep-s3", "zz-never", home, pose))
+            bus.publish(keys.stream("r0", keys.SIM_FRAME), frame_at(renderer, "ep-s3", 0, pose))
+            out.step(0)
+            redetected = [r for r in detect.calls[n_calls:] if r.episode_id == "ep-s3"]
+            assert len(redetected) == len(after.views) + 1  # the remembered views, then its own frame
+            assert other.homes.episodes["ep-s3"].objects_warmed
+            bus.publish(keys.stream("r0", keys.EPISODE_END), ended("ep-s3", 1))
+            wait_version(other, 3)
+            assert out.errors.empty(), out.errors.get()
+            assert homes.delete_home(store, home, 60.0) >= 4
+        finally:
+            if other is not None:
+                other.stop()
+            mapper.stop()
+            scorer.stop()
