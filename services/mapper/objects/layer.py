@@ -286,7 +286,8 @@ class ObjectLayer:
             format=np.array(SNAPSHOT_FORMAT),
             classes=np.array(self.classes),
             meta=np.array([self.next_label, self.step], np.int64),
-            **{f"g_{k}": v for k, v in self.store.to_numpy().items()},
+            # home ids only when the layer has some (a task in a home): an episode without one stores what it did
+            **{f"g_{k}": v for k, v in self.store.to_numpy().items() if k != "uid" or (v >= 0).any()},
             **extra,
         )
         return buf.getvalue()
