@@ -553,6 +553,8 @@ class HomeMemory:
                         map_bytes=len(map_bytes) if len(map_bytes) <= s.home_max_bytes else 0,
                         created_at=index.created_at, objects_bytes=len(objects_bytes),
                         gaussians=0 if home_objects is None else len(home_objects))
+        if ep.objects_base:  # its own evidence is in the layer now: the copy it started from goes before the index
+            self.store.delete(objects_base_key(ep.home, em.episode_id))
         self.store.set(index_key(ep.home), new.to_bytes(), ttl_s=ttl)
         # every kept view's TTL runs from now; the views left out go
         for v in chosen:

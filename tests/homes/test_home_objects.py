@@ -402,8 +402,11 @@ def test_a_task_in_a_home_through_the_mapper_service_restarted_mid_task(
             assert index is not None and index.gaussians > 0
 
             bus.publish(keys.stream("r0", keys.EPISODE_START), task_start("ep-s2", obj, home, pose))
-            bus.publish(keys.stream("r0", keys.SIM_FRAME), frame_at(renderer, "ep-s2", 0, turned(3)))
-            m0, _ = out.step(0)  # facing away from where task 1 started looking: the layer remembers
+            away = [k for k in range(6) if not any(
+                lb.category == obj for lb in frame_at(renderer, "probe", k, turned(k)).labels)]
+            assert away, f"every direction shows a {obj}"
+            bus.publish(keys.stream("r0", keys.SIM_FRAME), frame_at(renderer, "ep-s2", 0, turned(away[0])))
+            m0, _ = out.step(0)  # facing where no target is in view: the home's layer remembers it
             assert max((o.scores[obj][2] for o in m0.objects), default=-1.0) > settings.helios_tau_g
             assert mapper.homes.episodes["ep-s2"].loaded_cells > 0
             assert store.get(objects_base_key(home, "ep-s2")) is not None
@@ -413,7 +416,7 @@ def test_a_task_in_a_home_through_the_mapper_service_restarted_mid_task(
                                   values=fake_values)
             other.start()
             time.sleep(0.5)
-            bus.publish(keys.stream("r0", keys.SIM_FRAME), frame_at(renderer, "ep-s2", 1, turned(4)))
+            bus.publish(keys.stream("r0", keys.SIM_FRAME), frame_at(renderer, "ep-s2", 1, turned(away[-1])))
             m1, _ = out.step(1)
             assert max((o.scores[obj][2] for o in m1.objects), default=-1.0) > settings.helios_tau_g
             assert other.homes.episodes["ep-s2"].objects_base
