@@ -242,10 +242,11 @@ def test_concurrent_episodes_in_one_home_merge(house, store: Store, tmp_path: Pa
 
 def test_a_task_in_a_home_searches_on_the_remembered_geometry_with_its_own_frontiers(
         house, store: Store, tmp_path: Path) -> None:
-    """A question in a home starts from the explored map (its view memory guides it); a task, whose HELIOS layers
-    the home does not keep, starts from the geometry only: at its first frame it has the frontiers a cold task
-    has there (the explored home map would send it past places whose objects it never detected, to the edges of
-    what earlier episodes saw), no memory steps and its own step budget."""
+    """A question in a home starts from the explored map (its view memory guides it); a task in a home whose
+    earlier episodes asked no detector for its class (here: a question only) starts from the geometry only: at its
+    first frame it has the frontiers a cold task has there (the explored home map would send it past places whose
+    objects it never detected, to the edges of what earlier episodes saw), no memory steps and its own step
+    budget."""
     from eqa.messages import Task
 
     _scene, renderer, q = house
