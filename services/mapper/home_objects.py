@@ -66,7 +66,7 @@ from services.mapper.home_memory import MAX_DECODED_HOME, union_grid
 HOME_OBJECTS_VERSION = 1
 OTHER = "other"
 MAX_VOCABULARIES = 16  # distinct class sets a home keeps evidence for (tasks ask 1-3 classes each)
-MAX_CLASS_CHARS = 64
+MAX_CLASS_CHARS = 80  # eqa.messages.ClassName
 
 Vocabulary = tuple[str, ...]
 Column = tuple[Vocabulary, str]  # (the classes asked, the label: one of them or "other")
