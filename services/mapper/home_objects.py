@@ -13,7 +13,8 @@ set of classes the detector was asked for when the evidence was gathered, the la
 ``other``. Each column is the sum of the kappa-weighted one-hot entries Eq. 3 added for that label while ``V``
 was the vocabulary.
 
-**The carry-over rule** (:meth:`HomeObjects.gamma_for`): for a task with classes ``D`` a Gaussian starts with
+**The carry-over rule** (:meth:`HomeObjects.gamma_for`; a task starts with the Gaussians holding evidence for
+one of its classes, :meth:`HomeObjects.restorable`): for a task with classes ``D`` a Gaussian starts with
 
 * ``gamma^d = prior + sum over every V containing d of evidence[V, d]`` for ``d`` in ``D``: a pixel labelled
   ``d`` was ``d`` whatever else was asked;
@@ -180,6 +181,17 @@ class HomeObjects:
             elif d <= set(voc):  # labelled other, or a class of V outside D: none of D
                 out[:, -1] += col
         return out
+
+    def restorable(self, classes: Sequence[str], prior: float) -> tuple[np.ndarray, np.ndarray]:
+        """The Gaussians a task with ``classes`` starts with and their concentrations (:meth:`gamma_for`): those
+        holding evidence for at least one of its classes. HELIOS creates a Gaussian only inside pixels detected as
+        a task class (appendix 6.1, "Gaussian creation"), so a task's own layer never holds one without such
+        evidence; restored with the flat prior over (class, other), such a Gaussian would have ``S_c = 1/2`` for
+        a one-class task (Eq. 4), above the candidate bar ``cs`` of Eq. 7, and the search would go to look at
+        remembered objects of other classes. Returns (indices into this layer, concentrations)."""
+        gamma = self.gamma_for(classes, prior)
+        keep = np.nonzero((gamma[:, :-1] - float(prior)).sum(axis=1) > 0)[0]
+        return keep, gamma[keep]
 
     def explored_for(self, classes: Sequence[str]) -> FloorMask | None:
         """The floor explored for every one of ``classes`` (None: some class was never looked for)."""

@@ -220,9 +220,10 @@ class HomeMemory:
 
     def _start_objects(self, start: EpisodeStart, ep: EpisodeHome, objects: ObjectMap,
                        index: HomeIndex) -> FloorMask | None:
-        """A task's object layer from the home's (:mod:`services.mapper.home_objects`): its Gaussians with the
-        concentrations the carry-over rule gives for the task's classes; the remembered views to re-detect at the
-        first frame when a class was never asked for; the floor explored for all of its classes (None: none)."""
+        """A task's object layer from the home's (:mod:`services.mapper.home_objects`): the Gaussians with evidence
+        for one of the task's classes, with the concentrations the carry-over rule gives for them; the remembered
+        views to re-detect at the first frame when a class was never asked for; the floor explored for all of its
+        classes (None: none)."""
         if objects.single_frame:  # the trusting agent keeps no 3D layer, so it has nothing to start from
             return None
         stored = self.read_objects(ep.home)
@@ -231,9 +232,10 @@ class HomeMemory:
             self.store.set(objects_base_key(ep.home, start.episode_id), stored.to_bytes(),
                            ttl_s=self.settings.home_ttl_s)
             ep.objects_base = True
-            if len(stored):
-                objects.load_home(stored.uid, stored.means, stored.sigma, stored.opacity,
-                                  stored.gamma_for(classes, objects.layer.config.prior))
+            keep, gamma = stored.restorable(classes, objects.layer.config.prior)
+            if len(keep):
+                objects.load_home(stored.uid[keep], stored.means[keep], stored.sigma[keep], stored.opacity[keep],
+                                  gamma)
         asked = [c for c in classes if stored is not None and stored.asked(c)]
         if len(asked) < len(classes):
             ep.redetect_ids = [v.view_id for v in index.views[: self.settings.home_warm_views]]

@@ -76,6 +76,20 @@ def test_evidence_carries_over_by_class_name_and_other_is_evidence_only_against_
     assert third.vocabularies == [("mug", "table"), ("cup",), ("cup", "mug")]
 
 
+def test_a_task_starts_with_the_gaussians_holding_evidence_for_one_of_its_classes() -> None:
+    """A Gaussian without evidence for any class of the task would be a candidate at S = 1/2 with the flat prior
+    (Eq. 4, 7): it is not restored; one with evidence for a class of the task is, with the rule's counts."""
+    h = commit(None, {k: np.concatenate([v, w]) for (k, v), w in zip(
+        one([7.0, 1.0, 4.0]).items(), one([1.0, 1.0, 9.0]).values(), strict=True)}, ["mug", "table"], "ep-1")
+    keep, gamma = h.restorable(["mug"], PRIOR)
+    np.testing.assert_array_equal(keep, [0])
+    np.testing.assert_allclose(gamma, [[7.0, 4.0]])
+    keep, gamma = h.restorable(["cup"], PRIOR)
+    assert len(keep) == 0 and gamma.shape == (0, 2)
+    keep, _ = h.restorable(["cup", "mug"], PRIOR)
+    np.testing.assert_array_equal(keep, [0])
+
+
 def test_concurrent_commits_keep_the_shared_evidence_once_and_both_new_gaussians() -> None:
     base = commit(None, one([5.0, 1.0]), ["mug"], "ep-0")
     uid = int(base.uid[0])
@@ -261,15 +275,15 @@ def test_a_second_task_starts_with_the_target_the_first_one_saw(house, store: St
     om3 = ObjectMap.for_task(cold.task, ObjectMapConfig())
     memory.start(cold, EpisodeMap(cold, task_map_config(MapperConfig())), om3)
     assert om3.summaries() == []
-    # a task for a class never asked: the layer's Gaussians come back uniform over it, nothing explored, and the
-    # remembered views are re-detected for it at the first frame
+    # a task for a class never asked: no Gaussian comes back (none holds evidence for it: with the flat prior each
+    # would be a candidate at S = 1/2), nothing counts as explored, the remembered views are re-detected for it
     other = task_start("ep-o4", "zz-never", "h-o", pose)
     em4 = EpisodeMap(other, task_map_config(MapperConfig()))
     om4 = ObjectMap.for_task(other.task, ObjectMapConfig())
     memory.start(other, em4, om4)
     ep4 = memory.episodes["ep-o4"]
     assert ep4.loaded_cells == 0 and len(ep4.redetect_ids) > 0 and ep4.redetect_without == []
-    assert all(abs(o.scores["zz-never"][0] - 0.5) < 1e-6 for o in om4.summaries())
+    assert om4.summaries() == [] and len(stored) > 0
     n_calls = len(detect.calls)
     f0 = frame_at(renderer, "ep-o4", 0, pose)
     em4.integrate(f0)
