@@ -541,8 +541,12 @@ def run_tasks(args: argparse.Namespace, settings: Any) -> dict[str, Any]:
     knobs = [settings.sim_width, settings.sim_height, cap, settings.home_max_views, settings.home_warm_views,
              settings.helios_max_gaussians]
     tag = hashlib.sha256(json.dumps(knobs).encode()).hexdigest()[:10]
+    warm_tag = tag  # a cold episode has no home: the home's own knobs tag the warm runs only
+    if settings.home_redetect_views != settings.home_warm_views:  # (equal: the tags of earlier runs stay valid)
+        extra = [*knobs, "redetect", settings.home_redetect_views]
+        warm_tag = hashlib.sha256(json.dumps(extra).encode()).hexdigest()[:10]
     houses = [(s, i) for s in args.seeds for i in range(args.test_houses)]
-    paths = {(s, i, w): runs / f"task-{'warm' if w else 'cold'}-s{s}-h{i}-{tag}.json"
+    paths = {(s, i, w): runs / f"task-{'warm' if w else 'cold'}-s{s}-h{i}-{warm_tag if w else tag}.json"
              for s, i in houses for w in (False, True)}
     jobs = [(s, i, w, dump, cap) for (s, i, w), p in paths.items() if not p.is_file()]
     _run_all(run_task_house, jobs, [paths[(j[0], j[1], j[2])] for j in jobs], args.workers)
@@ -598,7 +602,7 @@ def summarise_tasks(rows: list[dict[str, Any]], args: argparse.Namespace, settin
         "runner": "cores (in-process task step functions; the mapper's HomeMemory on an embedded store)",
         "agent": "helios", "seeds": list(args.seeds), "houses_per_seed": args.test_houses,
         "task_steps_cap": args.task_steps, "size": f"{settings.sim_width}x{settings.sim_height}",
-        "home_max_views": settings.home_max_views, "home_warm_views": settings.home_warm_views,
+        "home_max_views": settings.home_max_views, "home_redetect_views": settings.home_redetect_views,
         "positions": {str(p): paired([r for r in rows if r["position"] == p])
                       for p in sorted({r["position"] for r in rows})},
         "positions_2_on": paired(later),
@@ -679,7 +683,7 @@ def cmd_home(args: argparse.Namespace) -> int:
     for name in ("stale_weight", "warm_budget"):
         if getattr(args, name) is not None and not 0 <= getattr(args, name) <= 1:
             raise UsageError(f"--{name.replace('_', '-')} must be in [0, 1]")
-    for name in ("home_views", "memory_steps"):
+    for name in ("home_views", "memory_steps", "redetect_views"):
         if getattr(args, name) is not None and not 0 <= getattr(args, name) <= 256:
             raise UsageError(f"--{name.replace('_', '-')} must be 0..256")
     settings = _settings(args)
@@ -687,6 +691,8 @@ def cmd_home(args: argparse.Namespace) -> int:
         settings = settings.model_copy(update={"home_max_views": args.home_views, "home_warm_views": args.home_views})
     if args.memory_steps is not None:
         settings = settings.model_copy(update={"home_memory_steps": args.memory_steps})
+    if args.redetect_views is not None:
+        settings = settings.model_copy(update={"home_redetect_views": args.redetect_views})
     if args.stale_weight is not None:
         settings = settings.model_copy(update={"home_stale_weight": args.stale_weight})
     if args.warm_budget is not None:
@@ -735,6 +741,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "kept); the CP options do not apply")
     p.add_argument("--task-steps", type=int, default=None,
                    help="with --tasks: cap of each task's step budget (default: the task's own)")
+    p.add_argument("--redetect-views", type=int, default=None,
+                   help="with --tasks: remembered views re-detected for a task's new classes (EQA_HOME_REDETECT_VIEWS; "
+                   "default from the environment)")
     p.add_argument("--size", default="160x120", help="camera image size WxH (default 160x120)")
     p.add_argument("--scorer", choices=("oracle", "hf", "remote"), default=None,
                    help="scorer backend (default EQA_SCORER_BACKEND, normally oracle)")

@@ -238,7 +238,7 @@ class HomeMemory:
                                   gamma)
         asked = [c for c in classes if stored is not None and stored.asked(c)]
         if len(asked) < len(classes):
-            ep.redetect_ids = [v.view_id for v in index.views[: self.settings.home_warm_views]]
+            ep.redetect_ids = [v.view_id for v in index.views[: self.settings.home_redetect_views]]
             ep.redetect_without = asked
         floor = None if stored is None else stored.explored_for(classes)
         log.info("episode %s: home %s object layer: %d Gaussians, classes asked before %s, %d views to re-detect",
