@@ -429,9 +429,10 @@ class HomeSettings(SettingsGroup):
         "first); 0 = the map is carried over but no memory steps",
     )
     home_redetect_views: int = Field(
-        default=24, ge=0, le=256,
+        default=8, ge=0, le=256,
         description="a task in a home: remembered views re-detected at its first frame for its classes no earlier "
-        "task asked for (the most covering first; services/mapper/home_objects.py); 0 = none",
+        "task asked for (the most covering first; services/mapper/home_objects.py); 0 = none (8 chosen on tuning "
+        "seed 11: docs/homes.md)",
     )
     home_memory_steps: int = Field(
         default=0, ge=0, le=256,
