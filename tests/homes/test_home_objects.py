@@ -364,13 +364,11 @@ def test_a_task_in_a_home_through_the_mapper_service_restarted_mid_task(
     through the detector at its first frame."""
     import time
 
-    from support.mapper import Collector
+    from support.mapper import home_rig
 
     from eqa import keys
-    from eqa.bus import Bus
     from eqa.messages import EpisodeEnd
     from services.mapper.service import MapperService
-    from services.vlm_scorer.service import ScorerService
 
     scene, renderer = house
     obj, pose = seen_object(scene, renderer)
@@ -394,65 +392,50 @@ def test_a_task_in_a_home_through_the_mapper_service_restarted_mid_task(
             time.sleep(0.05)
         raise AssertionError(f"home not at version {version}")
 
-    with Bus(hub_settings, "gateway") as bus:
-        out = Collector(bus)
-        scorer = ScorerService(settings)  # the oracle backend: simulated perception model, not a VLM
-        scorer.start()
-        mapper = MapperService(settings, detector=detect, values=fake_values)
-        mapper.start()
-        other: MapperService | None = None
-        try:
-            store = mapper.store
-            homes.delete_home(store, home, 60.0)
-            time.sleep(0.5)
-            bus.publish(keys.stream("r0", keys.EPISODE_START), task_start("ep-s1", obj, home, pose))
-            for k in range(6):
-                bus.publish(keys.stream("r0", keys.SIM_FRAME), frame_at(renderer, "ep-s1", k, turned(k)))
-                m, _ = out.step(k)
-            assert max((o.scores[obj][2] for o in m.objects), default=-1.0) > settings.helios_tau_g
-            bus.publish(keys.stream("r0", keys.EPISODE_END), ended("ep-s1", 6))
-            wait_version(mapper, 1)
-            index = mapper.homes.read_index(home)
-            assert index is not None and index.gaussians > 0
+    with home_rig(hub_settings, settings, home, detector=detect, values=fake_values) as rig:
+        bus, out, mapper = rig.bus, rig.out, rig.mapper
+        store = mapper.store
+        bus.publish(keys.stream("r0", keys.EPISODE_START), task_start("ep-s1", obj, home, pose))
+        for k in range(6):
+            bus.publish(keys.stream("r0", keys.SIM_FRAME), frame_at(renderer, "ep-s1", k, turned(k)))
+            m, _ = out.step(k)
+        assert max((o.scores[obj][2] for o in m.objects), default=-1.0) > settings.helios_tau_g
+        bus.publish(keys.stream("r0", keys.EPISODE_END), ended("ep-s1", 6))
+        wait_version(mapper, 1)
+        index = mapper.homes.read_index(home)
+        assert index is not None and index.gaussians > 0
 
-            bus.publish(keys.stream("r0", keys.EPISODE_START), task_start("ep-s2", obj, home, pose))
-            away = [k for k in range(6) if not any(
-                lb.category == obj for lb in frame_at(renderer, "probe", k, turned(k)).labels)]
-            assert away, f"every direction shows a {obj}"
-            bus.publish(keys.stream("r0", keys.SIM_FRAME), frame_at(renderer, "ep-s2", 0, turned(away[0])))
-            m0, _ = out.step(0)  # facing where no target is in view: the home's layer remembers it
-            assert max((o.scores[obj][2] for o in m0.objects), default=-1.0) > settings.helios_tau_g
-            assert mapper.homes.episodes["ep-s2"].loaded_cells > 0
-            assert store.get(objects_base_key(home, "ep-s2")) is not None
+        bus.publish(keys.stream("r0", keys.EPISODE_START), task_start("ep-s2", obj, home, pose))
+        away = [k for k in range(6) if not any(
+            lb.category == obj for lb in frame_at(renderer, "probe", k, turned(k)).labels)]
+        assert away, f"every direction shows a {obj}"
+        bus.publish(keys.stream("r0", keys.SIM_FRAME), frame_at(renderer, "ep-s2", 0, turned(away[0])))
+        m0, _ = out.step(0)  # facing where no target is in view: the home's layer remembers it
+        assert max((o.scores[obj][2] for o in m0.objects), default=-1.0) > settings.helios_tau_g
+        assert mapper.homes.episodes["ep-s2"].loaded_cells > 0
+        assert store.get(objects_base_key(home, "ep-s2")) is not None
 
-            mapper.stop()  # dies mid-task; another instance takes the robot over from the store
-            other = MapperService(settings.model_copy(update={"instance": "mapper-b"}), detector=detect,
-                                  values=fake_values)
-            other.start()
-            time.sleep(0.5)
-            bus.publish(keys.stream("r0", keys.SIM_FRAME), frame_at(renderer, "ep-s2", 1, turned(away[-1])))
-            m1, _ = out.step(1)
-            assert max((o.scores[obj][2] for o in m1.objects), default=-1.0) > settings.helios_tau_g
-            assert other.homes.episodes["ep-s2"].objects_base
-            bus.publish(keys.stream("r0", keys.EPISODE_END), ended("ep-s2", 2))
-            wait_version(other, 2)
-            assert store.get(objects_base_key(home, "ep-s2")) is None
-            after = other.homes.read_index(home)
-            assert after is not None and after.episodes == 2 and after.gaussians >= index.gaussians
+        mapper.stop()  # dies mid-task; another instance takes the robot over from the store
+        other = rig.instance(settings.model_copy(update={"instance": "mapper-b"}), detector=detect, values=fake_values)
+        time.sleep(0.5)
+        bus.publish(keys.stream("r0", keys.SIM_FRAME), frame_at(renderer, "ep-s2", 1, turned(away[-1])))
+        m1, _ = out.step(1)
+        assert max((o.scores[obj][2] for o in m1.objects), default=-1.0) > settings.helios_tau_g
+        assert other.homes.episodes["ep-s2"].objects_base
+        bus.publish(keys.stream("r0", keys.EPISODE_END), ended("ep-s2", 2))
+        wait_version(other, 2)
+        assert store.get(objects_base_key(home, "ep-s2")) is None
+        after = other.homes.read_index(home)
+        assert after is not None and after.episodes == 2 and after.gaussians >= index.gaussians
 
-            n_calls = len(detect.calls)
-            bus.publish(keys.stream("r0", keys.EPISODE_START), task_start("ep-s3", "zz-never", home, pose))
-            bus.publish(keys.stream("r0", keys.SIM_FRAME), frame_at(renderer, "ep-s3", 0, pose))
-            out.step(0)
-            redetected = [r for r in detect.calls[n_calls:] if r.episode_id == "ep-s3"]
-            assert len(redetected) == len(after.views) + 1  # the remembered views, then its own frame
-            assert other.homes.episodes["ep-s3"].objects_warmed
-            bus.publish(keys.stream("r0", keys.EPISODE_END), ended("ep-s3", 1))
-            wait_version(other, 3)
-            assert out.errors.empty(), out.errors.get()
-            assert homes.delete_home(store, home, 60.0) >= 4
-        finally:
-            if other is not None:
-                other.stop()
-            mapper.stop()
-            scorer.stop()
+        n_calls = len(detect.calls)
+        bus.publish(keys.stream("r0", keys.EPISODE_START), task_start("ep-s3", "zz-never", home, pose))
+        bus.publish(keys.stream("r0", keys.SIM_FRAME), frame_at(renderer, "ep-s3", 0, pose))
+        out.step(0)
+        redetected = [r for r in detect.calls[n_calls:] if r.episode_id == "ep-s3"]
+        assert len(redetected) == len(after.views) + 1  # the remembered views, then its own frame
+        assert other.homes.episodes["ep-s3"].objects_warmed
+        bus.publish(keys.stream("r0", keys.EPISODE_END), ended("ep-s3", 1))
+        wait_version(other, 3)
+        assert out.errors.empty(), out.errors.get()
+        assert homes.delete_home(store, home, 60.0) >= 4
