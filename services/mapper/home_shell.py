@@ -5,6 +5,8 @@ Store layout (under :func:`eqa.homes.prefix`, every key with ``EQA_HOME_TTL_S``)
 
 * ``index``          :class:`~services.mapper.home_memory.HomeIndex` (version, the kept views' covered cells);
 * ``map``            :class:`~services.mapper.home_memory.HomeMap` (TSDF volume, traversed plane);
+* ``objects``        :class:`~services.mapper.home_objects.HomeObjects` (the HELIOS object layer of its task
+  episodes); ``objects-base:{episode}`` the layer a running task started from (its commit adds what it saw);
 * ``view:{id}``      one :class:`~services.mapper.home_memory.Keyframe` each (the kept views, and the candidates
   of running episodes: a frame is written when its episode's pool keeps it, so a mapper that dies mid-episode
   loses nothing its successor needs);
@@ -22,6 +24,11 @@ started from it and only added observations); a newer version (another episode c
 stored map and its map are fused (:meth:`HomeMap.merge`, both keep the other's observations). Either way the
 views are chosen again from the stored ones and the episode's candidates together (:func:`select_views`), the
 version goes up by one, and the views left out are deleted.
+
+**A task in a home** (:meth:`HomeMemory.start` with its object layer, :meth:`HomeMemory.warm_objects`): it starts
+from the home's Gaussians that hold evidence for its classes (the carry-over rule of
+:mod:`services.mapper.home_objects`), counts as explored only the floor explored for all of its classes, and
+re-detects up to ``EQA_HOME_REDETECT_VIEWS`` remembered views at its first frame when a class of it was never asked.
 
 **Warm start** (:meth:`HomeMemory.warm`): at the first frame of an episode in a home with views, the mapper
 re-scores up to ``EQA_HOME_WARM_VIEWS`` remembered views for the new question (the most covering first),
