@@ -25,6 +25,10 @@ With ``--changes K`` the house changes K seeded rounds between questions (:func:
 the changes affect are reported apart: their wrong-singleton rate (:func:`wrong_singleton`), warm vs cold on the
 same questions (:func:`singletons`).
 
+With ``--tasks`` the sequences are the tasks of task houses (:func:`run_task_house`): each run cold and warm
+(the HELIOS object layer kept in the home, :mod:`services.mapper.home_objects`), paired per task on steps, FindObj,
+Pick, FindRec and SR (``home-tasks.json``, ``rows-tasks.json``); no calibration is involved.
+
 Reported (``home.json``): steps to stop and success per position, cold vs warm on the same test questions,
 paired (sign tests on steps and on success, with the success difference's interval), the steps ratio of
 positions 2..N, CP coverage per eps on warm test episodes against 1 - eps (Wilson intervals), memory size.
