@@ -453,3 +453,17 @@ def test_bench_wrong_singletons_are_paired_on_the_same_questions() -> None:
     assert (res["paired"]["warm_only"], res["paired"]["cold_only"]) == (5, 1)
     assert res["paired"]["diff"] == pytest.approx(4 / 8) and 0 < res["paired"]["p_value"] < 0.25
     assert singletons([]) == {"n": 0}
+
+
+def test_bench_task_metrics_are_paired_on_the_tasks_that_have_them() -> None:
+    """``eqa bench home --tasks``: a pick-and-place metric is compared on the tasks that have it (an object search
+    has no FindObj), warm against cold on the same task."""
+    from eqa.app.evaluation import sign_test_p
+    from eqa.app.home_bench import metric_pairs
+
+    rows = [{"cold_FindObj": 1.0, "warm_FindObj": 0.0}, {"cold_FindObj": 0.0, "warm_FindObj": 1.0},
+            {"cold_FindObj": 0.0, "warm_FindObj": 1.0}, {"cold_FindObj": 1.0, "warm_FindObj": 1.0}, {}]
+    r = metric_pairs(rows, "FindObj")
+    assert (r["n"], r["cold"], r["warm"], r["warm_only"], r["cold_only"]) == (4, 0.5, 0.75, 2, 1)
+    assert r["p_value"] == sign_test_p(2, 1) and r["cold_ci"][0] < 0.5 < r["cold_ci"][1]
+    assert metric_pairs([{}], "Pick") == {"n": 0}
