@@ -482,11 +482,13 @@ def task_budget(task: Any, cap: int | None) -> int:
     return min(task.max_steps or 1, cap) if cap else (task.max_steps or 1)
 
 
-def run_task_house(args: tuple[int, int, bool, dict[str, Any], int | None]) -> list[dict[str, Any]]:
+def run_task_house(args: tuple[int, int, bool, dict[str, Any], int | None, bool]) -> list[dict[str, Any]]:
     """The tasks of one task house (:func:`services.sim.tasks.house_tasks`, in order) run one after the other in
     process (:func:`eqa.app.task_cores.run_task_episode`, the ``helios`` agent), each cold (no home) or warm (all
     in one home, on a store of its own, through the mapper's :class:`~services.mapper.home_shell.HomeMemory`).
-    A task's episode id and seed are the same cold and warm, so both meet the same simulated detector draws."""
+    A task's episode id and seed are the same cold and warm, so both meet the same simulated detector draws. With
+    ``repeat`` the house's object search is asked once more at the end (an episode id of its own: other detector
+    draws than its first run), the case of a task asking for what an earlier one searched."""
     from eqa.app.task_cores import TaskCores, cores_episode_id, run_task_episode, task_start
     from eqa.app.task_results import task_seed
     from eqa.settings import Settings
@@ -494,9 +496,11 @@ def run_task_house(args: tuple[int, int, bool, dict[str, Any], int | None]) -> l
     from services.mapper.home_shell import HomeMemory
     from services.sim.tasks import house_tasks
 
-    seed, index, warm, settings_dump, cap = args
+    seed, index, warm, settings_dump, cap, repeat = args
     settings = Settings.model_validate(settings_dump)
-    tasks = house_tasks(seed, index, settings.scenes_path)
+    tasks = [(t, "") for t in house_tasks(seed, index, settings.scenes_path)]
+    if repeat:
+        tasks += [(t, "-again") for t, _ in tasks if t.kind == "find_object"][:1]
     cores = TaskCores.from_settings(settings)
     home = f"h-task-{seed}-{index}"
     out = []
@@ -504,9 +508,9 @@ def run_task_house(args: tuple[int, int, bool, dict[str, Any], int | None]) -> l
         store = EmbeddedStore(Path(tmp) / "home.sqlite")
         memory = HomeMemory(settings, lambda: store, lambda: cores.backend.score)
         try:
-            for pos, task in enumerate(tasks):
+            for pos, (task, again) in enumerate(tasks):
                 steps = task_budget(task, cap)
-                start = task_start(task, "helios", steps, None, cores_episode_id(task.id, steps), "cores",
+                start = task_start(task, "helios", steps, None, cores_episode_id(task.id, steps) + again, "cores",
                                    task_seed(task.id))
                 before = memory.read_index(home) if warm else None
                 if warm:
@@ -517,7 +521,7 @@ def run_task_house(args: tuple[int, int, bool, dict[str, Any], int | None]) -> l
                 except Exception as exc:
                     log.exception("task %s (%s) failed in process", task.id, "warm" if warm else "cold")
                     state, reason, metrics, trace = "failed", f"{type(exc).__name__}: {exc}", {}, {}
-                out.append({"position": pos + 1, "task": task.id, "kind": task.kind,
+                out.append({"position": pos + 1, "task": task.id + again, "kind": task.kind, "again": bool(again),
                             "classes": [c for c in (task.object, task.start_receptacle, task.goal_receptacle) if c],
                             "state": state, "reason": reason, "metrics": metrics,
                             "steps": len(trace.get("steps", [])), "max_steps": steps,
@@ -543,7 +547,7 @@ def run_tasks(args: argparse.Namespace, settings: Any) -> dict[str, Any]:
     dump = settings.model_dump(mode="json")
     cap = args.task_steps
     knobs = [settings.sim_width, settings.sim_height, cap, settings.home_max_views, settings.home_warm_views,
-             settings.helios_max_gaussians]
+             settings.helios_max_gaussians, *(["repeat"] if args.repeat else [])]
     tag = hashlib.sha256(json.dumps(knobs).encode()).hexdigest()[:10]
     warm_tag = tag  # a cold episode has no home: the home's own knobs tag the warm runs only
     if settings.home_redetect_views != settings.home_warm_views:  # (equal: the tags of earlier runs stay valid)
@@ -552,7 +556,7 @@ def run_tasks(args: argparse.Namespace, settings: Any) -> dict[str, Any]:
     houses = [(s, i) for s in args.seeds for i in range(args.test_houses)]
     paths = {(s, i, w): runs / f"task-{'warm' if w else 'cold'}-s{s}-h{i}-{warm_tag if w else tag}.json"
              for s, i in houses for w in (False, True)}
-    jobs = [(s, i, w, dump, cap) for (s, i, w), p in paths.items() if not p.is_file()]
+    jobs = [(s, i, w, dump, cap, bool(args.repeat)) for (s, i, w), p in paths.items() if not p.is_file()]
     _run_all(run_task_house, jobs, [paths[(j[0], j[1], j[2])] for j in jobs], args.workers)
     rows = []
     for s, i in houses:
@@ -560,6 +564,7 @@ def run_tasks(args: argparse.Namespace, settings: Any) -> dict[str, Any]:
         warm = json.loads(paths[(s, i, True)].read_text())
         for c, w in zip(cold, warm, strict=True):
             row = {"seed": s, "house": i, "position": c["position"], "task": c["task"], "kind": c["kind"],
+                   "again": bool(c.get("again", False)),
                    "classes": c["classes"], "cold_steps": c["steps"], "warm_steps": w["steps"],
                    "max_steps": c["max_steps"], "cold_state": c["state"], "warm_state": w["state"],
                    "cold_correct": bool(c["metrics"].get("SR", 0.0)), "warm_correct": bool(w["metrics"].get("SR", 0.0)),
@@ -598,7 +603,7 @@ def metric_pairs(sel: list[dict[str, Any]], metric: str) -> dict[str, Any]:
 def summarise_tasks(rows: list[dict[str, Any]], args: argparse.Namespace, settings: Any) -> dict[str, Any]:
     from eqa.app.bench_common import scorer_label
 
-    later = [r for r in rows if r["position"] > 1]
+    later = [r for r in rows if r["position"] > 1 and not r.get("again")]  # (--repeat: the repeat is apart)
     return {
         "scorer": scorer_label(settings),
         "detector": ("detector: oracle (simulated perception model, not a VLM/detector)"
@@ -613,6 +618,7 @@ def summarise_tasks(rows: list[dict[str, Any]], args: argparse.Namespace, settin
         "positions_2_on_by_kind": {k: paired([r for r in later if r["kind"] == k])
                                    for k in sorted({r["kind"] for r in later})},
         "metrics_2_on": {m: metric_pairs(later, m) for m in TASK_METRICS},
+        "asked_again": paired([r for r in rows if r.get("again")]),  # --repeat: a search asked a second time
         "position_1_identical": all(r["cold_steps"] == r["warm_steps"] and r["cold_correct"] == r["warm_correct"]
                                     for r in rows if r["position"] == 1),
         "failed_runs": sum(1 for r in rows for k in ("cold_state", "warm_state") if r[k] == "failed"),
@@ -638,6 +644,13 @@ def print_task_results(res: dict[str, Any]) -> None:
         if v.get("n"):
             print(f"  {m}: n {v['n']}, cold {v['cold']:.3f} warm {v['warm']:.3f}; warm-only {v['warm_only']}, "
                   f"cold-only {v['cold_only']}, p {v['p_value']:.3g}")
+    again = res.get("asked_again", {})
+    if again.get("n"):
+        print(f"object search asked again (n {again['n']}): steps cold {again['cold_steps_mean']:.1f} warm "
+              f"{again['warm_steps_mean']:.1f} (ratio {again['steps_ratio']:.3f} {again['steps_ratio_ci']}, warm fewer "
+              f"{again['steps_sign_test']['warm_fewer']} more {again['steps_sign_test']['warm_more']}, p "
+              f"{again['steps_sign_test']['p_value']:.3g}); SR cold {again['cold_success']:.3f} warm "
+              f"{again['warm_success']:.3f} (p {again['success_paired']['p_value']:.3g})")
     print(f"position 1 identical cold and warm: {res['position_1_identical']}; failed runs {res['failed_runs']}")
 
 
@@ -743,6 +756,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="task sequences instead of questions: the tasks of task houses 0 .. --test-houses - 1 of each "
                    "seed (services.sim.tasks.house_tasks) in order, cold vs warm in one home (the HELIOS object layer "
                    "kept); the CP options do not apply")
+    p.add_argument("--repeat", action="store_true",
+                   help="with --tasks: ask each house's object search once more at the end of its sequence")
     p.add_argument("--task-steps", type=int, default=None,
                    help="with --tasks: cap of each task's step budget (default: the task's own)")
     p.add_argument("--redetect-views", type=int, default=None,
