@@ -124,11 +124,11 @@ def test_bounds_hold_and_hostile_parts_are_refused() -> None:
          "gamma": (1.0 + rng.uniform(0, 5, size=(n, 2))).astype(np.float32)}
     h = None
     for k in range(MAX_VOCABULARIES + 3):
-        h = commit(h, a, [f"class{k}"], f"ep-{k}")
+        h = commit(h, a, [f"class{k}"], f"ep-{k}", FloorMask(0.1, 0.0, 0.0, np.ones((2, 2), bool)))
     assert h is not None and len(h.vocabularies) == MAX_VOCABULARIES + 3
     b = h.bounded(10)
     assert len(b) == 10 and len(b.vocabularies) == MAX_VOCABULARIES
-    assert {c for v in b.vocabularies for c in v} == set(b.explored) | {c for v in b.vocabularies for c in v}
+    assert set(b.explored) == {c for v in b.vocabularies for c in v}  # floors of dropped class sets go too
     assert all(v in b.vocabularies for v, _ in b.columns)
     back = HomeObjects.from_bytes(b.to_bytes())
     np.testing.assert_array_equal(back.uid, b.uid)
@@ -326,7 +326,7 @@ def test_the_home_layer_stays_within_its_count_and_bytes(house, store: Store, tm
     small = Settings(data_dir=tmp_path / "var", helios_max_gaussians=20)
     memory = HomeMemory(small, lambda: store, lambda: None)
     em, om = run_task(memory, task_start("ep-b1", obj, "h-b", pose), renderer, 4, detect)
-    assert len(om.layer.store) > 20 or om.layer.store.uid.numel() >= 0
+    assert len(om.layer.store) > 20  # the episode's layer is larger than the home may keep
     index = memory.finish(em, om)
     assert index is not None and 0 < index.gaussians <= 20
     stored = memory.read_objects("h-b")
