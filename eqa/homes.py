@@ -74,6 +74,7 @@ class HomeSummary(BaseModel):
     episodes: int = Field(default=0, ge=0)  # episodes that updated the home
     views: int = Field(default=0, ge=0)  # keyframes in the view memory
     bytes: int = Field(default=0, ge=0)  # stored size of the home's parts
+    gaussians: int = Field(default=0, ge=0)  # in the HELIOS object layer its task episodes left
     created_at: float = Field(default_factory=time.time)
     updated_at: float = Field(default_factory=time.time)
     scenes: list[str] = Field(default_factory=list, max_length=64)  # scenes its episodes ran in

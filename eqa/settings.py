@@ -428,6 +428,12 @@ class HomeSettings(SettingsGroup):
         description="warm start: remembered views re-scored for a new question in a known home (the most covering "
         "first); 0 = the map is carried over but no memory steps",
     )
+    home_redetect_views: int = Field(
+        default=8, ge=0, le=256,
+        description="a task in a home: remembered views re-detected at its first frame for its classes no earlier "
+        "task asked for (the most covering first; services/mapper/home_objects.py); 0 = none (8 chosen on tuning "
+        "seed 11: docs/homes.md)",
+    )
     home_memory_steps: int = Field(
         default=0, ge=0, le=256,
         description="warm start: of the re-scored views, the stopper gets this many as memory steps, the most "

@@ -25,6 +25,10 @@ With ``--changes K`` the house changes K seeded rounds between questions (:func:
 the changes affect are reported apart: their wrong-singleton rate (:func:`wrong_singleton`), warm vs cold on the
 same questions (:func:`singletons`).
 
+With ``--tasks`` the sequences are the tasks of task houses (:func:`run_task_house`): each run cold and warm
+(the HELIOS object layer kept in the home, :mod:`services.mapper.home_objects`), paired per task on steps, FindObj,
+Pick, FindRec and SR (``home-tasks.json``, ``rows-tasks.json``); no calibration is involved.
+
 Reported (``home.json``): steps to stop and success per position, cold vs warm on the same test questions,
 paired (sign tests on steps and on success, with the success difference's interval), the steps ratio of
 positions 2..N, CP coverage per eps on warm test episodes against 1 - eps (Wilson intervals), memory size.
@@ -383,6 +387,39 @@ def singletons(sel: list[dict[str, Any]]) -> dict[str, Any]:
             "cold_success": kcc / n, "warm_success": kwc / n}
 
 
+def paired(sel: list[dict[str, Any]]) -> dict[str, Any]:
+    """Warm against cold on the same episodes ``sel`` (rows with ``cold_steps``, ``warm_steps``, ``cold_correct``,
+    ``warm_correct``, ``memory_steps``): mean steps, the steps ratio with its bootstrap interval, the sign test on
+    steps, success rates with Wilson intervals and the paired sign test on success."""
+    import numpy as np
+
+    from eqa.app import evaluation as ev
+
+    n = len(sel)
+    if n == 0:
+        return {"n": 0}
+    cs = np.array([r["cold_steps"] for r in sel], dtype=float)
+    ws = np.array([r["warm_steps"] for r in sel], dtype=float)
+    fewer, more = int((ws < cs).sum()), int((ws > cs).sum())
+    a_only = sum(1 for r in sel if r["warm_correct"] and not r["cold_correct"])
+    b_only = sum(1 for r in sel if r["cold_correct"] and not r["warm_correct"])
+    diff, lo, hi = ev.paired_diff_ci(a_only, b_only, n)
+    idx = ev.bootstrap_indices(n, 2000, seed=0)
+    ratio_boot = ws[idx].sum(axis=1) / np.maximum(cs[idx].sum(axis=1), 1e-9)
+    kw, kc = sum(r["warm_correct"] for r in sel), sum(r["cold_correct"] for r in sel)
+    return {
+        "n": n, "cold_steps_mean": float(cs.mean()), "warm_steps_mean": float(ws.mean()),
+        "steps_ratio": float(ws.sum() / max(cs.sum(), 1e-9)),
+        "steps_ratio_ci": [float(np.quantile(ratio_boot, 0.025)), float(np.quantile(ratio_boot, 0.975))],
+        "steps_sign_test": {"warm_fewer": fewer, "warm_more": more, "p_value": ev.sign_test_p(fewer, more)},
+        "cold_success": kc / n, "warm_success": kw / n,
+        "cold_success_ci": list(ev.wilson_ci(kc, n)), "warm_success_ci": list(ev.wilson_ci(kw, n)),
+        "success_paired": {"warm_only": a_only, "cold_only": b_only, "p_value": ev.sign_test_p(a_only, b_only),
+                           "diff": diff, "ci_low": lo, "ci_high": hi},
+        "memory_steps_mean": float(np.mean([r["memory_steps"] for r in sel])),
+    }
+
+
 def summarise(rows: list[dict[str, Any]], args: argparse.Namespace, settings: Any, cold_table: Any, warm_table: Any,
               warm_traces: list[Any]) -> dict[str, Any]:
     import numpy as np
@@ -391,31 +428,6 @@ def summarise(rows: list[dict[str, Any]], args: argparse.Namespace, settings: An
     from eqa.app.bench_common import scorer_label
     from eqa.messages import letters
     from services.stopper.conformal import relevance_weighted_confidence, sequence_set
-
-    def paired(sel: list[dict[str, Any]]) -> dict[str, Any]:
-        n = len(sel)
-        if n == 0:
-            return {"n": 0}
-        cs = np.array([r["cold_steps"] for r in sel], dtype=float)
-        ws = np.array([r["warm_steps"] for r in sel], dtype=float)
-        fewer, more = int((ws < cs).sum()), int((ws > cs).sum())
-        a_only = sum(1 for r in sel if r["warm_correct"] and not r["cold_correct"])
-        b_only = sum(1 for r in sel if r["cold_correct"] and not r["warm_correct"])
-        diff, lo, hi = ev.paired_diff_ci(a_only, b_only, n)
-        idx = ev.bootstrap_indices(n, 2000, seed=0)
-        ratio_boot = ws[idx].sum(axis=1) / np.maximum(cs[idx].sum(axis=1), 1e-9)
-        kw, kc = sum(r["warm_correct"] for r in sel), sum(r["cold_correct"] for r in sel)
-        return {
-            "n": n, "cold_steps_mean": float(cs.mean()), "warm_steps_mean": float(ws.mean()),
-            "steps_ratio": float(ws.sum() / max(cs.sum(), 1e-9)),
-            "steps_ratio_ci": [float(np.quantile(ratio_boot, 0.025)), float(np.quantile(ratio_boot, 0.975))],
-            "steps_sign_test": {"warm_fewer": fewer, "warm_more": more, "p_value": ev.sign_test_p(fewer, more)},
-            "cold_success": kc / n, "warm_success": kw / n,
-            "cold_success_ci": list(ev.wilson_ci(kc, n)), "warm_success_ci": list(ev.wilson_ci(kw, n)),
-            "success_paired": {"warm_only": a_only, "cold_only": b_only, "p_value": ev.sign_test_p(a_only, b_only),
-                               "diff": diff, "ci_low": lo, "ci_high": hi},
-            "memory_steps_mean": float(np.mean([r["memory_steps"] for r in sel])),
-        }
 
     per_position = {str(p): paired([r for r in rows if r["position"] == p])
                     for p in sorted({r["position"] for r in rows})}
@@ -460,6 +472,186 @@ def summarise(rows: list[dict[str, Any]], args: argparse.Namespace, settings: An
             "coverage_within_se": all(c["coverage"] + c["se"] >= c["target"] for c in coverage if c["n"]),
         },
     }
+
+
+# ---- task sequences (--tasks) ----------------------------------------------------------------------------------
+TASK_METRICS = ("FindObj", "Pick", "FindRec", "SR")
+
+
+def task_budget(task: Any, cap: int | None) -> int:
+    return min(task.max_steps or 1, cap) if cap else (task.max_steps or 1)
+
+
+def run_task_house(args: tuple[int, int, bool, dict[str, Any], int | None, bool]) -> list[dict[str, Any]]:
+    """The tasks of one task house (:func:`services.sim.tasks.house_tasks`, in order) run one after the other in
+    process (:func:`eqa.app.task_cores.run_task_episode`, the ``helios`` agent), each cold (no home) or warm (all
+    in one home, on a store of its own, through the mapper's :class:`~services.mapper.home_shell.HomeMemory`).
+    A task's episode id and seed are the same cold and warm, so both meet the same simulated detector draws. With
+    ``repeat`` the house's object search is asked once more at the end (an episode id of its own: other detector
+    draws than its first run), the case of a task asking for what an earlier one searched."""
+    from eqa.app.task_cores import TaskCores, cores_episode_id, run_task_episode, task_start
+    from eqa.app.task_results import task_seed
+    from eqa.settings import Settings
+    from eqa.store import EmbeddedStore
+    from services.mapper.home_shell import HomeMemory
+    from services.sim.tasks import house_tasks
+
+    seed, index, warm, settings_dump, cap, repeat = args
+    settings = Settings.model_validate(settings_dump)
+    tasks = [(t, "") for t in house_tasks(seed, index, settings.scenes_path)]
+    if repeat:
+        tasks += [(t, "-again") for t, _ in tasks if t.kind == "find_object"][:1]
+    cores = TaskCores.from_settings(settings)
+    home = f"h-task-{seed}-{index}"
+    out = []
+    with tempfile.TemporaryDirectory() as tmp:
+        store = EmbeddedStore(Path(tmp) / "home.sqlite")
+        memory = HomeMemory(settings, lambda: store, lambda: cores.backend.score)
+        try:
+            for pos, (task, again) in enumerate(tasks):
+                steps = task_budget(task, cap)
+                start = task_start(task, "helios", steps, None, cores_episode_id(task.id, steps) + again, "cores",
+                                   task_seed(task.id))
+                before = memory.read_index(home) if warm else None
+                if warm:
+                    start = start.model_copy(update={"home": home})
+                t0 = time.perf_counter()
+                try:
+                    state, reason, metrics, trace = run_task_episode(cores, start, memory if warm else None)
+                except Exception as exc:
+                    log.exception("task %s (%s) failed in process", task.id, "warm" if warm else "cold")
+                    state, reason, metrics, trace = "failed", f"{type(exc).__name__}: {exc}", {}, {}
+                out.append({"position": pos + 1, "task": task.id + again, "kind": task.kind, "again": bool(again),
+                            "classes": [c for c in (task.object, task.start_receptacle, task.goal_receptacle) if c],
+                            "state": state, "reason": reason, "metrics": metrics,
+                            "steps": len(trace.get("steps", [])), "max_steps": steps,
+                            "home_gaussians": 0 if before is None else before.gaussians,
+                            "home_views": 0 if before is None else len(before.views),
+                            "home_bytes": 0 if before is None else
+                            before.map_bytes + before.objects_bytes + before.view_bytes,
+                            "seconds": time.perf_counter() - t0})
+        finally:
+            store.close()
+            cores.close()
+    return out
+
+
+def run_tasks(args: argparse.Namespace, settings: Any) -> dict[str, Any]:
+    """``--tasks``: the task houses ``0 .. --test-houses - 1`` of each seed, cold and warm (:func:`run_task_house`),
+    paired per task (module doc of this bench for the questions' counterpart)."""
+    from eqa.seeds import seed_role
+
+    out = Path(args.out)
+    runs = out / "runs"
+    runs.mkdir(parents=True, exist_ok=True)
+    dump = settings.model_dump(mode="json")
+    cap = args.task_steps
+    knobs = [settings.sim_width, settings.sim_height, cap, settings.home_max_views, settings.home_warm_views,
+             settings.helios_max_gaussians, *(["repeat"] if args.repeat else [])]
+    tag = hashlib.sha256(json.dumps(knobs).encode()).hexdigest()[:10]
+    warm_tag = tag  # a cold episode has no home: the home's own knobs tag the warm runs only
+    if settings.home_redetect_views != settings.home_warm_views:  # (equal: the tags of earlier runs stay valid)
+        extra = [*knobs, "redetect", settings.home_redetect_views]
+        warm_tag = hashlib.sha256(json.dumps(extra).encode()).hexdigest()[:10]
+    houses = [(s, i) for s in args.seeds for i in range(args.test_houses)]
+    paths = {(s, i, w): runs / f"task-{'warm' if w else 'cold'}-s{s}-h{i}-{warm_tag if w else tag}.json"
+             for s, i in houses for w in (False, True)}
+    jobs = [(s, i, w, dump, cap, bool(args.repeat)) for (s, i, w), p in paths.items() if not p.is_file()]
+    _run_all(run_task_house, jobs, [paths[(j[0], j[1], j[2])] for j in jobs], args.workers)
+    rows = []
+    for s, i in houses:
+        cold = json.loads(paths[(s, i, False)].read_text())
+        warm = json.loads(paths[(s, i, True)].read_text())
+        for c, w in zip(cold, warm, strict=True):
+            row = {"seed": s, "house": i, "position": c["position"], "task": c["task"], "kind": c["kind"],
+                   "again": bool(c.get("again", False)),
+                   "classes": c["classes"], "cold_steps": c["steps"], "warm_steps": w["steps"],
+                   "max_steps": c["max_steps"], "cold_state": c["state"], "warm_state": w["state"],
+                   "cold_correct": bool(c["metrics"].get("SR", 0.0)), "warm_correct": bool(w["metrics"].get("SR", 0.0)),
+                   "memory_steps": 0, "home_gaussians": w["home_gaussians"], "home_views": w["home_views"],
+                   "home_bytes": w["home_bytes"]}
+            for m in TASK_METRICS:
+                if m in c["metrics"]:
+                    row[f"cold_{m}"], row[f"warm_{m}"] = c["metrics"][m], w["metrics"][m]
+            rows.append(row)
+    results = summarise_tasks(rows, args, settings)
+    results["seed_roles"] = {str(s): seed_role(s) for s in args.seeds}
+    (out / "home-tasks.json").write_text(json.dumps(results, indent=2))
+    (out / "rows-tasks.json").write_text(json.dumps(rows, indent=1))
+    return results
+
+
+def metric_pairs(sel: list[dict[str, Any]], metric: str) -> dict[str, Any]:
+    """One task metric warm vs cold on the same tasks (those that have it): rates with Wilson intervals and the
+    paired sign test."""
+    from eqa.app import evaluation as ev
+
+    have = [r for r in sel if f"cold_{metric}" in r]
+    n = len(have)
+    if n == 0:
+        return {"n": 0}
+    kc = sum(1 for r in have if r[f"cold_{metric}"] > 0)
+    kw = sum(1 for r in have if r[f"warm_{metric}"] > 0)
+    w_only = sum(1 for r in have if r[f"warm_{metric}"] > 0 >= r[f"cold_{metric}"])
+    c_only = sum(1 for r in have if r[f"cold_{metric}"] > 0 >= r[f"warm_{metric}"])
+    diff, lo, hi = ev.paired_diff_ci(w_only, c_only, n)
+    return {"n": n, "cold": kc / n, "warm": kw / n, "cold_ci": list(ev.wilson_ci(kc, n)),
+            "warm_ci": list(ev.wilson_ci(kw, n)), "warm_only": w_only, "cold_only": c_only,
+            "p_value": ev.sign_test_p(w_only, c_only), "diff": diff, "ci_low": lo, "ci_high": hi}
+
+
+def summarise_tasks(rows: list[dict[str, Any]], args: argparse.Namespace, settings: Any) -> dict[str, Any]:
+    from eqa.app.bench_common import scorer_label
+
+    later = [r for r in rows if r["position"] > 1 and not r.get("again")]  # (--repeat: the repeat is apart)
+    return {
+        "scorer": scorer_label(settings),
+        "detector": ("detector: oracle (simulated perception model, not a VLM/detector)"
+                     if settings.detector_backend == "oracle" else f"detector: {settings.detector_backend}"),
+        "runner": "cores (in-process task step functions; the mapper's HomeMemory on an embedded store)",
+        "agent": "helios", "seeds": list(args.seeds), "houses_per_seed": args.test_houses,
+        "task_steps_cap": args.task_steps, "size": f"{settings.sim_width}x{settings.sim_height}",
+        "home_max_views": settings.home_max_views, "home_redetect_views": settings.home_redetect_views,
+        "positions": {str(p): paired([r for r in rows if r["position"] == p])
+                      for p in sorted({r["position"] for r in rows})},
+        "positions_2_on": paired(later),
+        "positions_2_on_by_kind": {k: paired([r for r in later if r["kind"] == k])
+                                   for k in sorted({r["kind"] for r in later})},
+        "metrics_2_on": {m: metric_pairs(later, m) for m in TASK_METRICS},
+        "asked_again": paired([r for r in rows if r.get("again")]),  # --repeat: a search asked a second time
+        "position_1_identical": all(r["cold_steps"] == r["warm_steps"] and r["cold_correct"] == r["warm_correct"]
+                                    for r in rows if r["position"] == 1),
+        "failed_runs": sum(1 for r in rows for k in ("cold_state", "warm_state") if r[k] == "failed"),
+        "home_at_start_2_on": {k: float(sum(r[k] for r in later) / max(len(later), 1))
+                               for k in ("home_gaussians", "home_views", "home_bytes")},
+    }
+
+
+def print_task_results(res: dict[str, Any]) -> None:
+    print(f"task sequences: seeds {res['seeds']}, {res['houses_per_seed']} houses per seed, agent helios, step cap "
+          f"{res['task_steps_cap']} ({res['scorer']}; {res['detector']})")
+    print("position  n   cold steps  warm steps  ratio  cold SR  warm SR")
+    for pos, p in res["positions"].items():
+        if p.get("n"):
+            print(f"{pos:>8}  {p['n']:<3} {p['cold_steps_mean']:<11.2f} {p['warm_steps_mean']:<11.2f} "
+                  f"{p['steps_ratio']:<6.2f} {p['cold_success']:<8.3f} {p['warm_success']:.3f}")
+    later = res["positions_2_on"]
+    if later.get("n"):
+        print(f"positions 2..: n {later['n']}, steps ratio {later['steps_ratio']:.3f} {later['steps_ratio_ci']}, "
+              f"warm fewer {later['steps_sign_test']['warm_fewer']} more {later['steps_sign_test']['warm_more']}, "
+              f"sign test p {later['steps_sign_test']['p_value']:.3g}")
+    for m, v in res["metrics_2_on"].items():
+        if v.get("n"):
+            print(f"  {m}: n {v['n']}, cold {v['cold']:.3f} warm {v['warm']:.3f}; warm-only {v['warm_only']}, "
+                  f"cold-only {v['cold_only']}, p {v['p_value']:.3g}")
+    again = res.get("asked_again", {})
+    if again.get("n"):
+        print(f"object search asked again (n {again['n']}): steps cold {again['cold_steps_mean']:.1f} warm "
+              f"{again['warm_steps_mean']:.1f} (ratio {again['steps_ratio']:.3f} {again['steps_ratio_ci']}, warm fewer "
+              f"{again['steps_sign_test']['warm_fewer']} more {again['steps_sign_test']['warm_more']}, p "
+              f"{again['steps_sign_test']['p_value']:.3g}); SR cold {again['cold_success']:.3f} warm "
+              f"{again['warm_success']:.3f} (p {again['success_paired']['p_value']:.3g})")
+    print(f"position 1 identical cold and warm: {res['position_1_identical']}; failed runs {res['failed_runs']}")
 
 
 def print_results(res: dict[str, Any]) -> None:
@@ -508,7 +700,7 @@ def cmd_home(args: argparse.Namespace) -> int:
     for name in ("stale_weight", "warm_budget"):
         if getattr(args, name) is not None and not 0 <= getattr(args, name) <= 1:
             raise UsageError(f"--{name.replace('_', '-')} must be in [0, 1]")
-    for name in ("home_views", "memory_steps"):
+    for name in ("home_views", "memory_steps", "redetect_views"):
         if getattr(args, name) is not None and not 0 <= getattr(args, name) <= 256:
             raise UsageError(f"--{name.replace('_', '-')} must be 0..256")
     settings = _settings(args)
@@ -516,12 +708,21 @@ def cmd_home(args: argparse.Namespace) -> int:
         settings = settings.model_copy(update={"home_max_views": args.home_views, "home_warm_views": args.home_views})
     if args.memory_steps is not None:
         settings = settings.model_copy(update={"home_memory_steps": args.memory_steps})
+    if args.redetect_views is not None:
+        settings = settings.model_copy(update={"home_redetect_views": args.redetect_views})
     if args.stale_weight is not None:
         settings = settings.model_copy(update={"home_stale_weight": args.stale_weight})
     if args.warm_budget is not None:
         settings = settings.model_copy(update={"home_warm_budget": args.warm_budget})
     setup_logging(settings.log_level, "eqa-bench")
     logging.getLogger("services.mapper.home_shell").setLevel(logging.WARNING)
+    if args.tasks:
+        if args.task_steps is not None and not 1 <= args.task_steps <= 10_000:
+            raise UsageError("--task-steps must be 1..10000")
+        tres = run_tasks(args, settings)
+        print_task_results(tres)
+        print(f"results: {Path(args.out) / 'home-tasks.json'}")
+        return 0
     res = run(args, settings)
     print_results(res)
     print(f"results: {Path(args.out) / 'home.json'}")
@@ -551,6 +752,17 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--warm-budget", type=float, default=None,
                    help="least share of max_steps of a warm question (EQA_HOME_WARM_BUDGET, eqa/budget.py; 1 = the "
                    "full budget; default from the environment)")
+    p.add_argument("--tasks", action="store_true",
+                   help="task sequences instead of questions: the tasks of task houses 0 .. --test-houses - 1 of each "
+                   "seed (services.sim.tasks.house_tasks) in order, cold vs warm in one home (the HELIOS object layer "
+                   "kept); the CP options do not apply")
+    p.add_argument("--repeat", action="store_true",
+                   help="with --tasks: ask each house's object search once more at the end of its sequence")
+    p.add_argument("--task-steps", type=int, default=None,
+                   help="with --tasks: cap of each task's step budget (default: the task's own)")
+    p.add_argument("--redetect-views", type=int, default=None,
+                   help="with --tasks: remembered views re-detected for a task's new classes (EQA_HOME_REDETECT_VIEWS; "
+                   "default from the environment)")
     p.add_argument("--size", default="160x120", help="camera image size WxH (default 160x120)")
     p.add_argument("--scorer", choices=("oracle", "hf", "remote"), default=None,
                    help="scorer backend (default EQA_SCORER_BACKEND, normally oracle)")

@@ -88,9 +88,12 @@ class TaskCores:
                 close()
 
 
-def run_task_episode(cores: TaskCores, start: EpisodeStart) -> tuple[str, str, dict[str, float], dict[str, Any]]:
+def run_task_episode(cores: TaskCores, start: EpisodeStart,
+                     home: Any = None) -> tuple[str, str, dict[str, float], dict[str, Any]]:
     """One task episode of ``start`` in process (module doc). Returns the end state (``stopped`` / ``failed``),
-    its reason, the simulator's metrics and the stored trace (:meth:`TaskEpisode.trace_doc`)."""
+    its reason, the simulator's metrics and the stored trace (:meth:`TaskEpisode.trace_doc`). ``home``: the
+    mapper's :class:`~services.mapper.home_shell.HomeMemory` for an episode whose ``start.home`` is set (the
+    service's calls: start, candidate keyframes, the first frame's re-detection, the commit at the end)."""
     from eqa.messages import DetectResult, Frame, ValueResult
     from services.mapper.episode_map import EpisodeMap, MapperConfig
     from services.mapper.object_map import ObjectMap, ObjectMapConfig
@@ -129,6 +132,8 @@ def run_task_episode(cores: TaskCores, start: EpisodeStart) -> tuple[str, str, d
                                                           tau_sv_normal=s.tau_sv_normal, view_bins=s.view_bins,
                                                           view_agree=s.view_agree)),
                       layers=[QUESTION_LAYER, *(value_layer(c) for c in classes)])
+    if home is not None:
+        home.start(start, emap, om)
 
     def detect(req: Any) -> Any:
         return DetectResult(request_id=req.request_id, episode_id=req.episode_id, step=req.step,
@@ -171,6 +176,10 @@ def run_task_episode(cores: TaskCores, start: EpisodeStart) -> tuple[str, str, d
         sim.record(step, pose, goal, frame.skill)
         # mapper
         emap.integrate(frame)
+        if home is not None:
+            home.observe(emap, frame)
+            if step == 0:
+                home.warm_objects(emap, om, frame, lambda: detect)
         det, val = ask_objects(om, emap, frame, detect, values)
         timing: dict[str, float] = {}
         layer, errors = fuse_frame(om, emap, frame, det, val, timing)
@@ -191,6 +200,8 @@ def run_task_episode(cores: TaskCores, start: EpisodeStart) -> tuple[str, str, d
             break
         memory = plan.memory
         before, pose = pose, goal.pose
+    if home is not None:
+        home.finish(emap, om)
     return "stopped", reason, sim.metrics(), sim.episode.trace_doc()
 
 

@@ -41,6 +41,21 @@ COVER_STRIDE = 4  # every 4th pixel in each direction back-projected for a view'
 MAX_DECODED_HOME = 1 << 30  # decode bound of one home part (the per-home byte budget is checked before)
 
 
+def union_grid(resolution: float, grids: Sequence[tuple[float, float, tuple[int, ...]]]
+               ) -> tuple[float, float, tuple[int, int], list[tuple[slice, slice]]]:
+    """The 2D grid holding every one of ``grids`` (``(x0, y0, (rows, cols))`` each, cells of ``resolution`` m
+    aligned to the same world lattice): its origin, its shape, and where each grid's cells lie in it."""
+    x0 = min(g[0] for g in grids)
+    y0 = min(g[1] for g in grids)
+    places = []
+    ny = nx = 0
+    for gx, gy, shape in grids:
+        r, c = round((gy - y0) / resolution), round((gx - x0) / resolution)
+        places.append((slice(r, r + int(shape[0])), slice(c, c + int(shape[1]))))
+        ny, nx = max(ny, r + int(shape[0])), max(nx, c + int(shape[1]))
+    return x0, y0, (ny, nx), places
+
+
 # ---- view memory --------------------------------------------------------------------------------------------
 def covered_cells(depth: np.ndarray, intrinsics: np.ndarray, camera_pose: np.ndarray, resolution: float,
                   max_depth: float = 10.0, stride: int = COVER_STRIDE) -> np.ndarray:
@@ -237,11 +252,13 @@ class HomeMap:
         return cls(float(em.resolution), float(v.origin_x), float(v.origin_y), v.tsdf.copy(), v.weight.copy(),
                    v.explored.copy(), np.asarray(traversed, dtype=bool).copy())
 
-    def apply_to(self, em: Any, explored: bool = True) -> None:
+    def apply_to(self, em: Any, explored: bool | np.ndarray = True) -> None:
         """Start ``em`` (a fresh :class:`services.mapper.episode_map.EpisodeMap`) from this map: its volume and
         traversed plane; its value layers start neutral on the same grid (the view memory fills them).
         ``explored=False``: the geometry only (distances and weights), nothing counted as explored, so the
-        frontiers are those of the episode's own views (a task's search, which the view memory does not guide)."""
+        frontiers are those of the episode's own views (a task's search, which the view memory does not guide).
+        A 2D mask on this map's grid: only the explored voxels above its cells count as explored (a task's floor
+        explored for all of its classes, :meth:`services.mapper.home_objects.HomeObjects.explored_for`)."""
         v = em.volume
         if abs(float(em.resolution) - self.resolution) > 1e-9:
             raise ValueError(f"home map at {self.resolution} m voxels, the mapper uses {em.resolution} m")
@@ -250,7 +267,12 @@ class HomeMap:
         v.origin_x, v.origin_y = self.origin_x, self.origin_y
         v.tsdf = self.tsdf.copy()
         v.weight = self.weight.copy()
-        v.explored = self.explored.copy() if explored else np.zeros_like(self.explored)
+        if isinstance(explored, np.ndarray):
+            if explored.shape != self.shape2d:
+                raise ValueError(f"explored mask {explored.shape} on a home map of {self.shape2d} cells")
+            v.explored = self.explored & explored[:, :, None]
+        else:
+            v.explored = self.explored.copy() if explored else np.zeros_like(self.explored)
         fresh = {}
         for name, plane in v.planes.items():
             fill = plane.flat[0] if plane.size else (False if plane.dtype == bool else 0.0)
@@ -308,16 +330,9 @@ class HomeMap:
 
     def _union(self, other: HomeMap) -> tuple[float, float, tuple[int, int], tuple[Any, Any]]:
         """The grid holding both maps (origin, rows and columns) and where each one's cells lie in it."""
-        res = self.resolution
-        x0 = min(self.origin_x, other.origin_x)
-        y0 = min(self.origin_y, other.origin_y)
-        places = []
-        ny = nx = 0
-        for m in (self, other):
-            r, c = round((m.origin_y - y0) / res), round((m.origin_x - x0) / res)
-            places.append((slice(r, r + m.shape2d[0]), slice(c, c + m.shape2d[1])))
-            ny, nx = max(ny, r + m.shape2d[0]), max(nx, c + m.shape2d[1])
-        return x0, y0, (ny, nx), (places[0], places[1])
+        x0, y0, shape, places = union_grid(self.resolution, [(self.origin_x, self.origin_y, self.shape2d),
+                                                             (other.origin_x, other.origin_y, other.shape2d)])
+        return x0, y0, shape, (places[0], places[1])
 
     def to_bytes(self) -> bytes:
         seen = self.weight > 0
@@ -493,6 +508,8 @@ class HomeIndex:
     map_bytes: int = 0
     created_at: float = field(default_factory=time.time)
     changes: list[ObservedChange] = field(default_factory=list)  # seen by its episodes, newest last
+    objects_bytes: int = 0  # the stored object layer (services.mapper.home_objects)
+    gaussians: int = 0
 
     @property
     def view_bytes(self) -> int:
@@ -501,7 +518,8 @@ class HomeIndex:
     def to_bytes(self) -> bytes:
         return packb({"version": self.version, "views": [v.to_json() for v in self.views],
                       "episodes": self.episodes, "scenes": self.scenes, "map_bytes": self.map_bytes,
-                      "created_at": self.created_at, "changes": [c.to_json() for c in self.changes]})
+                      "created_at": self.created_at, "changes": [c.to_json() for c in self.changes],
+                      "objects_bytes": self.objects_bytes, "gaussians": self.gaussians})
 
     @classmethod
     def from_bytes(cls, data: bytes) -> HomeIndex:
@@ -511,4 +529,5 @@ class HomeIndex:
         return cls(version=int(b["version"]), views=[ViewInfo.from_json(v) for v in b["views"]],
                    episodes=int(b["episodes"]), scenes=[str(s) for s in b["scenes"]],
                    map_bytes=int(b.get("map_bytes", 0)), created_at=float(b.get("created_at", time.time())),
-                   changes=[ObservedChange.from_json(c) for c in b.get("changes", [])])
+                   changes=[ObservedChange.from_json(c) for c in b.get("changes", [])],
+                   objects_bytes=int(b.get("objects_bytes", 0)), gaussians=int(b.get("gaussians", 0)))

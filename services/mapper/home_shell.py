@@ -5,6 +5,8 @@ Store layout (under :func:`eqa.homes.prefix`, every key with ``EQA_HOME_TTL_S``)
 
 * ``index``          :class:`~services.mapper.home_memory.HomeIndex` (version, the kept views' covered cells);
 * ``map``            :class:`~services.mapper.home_memory.HomeMap` (TSDF volume, traversed plane);
+* ``objects``        :class:`~services.mapper.home_objects.HomeObjects` (the HELIOS object layer of its task
+  episodes); ``objects-base:{episode}`` the layer a running task started from (its commit adds what it saw);
 * ``view:{id}``      one :class:`~services.mapper.home_memory.Keyframe` each (the kept views, and the candidates
   of running episodes: a frame is written when its episode's pool keeps it, so a mapper that dies mid-episode
   loses nothing its successor needs);
@@ -22,6 +24,11 @@ started from it and only added observations); a newer version (another episode c
 stored map and its map are fused (:meth:`HomeMap.merge`, both keep the other's observations). Either way the
 views are chosen again from the stored ones and the episode's candidates together (:func:`select_views`), the
 version goes up by one, and the views left out are deleted.
+
+**A task in a home** (:meth:`HomeMemory.start` with its object layer, :meth:`HomeMemory.warm_objects`): it starts
+from the home's Gaussians that hold evidence for its classes (the carry-over rule of
+:mod:`services.mapper.home_objects`), counts as explored only the floor explored for all of its classes, and
+re-detects up to ``EQA_HOME_REDETECT_VIEWS`` remembered views at its first frame when a class of it was never asked.
 
 **Warm start** (:meth:`HomeMemory.warm`): at the first frame of an episode in a home with views, the mapper
 re-scores up to ``EQA_HOME_WARM_VIEWS`` remembered views for the new question (the most covering first),
@@ -41,13 +48,13 @@ import zlib
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from eqa import homes
 from eqa.budget import warm_step_limit
-from eqa.messages import EpisodeStart, ErrorReply, Frame, MemoryScore, ScoreRequest, ScoreResult
+from eqa.messages import DetectResult, EpisodeStart, ErrorReply, Frame, MemoryScore, ScoreRequest, ScoreResult
 from eqa.settings import Settings
 from eqa.store import Store
 from services.mapper import snapshots
@@ -65,7 +72,11 @@ from services.mapper.home_memory import (
     select_views,
     stale_weights,
 )
+from services.mapper.home_objects import FloorMask, HomeObjects, commit_layer, floor_of
 from services.mapper.prompt_points import prompt_points
+
+if TYPE_CHECKING:
+    from services.mapper.object_map import ObjectMap
 
 log = logging.getLogger(__name__)
 
@@ -83,6 +94,15 @@ def map_key(home: str) -> str:
 
 def view_key(home: str, view_id: str) -> str:
     return homes.prefix(home) + "view:" + view_id
+
+
+def objects_key(home: str) -> str:
+    return homes.prefix(home) + "objects"
+
+
+def objects_base_key(home: str, episode_id: str) -> str:
+    """The home's object layer as a running task found it (its commit adds what it saw to this)."""
+    return homes.prefix(home) + "objects-base:" + episode_id
 
 
 def memory_seed(seed: int, view_id: str) -> int:
@@ -105,12 +125,18 @@ class EpisodeHome:
     step_limit: int | None = None  # a question's budget in the explored house (eqa.budget.warm_step_limit)
     geometry_only: bool = False  # started from the home map without its explored mask (a task)
     changes: list[ObservedChange] = field(default_factory=list)  # changes its frames showed against the memory
+    objects_base: bool = False  # a task that started from the home's object layer (its copy at objects_base_key)
+    redetect_ids: list[str] = field(default_factory=list)  # views to re-detect for classes never asked before
+    redetect_without: list[str] = field(default_factory=list)  # the task's classes asked before (not re-counted)
+    objects_warmed: bool = False  # the re-detection ran (at the first frame)
 
     def dump(self) -> dict[str, Any]:
         return {"home": self.home, "base_version": self.base_version, "reset": self.reset,
                 "pool": [{"view_id": v.view_id, "t": v.t, "nbytes": v.nbytes, "step": v.step} for v in self.pool.views],
                 "warm_ids": self.warm_ids, "loaded_cells": self.loaded_cells, "step_limit": self.step_limit,
-                "geometry_only": self.geometry_only,
+                "geometry_only": self.geometry_only, "objects_base": self.objects_base,
+                "redetect_ids": self.redetect_ids, "redetect_without": self.redetect_without,
+                "objects_warmed": self.objects_warmed,
                 "memory": None if self.memory is None else [m.model_dump() for m in self.memory],
                 "changes": [c.to_json() for c in self.changes]}
 
@@ -134,42 +160,38 @@ class HomeMemory:
         return self._store()
 
     # ---- reading a home ---------------------------------------------------------------------------------
-    def read_index(self, home: str) -> HomeIndex | None:
-        raw = self.store.get(index_key(home))
+    def _read(self, key: str, decode: Callable[[bytes], Any], home: str, what: str, level: int = logging.ERROR) -> Any:
+        """The part at ``key`` decoded, None when absent or unusable (logged at ``level``: ``what``, and what
+        follows)."""
+        raw = self.store.get(key)
         if raw is None:
             return None
         try:
-            return HomeIndex.from_bytes(raw)
+            return decode(raw)
         except (ValueError, KeyError, TypeError) as exc:
-            log.error("home %s: stored index unusable (%s); the home starts over", home, exc)
+            log.log(level, "home %s: %s unusable (%s)", home, what, exc)
             return None
+
+    def read_index(self, home: str) -> HomeIndex | None:
+        return self._read(index_key(home), HomeIndex.from_bytes, home, "stored index (the home starts over)")
 
     def read_map(self, home: str) -> HomeMap | None:
-        raw = self.store.get(map_key(home))
-        if raw is None:
-            return None
-        try:
-            return HomeMap.from_bytes(raw)
-        except (ValueError, KeyError, TypeError) as exc:
-            log.error("home %s: stored map unusable (%s); ignored", home, exc)
-            return None
+        return self._read(map_key(home), HomeMap.from_bytes, home, "stored map (ignored)")
+
+    def read_objects(self, home: str, key: str | None = None) -> HomeObjects | None:
+        return self._read(key or objects_key(home), HomeObjects.from_bytes, home, "stored object layer (ignored)")
 
     def read_view(self, home: str, view_id: str) -> Keyframe | None:
-        raw = self.store.get(view_key(home, view_id))
-        if raw is None:
-            return None
-        try:
-            return Keyframe.from_bytes(raw)
-        except (ValueError, KeyError, TypeError) as exc:
-            log.warning("home %s: view %s unusable (%s); skipped", home, view_id, exc)
-            return None
+        return self._read(view_key(home, view_id), Keyframe.from_bytes, home, f"view {view_id} (skipped)",
+                          logging.WARNING)
 
     # ---- an episode -------------------------------------------------------------------------------------
     def _pool(self, views: list[ViewInfo] | None = None) -> ViewPool:
         return ViewPool(self.settings.home_max_views, self.settings.home_max_bytes, views or [])
 
-    def start(self, start: EpisodeStart, em: Any) -> None:
-        """An episode in a home starts from the home's map (``em`` is fresh); None home: nothing happens."""
+    def start(self, start: EpisodeStart, em: Any, objects: ObjectMap | None = None) -> None:
+        """An episode in a home starts from the home's map (``em`` is fresh); None home: nothing happens. A task
+        episode's object layer ``objects`` (fresh) starts from the home's (:meth:`_start_objects`)."""
         if start.home is None:
             return
         index = self.read_index(start.home)
@@ -178,14 +200,20 @@ class HomeMemory:
         if index is not None:
             home_map = self.read_map(start.home)
             task = start.task is not None
+            floor = self._start_objects(start, ep, objects, index) if task and objects is not None else None
             if home_map is not None:
                 try:
-                    # a task searches with the HELIOS layers of its own classes, which the home does not keep: it
-                    # starts from the remembered geometry (paths through known space) but explores as a cold
-                    # episode would; the explored map would send it past places whose objects it never detected
-                    home_map.apply_to(em, explored=not task)
+                    # a task searches with the HELIOS layers of its own classes: it starts from the remembered
+                    # geometry (paths through known space) and counts as explored only the floor a detector asked
+                    # for every one of its classes explored (the object layer holds what it found there); the
+                    # rest of the explored map would send it past places whose objects it never detected
+                    explored: bool | np.ndarray = not task
+                    if floor is not None:
+                        explored = floor.on_grid(home_map.origin_x, home_map.origin_y, home_map.shape2d)
+                    home_map.apply_to(em, explored=explored)
                     ep.geometry_only = task
-                    if not task:  # a task keeps its budget (its planner ends it) and counts nothing explored
+                    ep.loaded_cells = int(em.volume.explored.any(axis=2).sum()) if task else 0
+                    if not task:  # a task keeps its budget (its planner ends it)
                         ep.loaded_cells = home_map.explored_cells()
                         ep.step_limit = self._step_limit(start, ep.loaded_cells * float(em.resolution) ** 2)
                 except ValueError as exc:
@@ -196,6 +224,91 @@ class HomeMemory:
         log.info("episode %s: home %s (version %d): %d explored cells, %d views to re-score, step limit %s",
                  start.episode_id, start.home, ep.base_version, ep.loaded_cells, len(ep.warm_ids),
                  ep.step_limit or start.max_steps)
+
+    def _start_objects(self, start: EpisodeStart, ep: EpisodeHome, objects: ObjectMap,
+                       index: HomeIndex) -> FloorMask | None:
+        """A task's object layer from the home's (:mod:`services.mapper.home_objects`): the Gaussians with evidence
+        for one of the task's classes, with the concentrations the carry-over rule gives for them; the remembered
+        views to re-detect at the first frame when a class was never asked for; the floor explored for all of its
+        classes (None: none)."""
+        if objects.single_frame:  # the trusting agent keeps no 3D layer, so it has nothing to start from
+            return None
+        stored = self.read_objects(ep.home)
+        classes = objects.task_classes
+        if stored is not None:
+            self.store.set(objects_base_key(ep.home, start.episode_id), stored.to_bytes(),
+                           ttl_s=self.settings.home_ttl_s)
+            ep.objects_base = True
+            keep, gamma = stored.restorable(classes, objects.layer.config.prior)
+            if len(keep):
+                objects.load_home(stored.uid[keep], stored.means[keep], stored.sigma[keep], stored.opacity[keep],
+                                  gamma)
+        asked = [c for c in classes if stored is not None and stored.asked(c)]
+        if len(asked) < len(classes):
+            ep.redetect_ids = [v.view_id for v in index.views[: self.settings.home_redetect_views]]
+            ep.redetect_without = asked
+        floor = None if stored is None else stored.explored_for(classes)
+        log.info("episode %s: home %s object layer: %d Gaussians, classes asked before %s, %d views to re-detect",
+                 start.episode_id, ep.home, 0 if stored is None else len(stored), asked, len(ep.redetect_ids))
+        return floor
+
+    def warm_objects(self, em: Any, objects: ObjectMap | None, frame: Frame, detect: Callable[[], Any]) -> int:
+        """At a task's first frame (before its own detections): the remembered views re-detected for the task's
+        classes through the scorer pool (``detect()``: its DetectRequest call; bounded, parallel, with a
+        deadline, as :meth:`warm`) and fused into ``objects`` as frames are, except the pixels of classes the
+        home's layer already holds evidence for (counted once). Returns the views fused."""
+        ep = self.episodes.get(em.episode_id)
+        if ep is None or objects is None or ep.objects_warmed:
+            return 0
+        ep.objects_warmed = True
+        if not ep.redetect_ids:
+            return 0
+        views = sorted((kf for kf in (self.read_view(ep.home, v) for v in ep.redetect_ids) if kf is not None),
+                       key=lambda kf: (kf.t, kf.view_id))  # oldest first: the order they were seen in
+        shown = [Frame(episode_id=em.episode_id, step=frame.step, pose=kf.pose, camera_pose=kf.camera_pose,
+                       intrinsics=kf.intrinsics, rgb=kf.rgb, depth=kf.depth, instances=kf.instances, labels=kf.labels)
+                 for kf in views]
+        replies = self._ask_all(detect(), [objects.detect_request(f, seed=memory_seed(em.start.seed, kf.view_id))
+                                           for f, kf in zip(shown, views, strict=True)],
+                                em.episode_id, [kf.view_id for kf in views])
+        without = frozenset(ep.redetect_without)
+        fused = 0
+        for f, kf, reply in zip(shown, views, replies, strict=True):
+            if not isinstance(reply, DetectResult):
+                if reply is not None:
+                    log.warning("episode %s: remembered view %s not re-detected: %s", em.episode_id, kf.view_id,
+                                getattr(reply, "reason", reply))
+                continue
+            try:
+                objects.integrate(f, reply, without)
+                fused += 1
+            except Exception:
+                log.exception("episode %s: remembered view %s not fused", em.episode_id, kf.view_id)
+        log.info("episode %s: %d of %d remembered views re-detected for %s", em.episode_id, fused, len(views),
+                 objects.task_classes)
+        return fused
+
+    def _ask_all(self, call: Callable[[Any], Any], requests: list[Any], episode_id: str,
+                 names: list[str]) -> list[Any]:
+        """Every request through the scorer pool, ``EQA_HOME_WARM_PARALLEL`` in flight, waiting
+        ``EQA_HOME_WARM_TIMEOUT_S`` at most: each reply, or None for a request not answered in time or failed
+        (logged)."""
+        deadline = time.monotonic() + self.settings.home_warm_timeout_s
+        pool = ThreadPoolExecutor(max_workers=self.settings.home_warm_parallel, thread_name_prefix="home-warm")
+        try:
+            futures = [pool.submit(call, req) for req in requests]
+            wait(futures, timeout=max(0.0, deadline - time.monotonic()))
+        finally:
+            pool.shutdown(wait=False, cancel_futures=True)
+        out: list[Any] = []
+        for name, fut in zip(names, futures, strict=True):
+            if not fut.done() or fut.cancelled() or fut.exception() is not None:
+                why = "not answered in time" if not fut.done() or fut.cancelled() else repr(fut.exception())
+                log.warning("episode %s: remembered view %s left out: %s", episode_id, name, why)
+                out.append(None)
+                continue
+            out.append(fut.result())
+        return out
 
     def _step_limit(self, start: EpisodeStart, explored_m2: float) -> int | None:
         """A question's step limit in a house the home map explored ``explored_m2`` of (None: ``max_steps``)."""
@@ -278,21 +391,12 @@ class HomeMemory:
             requests.append((kf, points, ScoreRequest(
                 episode_id=em.episode_id, step=frame.step, question=blind, rgb=kf.rgb, prompt_points=points,
                 instances=kf.instances, labels=kf.labels, depth=kf.depth, seed=memory_seed(em.start.seed, kf.view_id))))
-        score = self.scorer()
-        deadline = time.monotonic() + self.settings.home_warm_timeout_s
-        pool = ThreadPoolExecutor(max_workers=self.settings.home_warm_parallel, thread_name_prefix="home-warm")
-        try:
-            futures = [pool.submit(score, req) for _, _, req in requests]
-            wait(futures, timeout=max(0.0, deadline - time.monotonic()))
-        finally:
-            pool.shutdown(wait=False, cancel_futures=True)
+        replies = self._ask_all(self.scorer(), [req for _, _, req in requests], em.episode_id,
+                                [kf.view_id for kf, _, _ in requests])
         scored: list[tuple[Keyframe, Any, ScoreResult]] = []
-        for (kf, points, _), fut in zip(requests, futures, strict=True):
-            if not fut.done() or fut.cancelled() or fut.exception() is not None:
-                why = "not scored in time" if not fut.done() or fut.cancelled() else repr(fut.exception())
-                log.warning("episode %s: remembered view %s left out: %s", em.episode_id, kf.view_id, why)
+        for (kf, points, _), result in zip(requests, replies, strict=True):
+            if result is None:
                 continue
-            result = fut.result()
             if isinstance(result, ErrorReply):
                 log.warning("episode %s: remembered view %s left out: %s", em.episode_id, kf.view_id, result.reason)
                 continue
@@ -347,17 +451,28 @@ class HomeMemory:
             reset=None if part.get("reset") is None else str(part["reset"]),
             warm_ids=[str(v) for v in part.get("warm_ids", [])], loaded_cells=int(part.get("loaded_cells", 0)),
             step_limit=None if part.get("step_limit") is None else int(part["step_limit"]),
-            geometry_only=bool(part.get("geometry_only", False)),
+            geometry_only=bool(part.get("geometry_only", False)), objects_base=bool(part.get("objects_base", False)),
+            redetect_ids=[str(v) for v in part.get("redetect_ids", [])],
+            redetect_without=[str(c) for c in part.get("redetect_without", [])],
+            objects_warmed=bool(part.get("objects_warmed", False)),
             memory=None if memory is None else [MemoryScore.model_validate(m) for m in memory],
             changes=[ObservedChange.from_json(c) for c in part.get("changes", [])])
 
     # ---- the end: write the home back -------------------------------------------------------------------
-    def finish(self, em: Any) -> HomeIndex | None:
-        """Commit the episode's map and views to its home (see the module's doc); the new index."""
+    def finish(self, em: Any, objects: ObjectMap | None = None) -> HomeIndex | None:
+        """Commit the episode's map, views and (a task's) object layer ``objects`` to its home (see the module's
+        doc); the new index."""
         ep = self.episodes.pop(em.episode_id, None)
         self._remembered.pop(em.episode_id, None)
         if ep is None:
             return None
+        try:
+            return self._finish(ep, em, objects)
+        finally:
+            if ep.objects_base:
+                self.store.delete(objects_base_key(ep.home, em.episode_id))
+
+    def _finish(self, ep: EpisodeHome, em: Any, objects: ObjectMap | None) -> HomeIndex | None:
         if em.step < 0:  # no frame integrated: nothing new to remember
             self.store.delete_many([view_key(ep.home, v.view_id) for v in ep.pool.views])
             return None
@@ -372,9 +487,38 @@ class HomeMemory:
                 log.info("home %s: reset since episode %s started; the episode is not remembered", ep.home,
                          em.episode_id)
                 return None
-            return self._commit(ep, em)
+            return self._commit(ep, em, objects)
 
-    def _commit(self, ep: EpisodeHome, em: Any) -> HomeIndex:
+    def _commit_objects(self, ep: EpisodeHome, em: Any, objects: ObjectMap | None, index: HomeIndex,
+                        budget: int) -> HomeObjects | None:
+        """The home's object layer after the episode, within ``budget`` bytes (written by the caller): a task's
+        own evidence added to the layer it started from (:func:`commit_layer`), merged with the stored one when
+        another episode committed meanwhile (:meth:`HomeObjects.merge`); a question, or the trusting agent (no
+        3D layer), leaves the stored layer as it is."""
+        stored = self.read_objects(ep.home)
+        if objects is None or em.start.task is None or objects.single_frame:
+            out = stored
+        else:
+            base = self.read_objects(ep.home, objects_base_key(ep.home, em.episode_id)) if ep.objects_base else None
+            if ep.objects_base and base is None:
+                log.error("home %s: episode %s lost the object layer it started from; its restored Gaussians count "
+                          "as its own", ep.home, em.episode_id)
+            a = objects.home_arrays()
+            out = commit_layer(base, a["uid"], a["means"], a["sigma"], a["opacity"], a["gamma"],
+                               objects.task_classes, objects.layer.config.prior, em.episode_id, self.clock(),
+                               floor_of(em.volume, float(em.resolution)))
+            if stored is not None and index.version != ep.base_version:
+                log.info("home %s: object layer of episode %s merged with the one committed meanwhile", ep.home,
+                         em.episode_id)
+                out = stored.merge(out)
+        if out is None:
+            return None
+        out = out.bounded(self.settings.helios_max_gaussians)
+        while len(out.to_bytes()) > budget and len(out):
+            out = out.bounded(len(out) // 2)
+        return out if len(out.to_bytes()) <= budget else None
+
+    def _commit(self, ep: EpisodeHome, em: Any, objects: ObjectMap | None = None) -> HomeIndex:
         s = self.settings
         index = self.read_index(ep.home) or HomeIndex()
         mine = HomeMap.from_episode(em)
@@ -394,6 +538,9 @@ class HomeMemory:
             log.warning("home %s: map of %d bytes exceeds EQA_HOME_MAX_BYTES=%d; the map is not stored",
                         ep.home, len(map_bytes), s.home_max_bytes)
             budget = s.home_max_bytes
+        home_objects = self._commit_objects(ep, em, objects, index, budget)
+        objects_bytes = b"" if home_objects is None else home_objects.to_bytes()
+        budget -= len(objects_bytes)
         candidates = {v.view_id: v for v in [*index.views, *ep.pool.views]}
         chosen = select_views(list(candidates.values()), s.home_max_views, budget)
         chosen_ids = {v.view_id for v in chosen}
@@ -402,6 +549,10 @@ class HomeMemory:
             self.store.set(map_key(ep.home), map_bytes, ttl_s=ttl)
         else:
             self.store.delete(map_key(ep.home))
+        if objects_bytes:
+            self.store.set(objects_key(ep.home), objects_bytes, ttl_s=ttl)
+        else:
+            self.store.delete(objects_key(ep.home))
         scene = em.start.question.scene
         # a change matters to views older than it: one older than every kept view is forgotten
         oldest = min((v.t for v in chosen), default=math.inf)
@@ -409,7 +560,10 @@ class HomeMemory:
         new = HomeIndex(version=index.version + 1, views=chosen, episodes=index.episodes + 1, changes=changes,
                         scenes=(index.scenes + ([scene] if scene not in index.scenes else []))[-64:],
                         map_bytes=len(map_bytes) if len(map_bytes) <= s.home_max_bytes else 0,
-                        created_at=index.created_at)
+                        created_at=index.created_at, objects_bytes=len(objects_bytes),
+                        gaussians=0 if home_objects is None else len(home_objects))
+        if ep.objects_base:  # its own evidence is in the layer now: the copy it started from goes before the index
+            self.store.delete(objects_base_key(ep.home, em.episode_id))
         self.store.set(index_key(ep.home), new.to_bytes(), ttl_s=ttl)
         # every kept view's TTL runs from now; the views left out go
         for v in chosen:
@@ -420,7 +574,8 @@ class HomeMemory:
         if gone:
             self.store.delete_many(gone)
         summary = homes.HomeSummary(home=ep.home, episodes=new.episodes, views=len(chosen),
-                                    bytes=new.map_bytes + new.view_bytes, created_at=new.created_at,
+                                    bytes=new.map_bytes + new.objects_bytes + new.view_bytes,
+                                    gaussians=new.gaussians, created_at=new.created_at,
                                     updated_at=time.time(), scenes=new.scenes)
         homes.write_summary(self.store, summary, ttl_s=ttl)
         log.info("home %s: version %d after episode %s: %d views, %d bytes", ep.home, new.version, em.episode_id,

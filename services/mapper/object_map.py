@@ -123,12 +123,13 @@ class ObjectMap:
             thresholds=self.thresholds, instances=frame.instances, labels=frame.labels, depth=frame.depth, seed=seed,
         )
 
-    def integrate(self, frame: Frame, result: DetectResult) -> UpdateStats:
+    def integrate(self, frame: Frame, result: DetectResult, without: frozenset[str] = frozenset()) -> UpdateStats:
         """Fuse one frame with its detections (a frame whose detection failed is not fused: "nothing
-        detected" would count as evidence against every object in view)."""
+        detected" would count as evidence against every object in view). ``without``: classes whose detected
+        pixels add nothing (:func:`~services.mapper.objects.layer.pixel_classes`)."""
         h, w = frame.depth.shape
         dets = [(d.cls, d.score, d.full_mask(h, w)) for d in result.detections]
-        pc = pixel_classes(dets, self.layer.classes, (h, w))
+        pc = pixel_classes(dets, self.layer.classes, (h, w), without)
         if self.single_frame:  # instance labels go on counting: a new frame's detection is a new instance
             self.layer.store = type(self.layer.store).empty(len(self.layer.classes), self.layer.device)
         self.last_stats = self.layer.update(frame.depth, pc, frame.camera_pose, frame.intrinsics, frame.step)
@@ -196,6 +197,38 @@ class ObjectMap:
         ig_set = float(self.layer.optimistic(instance_id, cls, poses).ig)
         return [GazePoint(x=g.x, y=g.y, yaw=g.yaw, pitch=g.pitch, psi_prime=o.psi_prime, ig=o.ig)
                 for g, o in zip(cands, opts, strict=True)], ig_set
+
+    # ---- a home's layer (services.mapper.home_objects) ---------------------------------------------------
+    def load_home(self, uid: np.ndarray, means: np.ndarray, sigma: np.ndarray, opacity: np.ndarray,
+                  gamma: np.ndarray) -> None:
+        """Start from a home's Gaussians (``gamma``: their concentrations over this layer's classes, by
+        :meth:`services.mapper.home_objects.HomeObjects.gamma_for`), clustered into instances; they count as
+        last updated before the episode's first step (the bound drops them before the episode's own)."""
+        import torch
+
+        from services.mapper.objects.gaussians import GaussianStore
+
+        n = len(uid)
+        if gamma.shape != (n, len(self.layer.classes)):
+            raise ValueError(f"home layer concentrations {gamma.shape} for {n} Gaussians and {self.layer.classes}")
+        dev = self.layer.device
+        self.layer.store = GaussianStore(
+            torch.as_tensor(np.array(means, np.float32)).reshape(n, 3).to(dev),
+            torch.as_tensor(np.array(sigma, np.float32)).to(dev),
+            torch.as_tensor(np.array(opacity, np.float32)).to(dev),
+            torch.as_tensor(np.array(gamma, np.float32)).to(dev),
+            torch.full((n,), -1, dtype=torch.long, device=dev),
+            torch.full((n,), -1, dtype=torch.long, device=dev),
+            torch.as_tensor(np.array(uid, np.int64)).to(dev),
+        )
+        self.layer.store.enforce_bound(self.layer.config.max_gaussians)
+        self.layer.recluster(torch.ones(len(self.layer.store), dtype=torch.bool, device=dev))
+
+    def home_arrays(self) -> dict[str, np.ndarray]:
+        """The layer's Gaussians for the home's commit: ``uid`` (-1: made in this episode), ``means``,
+        ``sigma``, ``opacity``, ``gamma`` (over :attr:`task_classes` then ``other``)."""
+        st = self.layer.store.to_numpy()
+        return {k: st[k] for k in ("uid", "means", "sigma", "opacity", "gamma")}
 
     # ---- persistence ------------------------------------------------------------------------------------
     def snapshot(self) -> bytes:

@@ -129,13 +129,15 @@ class MapperService(EpisodeService[EpisodeMap]):
         # a task episode's map sees low obstacles (task_map_config); a question's keeps the figures' map
         config = self.config if start.task is None else task_map_config(self.config)
         episode_map = EpisodeMap(start, config, layers=[QUESTION_LAYER, *extra] if extra else None)
-        self.homes.start(start, episode_map)  # an episode in a home starts from its map
+        # an episode in a home starts from its map (a task's object layer from the home's)
+        self.homes.start(start, episode_map, self.object_layer.maps.get(start.episode_id))
         return episode_map
 
     def finish_episode(self, robot: str, msg: EpisodeCancel | EpisodeEnd, state: EpisodeMap) -> None:
+        objects = self.object_layer.maps.get(msg.episode_id)
         for ext in self.extensions:
             ext.finish(msg.episode_id)
-        self.homes.finish(state)  # the episode's map and views written back to its home
+        self.homes.finish(state, objects)  # the episode's map, views and object layer written back to its home
         log.info("episode %s finished (%s); map dropped", msg.episode_id, msg.kind)
 
     def dump_state(self, state: EpisodeMap, **extra: Any) -> Any:
@@ -197,6 +199,9 @@ class MapperService(EpisodeService[EpisodeMap]):
         self.homes.observe(episode_map, frame)  # a candidate keyframe of the home's view memory
         t0 = time.perf_counter()
         memory = self.homes.warm(episode_map, frame)  # first frame in a known home: the view memory re-scored
+        if frame.step == 0:  # a task's first frame: remembered views re-detected for classes never asked before
+            self.homes.warm_objects(episode_map, self.object_layer.maps.get(episode_map.episode_id), frame,
+                                    lambda: self.context.detect_and_values()[0])
         timer.lap("home_warm", t0)
 
         # The scorer round trip is mostly waiting (another process, the bus): meanwhile this thread does the

@@ -198,12 +198,22 @@ class TaskBenchmark:
         return cls(seed=int(data["seed"]), tasks=[Task.model_validate(t) for t in data["tasks"]])
 
 
+def house_tasks(seed: int, index: int, scenes_dir: Path | None = None, pick_place: int = PICK_PLACE_PER_HOUSE,
+                find: int = FIND_PER_HOUSE) -> list[Task]:
+    """The tasks of house ``index`` of benchmark ``seed`` (:func:`task_scene_id`), as :func:`task_benchmark`
+    draws them: the pick-and-place ones first, all from the house's one start pose."""
+    from services.sim.housegen import generate_house
+
+    sid = task_scene_id(seed, index)
+    scene = load_or_generate(sid, scenes_dir) if scenes_dir is not None else generate_house(
+        seed * 10000 + TASK_HOUSE_OFFSET + index)
+    return generate_tasks(scene, np.random.default_rng([seed, index, 17]), pick_place, find)
+
+
 def task_benchmark(seed: int, pick_place: int = 60, find: int = 30, scenes_dir: Path | None = None,
                    progress: bool = False) -> TaskBenchmark:
     """``pick_place`` + ``find`` tasks of benchmark ``seed`` over houses ``task_scene_id(seed, i)``, in order,
     at most :data:`PICK_PLACE_PER_HOUSE` / :data:`FIND_PER_HOUSE` per house. Deterministic."""
-    from services.sim.housegen import generate_house
-
     if pick_place < 0 or find < 0 or pick_place + find > 10_000:
         raise ValueError("task counts must be >= 0 and at most 10000 in all")
     pp: list[Task] = []
@@ -217,12 +227,9 @@ def task_benchmark(seed: int, pick_place: int = 60, find: int = 30, scenes_dir: 
     while len(pp) < pick_place or len(fo) < find:
         if index >= 4 * (pick_place + find) + 20:
             raise RuntimeError(f"task benchmark seed {seed}: houses ran out of feasible tasks")
-        sid = task_scene_id(seed, index)
-        scene = load_or_generate(sid, scenes_dir) if scenes_dir is not None else generate_house(
-            seed * 10000 + TASK_HOUSE_OFFSET + index)
         want_pp = min(PICK_PLACE_PER_HOUSE, pick_place - len(pp))
         want_fo = min(FIND_PER_HOUSE, find - len(fo))
-        got = generate_tasks(scene, np.random.default_rng([seed, index, 17]), want_pp, want_fo)
+        got = house_tasks(seed, index, scenes_dir, want_pp, want_fo)
         new_pp = [t for t in got if t.kind == "pick_place"]
         new_fo = [t for t in got if t.kind == "find_object"]
         pp += new_pp

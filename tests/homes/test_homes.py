@@ -11,12 +11,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from support.mapper import Collector
+from support.mapper import home_rig
 
 from eqa import homes, keys
 from eqa.app.evaluation import replay
 from eqa.budget import warm_step_limit
-from eqa.bus import Bus
 from eqa.messages import (
     EpisodeEnd,
     EpisodeStart,
@@ -31,13 +30,11 @@ from eqa.store import Store
 from services.mapper.episode_map import EpisodeMap
 from services.mapper.home_memory import HomeMap, ViewInfo, ViewPool, coverage, select_views
 from services.mapper.home_shell import HomeMemory, index_key, view_key
-from services.mapper.service import MapperService
 from services.sim import camera
 from services.sim.library import load_or_generate
 from services.sim.questions import generate_questions
 from services.sim.render import Renderer
 from services.stopper.state import CalibrationChoice, EpisodeRecord, decide
-from services.vlm_scorer.service import ScorerService
 
 ROBOT = "r0"
 W, H = 160, 120
@@ -242,10 +239,11 @@ def test_concurrent_episodes_in_one_home_merge(house, store: Store, tmp_path: Pa
 
 def test_a_task_in_a_home_searches_on_the_remembered_geometry_with_its_own_frontiers(
         house, store: Store, tmp_path: Path) -> None:
-    """A question in a home starts from the explored map (its view memory guides it); a task, whose HELIOS layers
-    the home does not keep, starts from the geometry only: at its first frame it has the frontiers a cold task
-    has there (the explored home map would send it past places whose objects it never detected, to the edges of
-    what earlier episodes saw), no memory steps and its own step budget."""
+    """A question in a home starts from the explored map (its view memory guides it); a task in a home whose
+    earlier episodes asked no detector for its class (here: a question only) starts from the geometry only: at its
+    first frame it has the frontiers a cold task has there (the explored home map would send it past places whose
+    objects it never detected, to the edges of what earlier episodes saw), no memory steps and its own step
+    budget."""
     from eqa.messages import Task
 
     _scene, renderer, q = house
@@ -342,90 +340,76 @@ def test_home_carried_over_warm_started_through_a_scorer_replica_and_continued_e
     settings = settings.model_copy(update={"redis_url": redis_url, "scorer_replica": "homes", "home_max_views": 3,
                                            "home_warm_budget": 0.3})
     home = homes.home_id("tenant-a", "kitchen-house")
-    with Bus(hub_settings, "gateway") as bus:
-        out = Collector(bus)
-        scorer = ScorerService(settings)  # the oracle backend: simulated perception model, not a VLM
-        scorer.start()
-        mapper = MapperService(settings)
-        mapper.start()
-        other: MapperService | None = None
-        try:
-            store = mapper.store
-            homes.delete_home(store, home, 60.0)
-            time.sleep(0.5)
-            # episode 1 in the home: four views turning on the spot, then its end writes the home
-            bus.publish(keys.stream(ROBOT, keys.EPISODE_START), start_of(q, "ep-h1", home))
-            for k in range(4):
-                bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), frame_at(renderer, "ep-h1", k, turn(q.start_pose, k)))
-                m, s = out.step(k)
-                assert s.memory == []  # nothing to remember yet
-            first_area = m.explored_area_m2
-            bus.publish(keys.stream(ROBOT, keys.EPISODE_END), end("ep-h1", 4))
-            deadline = time.time() + 20
-            while store.get(index_key(home)) is None and time.time() < deadline:
-                time.sleep(0.05)
-            index = mapper.homes.read_index(home)
-            assert index is not None and index.version == 1 and 1 <= len(index.views) <= 3
-            summary = homes.read_summary(store, home)
-            assert summary is not None and summary.views == len(index.views) and summary.episodes == 1
+    with home_rig(hub_settings, settings, home) as rig:  # the oracle scorer: simulated perception model, not a VLM
+        bus, out, mapper = rig.bus, rig.out, rig.mapper
+        store = mapper.store
+        # episode 1 in the home: four views turning on the spot, then its end writes the home
+        bus.publish(keys.stream(ROBOT, keys.EPISODE_START), start_of(q, "ep-h1", home))
+        for k in range(4):
+            bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), frame_at(renderer, "ep-h1", k, turn(q.start_pose, k)))
+            m, s = out.step(k)
+            assert s.memory == []  # nothing to remember yet
+        first_area = m.explored_area_m2
+        bus.publish(keys.stream(ROBOT, keys.EPISODE_END), end("ep-h1", 4))
+        deadline = time.time() + 20
+        while store.get(index_key(home)) is None and time.time() < deadline:
+            time.sleep(0.05)
+        index = mapper.homes.read_index(home)
+        assert index is not None and index.version == 1 and 1 <= len(index.views) <= 3
+        summary = homes.read_summary(store, home)
+        assert summary is not None and summary.views == len(index.views) and summary.episodes == 1
 
-            # episode 2 in the home: step 0 starts from the stored map and re-scores the memory through the replica
-            bus.publish(keys.stream(ROBOT, keys.EPISODE_START), start_of(q, "ep-h2", home))
-            bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), frame_at(renderer, "ep-h2", 0, q.start_pose))
-            m0, s0 = out.step(0)
-            assert m0.explored_area_m2 == pytest.approx(first_area, rel=0.02)
-            assert len(s0.memory) == len(index.views) and s0.backend == "oracle"
-            assert all(len(mm.answer_probs) == len(q.choices) and 0 <= mm.relevance <= 1 for mm in s0.memory)
-            assert [mm.seen_at for mm in s0.memory] == sorted(mm.seen_at for mm in s0.memory)
-            # its budget: appendix B's for the floor the home map left (20 steps stand for 44.4 m2), at least 6
-            explored_m2 = mapper.homes.episodes["ep-h2"].loaded_cells * m0.grid.resolution ** 2
-            assert explored_m2 > 0 and s0.step_limit == warm_step_limit(20, explored_m2, 0.3) < 20
-            assert out.errors.empty(), out.errors.get()
+        # episode 2 in the home: step 0 starts from the stored map and re-scores the memory through the replica
+        bus.publish(keys.stream(ROBOT, keys.EPISODE_START), start_of(q, "ep-h2", home))
+        bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), frame_at(renderer, "ep-h2", 0, q.start_pose))
+        m0, s0 = out.step(0)
+        assert m0.explored_area_m2 == pytest.approx(first_area, rel=0.02)
+        assert len(s0.memory) == len(index.views) and s0.backend == "oracle"
+        assert all(len(mm.answer_probs) == len(q.choices) and 0 <= mm.relevance <= 1 for mm in s0.memory)
+        assert [mm.seen_at for mm in s0.memory] == sorted(mm.seen_at for mm in s0.memory)
+        # its budget: appendix B's for the floor the home map left (20 steps stand for 44.4 m2), at least 6
+        explored_m2 = mapper.homes.episodes["ep-h2"].loaded_cells * m0.grid.resolution ** 2
+        assert explored_m2 > 0 and s0.step_limit == warm_step_limit(20, explored_m2, 0.3) < 20
+        assert out.errors.empty(), out.errors.get()
 
-            # the cold reference: the same frame without a home sees only itself, no memory steps, no home keys
-            before = sorted(store.keys(homes.PREFIX))
-            bus.publish(keys.stream(ROBOT, keys.EPISODE_START), start_of(q, "ep-cold", None))
-            bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), frame_at(renderer, "ep-cold", 0, q.start_pose))
-            c0, cs0 = out.step(0)
-            ref = EpisodeMap(start_of(q, "ep-ref", None))
-            ref.integrate(frame_at(renderer, "ep-ref", 0, q.start_pose))
-            assert c0.explored_area_m2 == pytest.approx(ref.explored_area_m2())
-            assert c0.explored_area_m2 < m0.explored_area_m2
-            assert cs0.memory == [] and cs0.step_limit is None
-            bus.publish(keys.stream(ROBOT, keys.EPISODE_END), end("ep-cold", 1))
-            assert mapper.drain()
-            time.sleep(0.3)
-            assert sorted(store.keys(homes.PREFIX)) == before
+        # the cold reference: the same frame without a home sees only itself, no memory steps, no home keys
+        before = sorted(store.keys(homes.PREFIX))
+        bus.publish(keys.stream(ROBOT, keys.EPISODE_START), start_of(q, "ep-cold", None))
+        bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), frame_at(renderer, "ep-cold", 0, q.start_pose))
+        c0, cs0 = out.step(0)
+        ref = EpisodeMap(start_of(q, "ep-ref", None))
+        ref.integrate(frame_at(renderer, "ep-ref", 0, q.start_pose))
+        assert c0.explored_area_m2 == pytest.approx(ref.explored_area_m2())
+        assert c0.explored_area_m2 < m0.explored_area_m2
+        assert cs0.memory == [] and cs0.step_limit is None
+        bus.publish(keys.stream(ROBOT, keys.EPISODE_END), end("ep-cold", 1))
+        assert mapper.drain()
+        time.sleep(0.3)
+        assert sorted(store.keys(homes.PREFIX)) == before
 
-            # the mapper dies mid-episode; a new instance continues episode 2 from the store and commits it
-            mapper.stop()
-            other = MapperService(settings.model_copy(update={"instance": "mapper-b"}))
-            other.start()
-            time.sleep(0.5)
-            bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), frame_at(renderer, "ep-h2", 1, turn(q.start_pose, 4)))
-            m1, s1 = out.step(1)
-            assert s1.memory == [] and s1.step_limit is None and m1.explored_area_m2 >= m0.explored_area_m2
-            assert other.homes.step_limit("ep-h2") == s0.step_limit  # carried with the episode's state
-            # the candidate keyframe of step 0 came over with the episode's state (cells read back from the store)
-            pool = other.homes.episodes["ep-h2"].pool.views
-            assert {v.view_id for v in pool} == {"ep-h2-0", "ep-h2-1"} and all(len(v.cells) for v in pool)
-            bus.publish(keys.stream(ROBOT, keys.EPISODE_END), end("ep-h2", 2))
-            deadline = time.time() + 20
-            while (mapper_index := other.homes.read_index(home)) is not None and mapper_index.version < 2 \
-                    and time.time() < deadline:
-                time.sleep(0.05)
-            index2 = other.homes.read_index(home)
-            assert index2 is not None and index2.version == 2 and len(index2.views) <= 3
-            assert index2.episodes == 2
-            stored = other.homes.read_map(home)
-            assert stored is not None and stored.explored_cells() >= HomeMap.from_bytes(
-                store.get(homes.prefix(home) + "map")).explored_cells()
-            assert out.errors.empty(), out.errors.get()
-        finally:
-            if other is not None:
-                other.stop()
-            mapper.stop()
-            scorer.stop()
+        # the mapper dies mid-episode; a new instance continues episode 2 from the store and commits it
+        mapper.stop()
+        other = rig.instance(settings.model_copy(update={"instance": "mapper-b"}))
+        time.sleep(0.5)
+        bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), frame_at(renderer, "ep-h2", 1, turn(q.start_pose, 4)))
+        m1, s1 = out.step(1)
+        assert s1.memory == [] and s1.step_limit is None and m1.explored_area_m2 >= m0.explored_area_m2
+        assert other.homes.step_limit("ep-h2") == s0.step_limit  # carried with the episode's state
+        # the candidate keyframe of step 0 came over with the episode's state (cells read back from the store)
+        pool = other.homes.episodes["ep-h2"].pool.views
+        assert {v.view_id for v in pool} == {"ep-h2-0", "ep-h2-1"} and all(len(v.cells) for v in pool)
+        bus.publish(keys.stream(ROBOT, keys.EPISODE_END), end("ep-h2", 2))
+        deadline = time.time() + 20
+        while (mapper_index := other.homes.read_index(home)) is not None and mapper_index.version < 2 \
+                and time.time() < deadline:
+            time.sleep(0.05)
+        index2 = other.homes.read_index(home)
+        assert index2 is not None and index2.version == 2 and len(index2.views) <= 3
+        assert index2.episodes == 2
+        stored = other.homes.read_map(home)
+        assert stored is not None and stored.explored_cells() >= HomeMap.from_bytes(
+            store.get(homes.prefix(home) + "map")).explored_cells()
+        assert out.errors.empty(), out.errors.get()
 
 
 def test_bench_sequences_are_one_house_round_robin_over_categories(tmp_path: Path) -> None:
@@ -469,3 +453,17 @@ def test_bench_wrong_singletons_are_paired_on_the_same_questions() -> None:
     assert (res["paired"]["warm_only"], res["paired"]["cold_only"]) == (5, 1)
     assert res["paired"]["diff"] == pytest.approx(4 / 8) and 0 < res["paired"]["p_value"] < 0.25
     assert singletons([]) == {"n": 0}
+
+
+def test_bench_task_metrics_are_paired_on_the_tasks_that_have_them() -> None:
+    """``eqa bench home --tasks``: a pick-and-place metric is compared on the tasks that have it (an object search
+    has no FindObj), warm against cold on the same task."""
+    from eqa.app.evaluation import sign_test_p
+    from eqa.app.home_bench import metric_pairs
+
+    rows = [{"cold_FindObj": 1.0, "warm_FindObj": 0.0}, {"cold_FindObj": 0.0, "warm_FindObj": 1.0},
+            {"cold_FindObj": 0.0, "warm_FindObj": 1.0}, {"cold_FindObj": 1.0, "warm_FindObj": 1.0}, {}]
+    r = metric_pairs(rows, "FindObj")
+    assert (r["n"], r["cold"], r["warm"], r["warm_only"], r["cold_only"]) == (4, 0.5, 0.75, 2, 1)
+    assert r["p_value"] == sign_test_p(2, 1) and r["cold_ci"][0] < 0.5 < r["cold_ci"][1]
+    assert metric_pairs([{}], "Pick") == {"n": 0}

@@ -5,12 +5,20 @@ from __future__ import annotations
 
 import math
 import queue
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import TYPE_CHECKING, Any
 
 from eqa import keys
 from eqa.bus import Bus
 from eqa.messages import EpisodeStart, ErrorReply, Frame, MapUpdate, Pose2D, Question, StepScores
+from eqa.settings import Settings
 from services.sim.render import Renderer
 from support.scenes import rendered_frame
+
+if TYPE_CHECKING:
+    from services.mapper.service import MapperService
 
 W, H = 160, 120
 ROBOT = "r0"
@@ -41,3 +49,45 @@ class Collector:
         m, s = self.maps.get(timeout=60), self.scores.get(timeout=60)
         assert m.step == step and s.step == step, (m.step, s.step)
         return m, s
+
+
+class HomeRig:
+    """A scorer replica (the oracle backend: simulated perception model, not a VLM) and mapper instances over one
+    bus, a home emptied first (:func:`home_rig`)."""
+
+    def __init__(self, bus: Bus, out: Collector, mapper: MapperService) -> None:
+        self.bus, self.out, self.mapper = bus, out, mapper
+        self.started: list[MapperService] = [mapper]
+
+    def instance(self, settings: Settings, **kwargs: Any) -> MapperService:
+        """Another mapper instance (stopped with the rig)."""
+        from services.mapper.service import MapperService
+
+        other = MapperService(settings, **kwargs)
+        other.start()
+        self.started.append(other)
+        return other
+
+
+@contextmanager
+def home_rig(hub_settings: Settings, settings: Settings, home: str, **kwargs: Any) -> Iterator[HomeRig]:
+    """The bus (opened with ``hub_settings``), a collector, a scorer replica and a mapper (``kwargs``: its injected
+    detector / values) with ``settings``; ``home`` deleted first; everything stopped at the end."""
+    from eqa import homes
+    from services.mapper.service import MapperService
+    from services.vlm_scorer.service import ScorerService
+
+    with Bus(hub_settings, "gateway") as bus:
+        out = Collector(bus)
+        scorer = ScorerService(settings)
+        scorer.start()
+        rig = HomeRig(bus, out, MapperService(settings, **kwargs))
+        rig.mapper.start()
+        try:
+            homes.delete_home(rig.mapper.store, home, 60.0)
+            time.sleep(0.5)
+            yield rig
+        finally:
+            for m in reversed(rig.started):
+                m.stop()
+            scorer.stop()

@@ -19,7 +19,7 @@ most ``max_gaussians`` in the store; past that the Gaussians that got evidence l
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 import numpy as np
@@ -36,6 +36,12 @@ class GaussianStore:
     gamma: torch.Tensor  # (N, C) float32 concentrations
     instance: torch.Tensor  # (N,) int64, -1 = none yet
     last_step: torch.Tensor  # (N,) int64 step of the last evidence
+    # (N,) int64 id in the episode's home (services.mapper.home_objects), -1 for one made in this episode
+    uid: torch.Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.long))
+
+    def __post_init__(self) -> None:
+        if self.uid.shape[0] != self.means.shape[0]:  # made without home ids: none has one
+            self.uid = torch.full((self.means.shape[0],), -1, dtype=torch.long, device=self.means.device)
 
     @classmethod
     def empty(cls, n_classes: int, device: torch.device | str = "cpu") -> GaussianStore:
@@ -85,7 +91,8 @@ class GaussianStore:
 
     @classmethod
     def from_numpy(cls, data: dict[str, Any], device: torch.device | str = "cpu") -> GaussianStore:
-        return cls(**{f.name: torch.as_tensor(np.asarray(data[f.name])).to(device) for f in fields(cls)})
+        return cls(**{f.name: torch.as_tensor(np.asarray(data[f.name])).to(device) for f in fields(cls)
+                      if f.name in data})
 
 
 def spawn_pixels(

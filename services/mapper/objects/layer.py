@@ -37,6 +37,7 @@ log = logging.getLogger(__name__)
 
 SNAPSHOT_FORMAT = 1
 MAX_CLASSES = 32
+NO_EVIDENCE = -1  # a pixel_class entry whose pixel neither creates Gaussians nor updates any (Eq. 3 skips it)
 
 
 @dataclass
@@ -69,11 +70,14 @@ def sample_grid(big_h: int, big_w: int, h: int, w: int) -> tuple[np.ndarray, np.
 
 
 def pixel_classes(
-    detections: list[tuple[str, float, np.ndarray]], classes: list[str], shape: tuple[int, int]
+    detections: list[tuple[str, float, np.ndarray]], classes: list[str], shape: tuple[int, int],
+    without: frozenset[str] = frozenset(),
 ) -> np.ndarray:
     """The class index y_i of each pixel (Eq. 3's one-hot y) from detections ``(class, score, full mask)``:
     the highest-scoring detection covering a pixel names it; ``other`` (the last class) where none does.
-    Detections of classes not in ``classes`` are ignored."""
+    Detections of classes not in ``classes`` are ignored. Pixels a class of ``without`` names get
+    :data:`NO_EVIDENCE` (they add nothing: a remembered view re-detected for new classes, whose pixels of a
+    class asked before are already counted in the home's layer)."""
     other = len(classes) - 1
     out = np.full(shape, other, dtype=np.int64)
     best = np.zeros(shape, dtype=np.float64)
@@ -81,7 +85,7 @@ def pixel_classes(
         if name not in classes[:-1]:
             continue
         sel = np.asarray(mask, dtype=bool) & (score > best)
-        out[sel] = classes.index(name)
+        out[sel] = NO_EVIDENCE if name in without else classes.index(name)
         best[sel] = score
     return out
 
@@ -142,7 +146,8 @@ class ObjectLayer:
         self, depth: np.ndarray, pixel_class: np.ndarray, camera_pose: np.ndarray, K: np.ndarray, step: int
     ) -> UpdateStats:
         """Fuse one frame: ``depth`` (H, W) metres (0/inf = none), ``pixel_class`` (H, W) class index per pixel
-        (``other`` where no detection), camera-to-world ``camera_pose``, intrinsics ``K``."""
+        (``other`` where no detection, :data:`NO_EVIDENCE` where the pixel adds nothing), camera-to-world
+        ``camera_pose``, intrinsics ``K``."""
         c = self.config
         t0 = time.perf_counter()
         timing: dict[str, float] = {}
@@ -162,8 +167,8 @@ class ObjectLayer:
         d = torch.as_tensor(np.nan_to_num(small, nan=0.0, posinf=0.0, neginf=0.0)).to(self.device)
         d = torch.where((d > 0) & (d <= c.max_depth_m), d, torch.zeros_like(d))
         pc = torch.as_tensor(np.asarray(pixel_class)[np.ix_(rows, cols)].astype(np.int64)).to(self.device)
-        if int(pc.min()) < 0 or int(pc.max()) > self.other:
-            raise ValueError(f"pixel_class must hold class indices 0..{self.other}")
+        if int(pc.min()) < NO_EVIDENCE or int(pc.max()) > self.other:
+            raise ValueError(f"pixel_class must hold class indices 0..{self.other} or {NO_EVIDENCE}")
         Ks = scale_intrinsics(K, h / big_h)
         pose = torch.as_tensor(np.array(camera_pose, np.float64), dtype=torch.float32, device=self.device)
         self.last_camera = (np.asarray(camera_pose, np.float64), np.asarray(K, np.float64), big_h, big_w)
@@ -186,7 +191,7 @@ class ObjectLayer:
         mask = reobservation_mask(d, r.depth, c.reobserve_depth_m, c.close_px)
         if c.other_max_depth_m is not None:  # a miss beyond the detector's range says nothing
             mask = mask & ~((pc == self.other) & (d > c.other_max_depth_m))
-        mask = mask.reshape(-1)
+        mask = (mask & (pc >= 0)).reshape(-1)
         sel = mask[r.pixel]
         g, k, y = r.gauss[sel], r.kappa[sel], pc.reshape(-1)[r.pixel[sel]]
         self.store.gamma = dirichlet.update(self.store.gamma, g, k, y, c.alpha_cpa, c.pixel_weight)
@@ -281,7 +286,8 @@ class ObjectLayer:
             format=np.array(SNAPSHOT_FORMAT),
             classes=np.array(self.classes),
             meta=np.array([self.next_label, self.step], np.int64),
-            **{f"g_{k}": v for k, v in self.store.to_numpy().items()},
+            # home ids only when the layer has some (a task in a home): an episode without one stores what it did
+            **{f"g_{k}": v for k, v in self.store.to_numpy().items() if k != "uid" or (v >= 0).any()},
             **extra,
         )
         return buf.getvalue()
