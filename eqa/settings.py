@@ -451,11 +451,11 @@ class HomeSettings(SettingsGroup):
         "max_steps",
     )
     home_warm_area: Literal["explored", "observed"] = Field(
-        default="explored",
+        default="observed",
         description="warm start: the floor A_e the home map already covers, which the warm budget subtracts: "
         "'observed' = floor columns the map has seen with the full camera, inside the house "
-        "(services.mapper.home_memory.observed_floor); 'explored' = columns with an appendix-B explored voxel "
-        "(narrow view)",
+        "(services.mapper.home_memory.observed_floor; chosen on tuning seed 11: docs/homes.md); 'explored' = columns "
+        "with an appendix-B explored voxel (narrow view)",
     )
     home_ttl_s: float = Field(
         default=90 * 24 * 3600.0, gt=0,
