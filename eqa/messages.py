@@ -567,7 +567,7 @@ class StepScores(Message):
     # warm start (a question in a known home, step 0 only): the home's remembered views re-scored for this
     # question, oldest first; the stopper takes them as steps before this one (services/stopper/state.py)
     memory: list[MemoryScore] = Field(default_factory=list, max_length=MAX_HOME_VIEWS)
-    # warm start (step 0 only): the episode's step limit in a home whose map explored part of the house
+    # warm start (step 0 only): the episode's step limit in a home whose map already covers part of the house
     # (eqa.budget.warm_step_limit); the stopper answers at it instead of at EpisodeStart.max_steps
     step_limit: StrictInt | None = Field(default=None, ge=1, le=10_000)
 

@@ -456,6 +456,13 @@ class HomeSettings(SettingsGroup):
         "least this share of max_steps for looking again (0.15 chosen on tuning seed 11: docs/homes.md); 1 = the full "
         "max_steps",
     )
+    home_warm_area: Literal["explored", "observed"] = Field(
+        default="observed",
+        description="warm start: the floor A_e the home map already covers, which the warm budget subtracts: "
+        "'observed' = floor columns the map has seen with the full camera, inside the house "
+        "(services.mapper.home_memory.observed_floor; chosen on tuning seed 11: docs/homes.md); 'explored' = columns "
+        "with an appendix-B explored voxel (narrow view)",
+    )
     home_ttl_s: float = Field(
         default=90 * 24 * 3600.0, gt=0,
         description="a home's stored parts expire this long after the last episode that updated it (keep it at "

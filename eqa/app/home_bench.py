@@ -302,6 +302,8 @@ def run(args: argparse.Namespace, settings: Any) -> dict[str, Any]:
             knobs += [changes, settings.home_stale_weight, settings.home_stale_age_s]
         if settings.home_warm_budget < 1.0:
             knobs += ["budget", settings.home_warm_budget]
+            if settings.home_warm_area != "explored":
+                knobs += ["area", settings.home_warm_area]
         tag = hashlib.sha256(json.dumps(knobs).encode()).hexdigest()[:10]
         todo = [(s, i) for (s, i, r) in houses if r == role]
         paths = {h: runs / f"warm-{role}-s{h[0]}-h{h[1]}-{tag}.json" for h in todo}
@@ -458,6 +460,7 @@ def summarise(rows: list[dict[str, Any]], args: argparse.Namespace, settings: An
         "changes": getattr(args, "changes", 0) or 0,
         "home_stale_weight": settings.home_stale_weight, "home_stale_age_s": settings.home_stale_age_s,
         "home_warm_budget": settings.home_warm_budget,
+        "home_warm_area": settings.home_warm_area,
         "wrong_singletons": {
             "changed": singletons([r for r in rows if r["position"] > 1 and r.get("affected")]),
             "unchanged": singletons([r for r in rows if r["position"] > 1 and not r.get("affected")]),
@@ -658,7 +661,7 @@ def print_results(res: dict[str, Any]) -> None:
     print(f"home sequences: seeds {res['seeds']}, {res['test_houses']} test houses per seed, "
           f"{res['questions_per_house']} questions each, eps {res['eps']}, {res['changes']} rounds of changes "
           f"between questions, stale weight {res['home_stale_weight']:g}, warm budget "
-          f"{res.get('home_warm_budget', 1.0):g} ({res['scorer']})")
+          f"{res.get('home_warm_budget', 1.0):g} ({res.get('home_warm_area', 'explored')} floor, {res['scorer']})")
     print("position  n   cold steps  warm steps  ratio  cold succ  warm succ  memory steps")
     for pos, p in res["positions"].items():
         if p.get("n"):
@@ -714,6 +717,8 @@ def cmd_home(args: argparse.Namespace) -> int:
         settings = settings.model_copy(update={"home_stale_weight": args.stale_weight})
     if args.warm_budget is not None:
         settings = settings.model_copy(update={"home_warm_budget": args.warm_budget})
+    if args.warm_area is not None:
+        settings = settings.model_copy(update={"home_warm_area": args.warm_area})
     setup_logging(settings.log_level, "eqa-bench")
     logging.getLogger("services.mapper.home_shell").setLevel(logging.WARNING)
     if args.tasks:
@@ -763,6 +768,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--redetect-views", type=int, default=None,
                    help="with --tasks: remembered views re-detected for a task's new classes (EQA_HOME_REDETECT_VIEWS; "
                    "default from the environment)")
+    p.add_argument("--warm-area", choices=("explored", "observed"), default=None,
+                   help="the floor a warm budget subtracts (EQA_HOME_WARM_AREA, eqa/budget.py; default from the "
+                   "environment)")
     p.add_argument("--size", default="160x120", help="camera image size WxH (default 160x120)")
     p.add_argument("--scorer", choices=("oracle", "hf", "remote"), default=None,
                    help="scorer backend (default EQA_SCORER_BACKEND, normally oracle)")

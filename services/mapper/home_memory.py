@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from scipy import ndimage
 
 from eqa.codec import packb, packed_array, unpackb
 from eqa.messages import InstanceLabel, Pose2D
@@ -223,6 +224,35 @@ class ViewPool:
 
 
 # ---- home map -----------------------------------------------------------------------------------------------
+def back_band_cells(occupied_band: float, trunc_voxels: float) -> int:
+    """How many cells behind a seen surface the map marks occupied: the occupied band ``occupied_band`` (in
+    truncation units, :class:`services.mapper.projection.ProjectionConfig`) times the truncation in voxels."""
+    return max(0, math.ceil(occupied_band * trunc_voxels - 1e-9))
+
+
+def observed_floor(known: np.ndarray, free: np.ndarray, back_band: int) -> np.ndarray:
+    """The floor cells a map has observed, inside the house: the ``known`` columns (seen empty or holding a surface
+    from the floor clearance to the camera height, :func:`services.mapper.projection.known_columns`) without the
+    occupied-only columns within ``back_band`` cells (8-neighbourhood) of the outside, the never-seen cells
+    connected to the grid's edge.
+
+    Why that peel: fusion marks ``back_band`` cells *behind* every surface it sees as occupied
+    (:func:`back_band_cells`); behind an exterior wall seen from inside those cells lie outside the house. The peel
+    removes them and the exterior wall's own columns with them; a free column is never removed. Inside the house a
+    wall or a piece of furniture is surrounded by seen columns, not by the outside, so it is kept. Columns never
+    seen (the inside of closed furniture, a room not yet entered) are not counted."""
+    if known.shape != free.shape:
+        raise ValueError(f"known {known.shape} and free {free.shape} are not one grid")
+    if known.size == 0:
+        return np.zeros(known.shape, dtype=bool)
+    unknown = np.pad(~known, 1, constant_values=True)  # a ring of unknown cells joins every edge to one outside
+    labels, _ = ndimage.label(unknown)
+    outside = labels == labels[0, 0]
+    if back_band > 0:
+        outside = ndimage.binary_dilation(outside, structure=np.ones((3, 3), dtype=bool), iterations=back_band)
+    return known & ~(outside[1:-1, 1:-1] & ~free)
+
+
 @dataclass
 class HomeMap:
     """The question-free map of a home: the TSDF volume's arrays on its grid and the traversed plane."""

@@ -67,12 +67,15 @@ from services.mapper.home_memory import (
     ObservedChange,
     ViewInfo,
     ViewPool,
+    back_band_cells,
     cell_keys,
     disagreement,
+    observed_floor,
     select_views,
     stale_weights,
 )
 from services.mapper.home_objects import FloorMask, HomeObjects, commit_layer, floor_of
+from services.mapper.projection import known_columns
 from services.mapper.prompt_points import prompt_points
 
 if TYPE_CHECKING:
@@ -121,7 +124,7 @@ class EpisodeHome:
     reset: str | None = None  # the home's reset token when the episode started (eqa.homes.delete_home)
     warm_ids: list[str] = field(default_factory=list)  # committed views to re-score at the first frame
     memory: list[MemoryScore] | None = None  # the memory steps, once scored (None: not yet)
-    loaded_cells: int = 0  # floor cells explored in the home map it started from
+    loaded_cells: int = 0  # floor cells A_e of the home map it started from (EQA_HOME_WARM_AREA)
     step_limit: int | None = None  # a question's budget in the explored house (eqa.budget.warm_step_limit)
     geometry_only: bool = False  # started from the home map without its explored mask (a task)
     changes: list[ObservedChange] = field(default_factory=list)  # changes its frames showed against the memory
@@ -214,14 +217,14 @@ class HomeMemory:
                     ep.geometry_only = task
                     ep.loaded_cells = int(em.volume.explored.any(axis=2).sum()) if task else 0
                     if not task:  # a task keeps its budget (its planner ends it)
-                        ep.loaded_cells = home_map.explored_cells()
+                        ep.loaded_cells = self._covered_cells(home_map, em)
                         ep.step_limit = self._step_limit(start, ep.loaded_cells * float(em.resolution) ** 2)
                 except ValueError as exc:
                     log.error("episode %s: home %s map not used: %s", start.episode_id, start.home, exc)
             # the view memory answers questions (Eq. 9's memory steps); a task's stopper has nothing to answer
             ep.warm_ids = [] if task else [v.view_id for v in index.views[: self.settings.home_warm_views]]
         self.episodes[start.episode_id] = ep
-        log.info("episode %s: home %s (version %d): %d explored cells, %d views to re-score, step limit %s",
+        log.info("episode %s: home %s (version %d): %d covered cells, %d views to re-score, step limit %s",
                  start.episode_id, start.home, ep.base_version, ep.loaded_cells, len(ep.warm_ids),
                  ep.step_limit or start.max_steps)
 
@@ -310,9 +313,18 @@ class HomeMemory:
             out.append(fut.result())
         return out
 
-    def _step_limit(self, start: EpisodeStart, explored_m2: float) -> int | None:
-        """A question's step limit in a house the home map explored ``explored_m2`` of (None: ``max_steps``)."""
-        limit = warm_step_limit(start.max_steps, explored_m2, self.settings.home_warm_budget)
+    def _covered_cells(self, home_map: HomeMap, em: Any) -> int:
+        """The floor cells ``A_e`` of the warm budget in the home map ``em`` just started from
+        (``EQA_HOME_WARM_AREA``): those it observed inside the house, or those with an explored voxel."""
+        if self.settings.home_warm_area == "explored":
+            return home_map.explored_cells()
+        known, free = known_columns(em.volume, em.config.projection)
+        back = back_band_cells(em.config.projection.occupied_band, em.volume.config.trunc_voxels)
+        return int(observed_floor(known, free, back).sum())
+
+    def _step_limit(self, start: EpisodeStart, covered_m2: float) -> int | None:
+        """A question's step limit in a house the home map covers ``covered_m2`` of (None: ``max_steps``)."""
+        limit = warm_step_limit(start.max_steps, covered_m2, self.settings.home_warm_budget)
         return limit if limit < start.max_steps else None
 
     def step_limit(self, episode_id: str) -> int | None:

@@ -113,6 +113,17 @@ def column_maps(volume: TSDFVolume, config: ProjectionConfig) -> _ColumnCache:
     return cache
 
 
+def known_columns(volume: TSDFVolume, config: ProjectionConfig) -> tuple[np.ndarray, np.ndarray]:
+    """``(known, free)`` of every column: ``free`` as :func:`project`'s ``free_all`` (traversed cells included),
+    ``known`` = free or occupied: the columns whose band from the floor clearance to the camera height the map has
+    seen, empty or holding a surface. Reads the arrays only (the projection's column cache is left alone)."""
+    free, occupied, _, _ = _columns(volume, band(volume, config), config.occupied_band, slice(None), slice(None))
+    traversed = volume.planes.get("traversed")
+    if traversed is not None:
+        free = free | traversed
+    return free | occupied, free
+
+
 def project(
     volume: TSDFVolume, robot_xy: tuple[float, float], config: ProjectionConfig | None = None
 ) -> Maps2D:
