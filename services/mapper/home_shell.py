@@ -215,8 +215,9 @@ class HomeMemory:
                         explored = floor.on_grid(home_map.origin_x, home_map.origin_y, home_map.shape2d)
                     home_map.apply_to(em, explored=explored)
                     ep.geometry_only = task
-                    ep.loaded_cells = int(em.volume.explored.any(axis=2).sum()) if task else 0
-                    if not task:  # a task keeps its budget (its planner ends it)
+                    if task:  # a task keeps its budget (its planner ends it)
+                        ep.loaded_cells = int(em.volume.explored.any(axis=2).sum())
+                    else:
                         ep.loaded_cells = self._covered_cells(home_map, em)
                         ep.step_limit = self._step_limit(start, ep.loaded_cells * float(em.resolution) ** 2)
                 except ValueError as exc:
