@@ -434,6 +434,13 @@ class HomeSettings(SettingsGroup):
         "task asked for (the most covering first; services/mapper/home_objects.py); 0 = none (8 chosen on tuning "
         "seed 11: docs/homes.md)",
     )
+    home_restore_objects: Literal["evidence", "all"] = Field(
+        default="evidence",
+        description="a task in a home: which Gaussians of the home's object layer it starts with: 'evidence' = "
+        "those holding evidence for one of its classes (HELIOS creates Gaussians only inside detected task-class "
+        "pixels, appendix 6.1); 'all' = every one, those without such evidence at the flat prior (chosen on tuning "
+        "seed 11: docs/homes.md)",
+    )
     home_memory_steps: int = Field(
         default=0, ge=0, le=256,
         description="warm start: of the re-scored views, the stopper gets this many as memory steps, the most "

@@ -556,6 +556,8 @@ def run_tasks(args: argparse.Namespace, settings: Any) -> dict[str, Any]:
     if settings.home_redetect_views != settings.home_warm_views:  # (equal: the tags of earlier runs stay valid)
         extra = [*knobs, "redetect", settings.home_redetect_views]
         warm_tag = hashlib.sha256(json.dumps(extra).encode()).hexdigest()[:10]
+    if settings.home_restore_objects != "evidence":
+        warm_tag = hashlib.sha256(json.dumps([warm_tag, "restore", settings.home_restore_objects]).encode()).hexdigest()[:10]
     houses = [(s, i) for s in args.seeds for i in range(args.test_houses)]
     paths = {(s, i, w): runs / f"task-{'warm' if w else 'cold'}-s{s}-h{i}-{warm_tag if w else tag}.json"
              for s, i in houses for w in (False, True)}
@@ -615,6 +617,7 @@ def summarise_tasks(rows: list[dict[str, Any]], args: argparse.Namespace, settin
         "agent": "helios", "seeds": list(args.seeds), "houses_per_seed": args.test_houses,
         "task_steps_cap": args.task_steps, "size": f"{settings.sim_width}x{settings.sim_height}",
         "home_max_views": settings.home_max_views, "home_redetect_views": settings.home_redetect_views,
+        "home_restore_objects": settings.home_restore_objects,
         "positions": {str(p): paired([r for r in rows if r["position"] == p])
                       for p in sorted({r["position"] for r in rows})},
         "positions_2_on": paired(later),
@@ -719,6 +722,8 @@ def cmd_home(args: argparse.Namespace) -> int:
         settings = settings.model_copy(update={"home_warm_budget": args.warm_budget})
     if args.warm_area is not None:
         settings = settings.model_copy(update={"home_warm_area": args.warm_area})
+    if args.restore_objects is not None:
+        settings = settings.model_copy(update={"home_restore_objects": args.restore_objects})
     setup_logging(settings.log_level, "eqa-bench")
     logging.getLogger("services.mapper.home_shell").setLevel(logging.WARNING)
     if args.tasks:
@@ -768,6 +773,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--redetect-views", type=int, default=None,
                    help="with --tasks: remembered views re-detected for a task's new classes (EQA_HOME_REDETECT_VIEWS; "
                    "default from the environment)")
+    p.add_argument("--restore-objects", choices=("evidence", "all"), default=None,
+                   help="tasks: which Gaussians of the home's object layer a task starts with (EQA_HOME_RESTORE_OBJECTS)")
     p.add_argument("--warm-area", choices=("explored", "observed"), default=None,
                    help="the floor a warm budget subtracts (EQA_HOME_WARM_AREA, eqa/budget.py; default from the "
                    "environment)")

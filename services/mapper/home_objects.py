@@ -182,14 +182,21 @@ class HomeObjects:
                 out[:, -1] += col
         return out
 
-    def restorable(self, classes: Sequence[str], prior: float) -> tuple[np.ndarray, np.ndarray]:
-        """The Gaussians a task with ``classes`` starts with and their concentrations (:meth:`gamma_for`): those
-        holding evidence for at least one of its classes. HELIOS creates a Gaussian only inside pixels detected as
-        a task class (appendix 6.1, "Gaussian creation"), so a task's own layer never holds one without such
-        evidence; restored with the flat prior over (class, other), such a Gaussian would have ``S_c = 1/2`` for
-        a one-class task (Eq. 4), above the candidate bar ``cs`` of Eq. 7, and the search would go to look at
-        remembered objects of other classes. Returns (indices into this layer, concentrations)."""
+    def restorable(self, classes: Sequence[str], prior: float,
+                   rule: str = "evidence") -> tuple[np.ndarray, np.ndarray]:
+        """The Gaussians a task with ``classes`` starts with and their concentrations (:meth:`gamma_for`).
+        ``rule`` "evidence" (``EQA_HOME_RESTORE_OBJECTS``): those holding evidence for at least one of its
+        classes. HELIOS creates a Gaussian only inside pixels detected as a task class (appendix 6.1, "Gaussian
+        creation"), so a task's own layer never holds one without such evidence; restored with the flat prior over
+        (class, other), such a Gaussian has ``S_c = 1/2`` for a one-class task (Eq. 4), above the candidate bar
+        ``cs`` of Eq. 7, and the search may go to look at remembered objects of other classes. "all": every
+        Gaussian, those at the flat prior included (they are still places to look at). Returns (indices into this
+        layer, concentrations)."""
+        if rule not in ("evidence", "all"):
+            raise ValueError(f"restore rule {rule!r}: expected 'evidence' or 'all'")
         gamma = self.gamma_for(classes, prior)
+        if rule == "all":
+            return np.arange(len(self)), gamma
         keep = np.nonzero((gamma[:, :-1] - float(prior)).sum(axis=1) > 0)[0]
         return keep, gamma[keep]
 

@@ -243,7 +243,8 @@ class HomeMemory:
             self.store.set(objects_base_key(ep.home, start.episode_id), stored.to_bytes(),
                            ttl_s=self.settings.home_ttl_s)
             ep.objects_base = True
-            keep, gamma = stored.restorable(classes, objects.layer.config.prior)
+            keep, gamma = stored.restorable(classes, objects.layer.config.prior,
+                                             self.settings.home_restore_objects)
             if len(keep):
                 objects.load_home(stored.uid[keep], stored.means[keep], stored.sigma[keep], stored.opacity[keep],
                                   gamma)

@@ -417,7 +417,6 @@ def test_a_task_in_a_home_through_the_mapper_service_restarted_mid_task(
 
         mapper.stop()  # dies mid-task; another instance takes the robot over from the store
         other = rig.instance(settings.model_copy(update={"instance": "mapper-b"}), detector=detect, values=fake_values)
-        time.sleep(0.5)
         bus.publish(keys.stream("r0", keys.SIM_FRAME), frame_at(renderer, "ep-s2", 1, turned(away[-1])))
         m1, _ = out.step(1)
         assert max((o.scores[obj][2] for o in m1.objects), default=-1.0) > settings.helios_tau_g

@@ -390,7 +390,6 @@ def test_home_carried_over_warm_started_through_a_scorer_replica_and_continued_e
         # the mapper dies mid-episode; a new instance continues episode 2 from the store and commits it
         mapper.stop()
         other = rig.instance(settings.model_copy(update={"instance": "mapper-b"}))
-        time.sleep(0.5)
         bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), frame_at(renderer, "ep-h2", 1, turn(q.start_pose, 4)))
         m1, s1 = out.step(1)
         assert s1.memory == [] and s1.step_limit is None and m1.explored_area_m2 >= m0.explored_area_m2

@@ -15,6 +15,7 @@ from eqa.bus import Bus
 from eqa.messages import EpisodeStart, ErrorReply, Frame, MapUpdate, Pose2D, Question, StepScores
 from eqa.settings import Settings
 from services.sim.render import Renderer
+from support.fleet import wait_for
 from support.scenes import rendered_frame
 
 if TYPE_CHECKING:
@@ -66,7 +67,24 @@ class HomeRig:
         other = MapperService(settings, **kwargs)
         other.start()
         self.started.append(other)
+        self.settle()
         return other
+
+    def settle(self, timeout: float = 30.0) -> None:
+        """Wait until this bus sees exactly the running mapper instances (and a scorer replica) alive and each
+        instance counts the same live set. Until then a frame may reach an instance that still counts a stopped
+        one as the robot's owner and drops it; with no planner in the rig to send the step again, it stays lost."""
+        running = [m for m in self.started if not m._stopped.is_set()]
+        want = {m.bus.instance for m in running}
+
+        def settled() -> bool:
+            seen = {inst for _svc, inst in self.bus.alive(keys.alive_service("mapper"), timeout=0.5)}
+            return (seen == want and bool(self.bus.alive(keys.alive_service("vlm_scorer"), timeout=0.5))
+                    and all(m.shard is None or m.shard.membership.live == want for m in running))
+
+        if not wait_for(settled, timeout, every=0.1):
+            raise AssertionError(f"mapper instances {sorted(want)} and a scorer replica not all seen alive "
+                                 f"within {timeout} s")
 
 
 @contextmanager
@@ -85,7 +103,7 @@ def home_rig(hub_settings: Settings, settings: Settings, home: str, **kwargs: An
         rig.mapper.start()
         try:
             homes.delete_home(rig.mapper.store, home, 60.0)
-            time.sleep(0.5)
+            rig.settle()
             yield rig
         finally:
             for m in reversed(rig.started):
