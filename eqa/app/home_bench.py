@@ -557,7 +557,8 @@ def run_tasks(args: argparse.Namespace, settings: Any) -> dict[str, Any]:
         extra = [*knobs, "redetect", settings.home_redetect_views]
         warm_tag = hashlib.sha256(json.dumps(extra).encode()).hexdigest()[:10]
     if settings.home_restore_objects != "evidence":
-        warm_tag = hashlib.sha256(json.dumps([warm_tag, "restore", settings.home_restore_objects]).encode()).hexdigest()[:10]
+        extra = [warm_tag, "restore", settings.home_restore_objects]
+        warm_tag = hashlib.sha256(json.dumps(extra).encode()).hexdigest()[:10]
     houses = [(s, i) for s in args.seeds for i in range(args.test_houses)]
     paths = {(s, i, w): runs / f"task-{'warm' if w else 'cold'}-s{s}-h{i}-{warm_tag if w else tag}.json"
              for s, i in houses for w in (False, True)}
@@ -774,7 +775,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="with --tasks: remembered views re-detected for a task's new classes (EQA_HOME_REDETECT_VIEWS; "
                    "default from the environment)")
     p.add_argument("--restore-objects", choices=("evidence", "all"), default=None,
-                   help="tasks: which Gaussians of the home's object layer a task starts with (EQA_HOME_RESTORE_OBJECTS)")
+                   help="tasks: which Gaussians of the home's object layer a task starts with "
+                   "(EQA_HOME_RESTORE_OBJECTS)")
     p.add_argument("--warm-area", choices=("explored", "observed"), default=None,
                    help="the floor a warm budget subtracts (EQA_HOME_WARM_AREA, eqa/budget.py; default from the "
                    "environment)")

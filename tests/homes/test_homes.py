@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from support.fleet import wait_for
 from support.mapper import home_rig
 
 from eqa import homes, keys
@@ -29,7 +30,7 @@ from eqa.settings import Settings
 from eqa.store import Store
 from services.mapper.episode_map import EpisodeMap
 from services.mapper.home_memory import HomeMap, ViewInfo, ViewPool, coverage, select_views
-from services.mapper.home_shell import HomeMemory, index_key, view_key
+from services.mapper.home_shell import HomeMemory, view_key
 from services.sim import camera
 from services.sim.library import load_or_generate
 from services.sim.questions import generate_questions
@@ -351,9 +352,8 @@ def test_home_carried_over_warm_started_through_a_scorer_replica_and_continued_e
             assert s.memory == []  # nothing to remember yet
         first_area = m.explored_area_m2
         bus.publish(keys.stream(ROBOT, keys.EPISODE_END), end("ep-h1", 4))
-        deadline = time.time() + 20
-        while store.get(index_key(home)) is None and time.time() < deadline:
-            time.sleep(0.05)
+        # the commit writes the index, then the summary: wait for the last of them
+        assert wait_for(lambda: homes.read_summary(store, home) is not None, timeout=20)
         index = mapper.homes.read_index(home)
         assert index is not None and index.version == 1 and 1 <= len(index.views) <= 3
         summary = homes.read_summary(store, home)

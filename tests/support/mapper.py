@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import math
 import queue
-import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from typing import TYPE_CHECKING, Any
