@@ -34,11 +34,10 @@ earlier tasks never asked the detector about.
 
 At a task's end (:func:`commit_layer`) the episode's own evidence (its end concentrations minus those it
 started with, per Gaussian) is added under its vocabulary ``D``; new Gaussians get a new home id. Two episodes
-of one home at once (:meth:`HomeObjects.merge`): the Gaussians of both, those they share (the same home id:
-both started from the same stored layer) with the larger evidence per column: each is the stored evidence plus
-its own episode's, so a sum would count the stored part twice; the maximum keeps it once and the larger of the
-two episodes' additions (the smaller one is lost, the price of no shared base at merge time). Explored floor is
-OR-ed per class.
+of one home at once: each started from a stored layer it keeps a copy of, so at its end its own evidence is
+known exactly, and it is added to the layer stored by then (``onto``): Eq. 3's evidence is a sum of counts, so
+both episodes' additions are kept whole, as if they had run one after the other. Explored floor is OR-ed per
+class.
 
 **Explored per class** (:class:`FloorMask`): the floor cells explored (the map's narrow field of view, Explore-EQA
 appendix B) by an episode whose detector was asked for the class. A task counts as explored only the cells
@@ -222,29 +221,6 @@ class HomeObjects:
             out[:, where[c]] = self.evidence[:, k]
         return out
 
-    def merge(self, other: HomeObjects) -> HomeObjects:
-        """Both layers of one home (module doc): shared ids take the larger evidence per column, the rest is
-        taken as it is; explored floor OR-ed per class."""
-        columns = list(dict.fromkeys([*self.columns, *other.columns]))
-        vocabularies = list(dict.fromkeys([*self.vocabularies, *other.vocabularies]))
-        a, b = self._aligned(columns), other._aligned(columns)
-        order = {int(u): i for i, u in enumerate(self.uid)}
-        both = np.array([order.get(int(u), -1) for u in other.uid], dtype=np.int64)
-        shared = both >= 0
-        a[both[shared]] = np.maximum(a[both[shared]], b[shared])
-        seen = self.seen.copy()
-        seen[both[shared]] = np.maximum(seen[both[shared]], other.seen[shared])
-        new = ~shared
-        explored = dict(self.explored)
-        for name, m in other.explored.items():
-            explored[name] = explored[name].union(m) if name in explored else m
-        return HomeObjects(np.concatenate([self.uid, other.uid[new]]),
-                           np.concatenate([self.means, other.means[new]]),
-                           np.concatenate([self.sigma, other.sigma[new]]),
-                           np.concatenate([self.opacity, other.opacity[new]]),
-                           np.concatenate([seen, other.seen[new]]), columns,
-                           np.concatenate([a, b[new]]), explored, vocabularies)
-
     def select(self, keep: np.ndarray) -> HomeObjects:
         return replace(self, uid=self.uid[keep], means=self.means[keep], sigma=self.sigma[keep],
                        opacity=self.opacity[keep], seen=self.seen[keep], evidence=self.evidence[keep])
@@ -317,43 +293,53 @@ def new_uids(episode_id: str, start: int, n: int) -> np.ndarray:
 
 def commit_layer(base: HomeObjects | None, uid: np.ndarray, means: np.ndarray, sigma: np.ndarray,
                  opacity: np.ndarray, gamma: np.ndarray, classes: Sequence[str], prior: float, episode_id: str,
-                 now: float, explored: FloorMask | None) -> HomeObjects:
-    """The home layer after a task episode: ``base`` (the layer the episode started from, None: none) with the
-    episode's end layer (``uid`` -1 for Gaussians it made; ``gamma`` (N, len(classes) + 1), the last column
-    ``other``) added under its vocabulary (module doc): per Gaussian the concentrations it ended with minus
-    those it started with (:meth:`HomeObjects.gamma_for` of ``base``, the prior for a new one). ``explored``:
-    the episode's explored floor, counted for each of ``classes``."""
+                 now: float, explored: FloorMask | None, onto: HomeObjects | None = None) -> HomeObjects:
+    """The home layer after a task episode: the episode's own evidence added under its vocabulary (module doc)
+    to ``onto`` (the layer stored now; None: ``base``). ``base`` is the layer the episode started from (None:
+    none); the episode's end layer has ``uid`` -1 for Gaussians it made and ``gamma`` (N, len(classes) + 1), the
+    last column ``other``. Its own evidence per Gaussian is the concentrations it ended with minus those it
+    started with (:meth:`HomeObjects.gamma_for` of ``base``, the prior for a new one): Eq. 3's counts add, so two
+    episodes of one home committed one after the other, each onto what the other stored, keep both episodes'
+    evidence whole, whatever order they end in. A Gaussian of ``base`` that ``onto`` no longer holds (dropped by
+    the bounds meanwhile) comes back with this episode's evidence only. ``explored``: the episode's explored
+    floor, counted for each of ``classes``."""
     base = base if base is not None else HomeObjects.empty()
+    onto = onto if onto is not None else base
     voc = vocabulary(classes)
     names = list(classes)
     mine: list[Column] = [(voc, c) for c in names] + [(voc, OTHER)]
-    columns = list(dict.fromkeys([*base.columns, *mine]))
-    evidence = base._aligned(columns)
+    columns = list(dict.fromkeys([*onto.columns, *mine]))
+    evidence = onto._aligned(columns)
     start = base.gamma_for(names, prior)
-    order = {int(u): i for i, u in enumerate(base.uid)}
+    started = {int(u): i for i, u in enumerate(base.uid)}
+    from_base = np.array([started.get(int(u), -1) for u in uid], dtype=np.int64)
+    begin = np.full(gamma.shape, float(prior), dtype=np.float32)
+    begin[from_base >= 0] = start[from_base[from_base >= 0]]
+    delta = np.clip(np.asarray(gamma, dtype=np.float32) - begin, 0.0, None)
+    order = {int(u): i for i, u in enumerate(onto.uid)}
     rows = np.array([order.get(int(u), -1) for u in uid], dtype=np.int64)
     known = rows >= 0
-    begin = np.full(gamma.shape, float(prior), dtype=np.float32)
-    begin[known] = start[rows[known]]
-    delta = np.clip(np.asarray(gamma, dtype=np.float32) - begin, 0.0, None)
     cols = [columns.index(c) for c in mine]
     evidence[np.ix_(rows[known], cols)] += delta[known]
-    seen = base.seen.copy()
+    seen = onto.seen.copy()
     touched = known & (delta.sum(axis=1) > 0)
     seen[rows[touched]] = now
     fresh = ~known
     n_new = int(fresh.sum())
     new_ev = np.zeros((n_new, len(columns)), dtype=np.float32)
     new_ev[:, cols] = delta[fresh]
-    explored_masks = dict(base.explored)
+    ids = np.asarray(uid, dtype=np.int64)[fresh]
+    made = ids < 0
+    ids[made] = new_uids(episode_id, 0, int(made.sum()))
+    explored_masks = dict(onto.explored)
     if explored is not None:
         for c in names:
             explored_masks[c] = explored_masks[c].union(explored) if c in explored_masks else explored
-    vocabularies = [v for v in base.vocabularies if v != voc] + [voc]  # the newest last (bounded() drops oldest)
+    vocabularies = [v for v in onto.vocabularies if v != voc] + [voc]  # the newest last (bounded() drops oldest)
     return HomeObjects(
-        np.concatenate([base.uid, new_uids(episode_id, 0, n_new)]),
-        np.concatenate([base.means, np.asarray(means, np.float32)[fresh].reshape(-1, 3)]),
-        np.concatenate([base.sigma, np.asarray(sigma, np.float32)[fresh]]),
-        np.concatenate([base.opacity, np.asarray(opacity, np.float32)[fresh]]),
+        np.concatenate([onto.uid, ids]),
+        np.concatenate([onto.means, np.asarray(means, np.float32)[fresh].reshape(-1, 3)]),
+        np.concatenate([onto.sigma, np.asarray(sigma, np.float32)[fresh]]),
+        np.concatenate([onto.opacity, np.asarray(opacity, np.float32)[fresh]]),
         np.concatenate([seen, np.full(n_new, now, dtype=np.float64)]), columns,
         np.concatenate([evidence, new_ev]), explored_masks, vocabularies)

@@ -506,25 +506,25 @@ class HomeMemory:
     def _commit_objects(self, ep: EpisodeHome, em: Any, objects: ObjectMap | None, index: HomeIndex,
                         budget: int) -> HomeObjects | None:
         """The home's object layer after the episode, within ``budget`` bytes (written by the caller): a task's
-        own evidence added to the layer it started from (:func:`commit_layer`), merged with the stored one when
-        another episode committed meanwhile (:meth:`HomeObjects.merge`); a question, or the trusting agent (no
-        3D layer), leaves the stored layer as it is."""
+        own evidence, measured against the layer it started from, added to the layer stored now
+        (:func:`commit_layer`: another episode of the home may have committed meanwhile); a question, or the
+        trusting agent (no 3D layer), leaves the stored layer as it is."""
         stored = self.read_objects(ep.home)
         if objects is None or em.start.task is None or objects.single_frame:
             out = stored
         else:
             base = self.read_objects(ep.home, objects_base_key(ep.home, em.episode_id)) if ep.objects_base else None
             if ep.objects_base and base is None:
-                log.error("home %s: episode %s lost the object layer it started from; its restored Gaussians count "
-                          "as its own", ep.home, em.episode_id)
+                log.error("home %s: episode %s lost the object layer it started from; its own evidence is measured "
+                          "against the layer stored now", ep.home, em.episode_id)
+                base = stored
+            if stored is not None and index.version != ep.base_version:
+                log.info("home %s: episode %s's object evidence added to the layer committed meanwhile", ep.home,
+                         em.episode_id)
             a = objects.home_arrays()
             out = commit_layer(base, a["uid"], a["means"], a["sigma"], a["opacity"], a["gamma"],
                                objects.task_classes, objects.layer.config.prior, em.episode_id, self.clock(),
-                               floor_of(em.volume, float(em.resolution)))
-            if stored is not None and index.version != ep.base_version:
-                log.info("home %s: object layer of episode %s merged with the one committed meanwhile", ep.home,
-                         em.episode_id)
-                out = stored.merge(out)
+                               floor_of(em.volume, float(em.resolution)), onto=stored)
         if out is None:
             return None
         out = out.bounded(self.settings.helios_max_gaussians)

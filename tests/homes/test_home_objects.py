@@ -90,17 +90,43 @@ def test_a_task_starts_with_the_gaussians_holding_evidence_for_one_of_its_classe
     np.testing.assert_array_equal(keep, [0])
 
 
-def test_concurrent_commits_keep_the_shared_evidence_once_and_both_new_gaussians() -> None:
+def test_concurrent_commits_keep_both_episodes_evidence_whole_in_either_order() -> None:
+    """Two tasks start from one stored layer (4 mug pixels' evidence on a Gaussian): ep-a adds 3 mug and a new
+    Gaussian, ep-b 1 mug and 1 other. Whichever ends first, the second adds its own evidence (end minus start)
+    onto what the first stored: 4 + 3 + 1 mug and 1 other, the shared Gaussian once, ep-a's new one kept."""
     base = commit(None, one([5.0, 1.0]), ["mug"], "ep-0")
     uid = int(base.uid[0])
-    a = commit(base, {k: np.concatenate([v, w]) for (k, v), w in zip(
-        one([8.0, 1.0], uid).items(), one([1.0, 3.0]).values(), strict=True)}, ["mug"], "ep-a")
-    b = commit(base, one([6.0, 2.0], uid), ["mug"], "ep-b")
-    merged = b.merge(a)
-    assert len(merged) == 2  # the shared Gaussian once, ep-a's new one
-    row = int(np.nonzero(merged.uid == uid)[0][0])
-    # stored 4 mug; ep-a added 3 mug, ep-b 1 mug and 1 other: the larger per column, the base once
-    np.testing.assert_allclose(merged.gamma_for(["mug"], PRIOR)[row], [1.0 + 7.0, 1.0 + 1.0])
+    a_end = {k: np.concatenate([v, w]) for (k, v), w in zip(one([8.0, 1.0], uid).items(), one([1.0, 3.0]).values(),
+                                                             strict=True)}
+    b_end = one([6.0, 2.0], uid)
+
+    def after(first: tuple[dict[str, np.ndarray], str], second: tuple[dict[str, np.ndarray], str]) -> HomeObjects:
+        stored = commit(base, first[0], ["mug"], first[1])
+        x = second[0]
+        return commit_layer(base, x["uid"], x["means"], x["sigma"], x["opacity"], x["gamma"], ["mug"], PRIOR,
+                            second[1], 100.0, None, onto=stored)
+
+    for out in (after((a_end, "ep-a"), (b_end, "ep-b")), after((b_end, "ep-b"), (a_end, "ep-a"))):
+        assert len(out) == 2
+        row = int(np.nonzero(out.uid == uid)[0][0])
+        np.testing.assert_allclose(out.gamma_for(["mug"], PRIOR)[row], [1.0 + 4.0 + 3.0 + 1.0, 1.0 + 1.0])
+        new = int(np.nonzero(out.uid != uid)[0][0])
+        np.testing.assert_allclose(out.gamma_for(["mug"], PRIOR)[new], [1.0, 3.0])
+    # the same as one after the other: ep-b started from what ep-a stored and added the same evidence
+    seq = commit(commit(base, a_end, ["mug"], "ep-a"), one([6.0 + 3.0, 2.0], uid), ["mug"], "ep-b")
+    row = int(np.nonzero(seq.uid == uid)[0][0])
+    np.testing.assert_allclose(seq.gamma_for(["mug"], PRIOR)[row], [9.0, 2.0])
+
+
+def test_a_gaussian_the_bounds_dropped_meanwhile_comes_back_with_the_episodes_own_evidence() -> None:
+    base = commit(None, one([5.0, 1.0]), ["mug"], "ep-0")
+    uid = int(base.uid[0])
+    stored = base.select(np.zeros(0, dtype=np.int64))  # another episode's commit left it out (bounds)
+    x = one([7.0, 1.0], uid)
+    out = commit_layer(base, x["uid"], x["means"], x["sigma"], x["opacity"], x["gamma"], ["mug"], PRIOR, "ep-1",
+                       100.0, None, onto=stored)
+    assert list(out.uid) == [uid]
+    np.testing.assert_allclose(out.gamma_for(["mug"], PRIOR), [[1.0 + 2.0, 1.0]])
 
 
 def test_explored_floor_counts_only_for_classes_asked_for_all_of_them() -> None:
