@@ -54,7 +54,9 @@ def stop(procs: list[subprocess.Popen[bytes]]) -> None:
 
 
 def run_once(target: str, timeout: float, report: Path) -> tuple[dict[str, str], float, str]:
-    """One pytest run of ``target``: ``test id -> passed/failed/skipped``, seconds, the output's tail."""
+    """One pytest run of ``target``: ``test id -> passed/failed/skipped``, seconds, and what a failed run needs
+    kept: each failure's report from the JUnit file (the assertion and its traceback), then the output's tail
+    (which, behind a long captured log, no longer holds the assertion)."""
     t0 = time.monotonic()
     cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", f"--junitxml={report}", target]
     try:
@@ -64,11 +66,14 @@ def run_once(target: str, timeout: float, report: Path) -> tuple[dict[str, str],
         out = exc.stdout.decode(errors="replace") if isinstance(exc.stdout, bytes) else (exc.stdout or "")
         return {target: "failed"}, time.monotonic() - t0, f"timed out after {timeout:.0f} s\n{out[-3000:]}"
     outcomes: dict[str, str] = {}
+    reports: list[str] = []
     if report.exists():
         for case in ET.parse(report).getroot().iter("testcase"):
             name = f"{case.get('classname', '').replace('.', '/')}.py::{case.get('name')}"
-            if case.find("failure") is not None or case.find("error") is not None:
+            bad = case.find("failure") if case.find("failure") is not None else case.find("error")
+            if bad is not None:
                 outcomes[name] = "failed"
+                reports.append(f"==== {name}\n{bad.get('message', '')}\n{(bad.text or '')[-20000:]}\n")
             elif case.find("skipped") is not None:
                 outcomes[name] = "skipped"
             else:
@@ -76,7 +81,7 @@ def run_once(target: str, timeout: float, report: Path) -> tuple[dict[str, str],
         report.unlink()
     if not outcomes:
         outcomes[target] = "failed"  # nothing ran: collection error
-    return outcomes, time.monotonic() - t0, tail
+    return outcomes, time.monotonic() - t0, "".join(reports) + tail
 
 
 def main(argv: list[str] | None = None) -> int:
