@@ -344,6 +344,40 @@ def test_a_second_task_starts_with_the_target_the_first_one_saw(house, store: St
     assert store.get(objects_key("h-o")) is None and store.get(objects_base_key("h-o", "ep-o4")) is None
 
 
+def test_two_tasks_at_once_in_a_home_both_add_their_evidence(house, store: Store, tmp_path: Path) -> None:
+    """Two tasks start from one stored layer and both end: the home then holds, per remembered Gaussian, the
+    stored evidence plus each task's own (what each would have added alone), and the Gaussians each one made."""
+    scene, renderer = house
+    obj, pose = seen_object(scene, renderer)
+    memory = HomeMemory(Settings(data_dir=tmp_path / "var"), lambda: store, lambda: None)
+    detect = GroundTruthDetector()
+    homes.delete_home(store, "h-cc", 60.0)
+    memory.finish(*run_task(memory, task_start("ep-c0", obj, "h-cc", pose), renderer, 3, detect))
+    stored = memory.read_objects("h-cc")
+    assert stored is not None and len(stored) > 0
+    ends = {eid: run_task(memory, task_start(eid, obj, "h-cc", pose), renderer, turns, detect)
+            for eid, turns in (("ep-ca", 6), ("ep-cb", 4))}  # both started before either ends
+    alone = {}
+    for eid, (_em, om) in ends.items():
+        a = om.home_arrays()
+        alone[eid] = commit_layer(stored, a["uid"], a["means"], a["sigma"], a["opacity"], a["gamma"],
+                                  om.task_classes, om.layer.config.prior, eid, 100.0, None)
+    for eid in ("ep-cb", "ep-ca"):  # the one that started second ends first
+        memory.finish(*ends[eid])
+    final = memory.read_objects("h-cc")
+    assert final is not None
+    made = sum(len(alone[e]) - len(stored) for e in alone)
+    assert len(final) == len(stored) + made
+    rows = {int(u): i for i, u in enumerate(final.uid)}
+    idx = [rows[int(u)] for u in stored.uid]
+    n = len(stored)
+    want = (alone["ep-ca"].gamma_for([obj], PRIOR)[:n] + alone["ep-cb"].gamma_for([obj], PRIOR)[:n]
+            - stored.gamma_for([obj], PRIOR))
+    np.testing.assert_allclose(final.gamma_for([obj], PRIOR)[idx], want, rtol=1e-5, atol=1e-4)
+    assert (want[:, 0] > stored.gamma_for([obj], PRIOR)[:, 0]).any()  # both saw the target again
+    assert homes.delete_home(store, "h-cc", 60.0) >= 3
+
+
 def test_the_home_layer_stays_within_its_count_and_bytes(house, store: Store, tmp_path: Path) -> None:
     scene, renderer = house
     obj, pose = seen_object(scene, renderer)
