@@ -483,6 +483,17 @@ class EpisodeService(Service, Generic[S]):
             if not claim.won:
                 log.info("%s: episode %s step %d is %s's; not computed here", self.name, eid, step, claim.holder)
                 return
+            if claim.unanchored and self.store.get(episode_end_key(eid)) is not None:
+                # Another instance ended the episode (its end stored, then its claims deleted) while this one,
+                # owning the robot in its own view of the membership, still held the state in memory and had
+                # not yet seen the end: the claim could be won again, and the step would be computed twice.
+                log.info("%s: episode %s ended elsewhere before its step %d came here; not computed", self.name,
+                         eid, step)
+                self._forget_claims(eid, step)
+                self._note_ended(eid)
+                self._forget(eid)
+                self.ended_before(robot, eid)
+                return
             if claim.stale:  # the previous step was computed by another instance: take its stored state
                 self._forget(eid)
                 state = self.episode(eid)

@@ -133,6 +133,9 @@ class Claim:
     won: bool
     holder: str | None  # who computes the step (this instance when won)
     stale: bool  # the previous step was computed by another instance: reload the episode from the store
+    # won with no claim of the previous step in the store (step 0, expired claims, or the claims of an episode
+    # that ended meanwhile, which whoever ended it deleted after storing its end): the service checks the end
+    unanchored: bool = False
 
 
 class StepClaims:
@@ -168,7 +171,7 @@ class StepClaims:
                 self.store.set(base + ":holder", self.me.encode(), ttl_s=self.ttl_s)
                 metrics.inc(metrics.STEP_CLAIMS, self.service, "won")
                 prev = self.holder(episode_id, step - 1) if step > 0 else None
-                return Claim(True, self.me, prev is not None and prev != self.me)
+                return Claim(True, self.me, prev is not None and prev != self.me, unanchored=prev is None)
             raw = self.store.get(key)
             if raw is None:  # expired between the two calls: try the same attempt again
                 continue

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -53,12 +54,13 @@ def stop(procs: list[subprocess.Popen[bytes]]) -> None:
         p.wait(timeout=10)
 
 
-def run_once(target: str, timeout: float, report: Path) -> tuple[dict[str, str], float, str]:
+def run_once(target: str, timeout: float, report: Path, basetemp: Path) -> tuple[dict[str, str], float, str]:
     """One pytest run of ``target``: ``test id -> passed/failed/skipped``, seconds, and what a failed run needs
     kept: each failure's report from the JUnit file (the assertion and its traceback), then the output's tail
     (which, behind a long captured log, no longer holds the assertion)."""
     t0 = time.monotonic()
-    cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", f"--junitxml={report}", target]
+    cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", f"--junitxml={report}",
+           f"--basetemp={basetemp}", target]
     try:
         proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=timeout)
         tail = (proc.stdout + proc.stderr)[-3000:]
@@ -117,16 +119,21 @@ def main(argv: list[str] | None = None) -> int:
         for run in range(args.runs):
             for target in tests:
                 report = failures / f"report-{os.getpid()}.xml"
-                outcomes, secs, tail = run_once(target, args.timeout, report)
+                stem = f"{Path(target.split('::')[0]).stem}-run{run + 1}"
+                # the run's temporary directories hold the fleet's service logs: kept when it fails
+                basetemp = failures / f"{stem}-tmp"
+                outcomes, secs, tail = run_once(target, args.timeout, report, basetemp)
                 done += 1
                 bad = [n for n, o in outcomes.items() if o == "failed"]
                 for name, outcome in outcomes.items():
                     counts[name][outcome] += 1
                 where = ""
                 if bad:
-                    log = failures / f"{Path(target.split('::')[0]).stem}-run{run + 1}.txt"
+                    log = failures / f"{stem}.txt"
                     log.write_text(tail)
-                    where = f"; output: {log}"
+                    where = f"; output: {log}, its temporary files (service logs): {basetemp}"
+                else:
+                    shutil.rmtree(basetemp, ignore_errors=True)
                 print(f"[{done}/{total}] run {run + 1} {target}: {len(outcomes) - len(bad)} ok, {len(bad)} failed "
                       f"({secs:.0f} s){where}", flush=True)
         bench_lines: list[str] = []

@@ -372,3 +372,33 @@ def test_a_stored_end_is_published_again_when_a_step_comes_after_it(
         assert again == first
     finally:
         successor.stop()
+
+
+def test_a_step_of_an_episode_another_instance_ended_is_not_decided_again(
+    running: tuple[Listener, StopperService, Settings],
+) -> None:
+    """Two instances that both count the robot as theirs for a moment (their views of the membership differ while
+    one joins): the other one decides the last step, stores the end, deletes the step claims and state, and
+    publishes; this one, still holding the episode in memory, then gets the same last step's scores before the
+    end. The claims are gone, so the step's claim is won again: the stored end must stop it from deciding the
+    step a second time (it publishes the stored end instead)."""
+    lis, svc, _ = running
+    eid = "ep-ended-elsewhere"
+    lis.send(keys.EPISODE_START, _start(eid, rule="max_steps", max_steps=3))
+    for t in range(2):
+        lis.send(keys.MAPPER_SCORES, _scores(eid, t, [0.25] * 4, 0.5))
+        lis.decision(eid, t)
+    svc.drain()
+    assert eid in svc.episodes
+    # what the other instance did when it decided step 2: the end stored, then the claims and the state deleted
+    end = EpisodeEnd(episode_id=eid, robot=ROBOT, state="stopped", reason="max steps (elsewhere)", answer="A",
+                     steps=3, max_steps=3)
+    svc.store.set(episode_end_key(eid), end.model_dump_json().encode())
+    assert svc.shard is not None and svc.shard.claims is not None
+    svc.shard.claims.forget(eid, 3)
+    svc.store.delete(STATE_PREFIX + eid)
+    lis.send(keys.MAPPER_SCORES, _scores(eid, 2, [0.25] * 4, 0.5))
+    assert lis.end(eid) == end  # the stored end, published again
+    svc.drain()
+    assert not any(d.episode_id == eid and d.step == 2 for d in lis.decisions)
+    assert eid not in svc.episodes and svc.store.get(STATE_PREFIX + eid) is None
