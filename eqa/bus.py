@@ -4,8 +4,9 @@
   into the expected type is logged and dropped, a handler that raises is logged, and the subscriber keeps
   running either way.
 * ``declare_queryable`` / ``query`` carry request/reply messages (the scorer pool).
-* ``declare_alive`` holds the liveliness token ``eqa/v1/alive/{service}/{instance}``; ``alive`` lists the
-  tokens present; ``watch_alive`` reports appearances and disappearances.
+* ``declare_alive`` holds the liveliness token ``eqa/v1/alive/{service}/{instance}/{session}``; ``alive``
+  lists the instances present; ``watch_alive`` reports each process that appears under an instance name and
+  the instance's disappearance when its last process is gone.
 
 Callbacks run on Zenoh threads. Services hand work to their own worker (``eqa.service``); the gateway hands
 it to asyncio with ``loop.call_soon_threadsafe``.
@@ -361,27 +362,54 @@ class Bus:
 
     # ---- liveliness -----------------------------------------------------------------------------------
     def declare_alive(self) -> Any:
-        return self._keep(self.session.liveliness().declare_token(keys.alive(self.service, self.instance)))
+        session = str(self.session.zid())
+        return self._keep(self.session.liveliness().declare_token(keys.alive(self.service, self.instance, session)))
 
     def alive(self, selector: str = keys.ALIVE_ANY, timeout: float = 1.0) -> list[tuple[str, str]]:
-        """``(service, instance)`` of every liveliness token matching ``selector``."""
+        """``(service, instance)`` of every liveliness token matching ``selector`` (one row per instance, however
+        many processes hold a token under its name)."""
         found = []
         for reply in self.session.liveliness().get(selector, timeout=timeout):
             if reply.ok is not None:
                 try:
-                    found.append(keys.parse_alive(str(reply.ok.key_expr)))
+                    found.append(keys.parse_alive(str(reply.ok.key_expr))[:2])
                 except ValueError:
                     continue
         return sorted(set(found))
 
     def watch_alive(self, selector: str, callback: Callable[[str, str, bool], None]) -> Any:
-        """``callback(service, instance, alive)`` for tokens already present and for each change."""
+        """``callback(service, instance, alive)`` for tokens already present and for each change.
+
+        ``alive`` is True for every process that appears, so an instance restarted while its predecessor's
+        token is still routed is reported up a second time (its state is new: whatever was in flight to the old
+        process is lost), and False only once no process holds a token under that name. Calls are made one at
+        a time, in the order of the changes."""
+        sessions: dict[tuple[str, str], set[str]] = {}
+        lock = threading.Lock()
 
         def on_sample(sample: zenoh.Sample) -> None:
             try:
-                service, instance = keys.parse_alive(str(sample.key_expr))
-                callback(service, instance, sample.kind == zenoh.SampleKind.PUT)
-            except Exception:
-                log.exception("liveliness callback failed")
+                service, instance, session = keys.parse_alive(str(sample.key_expr))
+            except ValueError:
+                log.warning("ignoring liveliness key %s", sample.key_expr)
+                return
+            up = sample.kind == zenoh.SampleKind.PUT
+            with lock:  # held across the callback so that a later change is never reported before this one
+                held = sessions.setdefault((service, instance), set())
+                if up:
+                    if session in held:
+                        return
+                    held.add(session)
+                else:
+                    if session not in held:
+                        return
+                    held.discard(session)
+                    if held:
+                        return
+                    del sessions[(service, instance)]
+                try:
+                    callback(service, instance, up)
+                except Exception:
+                    log.exception("liveliness callback failed")
 
         return self._keep(self.session.liveliness().declare_subscriber(selector, on_sample, history=True))

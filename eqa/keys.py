@@ -1,9 +1,11 @@
 """Every Zenoh key expression of the system, in one place.
 
 Streams of one robot live under ``eqa/v1/{robot}/{service}/{stream}``; scorer replicas answer queries on
-``eqa/v1/scorer/{replica}/score``; each running service instance holds a liveliness token
-``eqa/v1/alive/{service}/{instance}``. Identifiers are restricted to ``[A-Za-z0-9_-]`` so that no caller can
-smuggle wildcards (``*``, ``**``), separators or ``@`` chunks into a data key.
+``eqa/v1/scorer/{replica}/score``; each running service process holds a liveliness token
+``eqa/v1/alive/{service}/{instance}/{session}`` (``session`` is its Zenoh session id, so that a process
+restarted under a live instance name holds a token of its own: Zenoh keeps one token per key expression, and a
+shared key would hide the new process from watchers). Identifiers are restricted to ``[A-Za-z0-9_-]`` so that
+no caller can smuggle wildcards (``*``, ``**``), separators or ``@`` chunks into a data key.
 """
 
 from __future__ import annotations
@@ -67,23 +69,29 @@ def scorer_replica(replica: str) -> str:
 SCORER_ANY = f"{ROOT}/scorer/*/score"
 
 
-def alive(service: str, instance: str) -> str:
-    return f"{ROOT}/alive/{check_id(service, 'service')}/{check_id(instance, 'instance')}"
+_SESSION = re.compile(r"[0-9a-f]{1,32}")
+
+
+def alive(service: str, instance: str, session: str) -> str:
+    """The liveliness key of one process: ``session`` is its Zenoh session id in hex."""
+    if not isinstance(session, str) or not _SESSION.fullmatch(session):
+        raise ValueError(f"session must be a Zenoh session id (1-32 lowercase hex digits), got {session!r}")
+    return f"{ROOT}/alive/{check_id(service, 'service')}/{check_id(instance, 'instance')}/{session}"
 
 
 ALIVE_ANY = f"{ROOT}/alive/**"
 
 
 def alive_service(service: str) -> str:
-    return f"{ROOT}/alive/{check_id(service, 'service')}/*"
+    return f"{ROOT}/alive/{check_id(service, 'service')}/*/*"
 
 
-def parse_alive(key: str) -> tuple[str, str]:
-    """``(service, instance)`` of a liveliness key."""
+def parse_alive(key: str) -> tuple[str, str, str]:
+    """``(service, instance, session)`` of a liveliness key."""
     parts = str(key).split("/")
-    if len(parts) != 5 or parts[2] != "alive":
+    if len(parts) != 6 or parts[2] != "alive":
         raise ValueError(f"not a liveliness key: {key!r}")
-    return parts[3], parts[4]
+    return parts[3], parts[4], parts[5]
 
 
 def replica_of(key: str) -> str:

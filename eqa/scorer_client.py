@@ -5,7 +5,7 @@ scorer replica and returns its :class:`~eqa.messages.ScoreResult`; ``detect`` (a
 :class:`~eqa.messages.DetectRequest`, HELIOS detections) and ``values`` (a :class:`~eqa.messages.ValueRequest`,
 the per-target value prompt) go through the same pool with the same balancing, failover and errors.
 
-* Discovery: a liveliness subscriber on ``eqa/v1/alive/vlm_scorer/*`` keeps the set of live replicas (a
+* Discovery: a liveliness subscriber on ``eqa/v1/alive/vlm_scorer/*/*`` keeps the set of live replicas (a
   replica's liveliness instance is its replica id; see ``services/vlm_scorer/service.py``).
 * Balancing: each request goes to the live replica with the fewest requests in flight from this client
   (ties broken round-robin).

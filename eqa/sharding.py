@@ -6,7 +6,8 @@
   answer from the same set of live instances, with no coordination; when an instance appears or vanishes only
   the robots it gains or held move (about ``1/n`` of them), the rest stay where they are.
 * :class:`Membership` keeps the set of live instances of one service from Zenoh liveliness tokens
-  (``eqa/v1/alive/{service}/{instance}``, which Zenoh withdraws when a process dies or its link is cut) and
+  (``eqa/v1/alive/{service}/{instance}/{session}``, which Zenoh withdraws when a process dies or its link is
+  cut) and
   answers ``owns(robot)``; a callback reports the robots that moved.
 * :class:`StepClaims` makes "exactly one instance computes each step" hold also while views of the live set
   differ for a moment (an instance joined and not everybody has seen it yet): before computing step ``k`` of an
@@ -299,13 +300,19 @@ class Redrive:
 
     def changed(self, service: str, instance: str, up: bool, robots: dict[str, object], now: float) -> set[str]:
         """An instance of ``service`` appeared (``up``) or vanished; ``robots`` maps each robot the producer
-        drives to its current step (any value compared by equality). Returns the robots scheduled."""
+        drives to its current step (any value compared by equality). An ``up`` for an instance already live is
+        a process restarted under its name: the robots it owns are scheduled. Returns the robots scheduled."""
         before = self._live.get(service)
         if before is None:
             return set()
         after = before | {instance} if up else before - {instance}
         if after == before:
-            return set()
+            if not up:
+                return set()
+            # a new process under a live name: what was in flight to its predecessor is lost with it
+            moved_ = {r for r in robots if owner(r, sorted(after)) == instance}
+            self.schedule({r: robots[r] for r in moved_}, now)
+            return moved_
         self._live[service] = after
         moved_ = reassigned(robots, before, after)
         self.schedule({r: robots[r] for r in moved_}, now)

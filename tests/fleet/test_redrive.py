@@ -37,8 +37,11 @@ def test_redrive_schedules_the_robots_whose_owner_changed_and_hands_them_out_in_
     assert rd.due(2.5) == robots and rd.pending() == 0  # the second send, then nothing more
     joined = rd.changed("mapper", "m-b", True, robots, 10.0)
     assert joined == {r for r in robots if sharding.owner(r, ["m-a", "m-b"]) == "m-b"}
-    assert rd.changed("mapper", "m-b", True, robots, 10.0) == set()  # no change, nothing scheduled anew
-    assert set(rd.due(10.3)) == joined
+    assert set(rd.due(10.3)) == joined and set(rd.due(12.1)) == joined
+    # m-b up again while live: a process restarted under its name, whose predecessor's steps in flight are lost
+    assert rd.changed("mapper", "m-b", True, robots, 15.0) == joined
+    assert set(rd.due(15.3)) == joined
+    assert rd.changed("mapper", "m-c", False, robots, 16.0) == set()  # never live: nothing scheduled
     left = rd.changed("mapper", "m-a", False, robots, 20.0)  # m-a dies: its robots go to m-b
     assert left == set(robots) - joined
     assert rd.live("mapper") == {"m-b"} and rd.live("planner") == frozenset()

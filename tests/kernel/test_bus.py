@@ -5,6 +5,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+import pytest
 from support.fleet import wait_for
 
 from eqa import keys
@@ -87,3 +88,36 @@ def test_liveliness_tokens_appear_and_disappear(hub_settings, settings):
         assert ("mapper", "m1") in watcher.alive()
         b.close()
         assert wait_for(lambda: ("mapper", "m1", False) in seen, timeout=5.0)
+
+
+def test_a_process_restarted_under_a_live_name_is_seen_arriving(hub_settings, settings):
+    """A second process under a live instance name is reported up again (whatever was in flight to the first
+    is lost), and the name is reported gone only with its last process, in either order of exits."""
+    seen: list[tuple[str, str, bool]] = []
+    with Bus(hub_settings, "gateway", "g") as watcher:
+        watcher.watch_alive(keys.ALIVE_ANY, lambda s, i, up: seen.append((s, i, up)))
+        old = Bus(settings, "mapper", "m1").open()
+        old.declare_alive()
+        assert wait_for(lambda: seen == [("mapper", "m1", True)], timeout=5.0)
+        new = Bus(settings, "mapper", "m1").open()
+        new.declare_alive()
+        assert wait_for(lambda: seen == [("mapper", "m1", True)] * 2, timeout=5.0), seen
+        assert watcher.alive(keys.alive_service("mapper")) == [("mapper", "m1")]
+        old.close()
+        time.sleep(0.5)
+        assert seen == [("mapper", "m1", True)] * 2  # the new process still holds the name
+        assert watcher.alive(keys.alive_service("mapper")) == [("mapper", "m1")]
+        new.close()
+        assert wait_for(lambda: seen[-1] == ("mapper", "m1", False), timeout=5.0), seen
+        assert seen.count(("mapper", "m1", False)) == 1
+
+
+def test_liveliness_keys_name_the_process():
+    key = keys.alive("mapper", "m1", "1f0a")
+    assert keys.parse_alive(key) == ("mapper", "m1", "1f0a")
+    for bad in ("", "XYZ", "*", "a/b", "0" * 33):
+        with pytest.raises(ValueError):
+            keys.alive("mapper", "m1", bad)
+    for bad in ("eqa/v1/alive/mapper/m1", "eqa/v1/alive/mapper/m1/a/b", "eqa/v1/robots/mapper/m1/a"):
+        with pytest.raises(ValueError):
+            keys.parse_alive(bad)
