@@ -467,10 +467,8 @@ class EpisodeService(Service, Generic[S]):
         state = self.episode(eid)
         if state is None and mine and self.shard is not None:
             start = self.shard.start_of(eid)  # its start came while another instance owned the robot
-            if isinstance(start, EpisodeStart) and self.store.get(episode_end_key(eid)) is not None:
-                self._note_ended(eid)  # ended by the instance that owned it before: nothing to start
-                self.ended_before(robot, eid)
-                return
+            if isinstance(start, EpisodeStart) and self._ended_elsewhere(robot, eid):
+                return  # ended by the instance that owned it before: nothing to start
             if isinstance(start, EpisodeStart):
                 self._on_start(robot, start)
                 state = self.episode(eid)
@@ -483,16 +481,13 @@ class EpisodeService(Service, Generic[S]):
             if not claim.won:
                 log.info("%s: episode %s step %d is %s's; not computed here", self.name, eid, step, claim.holder)
                 return
-            if claim.unanchored and self.store.get(episode_end_key(eid)) is not None:
+            if claim.unanchored and self._ended_elsewhere(robot, eid):
                 # Another instance ended the episode (its end stored, then its claims deleted) while this one,
                 # owning the robot in its own view of the membership, still held the state in memory and had
                 # not yet seen the end: the claim could be won again, and the step would be computed twice.
                 log.info("%s: episode %s ended elsewhere before its step %d came here; not computed", self.name,
                          eid, step)
                 self._forget_claims(eid, step)
-                self._note_ended(eid)
-                self._forget(eid)
-                self.ended_before(robot, eid)
                 return
             if claim.stale:  # the previous step was computed by another instance: take its stored state
                 self._forget(eid)
@@ -520,6 +515,16 @@ class EpisodeService(Service, Generic[S]):
         if self.shard is None or self.shard.claims is None or step is None:
             return False
         return self.shard.claims.holder(episode_id, step) == self.bus.instance
+
+    def _ended_elsewhere(self, robot: str, episode_id: str) -> bool:
+        """Whether the episode's end is stored (another instance ended it); if so it is noted as ended and
+        dropped from memory here, and :meth:`ended_before` runs."""
+        if self.store.get(episode_end_key(episode_id)) is None:
+            return False
+        self._note_ended(episode_id)
+        self._forget(episode_id)
+        self.ended_before(robot, episode_id)
+        return True
 
     def _forget(self, episode_id: str) -> None:
         """Drop an episode from memory only (its stored state is the next owner's)."""
@@ -566,9 +571,8 @@ class EpisodeService(Service, Generic[S]):
 
     def _hold(self, robot: str, msg: Any, route: _Route) -> None:
         eid = msg.episode_id
-        if self.store.get(episode_end_key(eid)) is not None:
+        if self._ended_elsewhere(robot, eid):
             log.info("%s: %s of ended episode %s ignored", self.name, msg.kind, eid)
-            self.ended_before(robot, eid)
             return
         items = self._held.get(eid)
         nbytes = message_bytes(msg)

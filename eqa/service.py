@@ -151,6 +151,11 @@ class Service:
             finally:
                 logs.CONTEXT.reset(token)
 
+    @property
+    def stopped(self) -> bool:
+        """Whether :meth:`stop` has been called."""
+        return self._stopped.is_set()
+
     def stop(self) -> None:
         if self._stopped.is_set():
             return

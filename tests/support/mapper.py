@@ -73,7 +73,7 @@ class HomeRig:
         """Wait until this bus sees exactly the running mapper instances (and a scorer replica) alive and each
         instance counts the same live set. Until then a frame may reach an instance that still counts a stopped
         one as the robot's owner and drops it; with no planner in the rig to send the step again, it stays lost."""
-        running = [m for m in self.started if not m._stopped.is_set()]
+        running = [m for m in self.started if not m.stopped]
         want = {m.bus.instance for m in running}
 
         def settled() -> bool:
