@@ -28,6 +28,12 @@ SERVER=$BUILD/bin/llama-server
 say() { echo "setup-llama: $*" >&2; }
 
 mkdir -p "$LLAMA_HOME"
+# One set-up at a time per cache: checkouts and test modules that share it would otherwise build into the same
+# tree and remove each other's half-written GGUF (the second waits, then finds the stamps).
+exec 9>"$LLAMA_HOME/.lock"
+if command -v flock >/dev/null 2>&1; then
+  flock 9
+fi
 server_stamp="$LLAMA_HOME/.llama-server-$VERSION-$(printf '%s ' "${CMAKE_FLAGS[@]}" | sha1sum | cut -c1-12)"
 if [ ! -f "$server_stamp" ] || [ ! -x "$SERVER" ]; then
   need_apt=()
