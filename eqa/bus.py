@@ -395,12 +395,13 @@ class Bus:
                 return
             up = sample.kind == zenoh.SampleKind.PUT
             with lock:  # held across the callback so that a later change is never reported before this one
-                held = sessions.setdefault((service, instance), set())
                 if up:
+                    held = sessions.setdefault((service, instance), set())
                     if session in held:
                         return
                     held.add(session)
                 else:
+                    held = sessions.get((service, instance), set())
                     if session not in held:
                         return
                     held.discard(session)

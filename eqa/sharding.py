@@ -306,15 +306,13 @@ class Redrive:
         if before is None:
             return set()
         after = before | {instance} if up else before - {instance}
-        if after == before:
-            if not up:
-                return set()
-            # a new process under a live name: what was in flight to its predecessor is lost with it
-            moved_ = {r for r in robots if owner(r, sorted(after)) == instance}
-            self.schedule({r: robots[r] for r in moved_}, now)
-            return moved_
-        self._live[service] = after
-        moved_ = reassigned(robots, before, after)
+        if after != before:
+            self._live[service] = after
+            moved_ = reassigned(robots, before, after)
+        elif up:  # a new process under a live name: what was in flight to its predecessor is lost with it
+            moved_ = {r for r, o in assignment(robots, after).items() if o == instance}
+        else:
+            return set()
         self.schedule({r: robots[r] for r in moved_}, now)
         return moved_
 
