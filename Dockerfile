@@ -35,6 +35,7 @@ RUN pip install ${TORCH_INDEX:+--index-url "$TORCH_INDEX"} torch==2.13.0 \
  && rm /tmp/requirements.txt
 COPY README.md ./
 COPY eqa ./eqa
+COPY eqa_app ./eqa_app
 COPY services ./services
 COPY gateway ./gateway
 RUN pip install --no-deps . && rm -rf build \

@@ -8,7 +8,7 @@ which the replay models exactly as :func:`services.stopper.state.decide` does (a
 Data (all ``semantic`` exploration, 320x240, full-length ``max_steps`` runs):
 
 * evaluation seeds 1-3: test splits = ``bench/results/explore-seeds/traces`` (200 per seed);
-  calibration splits recorded with ``eqa.app.stop_sensitivity`` (``--recordings DIR``, the first ``--n-cal``
+  calibration splits recorded with ``eqa_app.stop_sensitivity`` (``--recordings DIR``, the first ``--n-cal``
   of the round-robin category order);
 * tuning seed 11: calibration + test recordings; K and the fusion are chosen there only, by the answer
   accuracy at the full budget (ties: the smaller K).
@@ -32,10 +32,10 @@ from typing import Any
 
 import numpy as np
 
-from eqa.app.evaluation import bootstrap_indices, bootstrap_mean_ci, sign_test_p, wilson_ci
-from eqa.app.stop_sensitivity import load_recording, recording_path
 from eqa.messages import letters
 from eqa.seeds import EVALUATION_SEEDS, TUNING_SEED
+from eqa_app.evaluation import bootstrap_indices, bootstrap_mean_ci, sign_test_p, wilson_ci
+from eqa_app.stop_sensitivity import load_recording, recording_path
 from services.stopper.answer_memory import FUSIONS, AnswerRule, memory_answer, transform
 from services.stopper.calibration import read_jsonl
 from services.stopper.conformal import conformal_quantile, in_set, nonconformity, relevance_weighted_confidence
@@ -156,9 +156,9 @@ RECORD_PLAN = ((TUNING_SEED, "calibration", 60), (TUNING_SEED, "test", 60),
 
 def record_missing(recordings: Path) -> None:
     """Record (resumably) what this benchmark reads besides the stored test traces: :data:`RECORD_PLAN`,
-    the first questions of each split in :func:`eqa.app.stop_sensitivity.benchmark_questions`' order."""
-    from eqa.app.stop_sensitivity import benchmark_questions, record
+    the first questions of each split in :func:`eqa_app.stop_sensitivity.benchmark_questions`' order."""
     from eqa.settings import Settings
+    from eqa_app.stop_sensitivity import benchmark_questions, record
     from services.sim.questions import benchmark
 
     scenes = Settings().scenes_path

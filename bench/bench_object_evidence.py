@@ -3,7 +3,7 @@
 SIMULATED PERCEPTION MODEL (oracle scorer) and SIMULATED DETECTOR, not a VLM / detector. Two steps:
 
 1. ``record``: full-length ``semantic`` episodes with the services' pure cores in this process (as
-   :func:`eqa.app.stop_sensitivity.run_episode`: sim render -> mapper -> oracle scorer -> planner, the same
+   :func:`eqa_app.stop_sensitivity.run_episode`: sim render -> mapper -> oracle scorer -> planner, the same
    path and seeds, so the VLM scores are those of the benchmark traces), plus, per step, the question's target
    class in the HELIOS object layer (:class:`services.mapper.question_objects.QuestionObjects`, detections from
    the simulated detector) and its :class:`~services.stopper.object_evidence.ObjectEvidence`. The object layer
@@ -48,11 +48,11 @@ class ObjEpisode:
 
 def run_episode(question: Any) -> ObjEpisode:
     """One full-length semantic episode with the pure cores in this process
-    (:func:`eqa.app.core_runner.run_episode_loop`), the mapper's question-object layer fed by the detector."""
-    from eqa.app.benchmark_runner import question_seed
-    from eqa.app.core_runner import EpisodeCores, StepHooks, run_episode_loop
+    (:func:`eqa_app.core_runner.run_episode_loop`), the mapper's question-object layer fed by the detector."""
     from eqa.messages import DetectResult, EpisodeStart, letters
     from eqa.settings import Settings
+    from eqa_app.benchmark_runner import question_seed
+    from eqa_app.core_runner import EpisodeCores, StepHooks, run_episode_loop
     from services.mapper.episode_map import EpisodeMap
     from services.mapper.question_objects import QuestionObjects
     from services.planner.step import PlannerParams
@@ -163,7 +163,7 @@ def replay(ep: ObjEpisode, f: np.ndarray, q_hat: float | None) -> tuple[bool, fl
 
 def evaluate(out: Path, seeds: list[int], tuning_seed: int) -> dict[str, Any]:
     from bench.bench_answer_rules import Out, paired
-    from eqa.app.evaluation import wilson_ci
+    from eqa_app.evaluation import wilson_ci
     from services.stopper.conformal import conformal_quantile, nonconformity
     from services.stopper.object_evidence import EvidenceParams
 

@@ -3,7 +3,7 @@
 Three parts, all on this machine, in one command:
 
 1. **Fleet throughput.** The real services (sim, mapper, scorer replica with the oracle backend, stopper,
-   planner) as separate processes over Zenoh (:class:`eqa.app.benchmark_runner.Runner`), ``--questions`` generated
+   planner) as separate processes over Zenoh (:class:`eqa_app.benchmark_runner.Runner`), ``--questions`` generated
    questions on one house, each capped at ``--steps`` steps, with 1 and 2 robots, at each ``--sizes``
    (default 640x480 and 320x240), Rerun recording off. Steps/s = StepScores received / wall time from the
    first EpisodeStart to the last EpisodeEnd.
@@ -175,7 +175,7 @@ CPU: dict[str, dict[str, float]] = {}  # run label -> service -> CPU ms per step
 def fleet_run(
     base: Settings, size: tuple[int, int], robots: int, qs: list[Question], record: bool, tap: bool
 ) -> tuple[float, int, float, dict[str, list[float]] | None]:
-    from eqa.app.benchmark_runner import Runner
+    from eqa_app.benchmark_runner import Runner
 
     settings = base.model_copy(update={"sim_width": size[0], "sim_height": size[1]})
     with Runner(settings, strategy="semantic", robots=robots, record=record) as runner:

@@ -85,9 +85,9 @@ def latency(serve_url: str, serve_model: str, model_dir: Path, steps: int, sampl
 
 
 def calibration(serve_url: str, serve_model: str, n_cal: int, n_test: int, samples: int, data: Path) -> dict:
-    from eqa.app.benchmark_runner import Runner
-    from eqa.app.evaluation import cp_curve
     from eqa.settings import Settings
+    from eqa_app.benchmark_runner import Runner
+    from eqa_app.evaluation import cp_curve
     from services.sim.questions import benchmark
     from services.stopper.calibration import calibrate
 

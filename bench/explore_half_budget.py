@@ -3,7 +3,7 @@
 Reads stored trace sets (``eqa bench explore`` exports them as ``<dir>/bench-<strategy>-oracle-320x240-seed<S>-x<V>
 -cores.jsonl.gz``) of the evaluation seeds and pairs, question by question, the strategy's answer at ``--budget``
 x T with semantic's at T: the questions only one of the two gets right, the exact sign test and the 95 % interval
-of the difference (eqa.app.evaluation's helpers). Scorer of the stored runs: oracle, a simulated perception
+of the difference (eqa_app.evaluation's helpers). Scorer of the stored runs: oracle, a simulated perception
 model, not a VLM/detector.
 
     python bench/explore_half_budget.py --strategies gain perfect_gain target_oracle \\
@@ -16,8 +16,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from eqa.app import evaluation as ev
 from eqa.seeds import EVALUATION_SEEDS
+from eqa_app import evaluation as ev
 from services.stopper.calibration import Trace, read_jsonl
 
 

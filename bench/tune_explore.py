@@ -88,11 +88,11 @@ def configs(knobs: dict[str, Any]) -> tuple[Any, Any]:
 
 
 def run_episode(args: tuple[Any, str, dict[str, Any], int, int]) -> Episode:
-    """One full-length episode with the pure cores in this process (:func:`eqa.app.core_runner.run_episode_loop`)."""
-    from eqa.app.benchmark_runner import question_seed, yardstick_paths
-    from eqa.app.core_runner import EpisodeCores, StepHooks, run_episode_loop
+    """One full-length episode with the pure cores in this process (:func:`eqa_app.core_runner.run_episode_loop`)."""
     from eqa.messages import EpisodeStart
     from eqa.settings import Settings
+    from eqa_app.benchmark_runner import question_seed, yardstick_paths
+    from eqa_app.core_runner import EpisodeCores, StepHooks, run_episode_loop
     from services.mapper.episode_map import EpisodeMap
     from services.sim import camera
     from services.sim.library import load_or_generate
@@ -212,7 +212,7 @@ CEILING_REASONS = ("seen", "small", "near, faced", "near, not faced", "never nea
 
 
 def summarise(name: str, eps: list[Episode], base: list[Episode] | None) -> dict[str, Any]:
-    from eqa.app.evaluation import sign_test_p
+    from eqa_app.evaluation import sign_test_p
 
     out: dict[str, Any] = {"variant": name, "n": len(eps)}
     for b in (0.5, 1.0):
@@ -247,7 +247,7 @@ def summarise(name: str, eps: list[Episode], base: list[Episode] | None) -> dict
 
 def tuning_questions(seed: int, split: str, limit: int | None, settings: Any) -> list[Any]:
     """The benchmark questions of ``seed`` (category mix kept under ``limit``, round robin)."""
-    from eqa.app.bench_cli import _benchmark
+    from eqa_app.bench_cli import _benchmark
 
     bench = _benchmark(seed, settings)
     qs = {"calibration": bench.calibration, "test": bench.test, "all": bench.calibration + bench.test}[split]
@@ -345,8 +345,8 @@ def main(argv: list[str] | None = None) -> int:
                             for b in sorted({1.0, args.horizon})}
             for b, counts in r["ceiling"].items():
                 print(f"    within {b:g} T: " + ", ".join(f"{k} {c}" for k, c in counts.items()))
-    if args.ceiling:  # what any strategy could reach: eqa/app/ceiling.py (the same numbers as eqa bench --ceiling)
-        from eqa.app.ceiling import benchmark_ceilings, ceiling_cdf
+    if args.ceiling:  # what any strategy could reach: eqa_app/ceiling.py (the same numbers as eqa bench --ceiling)
+        from eqa_app.ceiling import benchmark_ceilings, ceiling_cdf
 
         ceilings = benchmark_ceilings(qs, Settings(), w, h)
         shares = ceiling_cdf(ceilings, [0.25, 0.5, 1.0])

@@ -51,11 +51,11 @@ class EpisodeRecord:
 
 
 def run_episode(args: tuple[Any, str, int, int]) -> EpisodeRecord:
-    """One full-length episode with the pure cores in this process (:func:`eqa.app.core_runner.run_episode_loop`)."""
-    from eqa.app.benchmark_runner import question_seed
-    from eqa.app.core_runner import EpisodeCores, StepHooks, run_episode_loop
+    """One full-length episode with the pure cores in this process (:func:`eqa_app.core_runner.run_episode_loop`)."""
     from eqa.messages import EpisodeStart
     from eqa.settings import Settings
+    from eqa_app.benchmark_runner import question_seed
+    from eqa_app.core_runner import EpisodeCores, StepHooks, run_episode_loop
     from services.mapper.episode_map import EpisodeMap
     from services.planner.step import PlannerParams
     from services.sim.render import Renderer
@@ -164,8 +164,8 @@ def main(argv: list[str] | None = None) -> int:
     else:
         from tqdm import tqdm
 
-        from eqa.app.bench_cli import _questions
         from eqa.settings import Settings
+        from eqa_app.bench_cli import _questions
 
         w, h = (int(v) for v in args.size.split("x"))
         qs = _questions(args.split, args.limit, Settings(), args.seed)

@@ -1,5 +1,5 @@
 """Command line of the gateway: ``python -m gateway`` / ``eqa gateway`` runs the server (``eqa ask --url``
-in :mod:`eqa.app.ask` is the client)."""
+in :mod:`eqa_app.ask` is the client)."""
 
 from __future__ import annotations
 

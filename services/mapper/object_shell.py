@@ -218,7 +218,7 @@ def ask_objects(objects: ObjectMap, episode_map: EpisodeMap, frame: Frame, detec
 def fuse_frame(objects: ObjectMap, episode_map: EpisodeMap, frame: Frame, det: Any, val: Any,
                timing: dict[str, float]) -> tuple[str, list[str]]:
     """One frame's object-layer step of a task episode (the mapper's and the in-process runner's,
-    :mod:`eqa.app.task_cores`): the phase from the frame's skill report, the detections fused into the 3D
+    :mod:`eqa_app.task_cores`): the phase from the frame's skill report, the detections fused into the 3D
     layer, each target's value fused into its layer over the field-of-view cone by confidence. ``det`` /
     ``val``: the scorer pool's replies (or the exception a request raised). Returns the layer the frontiers
     take their values from (:func:`frontier_class`) and the reasons of what was not fused (for the error

@@ -69,7 +69,7 @@ def test_code_reads_eqa_variables_only_through_settings():
 
 
 def test_health_command_exists_for_the_checks():
-    out = subprocess.run([sys.executable, "-m", "eqa", "health", "--help"], capture_output=True, text=True,
+    out = subprocess.run([sys.executable, "-m", "eqa_app", "health", "--help"], capture_output=True, text=True,
                          timeout=60, cwd=REPO)
     assert out.returncode == 0, out.stderr
 
@@ -93,7 +93,7 @@ def test_podman_override_changes_only_what_cannot_be_pulled_here():
     assert set(services["gateway"]) == {"ports"}
     assert all(p.startswith("127.0.0.1:") for p in services["gateway"]["ports"])
     router = services["zenoh"]["command"]
-    assert router[:4] == ["python", "-m", "eqa", "router"] and "tcp/0.0.0.0:7447" in router
+    assert router[:4] == ["python", "-m", "eqa_app", "router"] and "tcp/0.0.0.0:7447" in router
     assert _module_exists("eqa")
     assert set(services["zenoh"]["environment"]) <= env_names()
     assert services["redis"]["command"][0] == "redis-server"

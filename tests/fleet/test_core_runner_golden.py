@@ -1,7 +1,7 @@
-"""The in-process episode loop (:func:`eqa.app.core_runner.core_episode`) produces the fleet's traces.
+"""The in-process episode loop (:func:`eqa_app.core_runner.core_episode`) produces the fleet's traces.
 
 Tuning-seed (11) questions run through a real fleet (sim, mapper, planner, stopper and an oracle scorer as
-separate processes over Zenoh, real Redis; :class:`eqa.app.benchmark_runner.Runner`) and through the
+separate processes over Zenoh, real Redis; :class:`eqa_app.benchmark_runner.Runner`) and through the
 in-process loop; every step's answer distribution and relevance must agree within 1e-6 (float32 rounding of
 the bus), for the Eq. A6 strategies and the deterministic rules vlfm / gain / topo. The three fbe questions are
 ones where the simulator refuses goals within their 20 steps, so the
@@ -16,9 +16,9 @@ from pathlib import Path
 import numpy as np
 from support.fleet import fleet_settings
 
-from eqa.app import core_runner
-from eqa.app.benchmark_runner import Runner
 from eqa.seeds import TUNING_SEED
+from eqa_app import core_runner
+from eqa_app.benchmark_runner import Runner
 from services.sim.library import load_or_generate
 from services.sim.questions import benchmark_candidates
 

@@ -64,7 +64,7 @@ def test_garbage_on_every_key_kills_no_service(fleet: Fleet):
 def _ask(fleet: Fleet, *extra: str) -> subprocess.CompletedProcess[str]:
     env = {**os.environ, **{k: v for k, v in fleet.settings.env().items() if k in ("EQA_DATA_DIR",)}}
     return subprocess.run(
-        [sys.executable, "-m", "eqa", "ask", "Is there a bed in the bedroom?", "--choice", "Yes",
+        [sys.executable, "-m", "eqa_app", "ask", "Is there a bed in the bedroom?", "--choice", "Yes",
          "--choice", "No", "--scene", "gen-00001", "--url", _url(fleet), *extra],
         capture_output=True, text=True, timeout=240, env=env, cwd=REPO,
     )
@@ -84,7 +84,7 @@ def test_a_question_without_choices_is_answered_with_a_proposed_choice(fleet: Fl
     """Explore-EQA section VI-A: the scorer proposes the candidate answers; the answer names one of them."""
     env = {**os.environ, **{k: v for k, v in fleet.settings.env().items() if k in ("EQA_DATA_DIR",)}}
     out = subprocess.run(
-        [sys.executable, "-m", "eqa", "ask", "Where is the bed?", "--scene", "gen-00001", "--url", _url(fleet),
+        [sys.executable, "-m", "eqa_app", "ask", "Where is the bed?", "--scene", "gen-00001", "--url", _url(fleet),
          "--stop-rule", "max_steps", "--max-steps", "3"],
         capture_output=True, text=True, timeout=240, env=env, cwd=REPO,
     )
@@ -128,7 +128,7 @@ def test_eqa_health_from_another_process(fleet: Fleet):
     """`eqa health` in a fresh process (as compose runs it) sees every service of the fleet at once: a session
     just opened has not heard of every peer yet, so the check retries until its timeout."""
     env = {**os.environ, "EQA_ZENOH_CONNECT": fleet.endpoint, "EQA_ZENOH_LISTEN": ""}
-    cmd = [sys.executable, "-m", "eqa", "health", *ALL_SERVICES]
+    cmd = [sys.executable, "-m", "eqa_app", "health", *ALL_SERVICES]
     out = subprocess.run(cmd, capture_output=True, text=True, timeout=60, env=env, cwd=REPO)
     assert out.returncode == 0 and out.stdout.startswith("alive: "), out.stderr[-500:]
     out = subprocess.run([*cmd, "nosuch", "--timeout", "1"], capture_output=True, text=True, timeout=60, env=env,
@@ -154,7 +154,7 @@ def test_eqa_ask_bad_input_is_one_line_and_exit_2(tmp_path: Path, args: list[str
     env = {**os.environ, "EQA_DATA_DIR": str(tmp_path)}
     env.update(a.split("=", 1) for a in args if a.startswith("EQA_"))
     args = [a for a in args if not a.startswith("EQA_")]
-    out = subprocess.run([sys.executable, "-m", "eqa", "ask", *args], capture_output=True, text=True,
+    out = subprocess.run([sys.executable, "-m", "eqa_app", "ask", *args], capture_output=True, text=True,
                          timeout=120, env=env, cwd=REPO)
     assert out.returncode == 2
     lines = out.stderr.strip().splitlines()

@@ -85,7 +85,7 @@ def fleet(tmp_path_factory: pytest.TempPathFactory):
         hosts.run("h2", redis, base_env, logs / "redis.log")
         router_env = {**base_env, "EQA_ZENOH_TLS_CA": str(pki / "ca.pem"),
                       "EQA_ZENOH_TLS_CERT": str(pki / "router.pem"), "EQA_ZENOH_TLS_KEY": str(pki / "router.key")}
-        hosts.run("h1", [PY, "-m", "eqa", "router", "--listen", endpoint], router_env, logs / "router.log")
+        hosts.run("h1", [PY, "-m", "eqa_app", "router", "--listen", endpoint], router_env, logs / "router.log")
         shares = {  # host: (services, scorer replicas, instances of each stateful service)
             "h1": ("sim,stopper", 1, 1),
             "h2": ("mapper,planner", 1, 2),
@@ -96,7 +96,7 @@ def fleet(tmp_path_factory: pytest.TempPathFactory):
             # no warm standbys: the test finds the processes it kills by their command line, which a waiting
             # standby shares (tests/fleet/test_standby.py covers the standbys' take-over)
             env = {**base_env, "EQA_DATA_DIR": str(data), "EQA_STANDBY": "false"}
-            argv = [PY, "-m", "eqa", "up", "--join", endpoint, "--services", services, "--scorers", str(scorers),
+            argv = [PY, "-m", "eqa_app", "up", "--join", endpoint, "--services", services, "--scorers", str(scorers),
                     "--instances", str(instances), "--timeout", "120"]
             ups[host] = hosts.run(host, argv, env, logs / f"up-{host}.log")
         all_logs = [logs / f"up-{h}.log" for h in shares] + [logs / "router.log"]

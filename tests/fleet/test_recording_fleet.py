@@ -25,10 +25,10 @@ from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 from support.fleet import GatewayThread, fleet_settings, sse_events, wait_for
 
-from eqa.app.cli import main
 from eqa.launcher import Fleet
 from eqa.recording import ENTITIES, REQUIRED_ENTITIES
 from eqa.ros import yaw_from_quat
+from eqa_app.cli import main
 from gateway import mcap_export, recordings
 
 SCENE = "gen-00001"

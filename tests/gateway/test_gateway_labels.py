@@ -9,9 +9,9 @@ import pytest
 from support.fleet import GatewayThread, wait_for
 from support.gateway import AUTH, EPISODE_S, SCENE, TOKEN
 
-from eqa.app.calibrate import main as calibrate_main
 from eqa.settings import Settings
 from eqa.store import open_store
+from eqa_app.calibrate import main as calibrate_main
 from services.stopper.calibration import TraceStore, load_table
 
 CHOICES = ["bedroom", "hallway", "storage room", "living room"]

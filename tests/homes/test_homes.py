@@ -15,7 +15,6 @@ from support.fleet import wait_for
 from support.mapper import home_rig
 
 from eqa import homes, keys
-from eqa.app.evaluation import replay
 from eqa.budget import warm_step_limit
 from eqa.messages import (
     EpisodeEnd,
@@ -28,6 +27,7 @@ from eqa.messages import (
 )
 from eqa.settings import Settings
 from eqa.store import Store
+from eqa_app.evaluation import replay
 from services.mapper.episode_map import EpisodeMap
 from services.mapper.home_memory import HomeMap, ViewInfo, ViewPool, coverage, select_views
 from services.mapper.home_shell import HomeMemory, view_key
@@ -412,7 +412,7 @@ def test_home_carried_over_warm_started_through_a_scorer_replica_and_continued_e
 
 
 def test_bench_sequences_are_one_house_round_robin_over_categories(tmp_path: Path) -> None:
-    from eqa.app.home_bench import sequence
+    from eqa_app.home_bench import sequence
 
     qs = sequence(11, 0, 5, tmp_path)
     assert len(qs) == 5 and len({q.scene for q in qs}) == 1 and len({q.category for q in qs}) == 5
@@ -420,7 +420,7 @@ def test_bench_sequences_are_one_house_round_robin_over_categories(tmp_path: Pat
 
 
 def test_bench_changes_ask_each_question_in_the_changed_house_with_its_ground_truth(tmp_path: Path) -> None:
-    from eqa.app.home_bench import changed_sequence, impacts
+    from eqa_app.home_bench import changed_sequence, impacts
     from services.sim.change_impact import impact, rederive
     from services.sim.changes import changes_of
 
@@ -442,7 +442,7 @@ def test_bench_changes_ask_each_question_in_the_changed_house_with_its_ground_tr
 
 
 def test_bench_wrong_singletons_are_paired_on_the_same_questions() -> None:
-    from eqa.app.home_bench import singletons, wrong_singleton
+    from eqa_app.home_bench import singletons, wrong_singleton
 
     assert wrong_singleton(("B",), "A") and not wrong_singleton(("A",), "A") and not wrong_singleton(("A", "B"), "B")
     rows = [{"cold_wrong_singleton": c, "warm_wrong_singleton": w, "cold_correct": not c, "warm_correct": not w}
@@ -457,8 +457,8 @@ def test_bench_wrong_singletons_are_paired_on_the_same_questions() -> None:
 def test_bench_task_metrics_are_paired_on_the_tasks_that_have_them() -> None:
     """``eqa bench home --tasks``: a pick-and-place metric is compared on the tasks that have it (an object search
     has no FindObj), warm against cold on the same task."""
-    from eqa.app.evaluation import sign_test_p
-    from eqa.app.home_bench import metric_pairs
+    from eqa_app.evaluation import sign_test_p
+    from eqa_app.home_bench import metric_pairs
 
     rows = [{"cold_FindObj": 1.0, "warm_FindObj": 0.0}, {"cold_FindObj": 0.0, "warm_FindObj": 1.0},
             {"cold_FindObj": 0.0, "warm_FindObj": 1.0}, {"cold_FindObj": 1.0, "warm_FindObj": 1.0}, {}]

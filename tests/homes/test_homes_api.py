@@ -386,7 +386,7 @@ def test_openapi_documents_the_homes_routes(gw) -> None:
 def test_eqa_ask_sends_the_home(tmp_path: Path) -> None:
     import argparse
 
-    from eqa.app import ask
+    from eqa_app import ask
 
     parser = argparse.ArgumentParser()
     ask.register(parser.add_subparsers(dest="command"))

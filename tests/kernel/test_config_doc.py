@@ -1,4 +1,4 @@
-"""docs/configuration.md is generated from eqa/settings.py (eqa/app/config_doc.py) and must not drift from it."""
+"""docs/configuration.md is generated from eqa/settings.py (eqa_app/config_doc.py) and must not drift from it."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ from typing import Literal
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from eqa.app import config_doc
 from eqa.settings import Settings, env_names
+from eqa_app import config_doc
 
 PAGE = Path(__file__).resolve().parents[2] / "docs" / "configuration.md"
 

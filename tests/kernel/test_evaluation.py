@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from eqa.app.evaluation import answer_within, cp_curve, replay, success_at_budgets, threshold_curve
 from eqa.messages import StopConfig
+from eqa_app.evaluation import answer_within, cp_curve, replay, success_at_budgets, threshold_curve
 from services.stopper.calibration import Trace, TraceStep, calibrate
 from services.stopper.state import CalibrationChoice
 
@@ -74,7 +74,7 @@ def test_curves_report_success_steps_and_cp_coverage():
 def test_paired_comparison_counts_discordant_questions_and_exact_sign_test():
     from math import comb
 
-    from eqa.app.evaluation import evidence_share, first_evidence, paired_comparison, sign_test_p
+    from eqa_app.evaluation import evidence_share, first_evidence, paired_comparison, sign_test_p
 
     assert sign_test_p(0, 0) == 1.0 and sign_test_p(3, 3) == 1.0
     assert sign_test_p(5, 0) == pytest.approx(2 / 32)  # 5 heads of 5 fair coins, both tails
@@ -94,7 +94,7 @@ def test_paired_comparison_counts_discordant_questions_and_exact_sign_test():
 
 
 def test_wilson_interval_is_clipped_to_the_unit_interval_and_matches_the_formula():
-    from eqa.app.evaluation import wilson_ci
+    from eqa_app.evaluation import wilson_ci
 
     lo, hi = wilson_ci(5, 10)
     assert lo == pytest.approx(0.2366, abs=1e-4) and hi == pytest.approx(0.7634, abs=1e-4)
@@ -103,7 +103,7 @@ def test_wilson_interval_is_clipped_to_the_unit_interval_and_matches_the_formula
 
 
 def test_bootstrap_interval_of_paired_differences():
-    from eqa.app.evaluation import bootstrap_indices, bootstrap_mean_ci
+    from eqa_app.evaluation import bootstrap_indices, bootstrap_mean_ci
 
     idx = bootstrap_indices(20, 500, seed=3)
     assert idx.shape == (500, 20) and (idx == bootstrap_indices(20, 500, seed=3)).all()

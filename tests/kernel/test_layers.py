@@ -1,9 +1,9 @@
 """The import direction of the layers, read from the source (AST only: no module is imported or executed).
 
-* kernel ``eqa/`` (everything but ``eqa/app/``): imports only the kernel;
+* kernel ``eqa/``: imports only the kernel;
 * a service ``services/<name>/``: the kernel and its own package, never another service, the gateway or the app;
 * the gateway ``gateway/``: the kernel and itself, never a service or the app;
-* the application layer ``eqa/app/`` and the process entry points that wire the layers together
+* the application layer ``eqa_app/`` and the process entry point that wire the layers together
   (:data:`COMPOSITION_ROOTS`): anything.
 
 Every import counts, at module level or inside a function, under ``if TYPE_CHECKING:`` too: a lazy or type-only
@@ -18,8 +18,8 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[2]
-PACKAGES = ("eqa", "services", "gateway")
-# Process entry points that hand one layer's parts to another (python -m eqa, python -m gateway): application layer.
+PACKAGES = ("eqa", "eqa_app", "services", "gateway")
+# Process entry points that hand one layer's parts to another (python -m eqa_app, python -m gateway): application layer.
 COMPOSITION_ROOTS = frozenset({"eqa.__main__", "gateway.__main__"})
 
 
@@ -41,7 +41,7 @@ def first_party_modules(root: Path) -> dict[str, Path]:
 def layer_of(module: str) -> str:
     """``kernel``, ``app``, ``gateway``, ``services`` (the namespace package itself) or ``service:<name>``."""
     parts = module.split(".")
-    if module in COMPOSITION_ROOTS or parts[:2] == ["eqa", "app"]:
+    if module in COMPOSITION_ROOTS or parts[0] == "eqa_app":
         return "app"
     if parts[0] == "eqa":
         return "kernel"
@@ -160,7 +160,7 @@ def _write(root: Path, rel: str, text: str = "") -> None:
 @pytest.fixture()
 def tree(tmp_path: Path) -> Path:
     """A small clean tree of the same shape."""
-    for rel in ("eqa/__init__.py", "eqa/app/__init__.py", "services/__init__.py", "services/sim/__init__.py",
+    for rel in ("eqa/__init__.py", "eqa_app/__init__.py", "services/__init__.py", "services/sim/__init__.py",
                 "services/mapper/__init__.py", "gateway/__init__.py"):
         _write(tmp_path, rel)
     _write(tmp_path, "eqa/keys.py", "import json\n")
@@ -170,7 +170,7 @@ def tree(tmp_path: Path) -> Path:
     _write(tmp_path, "services/mapper/frontiers.py", "from eqa import keys\n")
     _write(tmp_path, "gateway/manager.py", "from eqa.bus import Bus\n")
     _write(tmp_path, "gateway/__main__.py", "from services.sim import scene\n")
-    _write(tmp_path, "eqa/app/cli.py", "import gateway.manager\nfrom services.sim.scene import x\n")
+    _write(tmp_path, "eqa_app/cli.py", "import gateway.manager\nfrom services.sim.scene import x\n")
     return tmp_path
 
 
@@ -186,13 +186,13 @@ def test_clean_tree_passes(tree: Path) -> None:
          "eqa/store.py:2: eqa.store (kernel) imports services.sim.scene (service:sim)"),
         ("eqa/recording.py", "import gateway.manager\n",
          "eqa/recording.py:1: eqa.recording (kernel) imports gateway.manager (gateway)"),
-        ("eqa/settings.py", "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from eqa.app import cli\n",
-         "eqa/settings.py:3: eqa.settings (kernel) imports eqa.app.cli (app)"),
+        ("eqa/settings.py", "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from eqa_app import cli\n",
+         "eqa/settings.py:3: eqa.settings (kernel) imports eqa_app.cli (app)"),
         ("services/mapper/service.py", "from services.sim import scene\n",
          "services/mapper/service.py:1: services.mapper.service (service:mapper) imports services.sim.scene "
          "(service:sim)"),
-        ("services/sim/cli.py", "from eqa.app import cli\n",
-         "services/sim/cli.py:1: services.sim.cli (service:sim) imports eqa.app.cli (app)"),
+        ("services/sim/cli.py", "from eqa_app import cli\n",
+         "services/sim/cli.py:1: services.sim.cli (service:sim) imports eqa_app.cli (app)"),
         ("gateway/app.py", "from services.sim.scene import Scene\n",
          "gateway/app.py:1: gateway.app (gateway) imports services.sim.scene (service:sim)"),
         ("services/sim/util.py", "from ...gateway import manager\n",

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from eqa.app.bench_cli import trace_file
-from eqa.app.calibrate import main as calibrate_main
+from eqa_app.bench_cli import trace_file
+from eqa_app.calibrate import main as calibrate_main
 from services.stopper import synthetic
 from services.stopper.calibration import CalibrationError, read_jsonl, write_jsonl
 

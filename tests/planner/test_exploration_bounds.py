@@ -180,7 +180,7 @@ def _trace(qid: str, rels: list[float], right_from: int | None, T: int = 10):
 
 
 def test_seed_pooled_statistics() -> None:
-    from eqa.app import evaluation as ev
+    from eqa_app import evaluation as ev
 
     lo, hi = ev.wilson_ci(5, 10)
     assert lo < 0.5 < hi and lo > 0.2 and hi < 0.8
@@ -205,7 +205,7 @@ def test_seed_pooled_statistics() -> None:
 
 
 def test_success_split_by_evidence() -> None:
-    from eqa.app import evaluation as ev
+    from eqa_app import evaluation as ev
 
     # 3 episodes see the evidence at step 2 and are right from then; 1 sees it only at step 8 (after 0.5 T) and
     # is right from then; 2 never see it and stay wrong

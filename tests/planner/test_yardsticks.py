@@ -105,7 +105,7 @@ def test_target_paths_travel_only_with_the_yardstick(house: Scene) -> None:
 
 
 def test_the_runners_give_the_paths_to_target_oracle_only(house: Scene) -> None:
-    from eqa.app.benchmark_runner import yardstick_paths
+    from eqa_app.benchmark_runner import yardstick_paths
 
     q = Question(text="Is there a box?", choices=["Yes", "No"], scene="gen-00001", targets=[BOX])
     assert yardstick_paths(q, "semantic", Path("/nonexistent"), house) is None
@@ -120,7 +120,7 @@ def _question(evidence: list[int], targets: list[tuple[float, float]], T: int) -
 
 
 def test_evidence_ceiling_on_a_hand_built_house(house: Scene) -> None:
-    from eqa.app.ceiling import ceiling_cdf, question_ceiling
+    from eqa_app.ceiling import ceiling_cdf, question_ceiling
     from services.sim.render import Renderer
     from services.vlm_scorer.backends.oracle import OracleBackend
 
@@ -149,9 +149,9 @@ def _trace(qid: str, category: str, first: int | None, right_from: int | None, T
 
 
 def test_the_figure_draws_every_strategy_of_the_results(tmp_path: Path) -> None:
-    from eqa.app import evaluation as ev
-    from eqa.app.bench_cli import CDF_BUDGETS, PAIRED_BUDGETS
-    from eqa.app.plots import evidence_and_success_figure, plot_explore
+    from eqa_app import evaluation as ev
+    from eqa_app.bench_cli import CDF_BUDGETS, PAIRED_BUDGETS
+    from eqa_app.plots import evidence_and_success_figure, plot_explore
 
     cats = ["existence", "counting"]
     qids = [f"q{i}" for i in range(12)]
@@ -205,7 +205,7 @@ def test_sets_read_from_other_result_directories_are_used_not_copied(settings, t
     are not exported into ``--out`` (one copy of each set); a set of ``--out`` itself is exported as before."""
     import argparse
 
-    from eqa.app.bench_cli import _collect
+    from eqa_app.bench_cli import _collect
     from services.stopper.calibration import read_jsonl, write_jsonl
 
     kept = tmp_path / "kept"
@@ -226,7 +226,7 @@ def test_sets_read_from_other_result_directories_are_used_not_copied(settings, t
 
 def test_explore_printout_pairs_with_every_named_base(capsys: pytest.CaptureFixture[str]) -> None:
     """``--versus``: the paired rows against each extra base strategy are printed after semantic's and fbe's."""
-    from eqa.app.bench_cli import _print_explore
+    from eqa_app.bench_cli import _print_explore
 
     row = {"budget": 0.5, "a_only": 7, "b_only": 2, "p_value": 0.18, "ci_low": -0.01, "ci_high": 0.1}
     strategy = {"n": 9, "success": [0.5], "evidence_share": 0.4, "first_evidence_at": 0.3}

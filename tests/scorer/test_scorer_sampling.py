@@ -156,7 +156,7 @@ def test_check_of_an_unreachable_endpoint(zenoh_port):
 
 @pytest.mark.parametrize("double", [{"logprobs": False}], indirect=True)
 def test_scorer_check_command_and_eqa_up_check(double, capsys, settings):
-    from eqa.app import cli
+    from eqa_app import cli
 
     url, _ = double
     assert cli.main(["scorer", "check", "--url", url, "--samples", "3"]) == 0

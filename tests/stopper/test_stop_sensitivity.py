@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from eqa.app import evaluation as ev
-from eqa.app.stop_sensitivity import Episode, Outcome, choose_operating_point, paired_steps, params_at, replay_fast
 from eqa.messages import StopConfig
+from eqa_app import evaluation as ev
+from eqa_app.stop_sensitivity import Episode, Outcome, choose_operating_point, paired_steps, params_at, replay_fast
 from services.stopper import synthetic
 from services.stopper.calibration import calibrate
 from services.stopper.state import CalibrationChoice
@@ -66,8 +66,8 @@ def test_modes() -> None:
 def test_recorded_perceptions_rescore_exactly_at_every_level() -> None:
     """Record one short episode with the pure cores; the level-0 re-score is what the scorer computed live,
     and the fast re-score equals the full one in every mode (the sweep's numbers are the oracle's)."""
-    from eqa.app import stop_sensitivity as ss
     from eqa.settings import Settings
+    from eqa_app import stop_sensitivity as ss
     from services.sim.questions import benchmark_candidates
 
     cands = benchmark_candidates(11, 3, Settings().scenes_path)  # one house of the tuning seed
@@ -85,7 +85,7 @@ def test_recorded_perceptions_rescore_exactly_at_every_level() -> None:
 def test_eqa_bench_stop_takes_the_sensitivity_options() -> None:
     import argparse
 
-    from eqa.app import bench_cli
+    from eqa_app import bench_cli
 
     p = argparse.ArgumentParser()
     bench_cli.register(p.add_subparsers(dest="command"))

@@ -139,7 +139,7 @@ def _env(data_dir: Path) -> dict[str, str]:
 
 def _cli(args: list[str], data_dir: Path, **kw: object) -> subprocess.Popen[str]:
     return subprocess.Popen(
-        [sys.executable, "-m", "eqa.app.calibrate", "calibrate", "--no-progress", *args],
+        [sys.executable, "-m", "eqa_app.calibrate", "calibrate", "--no-progress", *args],
         cwd=REPO,
         env=_env(data_dir),
         stdout=subprocess.PIPE,

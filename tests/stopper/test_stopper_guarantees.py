@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from eqa.app.calibrate import main as calibrate_main
 from eqa.messages import EpisodeStart, Question, StepScores, StopConfig
+from eqa_app.calibrate import main as calibrate_main
 from services.stopper import synthetic
 from services.stopper.calibration import calibrate
 from services.stopper.conformal import relevance_weighted_confidence, sequence_set

@@ -329,7 +329,7 @@ def remote_fleet_episode(tmp_path: Path, url: str, model: str, mode: str, **remo
     """One 3-step benchmark question through a real fleet (sim, mapper, planner, stopper, a scorer replica as
     separate processes) whose scorer is the remote backend on the server at ``url``; every step must have been
     scored in ``mode`` ("logprobs" or "sampling") with a probability vector over the question's choices."""
-    from eqa.app.benchmark_runner import Runner
+    from eqa_app.benchmark_runner import Runner
     from services.sim.questions import benchmark
 
     s = Settings(data_dir=tmp_path, zenoh_listen=[], zenoh_connect=[], sim_width=160, sim_height=120,

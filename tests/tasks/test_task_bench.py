@@ -1,4 +1,4 @@
-"""HELIOS benchmark scoring (eqa/app/task_bench.py): pick limits enforced or derived, standard errors, paired sign
+"""HELIOS benchmark scoring (eqa_app/task_bench.py): pick limits enforced or derived, standard errors, paired sign
 test; task traces through the services and the tables replayed from them."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from eqa.app.task_bench import TaskResult, limited, mean_se, sign_test, summarise
+from eqa_app.task_bench import TaskResult, limited, mean_se, sign_test, summarise
 
 
 def _r(tid: str, variant: str, **m: float) -> TaskResult:
@@ -86,9 +86,9 @@ def test_enforced_limits_traces_and_replay_through_the_services(tmp_path: Path, 
 
     from support.fleet import fleet_settings
 
-    from eqa.app.cli import main
-    from eqa.app.task_bench import format_table, run_tasks, traces_path
     from eqa.task_traces import replay_metrics
+    from eqa_app.cli import main
+    from eqa_app.task_bench import format_table, run_tasks, traces_path
     from services.sim.tasks import task_benchmark
 
     s = fleet_settings(tmp_path / "fleet", redis_url)

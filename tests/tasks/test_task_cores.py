@@ -1,4 +1,4 @@
-"""The in-process task runner (:mod:`eqa.app.task_cores`) against the fleet: with the same episode id and seed a
+"""The in-process task runner (:mod:`eqa_app.task_cores`) against the fleet: with the same episode id and seed a
 tuning-seed task gives the same per-step trace, metrics and end through both."""
 
 from __future__ import annotations
@@ -26,8 +26,8 @@ def _same_steps(a: list[dict], b: list[dict]) -> None:
 def test_in_process_tasks_trace_as_the_fleet(tmp_path: Path, redis_url: str) -> None:
     from support.fleet import fleet_settings
 
-    from eqa.app.task_bench import run_tasks
-    from eqa.app.task_cores import run_tasks_cores
+    from eqa_app.task_bench import run_tasks
+    from eqa_app.task_cores import run_tasks_cores
     from services.sim.tasks import task_benchmark
 
     s = fleet_settings(tmp_path / "fleet", redis_url)

@@ -133,8 +133,8 @@ def test_a_task_in_words_gets_its_ground_truth_from_the_scene(tmp_path: Path) ->
 
 def test_eqa_task_demo_is_a_tuning_task_of_median_house_size_and_the_report_names_the_failure(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    from eqa.app.task import DEMO_POOL, demo_task, report
     from eqa.settings import Settings
+    from eqa_app.task import DEMO_POOL, demo_task, report
     from services.sim.tasks import task_benchmark
 
     text, scene, pose = demo_task(tmp_path)

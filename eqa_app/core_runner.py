@@ -1,15 +1,15 @@
 """Full-length episodes with the services' pure cores in one process (``eqa bench --runner cores``).
 
-The fleet (:mod:`eqa.app.benchmark_runner`) runs every service as its own process over Zenoh; on a shared
+The fleet (:mod:`eqa_app.benchmark_runner`) runs every service as its own process over Zenoh; on a shared
 2-core machine that costs several times the CPU of the work itself (bus, per-step map snapshots in the
 store, five processes). :func:`run_episode_loop` calls the same step functions the services call, in the
 services' order, in one process: the simulator's renderer and goal check (:func:`services.sim.motion.pose_error`),
 the mapper's :class:`services.mapper.episode_map.EpisodeMap` (integrate, Eq. 3 values, Eq. A6 frontiers), the
 scorer backend's ``score`` (the question without its ground truth, as the mapper sends it) and the planner's
 step with the planner service's refusal policy (:mod:`services.planner.refusals`). Seeds are the fleet's
-(:func:`eqa.app.benchmark_runner.question_seed`, per-step planner generators), so a question gives the same
+(:func:`eqa_app.benchmark_runner.question_seed`, per-step planner generators), so a question gives the same
 trace either way up to float32 rounding (``tests/fleet/test_core_runner_golden.py`` runs tuning-seed questions
-through both). Every in-process runner (:func:`core_episode`, :mod:`eqa.app.stop_sensitivity`,
+through both). Every in-process runner (:func:`core_episode`, :mod:`eqa_app.stop_sensitivity`,
 ``bench/tune_oracle.py``, ``bench/tune_explore.py``, ``bench/bench_object_evidence.py``) is this loop with its
 own :class:`StepHooks`. It is not a replacement for the fleet's end-to-end test, and figures say which runner
 made them.
@@ -150,9 +150,9 @@ class _TraceSteps(StepHooks):
 def core_episode(args: tuple[Any, str, dict[str, Any]]) -> Any:
     """One full-length episode of ``question`` with ``strategy`` under ``settings`` (a ``model_dump``); returns a
     :class:`services.stopper.calibration.Trace` (its ``end_reason`` says why it ended)."""
-    from eqa.app.benchmark_runner import question_seed, yardstick_paths
     from eqa.messages import EpisodeStart
     from eqa.settings import Settings
+    from eqa_app.benchmark_runner import question_seed, yardstick_paths
     from services.mapper.episode_map import EpisodeMap, MapperConfig
     from services.planner.step import PlannerParams
     from services.sim.library import load_or_generate

@@ -7,7 +7,7 @@ it at most ``max_step_m`` along a shortest path of the true house (:func:`servic
 ground-truth navigable grid) and it may face any direction on arrival. When no object is the evidence (a "no"
 existence question), the evidence is the asked room: the earliest step at which the robot can stand inside it.
 
-The step is reported as ``(k + 1) / T`` like the first-evidence CDF (:func:`eqa.app.evaluation.evidence_cdf`),
+The step is reported as ``(k + 1) / T`` like the first-evidence CDF (:func:`eqa_app.evaluation.evidence_cdf`),
 so the share of questions with a ceiling step within each budget is the curve no strategy can beat (within the
 sampled viewpoints: up to :data:`VIEWS_PER_STEP` per step, :data:`MAX_VIEWS` per question, nearest the object
 first, so the ceiling is a close lower estimate of the true one, not an over-estimate of it).

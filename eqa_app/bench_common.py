@@ -14,7 +14,7 @@ def scorer_label(settings: Any) -> str:
 
 
 def _settings(args: argparse.Namespace) -> Any:
-    from eqa.app.cli import UsageError, check_scorer, load_settings
+    from eqa_app.cli import UsageError, check_scorer, load_settings
 
     settings = load_settings()
     try:

@@ -1,5 +1,5 @@
-"""One task benchmark run's identity and result, shared by the fleet runner (:mod:`eqa.app.task_bench`) and the
-in-process runner (:mod:`eqa.app.task_cores`)."""
+"""One task benchmark run's identity and result, shared by the fleet runner (:mod:`eqa_app.task_bench`) and the
+in-process runner (:mod:`eqa_app.task_cores`)."""
 
 from __future__ import annotations
 

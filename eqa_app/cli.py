@@ -29,14 +29,14 @@ log = logging.getLogger(__name__)
 
 # Modules that add sub-commands with ``register(subparsers)``.
 _SUBCOMMAND_MODULES = (
-    "eqa.app.ask",
-    "eqa.app.task",
+    "eqa_app.ask",
+    "eqa_app.task",
     "services.sim.cli",
     "services.vlm_scorer.cli",
-    "eqa.app.calibrate",
-    "eqa.app.bench_cli",
-    "eqa.app.fleet_cli",
-    "eqa.app.export",
+    "eqa_app.calibrate",
+    "eqa_app.bench_cli",
+    "eqa_app.fleet_cli",
+    "eqa_app.export",
 )
 
 

@@ -197,8 +197,8 @@ def _body(args: argparse.Namespace, scenes_dir: Path) -> tuple[dict[str, Any], Q
 
 
 def run(args: argparse.Namespace) -> int:
-    from eqa.app.cli import UsageError, check_scorer, load_settings
     from eqa.service import setup_logging
+    from eqa_app.cli import UsageError, check_scorer, load_settings
 
     settings = load_settings()
     if args.url is None:

@@ -33,9 +33,9 @@ def cmd_certs(args: argparse.Namespace) -> int:
 
 
 def cmd_router(args: argparse.Namespace) -> int:
-    from eqa.app.cli import UsageError, load_settings
     from eqa.bus import Bus
     from eqa.service import setup_logging
+    from eqa_app.cli import UsageError, load_settings
 
     settings = load_settings()
     update: dict[str, Any] = {"zenoh_mode": "router"}

@@ -38,8 +38,6 @@ from pathlib import Path
 from typing import Any
 
 from eqa import keys
-from eqa.app.evaluation import sign_test_p as sign_test
-from eqa.app.task_results import TaskResult, task_seed
 from eqa.messages import (
     EpisodeCancel,
     EpisodeEnd,
@@ -59,6 +57,8 @@ from eqa.task_traces import (
     format_breakdown,
     replay_metrics,
 )
+from eqa_app.evaluation import sign_test_p as sign_test
+from eqa_app.task_results import TaskResult, task_seed
 
 log = logging.getLogger(__name__)
 
@@ -102,9 +102,9 @@ def run_tasks(settings: Settings, jobs: list[Job], robots: int = 2, scorers: int
     each with its pick limit enforced (module doc); every result carries the run's trace from the store.
     ``on_result`` is called as each one ends (so an interrupted benchmark keeps what it ran). ``episode_ids``:
     one per job (default: fresh ids)."""
-    from eqa.app.task_cores import task_start
     from eqa.launcher import PIPELINE, Fleet
     from eqa.store import open_store, task_trace_key
+    from eqa_app.task_cores import task_start
 
     if not jobs:
         return []
@@ -327,7 +327,7 @@ def traces_path(out_dir: Path, tag: str, seed: int) -> Path:
 
 def load_traces(path: Path) -> list[TaskResult]:
     """The runs of an exported traces file with their metrics replayed from the traces
-    (:func:`eqa.app.task_traces.replay_metrics`; runs without a trace keep the metrics they ended with).
+    (:func:`eqa_app.task_traces.replay_metrics`; runs without a trace keep the metrics they ended with).
     Raises :class:`TraceError` naming the line of a malformed entry."""
     import gzip
 
@@ -355,8 +355,8 @@ def failure_table(kind: str, results: list[TaskResult], variants: tuple[str, ...
 
 
 def cmd(args: argparse.Namespace) -> int:
-    from eqa.app.cli import UsageError, check_scorer, load_settings
     from eqa.service import setup_logging
+    from eqa_app.cli import UsageError, check_scorer, load_settings
     from services.sim.tasks import task_benchmark
 
     settings = load_settings()
@@ -421,7 +421,7 @@ def cmd(args: argparse.Namespace) -> int:
                 done[r.key()] = r
 
             if not args.summary_only and args.runner == "cores":
-                from eqa.app.task_cores import run_tasks_cores
+                from eqa_app.task_cores import run_tasks_cores
 
                 run_tasks_cores(settings, jobs, progress=not args.no_progress, on_result=keep)
             elif not args.summary_only:
@@ -448,7 +448,7 @@ def cmd(args: argparse.Namespace) -> int:
     detector = "ground-truth detections" if gt else "simulated detector, not a real detector"
     title = f"{tag}, seeds {'+'.join(map(str, args.seeds))}, n = {last['table']['n']} tasks; {detector}"
     plot(kind, last["table"], title, out_dir / f"{tag}.png")
-    from eqa.app.plots import plot_failures
+    from eqa_app.plots import plot_failures
 
     causes = PICK_PLACE_CAUSES if kind == "pick_place" else FIND_CAUSES
     lim = limits[-1] if None not in limits else None
@@ -486,7 +486,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                        help="cap on each task's step budget (default: the task's own, 6*sqrt(floor area))")
         p.add_argument("--runner", choices=("fleet", "cores"), default="fleet",
                        help="fleet: every service as its own process over Zenoh (default); cores: the services' "
-                            "step functions in this process, one episode after the other (eqa.app.task_cores: the "
+                            "step functions in this process, one episode after the other (eqa_app.task_cores: the "
                             "same trace for the same episode id, several times cheaper)")
         p.add_argument("--robots", type=int, default=2, help="simulated robots run in parallel (default 2)")
         p.add_argument("--scorers", type=int, default=1, help="scorer replicas (default 1)")

@@ -1,12 +1,12 @@
 """Task episodes with the services' pure cores in one process (``eqa bench ovmm|objectnav --runner cores``).
 
-A task episode through the fleet (:func:`eqa.app.task_bench.run_tasks`) costs minutes on the shared 2-core
+A task episode through the fleet (:func:`eqa_app.task_bench.run_tasks`) costs minutes on the shared 2-core
 machine: five processes, the bus, per-step map snapshots in the store. :func:`run_task_episode` calls the same
-step functions the services call, in the services' order, in one process, as :mod:`eqa.app.core_runner` does for
+step functions the services call, in the services' order, in one process, as :mod:`eqa_app.core_runner` does for
 questions:
 
 * simulator (``services.sim.service`` ``on_goal`` / ``_emit``): the goal check
-  (:func:`eqa.app.core_runner.goal_refusal`), the move, the frame rendered at the goal with a held object
+  (:func:`eqa_app.core_runner.goal_refusal`), the move, the frame rendered at the goal with a held object
   hidden, :meth:`services.sim.task_runner.SimTask.after_goal` (the motion's collisions, then the skill; the
   frame rendered again after a successful pick), ``observe`` (FindObj / FindRec) and the trace entry;
 * mapper (``services.mapper.service`` ``on_frame``): :meth:`EpisodeMap.integrate`, the frame's detections and
@@ -37,8 +37,8 @@ from typing import TYPE_CHECKING, Any
 from eqa.messages import EpisodeStart, Goal, Question, StopConfig, Task
 
 if TYPE_CHECKING:
-    from eqa.app.task_results import TaskResult
     from eqa.settings import Settings
+    from eqa_app.task_results import TaskResult
 
 log = logging.getLogger(__name__)
 
@@ -211,7 +211,7 @@ def plan_task_step(planner: Any, scene: Any, update: Any, memory: Any, params: A
     again from its state before the step while the simulator refuses it
     (:func:`services.planner.refusals.plan_until_accepted`); the policy's own turn in place (or done) is
     published without task fields."""
-    from eqa.app.core_runner import goal_refusal
+    from eqa_app.core_runner import goal_refusal
     from services.planner.refusals import Refusals, plan_until_accepted
     from services.planner.sampling import step_rng
 
@@ -246,9 +246,9 @@ def cores_episode_id(task_id: str, max_steps: int) -> str:
 def run_tasks_cores(settings: Settings, jobs: list[Any], progress: bool = True,
                     on_result: Any = None, episode_ids: list[str] | None = None) -> list[TaskResult]:
     """Run ``(task, variant, max_steps, pick_limit)`` jobs in process, one after the other (the same contract
-    as :func:`eqa.app.task_bench.run_tasks`). ``episode_ids``: one per job (default: :func:`cores_episode_id`, so a
+    as :func:`eqa_app.task_bench.run_tasks`). ``episode_ids``: one per job (default: :func:`cores_episode_id`, so a
     run of the same job gives the same trace)."""
-    from eqa.app.task_results import TaskResult, task_seed
+    from eqa_app.task_results import TaskResult, task_seed
 
     out: list[TaskResult] = []
     cores = TaskCores.from_settings(settings)

@@ -20,7 +20,7 @@ step, never LSV / GSV, so the robot's path is the same at every level. This tool
 Operating points are chosen on the tuning seed (:data:`eqa.seeds.TUNING_SEED`) and evaluated on the evaluation
 seeds (:data:`eqa.seeds.EVALUATION_SEEDS`), pooled and per seed, with paired comparisons on the same episodes.
 
-    python -m eqa.app.stop_sensitivity record --seeds 11 1 2 3 --limit 90   # once (minutes)
+    python -m eqa_app.stop_sensitivity record --seeds 11 1 2 3 --limit 90   # once (minutes)
 """
 
 from __future__ import annotations
@@ -36,9 +36,9 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
-from eqa.app.core_runner import StepHooks
-from eqa.app.evaluation import bootstrap_indices, bootstrap_mean_ci, sign_test_p, wilson_ci
 from eqa.seeds import EVALUATION_SEEDS
+from eqa_app.core_runner import StepHooks
+from eqa_app.evaluation import bootstrap_indices, bootstrap_mean_ci, sign_test_p, wilson_ci
 
 log = logging.getLogger("stop_sensitivity")
 
@@ -77,7 +77,7 @@ def benchmark_questions(seed: int, split: str, limit: int | None, scenes_dir: An
 
 
 class _Perceptions(StepHooks):
-    """The per-step record of :func:`run_episode` (a :class:`eqa.app.core_runner.StepHooks`): what the oracle
+    """The per-step record of :func:`run_episode` (a :class:`eqa_app.core_runner.StepHooks`): what the oracle
     perceived, and with strategy ``cp_guided`` the stopper's decision steering the planner."""
 
     def __init__(self, oracle: Any, target: Any, stopper: Any = None) -> None:
@@ -105,15 +105,15 @@ class _Perceptions(StepHooks):
 
 
 def run_episode(args: tuple[Any, ...]) -> PerceptionEpisode:
-    """One full-length episode with the pure cores in this process (:func:`eqa.app.core_runner.run_episode_loop`).
+    """One full-length episode with the pure cores in this process (:func:`eqa_app.core_runner.run_episode_loop`).
 
     ``args`` = (question, strategy, width, height[, q_hat]): with strategy ``cp_guided`` the stopper's decision
     (:func:`services.stopper.state.decide` with ``q_hat``) is taken every step, as the planner service receives
     it, the frontier weights are re-tempered by its prediction set, and the episode ends when CP stops."""
-    from eqa.app.benchmark_runner import question_seed
-    from eqa.app.core_runner import EpisodeCores, run_episode_loop
     from eqa.messages import EpisodeStart
     from eqa.settings import Settings
+    from eqa_app.benchmark_runner import question_seed
+    from eqa_app.core_runner import EpisodeCores, run_episode_loop
     from services.mapper.episode_map import EpisodeMap
     from services.planner.step import PlannerParams
     from services.sim.render import Renderer

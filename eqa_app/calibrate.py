@@ -3,7 +3,7 @@
 Two ways to get the calibration traces (per-step answer distributions and relevance of full-length
 episodes, rule ``max_steps``):
 
-* run the episodes of a benchmark split through the services (``eqa.app.benchmark_runner.collect_traces``), or
+* run the episodes of a benchmark split through the services (``eqa_app.benchmark_runner.collect_traces``), or
 * ``--from-traces FILE.jsonl``: one :class:`services.stopper.calibration.Trace` JSON per line, nothing run.
 
 Either way each trace is stored in the trace set (``--set-name``) as soon as it exists, and questions whose
@@ -21,7 +21,7 @@ Beyond the paper:
   the table? (:mod:`services.stopper.exchangeability`: rank test and coverage test.) Prints ``STALE`` and exits
   with status 3 when they do not - the case of a scorer pointed at another model.
 
-Standalone: ``python -m eqa.app.calibrate calibrate --help``.
+Standalone: ``python -m eqa_app.calibrate calibrate --help``.
 """
 
 from __future__ import annotations
@@ -167,7 +167,7 @@ def _load_questions(args: argparse.Namespace, settings: Settings) -> list[Questi
 def _run_missing(
     args: argparse.Namespace, settings: Settings, ts: TraceStore, set_name: str, questions: list[Question]
 ) -> None:
-    """Run the episodes of the questions without a stored trace (``eqa.app.benchmark_runner.collect_traces``)."""
+    """Run the episodes of the questions without a stored trace (``eqa_app.benchmark_runner.collect_traces``)."""
     missing = [q for q in questions if not ts.has(set_name, q.id)]
     log.info(
         "%d of %d questions already have a trace in %s",
@@ -177,7 +177,7 @@ def _run_missing(
     )
     if not missing:
         return
-    from eqa.app.benchmark_runner import collect_traces  # checked in run_calibrate
+    from eqa_app.benchmark_runner import collect_traces  # checked in run_calibrate
 
     with _bar(len(questions), f"calibration episodes ({set_name})", args.no_progress) as bar:
         bar.update(len(questions) - len(missing))
@@ -238,7 +238,7 @@ def run_calibrate(args: argparse.Namespace, settings: Settings, store: Store) ->
         ids = _import_traces(ts, set_name, path, args.limit, args.no_progress)
         provenance.update(source="traces file", file=str(path))
     else:
-        from eqa.app.bench_cli import set_name as bench_set_name
+        from eqa_app.bench_cli import set_name as bench_set_name
 
         # The same trace set as `eqa bench` (strategy, scorer, image size): calibration reuses benchmark runs.
         set_name = args.set_name or bench_set_name(args.strategy, settings)
@@ -380,7 +380,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 def main(argv: list[str] | None = None) -> int:
     from eqa.service import setup_logging
 
-    parser = argparse.ArgumentParser(prog="python -m eqa.app.calibrate")
+    parser = argparse.ArgumentParser(prog="python -m eqa_app.calibrate")
     sub = parser.add_subparsers(dest="command", required=True)
     register(sub)
     args = parser.parse_args(argv)

@@ -60,7 +60,7 @@ def _pick_limit(text: str) -> int | None:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    from eqa.app.ask import add_episode_run_options, parse_pose
+    from eqa_app.ask import add_episode_run_options, parse_pose
 
     p = subparsers.add_parser(
         "task", help="run one pick-and-place or object-search task end to end (HELIOS) and print each phase",
@@ -85,8 +85,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _body(args: argparse.Namespace, scenes_dir: Path) -> dict[str, Any]:
-    from eqa.app.ask import AskError
     from eqa.instructions import InstructionError, parse_instruction
+    from eqa_app.ask import AskError
 
     instruction, scene, pose = args.instruction, args.scene, args.pose
     if instruction is None:
@@ -108,9 +108,9 @@ def _body(args: argparse.Namespace, scenes_dir: Path) -> dict[str, Any]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from eqa.app.ask import AskError, _with_fleet, check_scene, follow
-    from eqa.app.cli import UsageError, check_scorer, load_settings
     from eqa.service import setup_logging
+    from eqa_app.ask import AskError, _with_fleet, check_scene, follow
+    from eqa_app.cli import UsageError, check_scorer, load_settings
 
     settings = load_settings()
     if args.url is None:

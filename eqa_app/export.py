@@ -14,8 +14,8 @@ from pathlib import Path
 
 def cmd_export(args: argparse.Namespace) -> int:
     from eqa import keys
-    from eqa.app.cli import UsageError, load_settings
     from eqa.store import open_store, unavailable_errors
+    from eqa_app.cli import UsageError, load_settings
     from gateway import mcap_export, recordings
     from gateway.manager import ev_key
 

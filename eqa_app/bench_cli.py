@@ -39,7 +39,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from eqa.app.bench_common import _quantile_defined, _settings, scorer_label
+from eqa_app.bench_common import _quantile_defined, _settings, scorer_label
 
 log = logging.getLogger(__name__)
 
@@ -155,8 +155,8 @@ def _collect(questions: list[Any], settings: Any, strategy: str, name: str, args
     or run (resumable); the set is exported back to that file so a fresh checkout can reuse the runs."""
     from tqdm import tqdm
 
-    from eqa.app.benchmark_runner import collect_traces
     from eqa.store import open_store
+    from eqa_app.benchmark_runner import collect_traces
     from services.stopper.calibration import TraceStore
 
     export = trace_file(Path(args.out) / "traces", name)
@@ -195,12 +195,12 @@ def _collect(questions: list[Any], settings: Any, strategy: str, name: str, args
 
 
 def _collect_cores(questions: list[Any], settings: Any, strategy: str, name: str, workers: int) -> Any:
-    """Run the questions without a stored trace in ``name`` with the pure cores (:mod:`eqa.app.core_runner`),
+    """Run the questions without a stored trace in ``name`` with the pure cores (:mod:`eqa_app.core_runner`),
     ``workers`` processes; store and yield each trace as it finishes."""
     from concurrent.futures import ProcessPoolExecutor, as_completed
 
-    from eqa.app.core_runner import core_episode
     from eqa.store import open_store
+    from eqa_app.core_runner import core_episode
     from services.stopper.calibration import TraceStore
 
     with open_store(settings) as store:
@@ -217,7 +217,7 @@ def _collect_cores(questions: list[Any], settings: Any, strategy: str, name: str
                 traces.save(name, trace)
                 yield trace
         finally:
-            # on Ctrl-C / SIGTERM (KeyboardInterrupt, eqa.app.cli) drop the queued episodes: a plain `with` waited
+            # on Ctrl-C / SIGTERM (KeyboardInterrupt, eqa_app.cli) drop the queued episodes: a plain `with` waited
             # for every one of them before the command could exit; the stored traces are resumed next time
             pool.shutdown(wait=True, cancel_futures=True)
 
@@ -243,15 +243,15 @@ def _summary(traces: list[Any], ev: Any) -> dict[str, Any]:
 
 
 def cmd_explore(args: argparse.Namespace) -> int:
-    from eqa.app import evaluation as ev
     from eqa.seeds import seed_role
     from eqa.service import setup_logging
+    from eqa_app import evaluation as ev
 
     settings = _settings(args)
     setup_logging(settings.log_level, "eqa-bench")
     logging.getLogger("eqa.launcher").setLevel(logging.WARNING)
     if len(args.traces) > 16:
-        from eqa.app.cli import UsageError
+        from eqa_app.cli import UsageError
 
         raise UsageError("--traces takes at most 16 directories")
     seeds = list(dict.fromkeys(args.seeds))
@@ -333,7 +333,7 @@ def cmd_explore(args: argparse.Namespace) -> int:
     if args.ceiling:
         results["ceiling"] = _ceiling(questions, settings, out, sizes)
     (out / "explore.json").write_text(json.dumps(results, indent=2))
-    from eqa.app.plots import plot_explore
+    from eqa_app.plots import plot_explore
 
     paths = plot_explore(results, out)
     _print_explore(results)
@@ -342,10 +342,10 @@ def cmd_explore(args: argparse.Namespace) -> int:
 
 
 def _ceiling(questions: dict[int, list[Any]], settings: Any, out: Path, sizes: dict[str, str]) -> dict[str, Any]:
-    """The evidence ceiling of the questions (:mod:`eqa.app.ceiling`): per question the earliest normalised step
+    """The evidence ceiling of the questions (:mod:`eqa_app.ceiling`): per question the earliest normalised step
     at which the evidence can be perceived, kept in ``<out>/ceiling.json`` (computed again only for questions it
     lacks); pooled, per seed, per category and per house-size class, the share within each CDF budget."""
-    from eqa.app.ceiling import Ceiling, benchmark_ceilings, ceiling_cdf
+    from eqa_app.ceiling import Ceiling, benchmark_ceilings, ceiling_cdf
 
     path = out / "ceiling.json"
     stored: dict[str, Any] = json.loads(path.read_text()) if path.is_file() else {}
@@ -427,12 +427,12 @@ def _print_explore(results: dict[str, Any]) -> None:
 
 
 def cmd_stop(args: argparse.Namespace) -> int:
-    from eqa.app import evaluation as ev
     from eqa.service import setup_logging
+    from eqa_app import evaluation as ev
 
     if args.miscalibration or args.cp_guided:  # from perceptions recorded in-process
-        from eqa.app import stop_sensitivity as sens
         from eqa.settings import Settings
+        from eqa_app import stop_sensitivity as sens
 
         settings = Settings()
 
@@ -471,7 +471,7 @@ def cmd_stop(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "stop.json").write_text(json.dumps(results, indent=2))
-    from eqa.app.plots import plot_stop
+    from eqa_app.plots import plot_stop
 
     path = plot_stop(results, out)
     print(f"stopping rules on {len(test)} test episodes, calibrated on {len(cal)} ({results['scorer']})")
@@ -501,7 +501,7 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--runner", choices=("fleet", "cores"), default="fleet",
                    help="fleet (default): every service as its own process over Zenoh; cores: the services' step "
-                        "functions in-process (eqa/app/core_runner.py), several times less CPU, same seeds; its "
+                        "functions in-process (eqa_app/core_runner.py), several times less CPU, same seeds; its "
                         "trace sets are kept apart (name suffix -cores) and the results say which runner")
     p.add_argument("--workers", type=int, default=2, help="processes of the cores runner (default 2)")
 
@@ -525,7 +525,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="also pair every run with these (each run against it, as against fbe), e.g. --versus gain "
                         "to compare a yardstick with the rule it runs")
     e.add_argument("--ceiling", action="store_true",
-                   help="also compute the evidence ceiling (eqa/app/ceiling.py): the share of questions whose evidence "
+                   help="also compute the evidence ceiling (eqa_app/ceiling.py): the share of questions whose evidence "
                         "can be perceived at all within each budget (ground truth, kept in <--out>/ceiling.json)")
     e.add_argument("--traces", nargs="*", default=[], metavar="DIR",
                    help="also import stored trace sets from these directories (e.g. bench/results/explore-seeds/"
@@ -564,9 +564,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="compare the cp_guided strategy with semantic instead: steps to a single-answer CP set and "
                         "success at eps 0.2 on the evaluation seeds' test splits (simulated perception model)")
     s.set_defaults(func=cmd_stop)
-    from eqa.app import task_bench  # HELIOS Tables 1, 2
+    from eqa_app import task_bench  # HELIOS Tables 1, 2
 
     task_bench.register(sub)
-    from eqa.app import home_bench  # questions in a known house: cold vs warm
+    from eqa_app import home_bench  # questions in a known house: cold vs warm
 
     home_bench.register(sub)

@@ -5,8 +5,8 @@ drift: ``tests/kernel/test_config_doc.py`` regenerates it and compares. Sections
 of the settings groups (a group's docstring says what it is for); a setting's text is its ``description=``,
 else the comment on its line or the comment block right above it.
 
-    python -m eqa.app.config_doc > docs/configuration.md     # regenerate
-    python -m eqa.app.config_doc --check docs/configuration.md   # exit 1 when the page is stale
+    python -m eqa_app.config_doc > docs/configuration.md     # regenerate
+    python -m eqa_app.config_doc --check docs/configuration.md   # exit 1 when the page is stale
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from typing import Any
 from pydantic.fields import FieldInfo
 from pydantic_core import PydanticUndefined
 
-REGENERATE = "python -m eqa.app.config_doc > docs/configuration.md"
+REGENERATE = "python -m eqa_app.config_doc > docs/configuration.md"
 SECTION = re.compile(r"^\s*#\s*---\s*(.+?)\s*---\s*$")
 # references to the project's tracker are history, not documentation: kept out of the page
 TRACKER_REF = re.compile(r"(?:[\w/ -]+=\s*)?\bissues?\s+#?\d+(?:\s+item\s+\d+)?(?:\s*\(\w+\))?", re.IGNORECASE)
@@ -216,7 +216,7 @@ def _anchor(title: str) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
-        prog="python -m eqa.app.config_doc",
+        prog="python -m eqa_app.config_doc",
         description="Print docs/configuration.md, generated from eqa/settings.py; --check FILE compares instead.",
     )
     p.add_argument("--check", type=Path, metavar="FILE", help="exit 1 (with the command to run) when FILE is stale")

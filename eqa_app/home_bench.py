@@ -6,12 +6,12 @@ Per benchmark seed, house ``i`` of the seed's generated houses (``gen-{seed*1000
 houses ``0 .. --cal-houses - 1`` are the seed's calibration houses, the next ``--test-houses`` its test houses.
 
 Every episode runs full length with the services' step functions in one process
-(:func:`eqa.app.core_runner.run_episode_loop`, the ``cores`` runner of ``eqa bench``), so its trace serves both
+(:func:`eqa_app.core_runner.run_episode_loop`, the ``cores`` runner of ``eqa bench``), so its trace serves both
 calibration and the coverage check; the *home* of a warm sequence is written back at the step where the
 stopper's own rule (:func:`services.stopper.state.decide`, CP at ``--eps``) stops it, through the mapper's
 :class:`~services.mapper.home_shell.HomeMemory` on a store of its own: the next question sees what the robot had
 seen when it answered, not what a full-length run saw. Steps to stop and success are the stopper's replay of
-each trace (:func:`eqa.app.evaluation.replay`, memory steps included and not counted as steps).
+each trace (:func:`eqa_app.evaluation.replay`, memory steps included and not counted as steps).
 
 Passes (each episode's result is a JSON file under ``--out/runs``; a run again skips those that exist):
 
@@ -48,7 +48,7 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
 
-from eqa.app.core_runner import StepHooks
+from eqa_app.core_runner import StepHooks
 
 log = logging.getLogger(__name__)
 
@@ -158,11 +158,11 @@ class _Warm(StepHooks):
 
 def run_house(args: tuple[int, int, int, str, float, float | None, dict[str, Any], str, int]) -> list[dict[str, Any]]:
     """The warm sequence of one house: per question its trace (memory steps first) and the home after it."""
-    from eqa.app.benchmark_runner import question_seed
-    from eqa.app.core_runner import EpisodeCores, run_episode_loop
     from eqa.messages import EpisodeStart, StopConfig
     from eqa.settings import Settings
     from eqa.store import EmbeddedStore
+    from eqa_app.benchmark_runner import question_seed
+    from eqa_app.core_runner import EpisodeCores, run_episode_loop
     from services.mapper.episode_map import EpisodeMap, MapperConfig
     from services.mapper.home_shell import HomeMemory
     from services.planner.step import PlannerParams
@@ -224,7 +224,7 @@ def run_house(args: tuple[int, int, int, str, float, float | None, dict[str, Any
 
 
 def run_cold(args: tuple[Any, str, dict[str, Any]]) -> dict[str, Any]:
-    from eqa.app.core_runner import core_episode
+    from eqa_app.core_runner import core_episode
 
     return core_episode(args).model_dump(mode="json")
 
@@ -255,7 +255,7 @@ def _run_all(fn: Any, jobs: list[Any], paths: list[Path], workers: int) -> None:
 
 def _table(traces: list[Any], grid: tuple[float, ...], name: str, eps: float) -> Any:
     """The CP table of ``traces`` at the eps of ``grid`` (and ``eps``) whose quantile ``traces`` define."""
-    from eqa.app.bench_common import _quantile_defined
+    from eqa_app.bench_common import _quantile_defined
     from services.stopper.calibration import calibrate
 
     usable = sorted({e for e in (*grid, eps) if _quantile_defined(len(traces), e)})
@@ -266,9 +266,9 @@ def _table(traces: list[Any], grid: tuple[float, ...], name: str, eps: float) ->
 
 
 def run(args: argparse.Namespace, settings: Any) -> dict[str, Any]:
-    from eqa.app import evaluation as ev
     from eqa.messages import StopConfig
     from eqa.seeds import seed_role
+    from eqa_app import evaluation as ev
     from services.stopper.calibration import Trace
 
     out = Path(args.out)
@@ -371,7 +371,7 @@ def wrong_singleton(prediction_set: Any, answer: str) -> bool:
 def singletons(sel: list[dict[str, Any]]) -> dict[str, Any]:
     """Wrong-singleton rates (:func:`wrong_singleton`), warm vs cold on the same questions: Wilson intervals, the
     paired sign test over the questions where only one of them is a wrong singleton, the difference's interval."""
-    from eqa.app import evaluation as ev
+    from eqa_app import evaluation as ev
 
     n = len(sel)
     if n == 0:
@@ -395,7 +395,7 @@ def paired(sel: list[dict[str, Any]]) -> dict[str, Any]:
     steps, success rates with Wilson intervals and the paired sign test on success."""
     import numpy as np
 
-    from eqa.app import evaluation as ev
+    from eqa_app import evaluation as ev
 
     n = len(sel)
     if n == 0:
@@ -426,9 +426,9 @@ def summarise(rows: list[dict[str, Any]], args: argparse.Namespace, settings: An
               warm_traces: list[Any]) -> dict[str, Any]:
     import numpy as np
 
-    from eqa.app import evaluation as ev
-    from eqa.app.bench_common import scorer_label
     from eqa.messages import letters
+    from eqa_app import evaluation as ev
+    from eqa_app.bench_common import scorer_label
     from services.stopper.conformal import relevance_weighted_confidence, sequence_set
 
     per_position = {str(p): paired([r for r in rows if r["position"] == p])
@@ -487,15 +487,15 @@ def task_budget(task: Any, cap: int | None) -> int:
 
 def run_task_house(args: tuple[int, int, bool, dict[str, Any], int | None, bool]) -> list[dict[str, Any]]:
     """The tasks of one task house (:func:`services.sim.tasks.house_tasks`, in order) run one after the other in
-    process (:func:`eqa.app.task_cores.run_task_episode`, the ``helios`` agent), each cold (no home) or warm (all
+    process (:func:`eqa_app.task_cores.run_task_episode`, the ``helios`` agent), each cold (no home) or warm (all
     in one home, on a store of its own, through the mapper's :class:`~services.mapper.home_shell.HomeMemory`).
     A task's episode id and seed are the same cold and warm, so both meet the same simulated detector draws. With
     ``repeat`` the house's object search is asked once more at the end (an episode id of its own: other detector
     draws than its first run), the case of a task asking for what an earlier one searched."""
-    from eqa.app.task_cores import TaskCores, cores_episode_id, run_task_episode, task_start
-    from eqa.app.task_results import task_seed
     from eqa.settings import Settings
     from eqa.store import EmbeddedStore
+    from eqa_app.task_cores import TaskCores, cores_episode_id, run_task_episode, task_start
+    from eqa_app.task_results import task_seed
     from services.mapper.home_shell import HomeMemory
     from services.sim.tasks import house_tasks
 
@@ -590,7 +590,7 @@ def run_tasks(args: argparse.Namespace, settings: Any) -> dict[str, Any]:
 def metric_pairs(sel: list[dict[str, Any]], metric: str) -> dict[str, Any]:
     """One task metric warm vs cold on the same tasks (those that have it): rates with Wilson intervals and the
     paired sign test."""
-    from eqa.app import evaluation as ev
+    from eqa_app import evaluation as ev
 
     have = [r for r in sel if f"cold_{metric}" in r]
     n = len(have)
@@ -607,7 +607,7 @@ def metric_pairs(sel: list[dict[str, Any]], metric: str) -> dict[str, Any]:
 
 
 def summarise_tasks(rows: list[dict[str, Any]], args: argparse.Namespace, settings: Any) -> dict[str, Any]:
-    from eqa.app.bench_common import scorer_label
+    from eqa_app.bench_common import scorer_label
 
     later = [r for r in rows if r["position"] > 1 and not r.get("again")]  # (--repeat: the repeat is apart)
     return {
@@ -693,9 +693,9 @@ def print_results(res: dict[str, Any]) -> None:
 
 
 def cmd_home(args: argparse.Namespace) -> int:
-    from eqa.app.bench_common import _settings
-    from eqa.app.cli import UsageError
     from eqa.service import setup_logging
+    from eqa_app.bench_common import _settings
+    from eqa_app.cli import UsageError
     from services.sim.changes import MAX_ROUNDS
 
     if not (1 <= args.cal_houses <= 100 and 1 <= args.test_houses <= 100 and 1 <= args.questions <= 10):
