@@ -140,7 +140,7 @@ class _Warm(StepHooks):
         from eqa.messages import StepScores
         from services.stopper.state import decide
 
-        self.memory.observe(self.emap, frame)
+        self.memory.offer_view(self.emap, frame)
         mem = self.memory.warm(self.emap, frame) if step == 0 else []
         if step == 0:
             self.memory_steps = len(mem)
@@ -153,7 +153,7 @@ class _Warm(StepHooks):
                                                memory=mem, step_limit=limit))
             if d is not None and d.stop:
                 self.stop_step = step
-                self.committed = self.memory.finish(self.emap)  # the home as the robot had it when it answered
+                self.committed = self.memory.commit(self.emap)  # the home as the robot had it when it answered
 
 
 def run_house(args: tuple[int, int, int, str, float, float | None, dict[str, Any], str, int]) -> list[dict[str, Any]]:
@@ -206,7 +206,7 @@ def run_house(args: tuple[int, int, int, str, float, float | None, dict[str, Any
                                                                     settings.sim_width, settings.sim_height),
                                           episode_id=start.episode_id, seed=qseed, hooks=hooks)
                 if hooks.stop_step is None:
-                    hooks.committed = memory.finish(emap)
+                    hooks.committed = memory.commit(emap)
                 # a warm budget (EQA_HOME_WARM_BUDGET) is the trace's max_steps: what the episode could have run
                 limit = record.max_steps
                 trace = Trace(question_id=q.id, scene=q.scene, category=q.category, choices=q.choices, answer=q.answer,

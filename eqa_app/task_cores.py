@@ -177,7 +177,7 @@ def run_task_episode(cores: TaskCores, start: EpisodeStart,
         # mapper
         emap.integrate(frame)
         if home is not None:
-            home.observe(emap, frame)
+            home.offer_view(emap, frame)
             if step == 0:
                 home.warm_objects(emap, om, frame, lambda: detect)
         det, val = ask_objects(om, emap, frame, detect, values)
@@ -201,7 +201,7 @@ def run_task_episode(cores: TaskCores, start: EpisodeStart,
         memory = plan.memory
         before, pose = pose, goal.pose
     if home is not None:
-        home.finish(emap, om)
+        home.commit(emap, om)
     return "stopped", reason, sim.metrics(), sim.episode.trace_doc()
 
 

@@ -128,21 +128,12 @@ class AnswerViewsExtension(MapperExtension):
         return (self.context.settings.answer_memory_mode == "joint" and start.task is None
                 and len(start.question.choices) >= 2)
 
-    def start(self, start: EpisodeStart) -> list[str]:
-        if self._wanted(start):
-            k = self.context.settings.answer_memory_views
-            self.memories[start.episode_id] = AnswerViews(k)
-            log.info("episode %s: joint answer memory over the %d most relevant views", start.episode_id, k)
-        return []
+    def _new_memory(self, start: EpisodeStart) -> None:
+        k = self.context.settings.answer_memory_views
+        self.memories[start.episode_id] = AnswerViews(k)
+        log.info("episode %s: joint answer memory over the %d most relevant views", start.episode_id, k)
 
-    def finish(self, episode_id: str) -> None:
-        self.memories.pop(episode_id, None)
-
-    def dump(self, episode_id: str) -> dict[str, Any] | None:
-        memory = self.memories.get(episode_id)
-        return None if memory is None else memory.snapshot()
-
-    def restore(self, episode_map: EpisodeMap, part: Any | None) -> None:
+    def begin(self, episode_map: EpisodeMap, part: Any | None, restored: bool) -> None:
         start = episode_map.start
         if not self._wanted(start):
             return
@@ -153,10 +144,17 @@ class AnswerViewsExtension(MapperExtension):
             except (ValueError, KeyError, TypeError) as exc:
                 log.warning("episode %s: stored answer views unusable (%s); starting an empty memory",
                             start.episode_id, exc)
-        self.start(start)
+        self._new_memory(start)
+
+    def finish(self, episode_map: EpisodeMap) -> None:
+        self.memories.pop(episode_map.episode_id, None)
+
+    def dump(self, episode_id: str) -> dict[str, Any] | None:
+        memory = self.memories.get(episode_id)
+        return None if memory is None else memory.snapshot()
 
     def scores(self, episode_map: EpisodeMap, frame: Frame, result: ScoreResult, out: StepOutputs,
-               timing: dict[str, float]) -> ScoreResult:
+               timing: dict[str, float], again: bool) -> ScoreResult:
         """The step's result with the joint answer when the memory is on (else ``result`` unchanged); the
         steps it comes from go to ``out``."""
         t0 = time.perf_counter()

@@ -105,6 +105,12 @@ class EpisodeMap:
     def layer(self, name: str = QUESTION_LAYER) -> np.ndarray:
         return self.volume.planes[f"value/{name}"]
 
+    def add_layer(self, name: str) -> None:
+        """One more semantic value layer (zeros), e.g. a task class's; a layer it has already is kept."""
+        if name not in self.layers:
+            self.layers.append(name)
+            self.volume.add_plane(f"value/{name}", 0.0, np.float32)
+
     # ---- one step --------------------------------------------------------------------------------------
     def integrate(self, frame: Frame, timer: Timer | None = None) -> Maps2D:
         """Validate and fuse a frame, mark the robot footprint, project to 2D and compute the prompt

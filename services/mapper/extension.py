@@ -7,34 +7,39 @@ own per-episode state, which it calls at fixed points of an episode and of each 
 =====================  =================================================================================
 hook                   when, and what it may do
 =====================  =================================================================================
-``start``              a new episode: set up the episode's state; returns the extra value layers it writes
-``submit``             a frame was integrated: send its own scorer-pool requests (a future), answered
-                       while the mapper computes the frontier candidates and waits for the step's scores
-``scores``             the step's :class:`~eqa.messages.ScoreResult` came back: return it, changed or not
+``begin``              the episode's map is ready: a new episode (``restored`` False: set up its state, add
+                       the value layers it writes) or one taken up from the store (its stored ``part``)
+``observe``            a frame was integrated: work that must be done before any extension's requests go out
+                       (the home's view memory re-scored at the first frame), outputs into :class:`StepOutputs`
+``submit``             then: send its own scorer-pool requests (a future), answered while the mapper computes
+                       the frontier candidates and waits for the step's scores
+``scores``             the step's :class:`~eqa.messages.ScoreResult` came back (``again``: the frame of the last
+                       step came again, nothing is fused twice): return it, changed or not; fill outputs
 ``apply``              the semantic values are written: fuse the answers of ``submit``, fill the step's
                        :class:`StepOutputs` (the frontiers' value layer, the object evidence)
-``resent``             the frame of the last step came again: fill the :class:`StepOutputs` from the state
 ``attach``             the step's :class:`~eqa.messages.MapUpdate` is built: add to it
-``dump`` / ``restore`` its part of the episode's stored state (``state_key``; None: no part), and back
+``dump``               its part of the episode's stored state (``state_key``; None: no part)
 ``record``             the step is being recorded (rerun): log its own entities
-``finish`` / ``close`` the episode ended / the mapper stops
+``finish`` / ``close`` the episode ended (its map still whole) / the mapper stops
 =====================  =================================================================================
 
 Every hook has a default that does nothing, so an extension defines the ones it needs. The order of the
-list is the order of the calls and of the parts in the stored state (a bare map header when no extension
+list is the order of the calls (``finish`` in reverse: an extension may use the state of one before it in the
+list from its ``begin`` to its ``finish``) and of the parts in the stored state (a bare map header when no extension
 stores anything, else ``{"map": header, <state_key>: part, ...}``, :func:`services.mapper.snapshots.with_state_part`),
 so the stored bytes stay the same as long as the list does. An extension reaches the rest of the mapper only
 through its :class:`MapperContext`: the settings, the scorer pool's calls, the error stream.
 
-The three extensions: the HELIOS object layer of task episodes (:mod:`services.mapper.object_shell`), the
-object evidence of question episodes (:mod:`services.mapper.question_objects`) and the joint answer memory
-(:mod:`services.mapper.answer_views`).
+The four extensions: the HELIOS object layer of task episodes (:mod:`services.mapper.object_shell`), the
+object evidence of question episodes (:mod:`services.mapper.question_objects`), the joint answer memory
+(:mod:`services.mapper.answer_views`) and the home memory (:mod:`services.mapper.home_shell`: the episode's map
+starts from its home's and is written back at the end; it reads the object layer's state, so it comes after it).
 
 To add one: a class that subclasses :class:`MapperExtension` (explicitly, for the defaults) in its own module,
 with a ``state_key`` no other extension uses and the hooks it needs, built from the
 :class:`MapperContext` in :meth:`MapperService.__init__ <services.mapper.service.MapperService>` and appended
 to ``extensions`` there. Appending keeps every existing stored state readable (its part is simply absent: the
-``restore`` hook gets None); a stored part of an extension a mapper does not have is left aside on restore.
+``begin`` hook gets None); a stored part of an extension a mapper does not have is left aside on restore.
 An output that goes into a message the mapper publishes gets a field in :class:`StepOutputs`.
 """
 
@@ -49,7 +54,6 @@ from eqa.bus import Bus
 from eqa.messages import (
     DetectRequest,
     DetectResult,
-    EpisodeStart,
     ErrorReply,
     Frame,
     MapUpdate,
@@ -165,28 +169,28 @@ class MapperExtension(Protocol):
 
     state_key: ClassVar[str]  # its part of the episode's stored state
 
-    def start(self, start: EpisodeStart) -> list[str]:
-        """A new episode; the value layers it writes besides the question's (none by default)."""
-        return []
+    def begin(self, episode_map: EpisodeMap, part: Any | None, restored: bool) -> None:
+        """The episode's map is ready: a new episode (``restored`` False, ``part`` None; add the value layers it
+        writes with :meth:`EpisodeMap.add_layer`) or one taken up from the store (``part``: its stored part, None
+        when the state has none)."""
 
-    def restore(self, episode_map: EpisodeMap, part: Any | None) -> None:
-        """After a restart: continue from the stored ``part`` (None: the state has none)."""
+    def observe(self, robot: str, episode_map: EpisodeMap, frame: Frame, out: StepOutputs,
+                timing: dict[str, float]) -> None:
+        """The frame was integrated; runs before any extension's :meth:`submit`."""
 
     def submit(self, robot: str, episode_map: EpisodeMap, frame: Frame) -> Future[Any] | None:
-        """The frame was integrated: send the extension's own requests; their future goes to :meth:`apply`."""
+        """Send the extension's own requests for the frame; their future goes to :meth:`apply`."""
         return None
 
     def scores(self, episode_map: EpisodeMap, frame: Frame, result: ScoreResult, out: StepOutputs,
-               timing: dict[str, float]) -> ScoreResult:
-        """The step's scores (also of a step sent again); returns them, changed or not."""
+               timing: dict[str, float], again: bool) -> ScoreResult:
+        """The step's scores; ``again``: the last step's frame came again (fill ``out`` from the stored state,
+        fuse nothing twice). Returns the scores, changed or not."""
         return result
 
     def apply(self, robot: str, episode_map: EpisodeMap, frame: Frame, pending: Future[Any] | None, out: StepOutputs,
               timing: dict[str, float]) -> None:
         """After the semantic values: fuse what :meth:`submit` asked for, fill ``out``."""
-
-    def resent(self, episode_map: EpisodeMap, frame: Frame, out: StepOutputs) -> None:
-        """The last step's frame came again: fill ``out`` from the stored state (nothing is fused twice)."""
 
     def attach(self, episode_map: EpisodeMap, update: MapUpdate, frame: Frame) -> None:
         """Add to the step's map update."""
@@ -198,8 +202,8 @@ class MapperExtension(Protocol):
     def record(self, episode_map: EpisodeMap, frame: Frame, recorder: EpisodeRecorder) -> None:
         """Log the step's own entities to the episode's (active) recorder."""
 
-    def finish(self, episode_id: str) -> None:
-        """The episode ended: drop its state."""
+    def finish(self, episode_map: EpisodeMap) -> None:
+        """The episode ended: drop its state (its map is still whole)."""
 
     def close(self) -> None:
         """The mapper stops: stop the extension's workers."""

@@ -57,7 +57,8 @@ from eqa.budget import warm_step_limit
 from eqa.messages import DetectResult, EpisodeStart, ErrorReply, Frame, MemoryScore, ScoreRequest, ScoreResult
 from eqa.settings import Settings
 from eqa.store import Store
-from services.mapper import snapshots
+from services.mapper.episode_map import EpisodeMap
+from services.mapper.extension import MapperExtension, StepOutputs
 from services.mapper.home_memory import (
     CHANGE_VIEWS,
     MAX_CHANGES,
@@ -144,14 +145,24 @@ class EpisodeHome:
                 "changes": [c.to_json() for c in self.changes]}
 
 
-class HomeMemory:
-    """The home memory of the mapper's episodes (held by :class:`services.mapper.service.MapperService`)."""
+class HomeMemory(MapperExtension):
+    """The home memory of the mapper's episodes, the last of
+    :class:`services.mapper.service.MapperService`'s extensions (:mod:`services.mapper.extension`): it starts an
+    episode's map (and a task's object layer, ``objects``) from its home's at :meth:`begin`, re-scores the
+    remembered views at the first frame in :meth:`observe`, and commits the episode at :meth:`finish`, which
+    runs before the object layer drops its state."""
+
+    state_key = STATE_KEY
 
     def __init__(self, settings: Settings, store: Callable[[], Store],
-                 scorer: Callable[[], Callable[[ScoreRequest], Any]]) -> None:
+                 scorer: Callable[[], Callable[[ScoreRequest], Any]], *,
+                 objects: Callable[[str], ObjectMap | None] = lambda episode_id: None,
+                 detect: Callable[[], Callable[[Any], Any]] | None = None) -> None:
         self.settings = settings
         self._store = store  # the service's store, opened when first used
         self.scorer = scorer
+        self.objects = objects  # a task episode's object layer (the object layer extension's state)
+        self.detect = detect  # the pool's detector call (remembered views re-detected for a task)
         self.episodes: dict[str, EpisodeHome] = {}
         # the remembered views a running episode's frames are checked against for changes (read again from the
         # store after a restore: not part of the episode state)
@@ -161,6 +172,37 @@ class HomeMemory:
     @property
     def store(self) -> Store:
         return self._store()
+
+    # ---- the mapper's hooks (services.mapper.extension) ------------------------------------------------
+    def begin(self, episode_map: EpisodeMap, part: Any | None, restored: bool) -> None:
+        if restored:
+            self.restore(episode_map.episode_id, part)
+        else:
+            self.start(episode_map.start, episode_map, self.objects(episode_map.episode_id))
+
+    def observe(self, robot: str, episode_map: EpisodeMap, frame: Frame, out: StepOutputs,
+                timing: dict[str, float]) -> None:
+        """The frame is a candidate view of the home; at the first frame in a known home the remembered views are
+        re-scored for the question (or re-detected for a task's new classes) before the step's own requests."""
+        t0 = time.perf_counter()
+        self.offer_view(episode_map, frame)
+        out.memory = self.warm(episode_map, frame)
+        if frame.step == 0:
+            out.step_limit = self.step_limit(episode_map.episode_id)
+            if self.detect is not None:
+                self.warm_objects(episode_map, self.objects(episode_map.episode_id), frame, self.detect)
+        timing["home_warm"] = timing.get("home_warm", 0.0) + (time.perf_counter() - t0) * 1000.0
+
+    def scores(self, episode_map: EpisodeMap, frame: Frame, result: ScoreResult, out: StepOutputs,
+               timing: dict[str, float], again: bool) -> ScoreResult:
+        if again and frame.step == 0:  # the first step sent again carries its memory steps and budget again
+            out.memory = self.memory(episode_map.episode_id)
+            out.step_limit = self.step_limit(episode_map.episode_id)
+        return result
+
+    def finish(self, episode_map: EpisodeMap) -> None:
+        """The episode's map, views and object layer written back to its home."""
+        self.commit(episode_map, self.objects(episode_map.episode_id))
 
     # ---- reading a home ---------------------------------------------------------------------------------
     def _read(self, key: str, decode: Callable[[bytes], Any], home: str, what: str, level: int = logging.ERROR) -> Any:
@@ -192,7 +234,7 @@ class HomeMemory:
     def _pool(self, views: list[ViewInfo] | None = None) -> ViewPool:
         return ViewPool(self.settings.home_max_views, self.settings.home_max_bytes, views or [])
 
-    def start(self, start: EpisodeStart, em: Any, objects: ObjectMap | None = None) -> None:
+    def start(self, start: EpisodeStart, em: EpisodeMap, objects: ObjectMap | None = None) -> None:
         """An episode in a home starts from the home's map (``em`` is fresh); None home: nothing happens. A task
         episode's object layer ``objects`` (fresh) starts from the home's (:meth:`_start_objects`)."""
         if start.home is None:
@@ -257,7 +299,7 @@ class HomeMemory:
                  start.episode_id, ep.home, 0 if stored is None else len(stored), asked, len(ep.redetect_ids))
         return floor
 
-    def warm_objects(self, em: Any, objects: ObjectMap | None, frame: Frame, detect: Callable[[], Any]) -> int:
+    def warm_objects(self, em: EpisodeMap, objects: ObjectMap | None, frame: Frame, detect: Callable[[], Any]) -> int:
         """At a task's first frame (before its own detections): the remembered views re-detected for the task's
         classes through the scorer pool (``detect()``: its DetectRequest call; bounded, parallel, with a
         deadline, as :meth:`warm`) and fused into ``objects`` as frames are, except the pixels of classes the
@@ -315,7 +357,7 @@ class HomeMemory:
             out.append(fut.result())
         return out
 
-    def _covered_cells(self, home_map: HomeMap, em: Any) -> int:
+    def _covered_cells(self, home_map: HomeMap, em: EpisodeMap) -> int:
         """The floor cells ``A_e`` of the warm budget in the home map ``em`` just started from
         (``EQA_HOME_WARM_AREA``): those it observed inside the house, or those with an explored voxel."""
         if self.settings.home_warm_area == "explored":
@@ -334,7 +376,7 @@ class HomeMemory:
         ep = self.episodes.get(episode_id)
         return None if ep is None else ep.step_limit
 
-    def observe(self, em: Any, frame: Frame) -> None:
+    def offer_view(self, em: EpisodeMap, frame: Frame) -> None:
         """A frame just integrated: a candidate keyframe of the episode's pool (written when kept)."""
         ep = self.episodes.get(em.episode_id)
         if ep is None or self.settings.home_max_views == 0:
@@ -354,7 +396,7 @@ class HomeMemory:
         if evicted:
             self.store.delete_many([view_key(ep.home, v) for v in evicted])
 
-    def _check(self, ep: EpisodeHome, em: Any, current: Keyframe, views: list[Keyframe]) -> None:
+    def _check(self, ep: EpisodeHome, em: EpisodeMap, current: Keyframe, views: list[Keyframe]) -> None:
         """Record a change when ``current`` contradicts a remembered view that sees the same floor cells."""
         if self.settings.home_stale_weight >= 1.0:  # stale evidence not down-weighted: nothing to look for
             return
@@ -378,7 +420,7 @@ class HomeMemory:
         ep = self.episodes.get(episode_id)
         return [] if ep is None or ep.memory is None else list(ep.memory)
 
-    def warm(self, em: Any, frame: Frame) -> list[MemoryScore]:
+    def warm(self, em: EpisodeMap, frame: Frame) -> list[MemoryScore]:
         """At the episode's first frame (integrated, before its own scores are applied): re-score the remembered
         views for this question, write their semantic values, return the memory steps (oldest view first)."""
         ep = self.episodes.get(em.episode_id)
@@ -441,13 +483,9 @@ class HomeMemory:
         return list(out)
 
     # ---- persistence within the episode -----------------------------------------------------------------
-    def dump(self, episode_id: str, state: Any) -> Any:
+    def dump(self, episode_id: str) -> dict[str, Any] | None:
         ep = self.episodes.get(episode_id)
-        return state if ep is None else snapshots.with_state_part(state, STATE_KEY, ep.dump())
-
-    @staticmethod
-    def split(data: Any) -> tuple[Any, Any]:
-        return snapshots.without_state_part(data, STATE_KEY)
+        return None if ep is None else ep.dump()
 
     def restore(self, episode_id: str, part: Any) -> None:
         """The home part of a restored episode; its candidate views' cells are read back from their keyframes."""
@@ -473,7 +511,7 @@ class HomeMemory:
             changes=[ObservedChange.from_json(c) for c in part.get("changes", [])])
 
     # ---- the end: write the home back -------------------------------------------------------------------
-    def finish(self, em: Any, objects: ObjectMap | None = None) -> HomeIndex | None:
+    def commit(self, em: EpisodeMap, objects: ObjectMap | None = None) -> HomeIndex | None:
         """Commit the episode's map, views and (a task's) object layer ``objects`` to its home (see the module's
         doc); the new index."""
         ep = self.episodes.pop(em.episode_id, None)
@@ -486,7 +524,7 @@ class HomeMemory:
             if ep.objects_base:
                 self.store.delete(objects_base_key(ep.home, em.episode_id))
 
-    def _finish(self, ep: EpisodeHome, em: Any, objects: ObjectMap | None) -> HomeIndex | None:
+    def _finish(self, ep: EpisodeHome, em: EpisodeMap, objects: ObjectMap | None) -> HomeIndex | None:
         if em.step < 0:  # no frame integrated: nothing new to remember
             self.store.delete_many([view_key(ep.home, v.view_id) for v in ep.pool.views])
             return None
@@ -503,7 +541,7 @@ class HomeMemory:
                 return None
             return self._commit(ep, em, objects)
 
-    def _commit_objects(self, ep: EpisodeHome, em: Any, objects: ObjectMap | None, index: HomeIndex,
+    def _commit_objects(self, ep: EpisodeHome, em: EpisodeMap, objects: ObjectMap | None, index: HomeIndex,
                         budget: int) -> HomeObjects | None:
         """The home's object layer after the episode, within ``budget`` bytes (written by the caller): a task's
         own evidence, measured against the layer it started from, added to the layer stored now
@@ -532,7 +570,7 @@ class HomeMemory:
             out = out.bounded(len(out) // 2)
         return out if len(out.to_bytes()) <= budget else None
 
-    def _commit(self, ep: EpisodeHome, em: Any, objects: ObjectMap | None = None) -> HomeIndex:
+    def _commit(self, ep: EpisodeHome, em: EpisodeMap, objects: ObjectMap | None = None) -> HomeIndex:
         s = self.settings
         index = self.read_index(ep.home) or HomeIndex()
         mine = HomeMap.from_episode(em)

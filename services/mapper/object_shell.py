@@ -132,31 +132,26 @@ class ObjectLayerExtension(MapperExtension):
         return object_map_module().ObjectMap.for_task(start.task, self.context.objects_config,
                                                       single_frame=start.ablation == "trusting")
 
-    def start(self, start: EpisodeStart) -> list[str]:
-        """A task episode: its object map, and one value layer per task class."""
-        if start.task is None:
-            return []
-        self.maps[start.episode_id] = self._new_map(start)
-        classes, _ = object_map_module().task_classes(start.task, self.context.objects_config)
-        return [value_layer(c) for c in classes]
+    def begin(self, episode_map: EpisodeMap, part: Any | None, restored: bool) -> None:
+        """A task episode: its object map (the stored one when taken up from the store), and one value layer per
+        task class."""
+        start = episode_map.start
+        if part is not None:
+            self.maps[start.episode_id] = object_map_module().ObjectMap.restore(part, self.context.objects_config)
+        elif start.task is not None:
+            self.maps[start.episode_id] = self._new_map(start)
+        if start.task is not None and not restored:
+            classes, _ = object_map_module().task_classes(start.task, self.context.objects_config)
+            for c in classes:
+                episode_map.add_layer(value_layer(c))
 
-    def finish(self, episode_id: str) -> None:
-        self.maps.pop(episode_id, None)
-        self.last_objects.pop(episode_id, None)
+    def finish(self, episode_map: EpisodeMap) -> None:
+        self.maps.pop(episode_map.episode_id, None)
+        self.last_objects.pop(episode_map.episode_id, None)
 
     def dump(self, episode_id: str) -> bytes | None:
         objects = self.maps.get(episode_id)
         return None if objects is None else objects.snapshot()
-
-    def restore(self, episode_map: EpisodeMap, part: Any | None) -> None:
-        """The stored layer; a task episode stored without one starts a fresh layer. A task episode's map
-        gets the task map's configuration back (:func:`task_map_config`)."""
-        if episode_map.start.task is not None:
-            episode_map.config = task_map_config(episode_map.config)
-        if part is not None:
-            self.maps[episode_map.episode_id] = object_map_module().ObjectMap.restore(part, self.context.objects_config)
-        elif episode_map.start.task is not None:
-            self.maps[episode_map.episode_id] = self._new_map(episode_map.start)
 
     # ---- per frame --------------------------------------------------------------------------------------
     def submit(self, robot: str, episode_map: EpisodeMap, frame: Frame) -> Future[Any] | None:

@@ -42,6 +42,7 @@ from eqa.messages import (
     GridSpec,
     ObjectEvidence,
     Question,
+    ScoreResult,
 )
 from services.mapper.episode_map import EpisodeMap
 from services.mapper.extension import MapperContext, MapperExtension, StepOutputs, call_pool, failure
@@ -267,23 +268,10 @@ class QuestionObjectsExtension(MapperExtension):
         log.info("episode %s: object evidence for %s '%s' (room %s: not narrowed, no floor plan)",
                  start.episode_id, layer.category, layer.cls, layer.room_kind)
 
-    def start(self, start: EpisodeStart) -> list[str]:
-        """A new question episode: its layer when the setting is on and the question has a target. No room
-        layout is known to the mapper: the region is the whole map (module docstring)."""
-        if self._wanted(start):
-            self._new_layer(start)
-        return []
-
-    def finish(self, episode_id: str) -> None:
-        self.layers.pop(episode_id, None)
-        self._told.discard(episode_id)
-
-    def dump(self, episode_id: str) -> bytes | None:
-        layer = self.layers.get(episode_id)
-        return None if layer is None else layer.snapshot()
-
-    def restore(self, episode_map: EpisodeMap, part: Any | None) -> None:
-        """After a restart: continue the stored layer; a state saved without one starts a fresh layer."""
+    def begin(self, episode_map: EpisodeMap, part: Any | None, restored: bool) -> None:
+        """The episode's layer when the setting is on and the question has a target (the stored one when taken
+        up from the store). No room layout is known to the mapper: the region is the whole map (module
+        docstring)."""
         start = episode_map.start
         if not self._wanted(start):
             return
@@ -292,6 +280,14 @@ class QuestionObjectsExtension(MapperExtension):
             return
         self.layers[start.episode_id] = QuestionObjects.restore(start.question, part, None,
                                                                 config=self.context.objects_config)
+
+    def finish(self, episode_map: EpisodeMap) -> None:
+        self.layers.pop(episode_map.episode_id, None)
+        self._told.discard(episode_map.episode_id)
+
+    def dump(self, episode_id: str) -> bytes | None:
+        layer = self.layers.get(episode_id)
+        return None if layer is None else layer.snapshot()
 
     def submit(self, robot: str, episode_map: EpisodeMap, frame: Frame) -> Future[Any] | None:
         layer = self.layers.get(episode_map.episode_id)
@@ -327,8 +323,12 @@ class QuestionObjectsExtension(MapperExtension):
         timing["question_objects_fuse"] = (time.perf_counter() - t0) * 1000.0
         out.object_evidence = self.evidence(episode_map)
 
-    def resent(self, episode_map: EpisodeMap, frame: Frame, out: StepOutputs) -> None:
-        out.object_evidence = self.evidence(episode_map)
+    def scores(self, episode_map: EpisodeMap, frame: Frame, result: ScoreResult, out: StepOutputs,
+               timing: dict[str, float], again: bool) -> ScoreResult:
+        """A step sent again gets the evidence of the stored layer (nothing is fused twice)."""
+        if again:
+            out.object_evidence = self.evidence(episode_map)
+        return result
 
     def evidence(self, episode_map: EpisodeMap) -> ObjectEvidence | None:
         """The layer's evidence on the episode's current map."""

@@ -92,8 +92,12 @@ class MapperService(EpisodeService[EpisodeMap]):
         self.object_layer = ObjectLayerExtension(self.context)  # HELIOS object layer of task episodes
         self.question_objects = QuestionObjectsExtension(self.context)  # object evidence of question episodes
         self.answer_memory = AnswerViewsExtension(self.context)  # joint answer memory (EQA_ANSWER_MEMORY_MODE)
+        # home memory and warm start: after the object layer, whose state it starts and writes back
+        self.homes = HomeMemory(settings, lambda: self.store, self.scorer, objects=self.object_layer.maps.get,
+                                detect=lambda: self.context.detect_and_values()[0])
         # the order of the calls and of the stored state's parts (a new extension goes at the end)
-        self.extensions: list[MapperExtension] = [self.object_layer, self.question_objects, self.answer_memory]
+        self.extensions: list[MapperExtension] = [self.object_layer, self.question_objects, self.answer_memory,
+                                                  self.homes]
         self.config = MapperConfig(
             tau_lsv=settings.tau_lsv,
             tau_gsv=settings.tau_gsv,
@@ -103,9 +107,6 @@ class MapperService(EpisodeService[EpisodeMap]):
             view_agree=settings.view_agree,
         )
         self.last_timing_ms: dict[str, float] = {}
-        # home memory and warm start (home_shell.py): it needs the episode's map itself at start and end and the
-        # first frame before the step's scoring, so it is called at those points rather than as an extension
-        self.homes = HomeMemory(settings, lambda: self.store, self.scorer)
         # runs the scorer round trip of a step while the handler thread does the score-independent work
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mapper-score")
 
@@ -125,19 +126,16 @@ class MapperService(EpisodeService[EpisodeMap]):
     # ---- episode state ----------------------------------------------------------------------------------
     def start_episode(self, robot: str, start: EpisodeStart) -> EpisodeMap:
         log.info("episode %s: mapping for robot %s (strategy %s)", start.episode_id, robot, start.strategy)
-        extra = [layer for ext in self.extensions for layer in ext.start(start)]
         # a task episode's map sees low obstacles (task_map_config); a question's keeps the figures' map
         config = self.config if start.task is None else task_map_config(self.config)
-        episode_map = EpisodeMap(start, config, layers=[QUESTION_LAYER, *extra] if extra else None)
-        # an episode in a home starts from its map (a task's object layer from the home's)
-        self.homes.start(start, episode_map, self.object_layer.maps.get(start.episode_id))
+        episode_map = EpisodeMap(start, config, layers=[QUESTION_LAYER])
+        for ext in self.extensions:
+            ext.begin(episode_map, None, restored=False)
         return episode_map
 
     def finish_episode(self, robot: str, msg: EpisodeCancel | EpisodeEnd, state: EpisodeMap) -> None:
-        objects = self.object_layer.maps.get(msg.episode_id)
-        for ext in self.extensions:
-            ext.finish(msg.episode_id)
-        self.homes.finish(state, objects)  # the episode's map, views and object layer written back to its home
+        for ext in reversed(self.extensions):  # the home writes back the object layer before it is dropped
+            ext.finish(state)
         log.info("episode %s finished (%s); map dropped", msg.episode_id, msg.kind)
 
     def dump_state(self, state: EpisodeMap, **extra: Any) -> Any:
@@ -149,7 +147,6 @@ class MapperService(EpisodeService[EpisodeMap]):
             part = ext.dump(state.episode_id)
             if part is not None:
                 state_header = snapshots.with_state_part(state_header, ext.state_key, part)
-        state_header = self.homes.dump(state.episode_id, state_header)
         if state.made is not None:
             state_header = snapshots.with_state_part(state_header, MADE_KEY, {
                 "step": state.step, "sent_at": state.made[0], "timing_ms": dict(state.made[1])})
@@ -157,7 +154,6 @@ class MapperService(EpisodeService[EpisodeMap]):
 
     def load_state(self, episode_id: str, data: Any) -> EpisodeMap:
         data, made = snapshots.without_state_part(data, MADE_KEY)
-        data, home = self.homes.split(data)
         parts: dict[str, Any] = {}
         for ext in self.extensions:
             data, parts[ext.state_key] = snapshots.without_state_part(data, ext.state_key)
@@ -166,9 +162,10 @@ class MapperService(EpisodeService[EpisodeMap]):
                         sorted(k for k in data if k != "map"))
             data = data["map"]
         episode_map = snapshots.restore(data, lambda part: self.read_part(episode_id, part), self.config)
+        if episode_map.start.task is not None:  # the task map's configuration, as at its start
+            episode_map.config = task_map_config(episode_map.config)
         for ext in self.extensions:
-            ext.restore(episode_map, parts[ext.state_key])
-        self.homes.restore(episode_id, home)
+            ext.begin(episode_map, parts[ext.state_key], restored=True)
         if isinstance(made, dict) and made.get("step") == episode_map.step:
             episode_map.made = (float(made["sent_at"]), {str(k): float(v) for k, v in dict(made["timing_ms"]).items()})
         log.info("episode %s: restored from snapshot at step %d", episode_id, episode_map.step)
@@ -196,13 +193,9 @@ class MapperService(EpisodeService[EpisodeMap]):
         except FrameError as exc:
             self._error(robot, frame.episode_id, frame.step, f"frame rejected, map unchanged: {exc}")
             return
-        self.homes.observe(episode_map, frame)  # a candidate keyframe of the home's view memory
-        t0 = time.perf_counter()
-        memory = self.homes.warm(episode_map, frame)  # first frame in a known home: the view memory re-scored
-        if frame.step == 0:  # a task's first frame: remembered views re-detected for classes never asked before
-            self.homes.warm_objects(episode_map, self.object_layer.maps.get(episode_map.episode_id), frame,
-                                    lambda: self.context.detect_and_values()[0])
-        timer.lap("home_warm", t0)
+        out = StepOutputs()
+        for ext in self.extensions:  # e.g. the home's view memory re-scored at the first frame in a known home
+            ext.observe(robot, episode_map, frame, out, timer.ms)
 
         # The scorer round trip is mostly waiting (another process, the bus): meanwhile this thread does the
         # step's work that does not depend on the scores: the frontier candidates. Same results, same order of
@@ -210,8 +203,6 @@ class MapperService(EpisodeService[EpisodeMap]):
         pending = self._pool.submit(self._timed_score, robot, episode_map, frame)
         # the extensions' own requests (detections, value prompts) on their workers meanwhile
         pending_ext: list[Future[Any] | None] = [ext.submit(robot, episode_map, frame) for ext in self.extensions]
-        out = StepOutputs(memory=memory,
-                          step_limit=self.homes.step_limit(episode_map.episode_id) if frame.step == 0 else None)
         t0 = time.perf_counter()
         candidates = episode_map.find_frontier_candidates()
         t0 = timer.lap("frontiers", t0)
@@ -221,7 +212,7 @@ class MapperService(EpisodeService[EpisodeMap]):
         timer.ms["score"] = score_ms
         if result is not None:  # e.g. the joint answer memory: the answer over the K most relevant views
             for ext in self.extensions:
-                result = ext.scores(episode_map, frame, result, out, timer.ms)
+                result = ext.scores(episode_map, frame, result, out, timer.ms, again=False)
         t0 = time.perf_counter()
         if result is not None:
             try:
@@ -268,13 +259,9 @@ class MapperService(EpisodeService[EpisodeMap]):
         self.publish(robot, keys.MAPPER_MAP, update)
         result = self._score(robot, episode_map, frame)
         if result is not None:
-            first = frame.step == 0
-            out = StepOutputs(memory=self.homes.memory(episode_map.episode_id) if first else [],
-                              step_limit=self.homes.step_limit(episode_map.episode_id) if first else None)
-            for ext in self.extensions:  # e.g. the stored joint answer
-                result = ext.scores(episode_map, frame, result, out, {})
-            for ext in self.extensions:
-                ext.resent(episode_map, frame, out)
+            out = StepOutputs()
+            for ext in self.extensions:  # e.g. the stored joint answer, the first step's memory steps
+                result = ext.scores(episode_map, frame, result, out, {}, again=True)
             self.publish(robot, keys.MAPPER_SCORES, self._step_scores(episode_map, frame, result, out))
 
     @staticmethod

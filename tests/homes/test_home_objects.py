@@ -257,7 +257,7 @@ def run_task(memory: HomeMemory, start: EpisodeStart, renderer, turns: int, dete
     for k in range(turns):
         f = frame_at(renderer, start.episode_id, k, Pose2D(x=p.x, y=p.y, yaw=p.yaw + k * math.pi / 3))
         em.integrate(f)
-        memory.observe(em, f)
+        memory.offer_view(em, f)
         if k == 0:
             memory.warm_objects(em, om, f, lambda: detect)
         om.integrate(f, detect(om.detect_request(f)))
@@ -281,7 +281,7 @@ def test_a_second_task_starts_with_the_target_the_first_one_saw(house, store: St
     homes.delete_home(store, "h-o", 60.0)
     em1, om1 = run_task(memory, task_start("ep-o1", obj, "h-o", pose), renderer, 6, detect)
     assert best_psi(om1, obj) > tau_g  # the first task did see it
-    index = memory.finish(em1, om1)
+    index = memory.commit(em1, om1)
     assert index is not None and index.gaussians > 0 and index.objects_bytes > 0
     summary = homes.read_summary(store, "h-o")
     assert summary is not None and summary.gaussians == index.gaussians
@@ -318,8 +318,7 @@ def test_a_second_task_starts_with_the_target_the_first_one_saw(house, store: St
     assert all(r.classes == ["zz-never"] for r in detect.calls[n_calls:])
     assert memory.warm_objects(em4, om4, f0, lambda: detect) == 0  # once
     # the home part rides in the episode state: a restarted mapper continues it and commits the same layer
-    part = memory.dump("ep-o2", {"map": b""})
-    _, home_part = HomeMemory.split(part)
+    home_part = memory.dump("ep-o2")
     snapshot = om2.snapshot()
     other_instance = HomeMemory(settings, lambda: store, lambda: None)
     other_instance.restore("ep-o2", home_part)
@@ -329,7 +328,7 @@ def test_a_second_task_starts_with_the_target_the_first_one_saw(house, store: St
         f = frame_at(renderer, "ep-o2", k, Pose2D(x=pose.x, y=pose.y, yaw=pose.yaw + k * math.pi / 3))
         em2.integrate(f)
         om2b.integrate(f, detect(om2b.detect_request(f)))
-    after = other_instance.finish(em2, om2b)
+    after = other_instance.commit(em2, om2b)
     assert after is not None and after.version == 2
     kept = memory.read_objects("h-o")
     assert kept is not None and set(stored.uid.tolist()) <= set(kept.uid.tolist())
@@ -352,7 +351,7 @@ def test_two_tasks_at_once_in_a_home_both_add_their_evidence(house, store: Store
     memory = HomeMemory(Settings(data_dir=tmp_path / "var"), lambda: store, lambda: None)
     detect = GroundTruthDetector()
     homes.delete_home(store, "h-cc", 60.0)
-    memory.finish(*run_task(memory, task_start("ep-c0", obj, "h-cc", pose), renderer, 3, detect))
+    memory.commit(*run_task(memory, task_start("ep-c0", obj, "h-cc", pose), renderer, 3, detect))
     stored = memory.read_objects("h-cc")
     assert stored is not None and len(stored) > 0
     ends = {eid: run_task(memory, task_start(eid, obj, "h-cc", pose), renderer, turns, detect)
@@ -363,7 +362,7 @@ def test_two_tasks_at_once_in_a_home_both_add_their_evidence(house, store: Store
         alone[eid] = commit_layer(stored, a["uid"], a["means"], a["sigma"], a["opacity"], a["gamma"],
                                   om.task_classes, om.layer.config.prior, eid, 100.0, None)
     for eid in ("ep-cb", "ep-ca"):  # the one that started second ends first
-        memory.finish(*ends[eid])
+        memory.commit(*ends[eid])
     final = memory.read_objects("h-cc")
     assert final is not None
     made = sum(len(alone[e]) - len(stored) for e in alone)
@@ -387,7 +386,7 @@ def test_the_home_layer_stays_within_its_count_and_bytes(house, store: Store, tm
     memory = HomeMemory(small, lambda: store, lambda: None)
     em, om = run_task(memory, task_start("ep-b1", obj, "h-b", pose), renderer, 4, detect)
     assert len(om.layer.store) > 20  # the episode's layer is larger than the home may keep
-    index = memory.finish(em, om)
+    index = memory.commit(em, om)
     assert index is not None and 0 < index.gaussians <= 20
     stored = memory.read_objects("h-b")
     assert stored is not None and len(stored) == index.gaussians
@@ -395,7 +394,7 @@ def test_the_home_layer_stays_within_its_count_and_bytes(house, store: Store, tm
     tight = Settings(data_dir=tmp_path / "var", home_max_bytes=index.map_bytes + 3000)
     memory2 = HomeMemory(tight, lambda: store, lambda: None)
     em2, om2 = run_task(memory2, task_start("ep-b2", obj, "h-b", pose), renderer, 2, detect)
-    index2 = memory2.finish(em2, om2)
+    index2 = memory2.commit(em2, om2)
     assert index2 is not None
     assert index2.objects_bytes <= tight.home_max_bytes - index2.map_bytes
     assert index2.map_bytes + index2.objects_bytes + index2.view_bytes <= tight.home_max_bytes
@@ -403,7 +402,7 @@ def test_the_home_layer_stays_within_its_count_and_bytes(house, store: Store, tm
     store.set(objects_key("h-b"), b"\x00garbage", ttl_s=60)
     em3, om3 = run_task(memory, task_start("ep-b3", obj, "h-b", pose), renderer, 1, detect)
     assert memory.episodes["ep-b3"].objects_base is False
-    assert memory.finish(em3, om3) is not None and memory.read_objects("h-b") is not None
+    assert memory.commit(em3, om3) is not None and memory.read_objects("h-b") is not None
     homes.delete_home(store, "h-b", 60.0)
 
 

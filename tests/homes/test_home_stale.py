@@ -171,9 +171,9 @@ def test_a_view_the_robot_sees_contradicted_gives_down_weighted_evidence(changed
         memory.start(start, em)
         f = _frame(renderer, scene.id, eid, 0, pose)  # the same pose: the moved or removed object's old place
         em.integrate(f)
-        memory.observe(em, f)
+        memory.offer_view(em, f)
         results.append(memory.warm(em, f))
-        memory.finish(em)
+        memory.commit(em)
     assert results[0] == [] and len(results[1]) == 1
     # the robot saw the change against the remembered view: its evidence comes with relevance 0.9 * weight
     assert results[1][0].relevance == pytest.approx(0.9 * weight)

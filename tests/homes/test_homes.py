@@ -219,9 +219,9 @@ def test_concurrent_episodes_in_one_home_merge(house, store: Store, tmp_path: Pa
         for eid, offset in (("ep-x", 0), ("ep-y", 3)):
             f = frame_at(renderer, eid, k, turn(q.start_pose, k + offset))
             maps[eid].integrate(f)
-            memory.observe(maps[eid], f)
-    first = memory.finish(maps["ep-x"])
-    second = memory.finish(maps["ep-y"])
+            memory.offer_view(maps[eid], f)
+    first = memory.commit(maps["ep-x"])
+    second = memory.commit(maps["ep-y"])
     assert first is not None and second is not None and (first.version, second.version) == (1, 2)
     stored = memory.read_map("h-c")
     assert stored is not None
@@ -255,8 +255,8 @@ def test_a_task_in_a_home_searches_on_the_remembered_geometry_with_its_own_front
     for k in range(6):  # a full turn on the spot: all around the start is explored
         f = frame_at(renderer, "ep-t1", k, turn(q.start_pose, k))
         first.integrate(f)
-        memory.observe(first, f)
-    assert memory.finish(first) is not None
+        memory.offer_view(first, f)
+    assert memory.commit(first) is not None
     task = Task(kind="find_object", text="Find a mug", scene=SCENE, object="mug")
 
     def first_frame(eid: str, home: str | None, with_task: bool) -> EpisodeMap:
@@ -281,7 +281,7 @@ def test_a_task_in_a_home_searches_on_the_remembered_geometry_with_its_own_front
     assert ep_question.warm_ids and ep_question.loaded_cells > 0
     # its end writes its frames into the home without forgetting what the earlier episode explored
     before = memory.read_map("h-t")
-    assert before is not None and memory.finish(warm_task) is not None
+    assert before is not None and memory.commit(warm_task) is not None
     after = memory.read_map("h-t")
     assert after is not None and after.explored_cells() >= before.explored_cells()
     assert after.explored_cells() > HomeMap.from_episode(warm_task).explored_cells()
@@ -299,18 +299,18 @@ def test_a_reset_after_the_episode_ended_is_not_undone_by_its_write_back(house, 
     for k in range(3):
         f = frame_at(renderer, "ep-r", k, turn(q.start_pose, k))
         em.integrate(f)
-        memory.observe(em, f)
+        memory.offer_view(em, f)
     assert store.keys(homes.prefix("h-r") + "view:")  # its candidate views are stored as it runs
     homes.delete_home(store, "h-r", 60.0)  # the user's reset, after the episode's end
-    assert memory.finish(em) is None
+    assert memory.commit(em) is None
     assert store.keys(homes.prefix("h-r")) == [] and memory.read_index("h-r") is None
     # an episode started after the reset is remembered as usual
     em2 = EpisodeMap(start_of(q, "ep-r2", "h-r"))
     memory.start(em2.start, em2)
     f = frame_at(renderer, "ep-r2", 0, q.start_pose)
     em2.integrate(f)
-    memory.observe(em2, f)
-    index = memory.finish(em2)
+    memory.offer_view(em2, f)
+    index = memory.commit(em2)
     assert index is not None and index.version == 1 and {v.episode_id for v in index.views} == {"ep-r2"}
     homes.delete_home(store, "h-r", 60.0)
 

@@ -99,7 +99,7 @@ def test_the_warm_budget_subtracts_the_observed_floor_not_the_explored(tmp_path:
                                             home=home))
             memory.start(first.start, first)
             inside, wall = _seen_house(first, explored_cols=10)
-            assert memory.finish(first) is not None
+            assert memory.commit(first) is not None
             stored = memory.read_map(home)
             assert stored is not None and stored.explored_cells() == 200
             start = EpisodeStart(episode_id=f"ep2-{home}", robot="r0", question=q, max_steps=max_steps, home=home)

@@ -173,7 +173,8 @@ def test_the_mapper_values_frontiers_with_the_goal_layer_after_a_successful_pick
     try:
         start = EpisodeStart(episode_id="ep-shell", robot="r", question=Question(
             id="q", scene="gen-5", text=TASK.text, max_steps=10), max_steps=10, task=TASK)
-        em = EpisodeMap(start, layers=["question", *ext.start(start)])
+        em = EpisodeMap(start, layers=["question"])
+        ext.begin(em, None, restored=False)
         frames = [frame_of(vs[0], renderer, "ep-shell", 0),
                   frame_of(vs[1], renderer, "ep-shell", 1).model_copy(
                       update={"skill": SkillReport(skill="pick", success=True, target=25)})]
