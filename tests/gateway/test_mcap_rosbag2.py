@@ -17,6 +17,7 @@ import pytest
 import yaml
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
+from support import ros2_defs
 from support.ros2_bag import qos_problems, ros2_profile_problems, rosbags_read
 
 from eqa import ros
@@ -79,8 +80,8 @@ def test_channels_qos_and_distro_as_rosbag2_reads_them(bag: Path) -> None:
                      "/robot/path": ros.PATH, "/goal_pose": ros.POSE_STAMPED, "/tf": ros.TF_MESSAGE}
     tf_qos = yaml.safe_load(chans["/tf"].metadata["offered_qos_profiles"])
     assert tf_qos[0]["depth"] == 100 and tf_qos[0]["reliability"] == 1 and tf_qos[0]["durability"] == 2
-    for c in chans.values():  # Jazzy's writer puts the type hash beside the QoS
-        assert c.metadata["topic_type_hash"] == ros.type_hash(types[c.topic])
+    for c in chans.values():  # Jazzy's writer puts the type hash beside the QoS (an independent RIHS01 here)
+        assert c.metadata["topic_type_hash"] == ros2_defs.rihs01(types[c.topic])
     distro = [m.metadata for m in reader.iter_metadata() if m.name == "rosbag2"]
     assert distro == [{"ROS_DISTRO": "jazzy"}]
     assert summary.statistics is not None and summary.statistics.message_count == 13
