@@ -26,6 +26,7 @@ PATH = "nav_msgs/msg/Path"
 OCCUPANCY_GRID = "nav_msgs/msg/OccupancyGrid"
 ODOMETRY = "nav_msgs/msg/Odometry"
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+STRING = "std_msgs/msg/String"
 
 MAP_FRAME = "map"
 BASE_FRAME = "base_link"
@@ -38,10 +39,22 @@ def msgdef(typename: str) -> str:
     return TYPESTORE.generate_msgdef(typename, ros_version=2)[0]
 
 
-@lru_cache(maxsize=64)
-def type_hash(typename: str) -> str:
-    """The RIHS01 type hash of a type (the last part of an rmw_zenoh key expression)."""
-    return TYPESTORE.hash_rihs01(typename)
+# rosbags' type store of each distribution with type hashes (Humble has none; rolling follows the newest store)
+_STORES = {"jazzy": Stores.ROS2_JAZZY, "kilted": Stores.ROS2_KILTED, "rolling": Stores.LATEST}
+
+
+@lru_cache(maxsize=8)
+def _typestore(distro: str) -> Any:
+    if distro not in _STORES:
+        raise ValueError(f"no type hashes for ROS 2 {distro!r}; known: {', '.join(_STORES)}")
+    return TYPESTORE if distro == "jazzy" else get_typestore(_STORES[distro])
+
+
+@lru_cache(maxsize=128)
+def type_hash(typename: str, distro: str = "jazzy") -> str:
+    """The RIHS01 type hash of a type in ``distro``'s definitions (REP 2011; the last part of an rmw_zenoh key
+    expression from Iron on)."""
+    return str(_typestore(distro).hash_rihs01(typename))
 
 
 def dds_type_name(typename: str) -> str:
@@ -132,6 +145,31 @@ def pose_stamped_matrix(t_ns: int, frame_id: str, m: np.ndarray) -> Any:
 
 def path(t_ns: int, frame_id: str, poses: list[Any]) -> Any:
     return T[PATH](header=header(t_ns, frame_id), poses=poses)
+
+
+def transform_stamped(t_ns: int, parent: str, child: str, m: np.ndarray) -> Any:
+    """A ``geometry_msgs/TransformStamped`` of the 4x4 rigid transform ``m`` (child-to-parent, tf2's sense)."""
+    t = np.asarray(m, dtype=np.float64)
+    q = quat_from_matrix(t[:3, :3])
+    return T["geometry_msgs/msg/TransformStamped"](
+        header=header(t_ns, parent), child_frame_id=child,
+        transform=T["geometry_msgs/msg/Transform"](
+            translation=T["geometry_msgs/msg/Vector3"](x=float(t[0, 3]), y=float(t[1, 3]), z=float(t[2, 3])),
+            rotation=T["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3])))
+
+
+def tf_message(transforms: list[Any]) -> Any:
+    return T[TF_MESSAGE](transforms=transforms)
+
+
+def planar(x: float, y: float, yaw: float) -> np.ndarray:
+    """4x4 transform of a pose on the floor (x, y, rotation ``yaw`` about z)."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s, 0.0, x], [s, c, 0.0, y], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
+
+
+def string(text: str) -> Any:
+    return T[STRING](data=text)
 
 
 IMAGE_ENCODINGS: dict[str, tuple[np.dtype[Any], int]] = {

@@ -15,6 +15,9 @@ from pydantic import Field, field_validator, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 CsvList = Annotated[list[str], NoDecode]
+# Distributions rmw_zenoh_cpp is released for (docs/robots.md names the versions the bridge speaks to)
+ROS2_DISTROS = ("humble", "jazzy", "kilted", "rolling")
+Ros2Distro = Literal["humble", "jazzy", "kilted", "rolling"]
 
 
 def default_instance() -> str:
@@ -28,7 +31,7 @@ class SettingsGroup(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="EQA_", extra="ignore")
 
     @field_validator("zenoh_listen", "zenoh_connect", "api_tokens", "cors_origins", "robots", "ros2_robots",
-                     mode="before", check_fields=False)
+                     "ros2_distros", mode="before", check_fields=False)
     @classmethod
     def _split_csv(cls, v: object) -> object:
         if isinstance(v, str):
@@ -369,6 +372,10 @@ class Ros2Settings(SettingsGroup):
     ros2_robots: CsvList = Field(default_factory=list, description="robots a ROS 2 robot on rmw_zenoh drives "
                                  "through the bridge; the sim leaves them alone")
     ros2_domain_id: int = Field(default=0, ge=0, le=232, description="ROS_DOMAIN_ID of the robots")
+    ros2_distro: Ros2Distro = Field(default="jazzy", description="ROS 2 distribution of the robots (rmw_zenoh key "
+                                    "form: humble has no type hashes)")
+    ros2_distros: CsvList = Field(default_factory=list, description="per-robot distributions that differ from "
+                                  "EQA_ROS2_DISTRO, e.g. robot1=humble,robot2=rolling")
     ros2_namespace: str = Field(default="/{robot}", max_length=200,
                                 description="ROS namespace of a robot's topics; {robot} is the robot's name")
     ros2_rgb_topic: str = Field(default="camera/color/image_raw", description="sensor_msgs/Image, rgb8 or bgr8")
@@ -397,6 +404,24 @@ class Ros2Settings(SettingsGroup):
     ros2_max_image_pixels: int = Field(default=4_194_304, ge=1, le=67_108_864)
     ros2_pick_place_service: str = Field(default="", max_length=200, description="the robot's pick/place hook "
                                          "(docs/robots.md); empty: task episodes are refused on its robots")
+
+    @field_validator("ros2_distros")
+    @classmethod
+    def _robot_distros(cls, v: list[str]) -> list[str]:
+        for item in v:
+            robot, sep, distro = item.partition("=")
+            if not sep or not robot.strip() or distro.strip() not in ROS2_DISTROS:
+                raise ValueError(f"EQA_ROS2_DISTROS entry {item!r}: want robot=distro with distro one of "
+                                 f"{', '.join(ROS2_DISTROS)}")
+        return [i.replace(" ", "") for i in v]
+
+    def ros2_distro_of(self, robot: str) -> str:
+        """The ROS 2 distribution of one robot."""
+        for item in self.ros2_distros:
+            name, _, distro = item.partition("=")
+            if name == robot:
+                return distro
+        return self.ros2_distro
 
 
 class HomeSettings(SettingsGroup):

@@ -286,10 +286,11 @@ async def recording(episode_id: EpisodeId, manager: ManagerDep, settings: Settin
 @router.get(
     "/episodes/{episode_id}/recording.mcap",
     response_class=FileResponse,
-    summary="The episode as MCAP (ROS 2 messages + EQA JSON events) for Foxglove, ros2 bag or Rerun",
+    summary="The episode as a ROS 2 bag in MCAP for ros2 bag, Foxglove or Rerun",
     description="Frames (sensor_msgs/Image), camera info and pose, base poses, goals and paths (PoseStamped, "
-    "Path), 2D maps (OccupancyGrid) and every stored event on a JSON channel /eqa/<kind>; images and maps only "
-    "when the episode was recorded (EQA_RECORD). Channels: docs/mcap.md.",
+    "Path), /tf and /tf_static, 2D maps (OccupancyGrid) and every stored event as std_msgs/String JSON on "
+    "/eqa/<kind>, all CDR; images, maps and the camera mount only when the episode was recorded (EQA_RECORD). "
+    "Channels: docs/mcap.md.",
     responses={200: {"content": {"application/octet-stream": {}}}, **errors(404, 500, *READ_ERRORS)},
 )
 async def recording_mcap(episode_id: EpisodeId, manager: ManagerDep, settings: SettingsDep, caller: ReaderDep

@@ -1,13 +1,23 @@
 """The pure core of the ROS 2 bridge: rmw_zenoh names, checking and converting ROS messages, arrival at a goal,
 and the step's Frame. No I/O; the shell (``service.py``) wires it to Zenoh.
 
-**rmw_zenoh wire format** (ros2/rmw_zenoh ``docs/design.md``): a topic is the key expression
-``<domain_id>/<fully qualified name without the leading slash>/<DDS type name>/<RIHS01 type hash>``, e.g.
-``0/robot0/goal_pose/geometry_msgs::msg::dds_::PoseStamped_/RIHS01_...``; payloads are CDR with the
-encapsulation header; each publication carries an attachment (sequence number int64, source timestamp int64 ns,
-16-byte publisher GID with its length, little-endian); each node, publisher and subscription declares a
-liveliness token ``@ros2_lv/<domain>/<session zid>/<node id>/<entity id>/<NN|MP|MS>/<enclave>/<namespace>/<node>
-[/<topic>/<type>/<hash>/<qos>]`` with ``/`` inside a component written ``%`` and an empty one as ``%``.
+**rmw_zenoh wire format** targeted: rmw_zenoh_cpp 0.1.2 and later on Humble, 0.2.4 and later on Jazzy, 0.6.0 and
+later on Kilted and Rolling (the releases whose attachment has no key strings; ros2/rmw_zenoh PR 601 and its
+backports; earlier ones are not spoken). From ros2/rmw_zenoh ``rmw_zenoh_cpp/src/detail``:
+
+* a topic is the key expression ``<domain_id>/<fully qualified name without the leading slash>/<DDS type
+  name>/<type hash>`` (``liveliness_utils.cpp`` ``TopicInfo``), the hash being the RIHS01 hash of the type on Iron
+  and later and the constant ``TypeHashNotSupported`` on Humble (which has no type hashes), so a Humble robot and
+  a Jazzy one subscribe to different keys for the same topic;
+* each publication carries an attachment (``attachment_helpers.cpp``, zenoh-cpp's ``ext::Serializer``): int64
+  sequence number, int64 source timestamp (ns since the epoch), the 16-byte publisher GID as a sequence (LEB128
+  length ``0x10``, then the bytes); all little-endian. The sequence number counts per publisher from 1; a
+  subscription reports MESSAGE_LOST when a publisher's numbers jump;
+* every node, publisher and subscription declares a liveliness token ``@ros2_lv/<domain>/<session zid>/<node
+  id>/<entity id>/<NN|MP|MS>/<enclave>/<namespace>/<node>[/<topic>/<type>/<hash>/<qos>]``, each ``/`` inside a
+  component written ``%`` and an empty component as ``%``; the QoS component leaves defaults empty;
+* an entity's GID is the XXH3-128 hash of its liveliness token's key expression, low 64 bits then high 64 bits,
+  each little-endian (``Entity::Entity``), so a subscriber can match a sample's GID to the publisher it saw.
 """
 
 from __future__ import annotations
@@ -19,11 +29,13 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import xxhash
 
 from eqa import ros
 from eqa.messages import Pose2D
 
 QOS_DEFAULT = "::,10:,:,:,,"  # reliability, durability, history depth 10, deadline, lifespan, liveliness: defaults
+HASH_NOT_SUPPORTED = "TypeHashNotSupported"  # the hash component of every key on Humble
 
 
 class RosInputError(ValueError):
@@ -43,8 +55,13 @@ def fully_qualified(namespace: str, topic: str) -> str:
     return "/" + "/".join(p for p in (ns, topic.strip("/")) if p)
 
 
+def key_hash(distro: str, typename: str) -> str:
+    """The type hash component of a key expression or token on ``distro``."""
+    return HASH_NOT_SUPPORTED if distro == "humble" else ros.type_hash(typename, distro)
+
+
 def topic_key(domain: int, fqn: str, typename: str, type_hash: str | None = None) -> str:
-    """The rmw_zenoh key expression of a topic; ``type_hash=None`` matches any hash (older distributions)."""
+    """The rmw_zenoh key expression of a topic; ``type_hash=None`` matches any hash (every distribution)."""
     return f"{domain}/{fqn.strip('/')}/{ros.dds_type_name(typename)}/{type_hash or '*'}"
 
 
@@ -58,20 +75,45 @@ def node_token(domain: int, zid: str, node_id: int, namespace: str, node: str) -
 
 
 def endpoint_token(domain: int, zid: str, node_id: int, entity_id: int, kind: str, namespace: str, node: str,
-                   fqn: str, typename: str) -> str:
-    """The liveliness token of a publisher (``MP``) or subscription (``MS``)."""
+                   fqn: str, typename: str, distro: str = "jazzy") -> str:
+    """The liveliness token of a publisher (``MP``) or subscription (``MS``), with ``distro``'s hash form."""
     if kind not in ("MP", "MS"):
         raise ValueError(f"endpoint kind must be MP or MS, got {kind!r}")
     return (f"@ros2_lv/{domain}/{zid}/{node_id}/{entity_id}/{kind}/%/{mangle(namespace.rstrip('/'))}/{node}/"
-            f"{mangle(fqn)}/{ros.dds_type_name(typename)}/{ros.type_hash(typename)}/{QOS_DEFAULT}")
+            f"{mangle(fqn)}/{ros.dds_type_name(typename)}/{key_hash(distro, typename)}/{QOS_DEFAULT}")
+
+
+def gid(token: str) -> bytes:
+    """The 16-byte GID rmw_zenoh gives the entity of a liveliness token: XXH3-128 of the key expression, low
+    64 bits then high 64 bits, little-endian."""
+    h = xxhash.xxh3_128_intdigest(token.encode())
+    return (h & (2**64 - 1)).to_bytes(8, "little") + (h >> 64).to_bytes(8, "little")
 
 
 def attachment(sequence: int, timestamp_ns: int, gid: bytes) -> bytes:
-    """The rmw_zenoh publication attachment: int64 sequence number, int64 source timestamp, the GID bytes with
-    their length (one LEB128 byte for 16)."""
+    """The rmw_zenoh publication attachment: int64 sequence number, int64 source timestamp, the GID as a
+    sequence (LEB128 length, one byte for 16, then the bytes)."""
     if len(gid) != 16:
         raise ValueError("a GID is 16 bytes")
     return struct.pack("<qqB", sequence, timestamp_ns, len(gid)) + gid
+
+
+@dataclass
+class Publisher:
+    """One rmw_zenoh publisher: its key expression, its liveliness token, the GID derived from the token and its
+    own sequence numbers (from 1, one per publication, as rmw_zenoh's publishers count)."""
+
+    key: str
+    token: str
+    gid: bytes = b""
+    sequence: int = 0  # of the last publication
+
+    def __post_init__(self) -> None:
+        self.gid = gid(self.token)
+
+    def next_attachment(self, timestamp_ns: int) -> bytes:
+        self.sequence += 1
+        return attachment(self.sequence, timestamp_ns, self.gid)
 
 
 # ---- messages in ---------------------------------------------------------------------------------------------
@@ -200,9 +242,7 @@ def base_to_camera(height_m: float, tilt_deg: float) -> np.ndarray:
 
 
 def camera_to_world(base: Pose2D, base_T_cam: np.ndarray) -> np.ndarray:
-    c, s = math.cos(base.yaw), math.sin(base.yaw)
-    world_T_base = np.array([[c, -s, 0, base.x], [s, c, 0, base.y], [0, 0, 1, 0], [0, 0, 0, 1]], dtype=np.float64)
-    return world_T_base @ base_T_cam
+    return ros.planar(base.x, base.y, base.yaw) @ base_T_cam
 
 
 def check_frame(rgb: np.ndarray, depth: np.ndarray, info: tuple[np.ndarray, int, int]) -> None:

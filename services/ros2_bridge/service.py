@@ -12,7 +12,10 @@ planner replans, as after a goal the sim refuses; at step 0 the gateway fails th
 refused (wrong encoding, mismatched sizes, non-finite poses, stale stamps, huge images, undecodable CDR) is
 logged and counted by reason (:attr:`Ros2BridgeService.refused`), and the reason of the last one goes into the
 error answer. It declares rmw_zenoh liveliness tokens (a node ``eqa_bridge_<robot>`` with its publisher and
-subscriptions) so ROS 2 tools list it. Task episodes need the robot's pick/place hook
+subscriptions) so ROS 2 tools list it. Each robot runs its own ROS 2 distribution (``EQA_ROS2_DISTRO``,
+``EQA_ROS2_DISTROS``): its goal key and tokens carry that distribution's type hash form (``TypeHashNotSupported``
+on Humble), and its goal publisher has its own GID and sequence numbers (:class:`core.Publisher`), as each
+rmw_zenoh publisher does. Task episodes need the robot's pick/place hook
 (``EQA_ROS2_PICK_PLACE_SERVICE``); without one they are refused at start with a message saying so.
 
 The bridge keeps its state in memory (one process serves its robots; no sharding): a restarted bridge answers
@@ -23,7 +26,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 import threading
 import time
 from collections import Counter
@@ -59,6 +61,7 @@ class _Latest:
 class _Robot:
     name: str
     namespace: str
+    distro: str
     rgb: _Latest | None = None
     depth: _Latest | None = None
     info: _Latest | None = None
@@ -82,13 +85,13 @@ class Ros2BridgeService(Service):
     def __init__(self, settings: Settings, bus: Bus | None = None, store: Store | None = None) -> None:
         super().__init__(settings, bus, store)
         s = settings
-        self.robots = {r: _Robot(r, s.ros2_namespace.format(robot=r)) for r in s.ros2_robots}
+        self.robots = {r: _Robot(r, s.ros2_namespace.format(robot=r), s.ros2_distro_of(r)) for r in s.ros2_robots}
         self.refused: Counter[str] = Counter()
         self._lock = threading.Lock()
         self._tokens: list[Any] = []
-        self._goal_pubs: dict[str, Any] = {}
-        self._seq = 0
-        self._gid = os.urandom(16)
+        # per robot: the Zenoh publisher of its goals and the rmw_zenoh publisher it stands for (own key in the
+        # robot's hash form, own GID and sequence numbers: a subscriber tracks both per publisher)
+        self._goal_pubs: dict[str, tuple[Any, core.Publisher]] = {}
         self._base_T_cam = core.base_to_camera(s.ros2_camera_height_m, s.ros2_camera_tilt_deg)
         self._max_payload = s.ros2_max_image_pixels * 4 + MAX_PAYLOAD_OVERHEAD
 
@@ -118,19 +121,22 @@ class Ros2BridgeService(Service):
                 key = core.topic_key(s.ros2_domain_id, fqn, typename)
                 self._tokens.append(sess.declare_subscriber(key, self._receiver(rb.name, kind, typename)))
                 self._tokens.append(sess.liveliness().declare_token(core.endpoint_token(
-                    s.ros2_domain_id, zid, node_id, entity_id, "MS", rb.namespace, node, fqn, typename)))
+                    s.ros2_domain_id, zid, node_id, entity_id, "MS", rb.namespace, node, fqn, typename, rb.distro)))
             goal_fqn = core.fully_qualified(rb.namespace, s.ros2_goal_topic)
-            self._goal_pubs[rb.name] = sess.declare_publisher(
-                core.topic_key(s.ros2_domain_id, goal_fqn, ros.POSE_STAMPED, ros.type_hash(ros.POSE_STAMPED)),
-                encoding=zenoh.Encoding("application/cdr"))
-            self._tokens.append(sess.liveliness().declare_token(core.endpoint_token(
-                s.ros2_domain_id, zid, node_id, len(inputs) + 1, "MP", rb.namespace, node, goal_fqn, ros.POSE_STAMPED)))
-            log.info("robot %s: ROS 2 topics under %s (domain %d), goals on %s", rb.name, rb.namespace,
-                     s.ros2_domain_id, goal_fqn)
+            goal_hash = core.key_hash(rb.distro, ros.POSE_STAMPED)
+            rmw = core.Publisher(
+                core.topic_key(s.ros2_domain_id, goal_fqn, ros.POSE_STAMPED, goal_hash),
+                core.endpoint_token(s.ros2_domain_id, zid, node_id, len(inputs) + 1, "MP", rb.namespace, node,
+                                    goal_fqn, ros.POSE_STAMPED, rb.distro))
+            self._goal_pubs[rb.name] = (sess.declare_publisher(rmw.key, encoding=zenoh.Encoding("application/cdr")),
+                                        rmw)
+            self._tokens.append(sess.liveliness().declare_token(rmw.token))
+            log.info("robot %s (ROS 2 %s): topics under %s (domain %d), goals on %s", rb.name, rb.distro,
+                     rb.namespace, s.ros2_domain_id, rmw.key)
         self.every(TICK_S, self._tick)
 
     def teardown(self) -> None:
-        for t in reversed(self._tokens + list(self._goal_pubs.values())):
+        for t in reversed(self._tokens + [pub for pub, _ in self._goal_pubs.values()]):
             try:
                 t.undeclare()
             except Exception:  # the session may be closing already
@@ -230,8 +236,8 @@ class Ros2BridgeService(Service):
         except ValueError as exc:
             self._error(robot, goal.episode_id, goal.step, f"goal refused: {exc}")
             return
-        self._seq += 1
-        self._goal_pubs[robot].put(data, attachment=core.attachment(self._seq, time.time_ns(), self._gid))
+        pub, rmw = self._goal_pubs[robot]
+        pub.put(data, attachment=rmw.next_attachment(time.time_ns()))
         rb.goal_step = goal.step
         rb.arrival = core.Arrival(goal.pose, time.monotonic(), s.ros2_arrive_tolerance_m,
                                   math.radians(s.ros2_arrive_yaw_tolerance_deg), s.ros2_settle_s,

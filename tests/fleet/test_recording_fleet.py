@@ -2,8 +2,10 @@
 gateway: the merged .rrd is served over HTTP, verifies with the rerun tool and holds every entity the design
 lists; its MCAP, read back with an independent reader (the ``mcap`` reader and ``mcap-ros2-support``'s CDR
 decoder; the writer serialises with ``rosbags``), has the channels, message counts, timestamps and content of
-what the episode published (its SSE events and the rows of its Rerun recording), and ``eqa export --mcap``
-writes the same. One fleet and one episode (160x120 images, 4 steps) for the module.
+what the episode published (its SSE events and the rows of its Rerun recording), keeps rosbag2's rules
+(tests/support/ros2_bag.py) and reads back through ``rosbags``' rosbag2 MCAP storage reader, places the camera
+with ``/tf`` and ``/tf_static``, and ``eqa export --mcap`` writes the same. One fleet and one episode (160x120
+images, 4 steps) for the module.
 """
 
 from __future__ import annotations
@@ -24,7 +26,9 @@ import pytest
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 from support.fleet import GatewayThread, fleet_settings, sse_events, wait_for
+from support.ros2_bag import ros2_profile_problems, rosbags_read
 
+from eqa import ros
 from eqa.launcher import Fleet
 from eqa.recording import ENTITIES, REQUIRED_ENTITIES
 from eqa.ros import yaw_from_quat
@@ -152,9 +156,8 @@ def _read(data: bytes) -> tuple[Any, dict[str, list[tuple[Any, Any, Any]]]]:
 
 
 def _decode(schema: Any, channel: Any, message: Any) -> Any:
-    if channel.message_encoding == "json":
-        return json.loads(message.data)
-    return DecoderFactory().decoder_for(channel.message_encoding, schema)(message.data)
+    msg = DecoderFactory().decoder_for(channel.message_encoding, schema)(message.data)
+    return json.loads(msg.data) if channel.topic.startswith("/eqa/") else msg
 
 
 @pytest.fixture(scope="module")
@@ -176,8 +179,8 @@ def test_channels_and_counts_match_what_the_episode_published(episode: Episode, 
     assert any(t.startswith("/map/value/") for t in topics), sorted(topics)
     for kind, n in kinds.items():
         topic = "/eqa/" + kind
-        assert schemas[topic].encoding == "jsonschema" and topics[topic].message_encoding == "json"
-        assert json.loads(schemas[topic].data)["properties"]["kind"]["const"] == kind
+        assert schemas[topic].name == ros.STRING and schemas[topic].encoding == "ros2msg"
+        assert topics[topic].message_encoding == "cdr"
         assert len(by_topic[topic]) == n, (topic, len(by_topic[topic]), n)
     counts = summary.statistics.channel_message_counts
     for ch_id, ch in summary.channels.items():
@@ -274,3 +277,49 @@ def test_rerun_opens_the_mcap(episode: Episode, tmp_path: Path) -> None:
     entities = {chunk.entity_path for chunk in rrc.McapReader(path).stream()}
     missing = [t for t in ROS_TOPICS if t not in entities]
     assert not missing, f"rerun's MCAP loader did not show {missing}; it has {sorted(entities)}"
+
+
+def test_the_bag_keeps_rosbag2s_rules_and_rosbags_reads_it(episode: Episode, mcap_read: Any, tmp_path: Path) -> None:
+    assert ros2_profile_problems(episode.mcap.content) == []
+    path = tmp_path / "ep.mcap"
+    path.write_bytes(episode.mcap.content)
+    got = rosbags_read(path)
+    summary, by_topic = mcap_read
+    assert got["count"] == summary.statistics.message_count
+    assert {t: len(v) for t, v in got["raw"].items()} == {t: len(v) for t, v in by_topic.items()}
+    assert {t: c.msgtype for t, c in got["connections"].items()} == {
+        ch.topic: summary.schemas[ch.schema_id].name for ch in summary.channels.values()}
+
+
+def test_tf_places_the_camera_where_the_recording_has_it(episode: Episode, mcap_read: Any) -> None:
+    """map -> base_link (/tf) composed with base_link -> camera_optical_frame (/tf_static) is the camera pose of
+    each frame, and the images and camera_info are in that frame: what Foxglove's 3D panel needs."""
+    _, by_topic = mcap_read
+    (static,) = [_decode(*x) for x in by_topic["/tf_static"]]
+    (mount_tf,) = static.transforms
+    assert (mount_tf.header.frame_id, mount_tf.child_frame_id) == ("base_link", "camera_optical_frame")
+    t_ns = by_topic["/tf_static"][0][2].log_time
+    assert t_ns == min(m.log_time for v in by_topic.values() for _, _, m in v)
+
+    def matrix(tr: Any) -> np.ndarray:
+        m = np.eye(4)
+        q, v = tr.transform.rotation, tr.transform.translation
+        m[:3, :3] = ros.matrix_from_quat(q.x, q.y, q.z, q.w)
+        m[:3, 3] = (v.x, v.y, v.z)
+        return m
+
+    base_at = {}
+    for s, ch, m in by_topic["/tf"]:
+        (tr,) = _decode(s, ch, m).transforms
+        assert (tr.header.frame_id, tr.child_frame_id) == ("map", "base_link")
+        base_at[m.log_time] = matrix(tr)
+    cams = [(m.log_time, _decode(s, ch, m).pose) for s, ch, m in by_topic["/camera/pose"]]
+    assert cams
+    for t, pose in cams:
+        want = np.eye(4)
+        o, p = pose.orientation, pose.position
+        want[:3, :3] = ros.matrix_from_quat(o.x, o.y, o.z, o.w)
+        want[:3, 3] = (p.x, p.y, p.z)
+        assert np.allclose(base_at[t] @ matrix(mount_tf), want, atol=1e-6), t
+    for topic in ("/camera/color/image_raw", "/camera/depth/image_raw", "/camera/color/camera_info"):
+        assert {_decode(*x).header.frame_id for x in by_topic[topic]} == {"camera_optical_frame"}, topic

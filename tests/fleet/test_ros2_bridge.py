@@ -1,14 +1,16 @@
-"""The ROS 2 bridge (services/ros2_bridge): its pure core on ROS messages built with ``rosbags``, and the fleet
-(mapper, vlm_scorer, planner, stopper and the bridge as real processes, the gateway in a thread) answering
-questions with three test robots on rmw_zenoh in the sim's place (tests/support/ros2_robot.py, independent of the
-bridge's code): one that drives to its goals, one that never arrives and one that sends garbage.
+"""The ROS 2 bridge (services/ros2_bridge): its pure core on ROS messages, its wire format against fixtures made
+without its libraries, and the fleet (mapper, vlm_scorer, planner, stopper and the bridge as real processes, the
+gateway in a thread) answering questions with four test robots on rmw_zenoh in the sim's place
+(tests/support/ros2_robot.py, independent of the bridge's code and libraries): a Jazzy and a Humble robot that
+drive to their goals, a Humble one that never arrives and a Jazzy one that sends garbage.
 
-What of the wire format this covers (ROS 2 itself cannot be installed here): topic key expressions
-``<domain>/<name>/<DDS type>/<RIHS01 hash>`` as pamoja-ros2 assembles them; CDR (little-endian, encapsulation
-header) of sensor_msgs/Image (bgr8, 16UC1), CameraInfo and nav_msgs/Odometry as rosbags writes them, and of the
-bridge's geometry_msgs/PoseStamped goals as decoded by hand; the publication attachment's layout; the bridge's
-liveliness tokens (node, subscriptions, publisher) parsed here. Not covered: QoS semantics and transient-local
-durability, services/actions, interoperation with rmw_zenoh_cpp itself, TF input in the fleet (unit-tested).
+What of the wire format this covers (ROS 2 itself cannot be installed here): type hashes against a separate RIHS01
+implementation and against hashes ROS 2 generated (tests/support/ros2_defs.py); CDR of every type the bridge
+reads or writes against ``mcap-ros2-support``'s serialiser; topic keys in each distribution's hash form
+(``pamoja-ros2`` for RIHS01 keys, ``TypeHashNotSupported`` on Humble); the publication attachment decoded by
+``zenoh.ext``; per-robot sequence numbers from 1 and GIDs as rmw_zenoh derives them from the liveliness token;
+the bridge's liveliness tokens. Not covered: QoS semantics and transient-local durability, services/actions,
+interoperation with rmw_zenoh_cpp itself, TF input in the fleet (unit-tested).
 """
 
 from __future__ import annotations
@@ -23,8 +25,11 @@ from typing import Any
 import httpx
 import numpy as np
 import pytest
+import xxhash
+from support import ros2_defs
 from support.fleet import GatewayThread, fleet_settings, sse_events, wait_for
-from support.ros2_robot import TestRobot, decode_pose_stamped
+from support.ros2_robot import TestRobot, decode_attachment, decode_pose_stamped
+from support.ros2_robot import key as robot_key
 
 from eqa import ros
 from eqa.bus import Bus
@@ -137,13 +142,108 @@ def test_names_keys_tokens_and_goal_bytes() -> None:
                            ros.type_hash(ros.POSE_STAMPED)]
     assert core.node_token(0, "abc", 1, "", "n").endswith("/1/1/NN/%/%/n")
     att = core.attachment(7, 123, bytes(range(16)))
-    assert struct.unpack_from("<qqB", att) == (7, 123, 16) and att[17:] == bytes(range(16))
+    assert decode_attachment(att) == (7, 123, bytes(range(16)))  # zenoh.ext's deserialiser
     data = core.goal_pose_stamped(Pose2D(x=1.5, y=-2.0, yaw=math.pi / 2), NOW, "map")
     stamp, frame, (x, y, z, _qx, _qy, qz, qw) = decode_pose_stamped(data)  # the robot's own decoder
     assert (stamp, frame, x, y, z) == (NOW, "map", 1.5, -2.0, 0.0)
     assert (qz, qw) == pytest.approx((math.sin(math.pi / 4), math.cos(math.pi / 4)))
     with pytest.raises(ValueError):
         core.goal_pose_stamped(Pose2D(x=float("nan"), y=0.0), NOW, "map")
+
+
+# ---- the wire format against fixtures made without the bridge's libraries -----------------------------------------
+def test_type_hashes_match_an_independent_rihs01_and_the_ones_ros2_generated() -> None:
+    for typename in ros2_defs.MSG:
+        assert ros.type_hash(typename) == ros2_defs.rihs01(typename), typename
+        for distro in ("kilted", "rolling"):
+            assert core.key_hash(distro, typename) == ros2_defs.rihs01(typename), (distro, typename)
+    for typename, digest in ros2_defs.PUBLISHED.items():
+        assert ros2_defs.rihs01(typename) == "RIHS01_" + digest, typename
+    assert core.key_hash("humble", ros.POSE_STAMPED) == "TypeHashNotSupported"
+
+
+def _msgs() -> dict[str, tuple[Any, dict[str, Any]]]:
+    """One message of each type the bridge or the MCAP export speaks: the bridge's object, the same as dicts."""
+    hdr = {"stamp": {"sec": NOW // 10**9, "nanosec": NOW % 10**9}, "frame_id": "map"}
+    pose = {"position": {"x": 1.5, "y": -2.0, "z": 0.0}, "orientation": {"x": 0.0, "y": 0.0, "z": 0.6, "w": 0.8}}
+    k = np.array([[100.0, 0, 79.5], [0, 100.0, 59.5], [0, 0, 1]])
+    tf = ros.tf_message([ros.transform_stamped(NOW, "map", "base_link", ros.planar(1.0, 2.0, 0.3))])
+    q = ros.quat_from_yaw(0.3)
+    pixels = bytes(range(24))
+    cells = np.array([[-1, 0], [100, 50]], dtype=np.int8)
+    return {
+        ros.POSE_STAMPED: (ros.T[ros.POSE_STAMPED](header=ros.header(NOW, "map"), pose=ros.pose(
+            1.5, -2.0, 0.0, (0.0, 0.0, 0.6, 0.8))), {"header": hdr, "pose": pose}),
+        ros.IMAGE: (_image("bgr8", 2, 4, pixels, 12), {
+            "header": {**hdr, "frame_id": "cam"}, "height": 2, "width": 4, "encoding": "bgr8", "is_bigendian": 0,
+            "step": 12, "data": pixels}),
+        ros.CAMERA_INFO: (ros.camera_info(NOW, "cam", k, 160, 120), {
+            "header": {**hdr, "frame_id": "cam"}, "height": 120, "width": 160, "distortion_model": "plumb_bob",
+            "d": [0.0] * 5, "k": k.reshape(-1).tolist(), "r": np.eye(3).reshape(-1).tolist(),
+            "p": np.hstack([k, np.zeros((3, 1))]).reshape(-1).tolist(), "binning_x": 0, "binning_y": 0,
+            "roi": {"x_offset": 0, "y_offset": 0, "height": 0, "width": 0, "do_rectify": False}}),
+        ros.TF_MESSAGE: (tf, {"transforms": [{
+            "header": hdr, "child_frame_id": "base_link", "transform": {
+                "translation": {"x": 1.0, "y": 2.0, "z": 0.0},
+                "rotation": {"x": q[0], "y": q[1], "z": q[2], "w": q[3]}}}]}),
+        ros.STRING: (ros.string('{"kind":"frame"}'), {"data": '{"kind":"frame"}'}),
+        ros.PATH: (ros.path(NOW, "map", [ros.pose_stamped(NOW, "map", 1.5, -2.0)]), {
+            "header": hdr, "poses": [{"header": hdr, "pose": {
+                "position": {"x": 1.5, "y": -2.0, "z": 0.0},
+                "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}}]}),
+        ros.OCCUPANCY_GRID: (ros.occupancy_grid(NOW, "map", cells, 0.1, -1.0, -2.0), {
+            "header": hdr, "info": {"map_load_time": hdr["stamp"], "resolution": 0.1, "width": 2, "height": 2,
+                                    "origin": {"position": {"x": -1.0, "y": -2.0, "z": 0.0},
+                                               "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}},
+            "data": cells.reshape(-1).tolist()}),
+    }
+
+
+def test_cdr_bytes_match_an_independent_serialiser() -> None:
+    """The bridge's CDR (rosbags) byte for byte against mcap-ros2-support's serialiser of the same message, and
+    the bridge decodes what the other one wrote (what the test robot sends)."""
+    for typename, (msg, as_dict) in _msgs().items():
+        theirs = ros2_defs.cdr(typename, as_dict)
+        assert ros.serialize(msg, typename) == theirs, typename
+        assert ros.serialize(ros.deserialize(theirs, typename), typename) == theirs, typename
+    goal = core.goal_pose_stamped(Pose2D(x=1.5, y=-2.0, yaw=2 * math.atan2(0.6, 0.8)), NOW, "map")
+    _, as_dict = _msgs()[ros.POSE_STAMPED]
+    want = ros2_defs.cdr(ros.POSE_STAMPED, as_dict)
+    assert goal[:-56] == want[:-56]  # header and position exact; the quaternion from yaw to rounding
+    assert struct.unpack("<7d", goal[-56:]) == pytest.approx(struct.unpack("<7d", want[-56:]), abs=1e-12)
+
+
+def test_keys_carry_each_distributions_hash_form(tmp_path: Any) -> None:
+    fqn = "/robot3/goal_pose"
+    humble = core.topic_key(0, fqn, ros.POSE_STAMPED, core.key_hash("humble", ros.POSE_STAMPED))
+    assert humble == "0/robot3/goal_pose/geometry_msgs::msg::dds_::PoseStamped_/TypeHashNotSupported"
+    assert humble == robot_key(0, fqn, ros.POSE_STAMPED, "humble")
+    for distro in ("jazzy", "kilted", "rolling"):
+        k = core.topic_key(0, fqn, ros.POSE_STAMPED, core.key_hash(distro, ros.POSE_STAMPED))
+        assert k == robot_key(0, fqn, ros.POSE_STAMPED, distro) != humble  # pamoja with the independent hash
+    tok = core.endpoint_token(0, "abc", 1, 5, "MP", "/robot3", "eqa_bridge_robot3", fqn, ros.POSE_STAMPED, "humble")
+    assert tok.split("/")[11] == "TypeHashNotSupported"
+    s = fleet_settings(tmp_path, None, robots=["a", "b"], ros2_robots=["a", "b"], ros2_distros=["b=humble"])
+    assert (s.ros2_distro_of("a"), s.ros2_distro_of("b")) == ("jazzy", "humble")
+    with pytest.raises(ValueError, match="robot=distro"):
+        fleet_settings(tmp_path, None, ros2_distros=["b=iron"])
+
+
+def _xxh3_gid(token: str) -> bytes:
+    """rmw_zenoh's GID of an entity (liveliness_utils.cpp): XXH3-128 of the token, low64 then high64, each
+    little-endian; here from the canonical (big-endian high64, low64) digest."""
+    d = xxhash.xxh3_128(token.encode()).digest()
+    return d[8:][::-1] + d[:8][::-1]
+
+
+def test_each_publisher_has_its_own_gid_and_sequence_from_one() -> None:
+    toks = [core.endpoint_token(0, "abc", n, 5, "MP", f"/r{n}", f"eqa_bridge_r{n}", f"/r{n}/goal_pose",
+                                ros.POSE_STAMPED) for n in (0, 1)]
+    pubs = [core.Publisher(f"0/r{n}/goal_pose/x/y", t) for n, t in enumerate(toks)]
+    got = [decode_attachment(pubs[0].next_attachment(10)), decode_attachment(pubs[1].next_attachment(11)),
+           decode_attachment(pubs[0].next_attachment(12))]
+    assert [(g[0], g[1]) for g in got] == [(1, 10), (1, 11), (2, 12)]
+    assert got[0][2] == got[2][2] == _xxh3_gid(toks[0]) != got[1][2] == _xxh3_gid(toks[1])
 
 
 def test_camera_pose_of_the_base_is_the_sims_camera() -> None:
@@ -164,7 +264,8 @@ class Run:
     elapsed: dict[str, float]
 
 
-ROBOTS = {"robot0": "good", "robot1": "stuck", "robot2": "garbage"}
+ROBOTS = {"robot0": ("good", "jazzy"), "robot1": ("stuck", "humble"), "robot2": ("garbage", "jazzy"),
+          "robot3": ("good", "humble")}
 
 
 @pytest.fixture(scope="module")
@@ -174,7 +275,8 @@ def run(tmp_path_factory: pytest.TempPathFactory, redis_url: str) -> Iterator[Ru
 
     data = tmp_path_factory.mktemp("ros2-fleet")
     s = fleet_settings(data, redis_url, robots=list(ROBOTS), ros2_robots=list(ROBOTS), episode_timeout_s=120.0,
-                       ros2_goal_timeout_s=1.5, ros2_frame_timeout_s=3.0, ros2_settle_s=0.2)
+                       ros2_goal_timeout_s=1.5, ros2_frame_timeout_s=3.0, ros2_settle_s=0.2,
+                       ros2_distros=[f"{r}={d}" for r, (_, d) in ROBOTS.items() if d != "jazzy"])
     scene = load_or_generate(SCENE, s.scenes_path)
     services = ("mapper", "vlm_scorer", "planner", "stopper", "ros2_bridge")
     with (
@@ -185,10 +287,10 @@ def run(tmp_path_factory: pytest.TempPathFactory, redis_url: str) -> Iterator[Ru
     ):
         rng = np.random.default_rng(5)
         robots = {}
-        for name, behaviour in ROBOTS.items():
+        for name, (behaviour, distro) in ROBOTS.items():
             p = sample_start_pose(scene, rng, START_CLEARANCE)
             robots[name] = TestRobot(bus.session, scene, (p.x, p.y, p.yaw), namespace=f"/{name}",
-                                     behaviour=behaviour).start()
+                                     behaviour=behaviour, distro=distro).start()
         assert wait_for(lambda: c.get("/v1/ready").status_code == 200, 60), c.get("/v1/ready").text
         tokens: list[str] = []
 
@@ -216,20 +318,35 @@ def run(tmp_path_factory: pytest.TempPathFactory, redis_url: str) -> Iterator[Ru
         yield Run(status, events, robots, tokens, log_text, elapsed)
 
 
-def test_a_question_is_answered_end_to_end_by_a_ros2_robot(run: Run) -> None:
-    st, ev, robot = run.status["robot0"], run.events["robot0"], run.robots["robot0"]
+@pytest.mark.parametrize("name", ["robot0", "robot3"])  # Jazzy, Humble
+def test_a_question_is_answered_end_to_end_by_a_ros2_robot(run: Run, name: str) -> None:
+    st, ev, robot = run.status[name], run.events[name], run.robots[name]
     assert st["state"] == "stopped" and st["steps"] == 4 and st["answer"] in "ABCD", st
     frames = [e for e in ev if e["kind"] == "frame"]
     assert [f["step"] for f in frames] == [0, 1, 2, 3] and all(f["image"] == [120, 160] for f in frames)
     goals = [e for e in ev if e["kind"] == "goal" and not e["done"]]
-    assert len(robot.goals) == len(goals) >= 3  # every goal went to the robot as PoseStamped on goal_pose
+    assert len(robot.goals) == len(goals) >= 3  # every goal reached the robot's own key, as PoseStamped
     for g, (_stamp, frame_id, vals) in zip(goals, robot.goals, strict=True):
         assert frame_id == "map" and (vals[0], vals[1]) == pytest.approx((g["pose"]["x"], g["pose"]["y"]), abs=1e-3)
     for f, g in zip(frames[1:], goals, strict=False):  # each next frame was taken at the goal it followed
         assert math.hypot(f["pose"]["x"] - g["pose"]["x"], f["pose"]["y"] - g["pose"]["y"]) < 0.01
-    seqs = [struct.unpack_from("<q", a)[0] for a in robot.attachments]
-    assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs)
     assert not [e for e in ev if e["kind"] == "error"], "a robot that arrives gets no refusal"
+
+
+def test_each_robots_goals_come_from_its_own_publisher(run: Run) -> None:
+    """Per robot: sequence numbers 1, 2, 3, ... with no jump (rmw_zenoh reports MESSAGE_LOST on one), and the GID
+    rmw_zenoh derives from the bridge's publisher token for that robot, different for every robot."""
+    gids = {}
+    for name, robot in run.robots.items():
+        if not robot.attachments:
+            continue
+        atts = [decode_attachment(a) for a in robot.attachments]
+        assert [a[0] for a in atts] == list(range(1, len(atts) + 1)), name
+        (token,) = [t for t in run.tokens if f"eqa_bridge_{name}" in t and t.split("/")[5] == "MP"]
+        assert {a[2] for a in atts} == {_xxh3_gid(token)}, name
+        assert all(abs(a[1] - time.time_ns()) < 600 * 10**9 for a in atts)  # a wall-clock source timestamp
+        gids[name] = atts[0][2]
+    assert {"robot0", "robot1", "robot3"} <= set(gids) and len(set(gids.values())) == len(gids)
 
 
 def test_the_bridge_is_a_ros2_node_with_its_endpoints(run: Run) -> None:
@@ -239,7 +356,9 @@ def test_the_bridge_is_a_ros2_node_with_its_endpoints(run: Run) -> None:
     assert {("MS", "%robot0%odom"), ("MS", "%robot0%camera%color%image_raw"),
             ("MS", "%robot0%camera%depth%image_raw"), ("MS", "%robot0%camera%color%camera_info")} <= kinds
     pub = next(p for p in mine if p[5] == "MP")
-    assert pub[10:12] == ["geometry_msgs::msg::dds_::PoseStamped_", ros.type_hash(ros.POSE_STAMPED)]
+    assert pub[10:12] == ["geometry_msgs::msg::dds_::PoseStamped_", ros2_defs.rihs01(ros.POSE_STAMPED)]
+    humble = [t.split("/") for t in run.tokens if "eqa_bridge_robot3" in t and t.split("/")[5] in ("MP", "MS")]
+    assert humble and {p[11] for p in humble} == {"TypeHashNotSupported"}
 
 
 def test_a_robot_that_never_arrives_gets_refused_goals_and_the_episode_ends(run: Run) -> None:
@@ -247,7 +366,7 @@ def test_a_robot_that_never_arrives_gets_refused_goals_and_the_episode_ends(run:
     errors = [e for e in ev if e["kind"] == "error"]
     assert errors and all("not reached within 1.5 s" in e["reason"] for e in errors), errors
     assert st["state"] in ("stopped", "failed") and ev[-1]["kind"] == "episode_end", st
-    assert len(run.robots["robot1"].goals) == len(errors)  # each goal sent was answered as refused
+    assert len(run.robots["robot1"].goals) == len(errors)  # each goal reached the Humble robot and was refused
     assert run.elapsed["robot1"] < 90
 
 

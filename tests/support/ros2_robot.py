@@ -1,12 +1,16 @@
-"""A test ROS 2 robot that speaks rmw_zenoh without ROS 2 and without the bridge's code: it stands for a real
-robot (ROS 2 itself cannot be installed here).
+"""A test ROS 2 robot that speaks rmw_zenoh without ROS 2 and without the bridge's code or libraries: it stands
+for a real robot (ROS 2 itself cannot be installed here).
 
-Independent of the bridge: the topic key expressions are built by ``pamoja-ros2`` (a third-party rmw_zenoh key
-assembler: ``<domain>/<name>/<DDS type>/<RIHS01 hash>``), the type hashes and the CDR of the messages it
-publishes by ``rosbags``, and the goals it receives are decoded here by hand from the CDR byte layout of
-``geometry_msgs/PoseStamped`` (encapsulation header, int32 sec, uint32 nanosec, string frame_id, 7 float64).
-``zenoh-ros2-sdk`` was read and not used: it downloads message definitions from git at run time. The views are
-rendered by the simulator's renderer (services/sim/render.py) at the robot's pose.
+Independent of the bridge (which takes hashes and CDR from ``rosbags``): the type hashes come from the separate
+RIHS01 implementation of tests/support/ros2_defs.py (checked there against hashes ROS 2 generated), the CDR of
+what it publishes from ``mcap-ros2-support``'s serialiser fed those definitions, the topic keys from
+``pamoja-ros2`` (a third-party rmw_zenoh key assembler: ``<domain>/<name>/<DDS type>/<RIHS01 hash>``) or, on
+Humble, whose keys carry ``TypeHashNotSupported`` (which pamoja refuses), written out here; the goals it receives
+are decoded by hand from the CDR byte layout of ``geometry_msgs/PoseStamped`` (encapsulation header, int32 sec,
+uint32 nanosec, string frame_id, 7 float64) and their attachments by zenoh's own ``zenoh.ext`` deserialiser
+(int64, int64, bytes: zenoh-cpp's ``ext::Serializer`` layout that rmw_zenoh writes). It subscribes to the goal
+topic's exact key in its distribution's form, as rmw_zenoh does, so goals with another hash never reach it. The
+views are rendered by the simulator's renderer (services/sim/render.py) at the robot's pose.
 
 Behaviours: ``good`` drives to each goal in ``travel_s`` and publishes colour (``bgr8``), depth (``16UC1``
 millimetres), camera_info and odometry at ``rate_hz``; ``stuck`` never moves; ``garbage`` publishes images of a
@@ -24,18 +28,20 @@ from typing import Any
 import numpy as np
 import pamoja.ros2 as pr
 import zenoh
-from rosbags.typesys import Stores, get_typestore
+import zenoh.ext as ze
 
 from services.sim.camera import camera_pose, intrinsics
 from services.sim.render import Renderer
 from services.sim.scene import Scene
-
-TS = get_typestore(Stores.ROS2_JAZZY)
-T = TS.types
+from support import ros2_defs
 
 
-def key(domain: int, fqn: str, typename: str) -> str:
-    k = pr.entity_key(domain, fqn, typename, TS.hash_rihs01(typename))
+def key(domain: int, fqn: str, typename: str, distro: str = "jazzy") -> str:
+    if distro == "humble":
+        dds = pr.dds_type_name(typename)
+        assert dds is not None, typename
+        return f"{domain}/{fqn.strip('/')}/{dds}/TypeHashNotSupported"
+    k = pr.entity_key(domain, fqn, typename, ros2_defs.rihs01(typename))
     assert k is not None, (fqn, typename)
     return str(k)
 
@@ -52,19 +58,21 @@ def decode_pose_stamped(data: bytes) -> tuple[int, str, tuple[float, ...]]:
     return sec * 1_000_000_000 + nsec, frame, vals
 
 
-def _stamp(t_ns: int) -> Any:
-    return T["builtin_interfaces/msg/Time"](sec=t_ns // 1_000_000_000, nanosec=t_ns % 1_000_000_000)
+def decode_attachment(att: bytes) -> tuple[int, int, bytes]:
+    """(sequence number, source timestamp ns, GID) of an rmw_zenoh publication attachment."""
+    seq, ts, gid = ze.z_deserialize(tuple[ze.Int64, ze.Int64, bytes], zenoh.ZBytes(att))
+    return int(seq), int(ts), bytes(gid)
 
 
-def _header(t_ns: int, frame: str) -> Any:
-    return T["std_msgs/msg/Header"](stamp=_stamp(t_ns), frame_id=frame)
+def _header(t_ns: int, frame: str) -> dict[str, Any]:
+    return {"stamp": {"sec": t_ns // 1_000_000_000, "nanosec": t_ns % 1_000_000_000}, "frame_id": frame}
 
 
 class TestRobot:
     def __init__(self, session: zenoh.Session, scene: Scene, start: tuple[float, float, float], *,
                  namespace: str = "/robot0", domain: int = 0, width: int = 160, height: int = 120,
-                 behaviour: str = "good", rate_hz: float = 8.0, travel_s: float = 0.4) -> None:
-        self.s, self.ns, self.domain = session, namespace, domain
+                 behaviour: str = "good", rate_hz: float = 8.0, travel_s: float = 0.4, distro: str = "jazzy") -> None:
+        self.s, self.ns, self.domain, self.distro = session, namespace, domain, distro
         self.renderer = Renderer(scene)
         self.w, self.h = width, height
         self.K = intrinsics(width, height)
@@ -81,16 +89,16 @@ class TestRobot:
             "info": self._pub("camera/color/camera_info", "sensor_msgs/msg/CameraInfo"),
             "odom": self._pub("odom", "nav_msgs/msg/Odometry"),
         }
-        self._sub = session.declare_subscriber(key(domain, f"{namespace}/goal_pose", "geometry_msgs/msg/PoseStamped"),
-                                               self._on_goal)
+        self.goal_key = key(domain, f"{namespace}/goal_pose", "geometry_msgs/msg/PoseStamped", distro)
+        self._sub = session.declare_subscriber(self.goal_key, self._on_goal)
         self._thread = threading.Thread(target=self._run, name="test-robot", daemon=True)
 
     def _pub(self, topic: str, typename: str) -> tuple[Any, str]:
-        return self.s.declare_publisher(key(self.domain, f"{self.ns}/{topic}", typename)), typename
+        return self.s.declare_publisher(key(self.domain, f"{self.ns}/{topic}", typename, self.distro)), typename
 
-    def _put(self, name: str, msg: Any) -> None:
+    def _put(self, name: str, msg: dict[str, Any]) -> None:
         pub, typename = self._pubs[name]
-        pub.put(bytes(TS.serialize_cdr(msg, typename)))
+        pub.put(ros2_defs.cdr(typename, msg))
 
     def _on_goal(self, sample: zenoh.Sample) -> None:
         g = decode_pose_stamped(sample.payload.to_bytes())
@@ -133,25 +141,21 @@ class TestRobot:
         if self.behaviour == "garbage":
             rgb_enc, depth_h, odom_x, stamp = "yuv422", self.h // 2, float("nan"), t_ns - 3_600_000_000_000
         hdr = _header(t_ns, "camera_optical_frame")
-        self._put("rgb", T["sensor_msgs/msg/Image"](
-            header=hdr, height=self.h, width=self.w, encoding=rgb_enc, is_bigendian=0, step=self.w * 3,
-            data=np.frombuffer(bgr.tobytes(), np.uint8)))
-        self._put("depth", T["sensor_msgs/msg/Image"](
-            header=_header(stamp, "camera_optical_frame"), height=depth_h, width=self.w, encoding="16UC1",
-            is_bigendian=0, step=self.w * 2, data=np.frombuffer(depth_mm[:depth_h].tobytes(), np.uint8)))
+        self._put("rgb", {"header": hdr, "height": self.h, "width": self.w, "encoding": rgb_enc, "is_bigendian": 0,
+                          "step": self.w * 3, "data": bgr.tobytes()})
+        self._put("depth", {"header": _header(stamp, "camera_optical_frame"), "height": depth_h, "width": self.w,
+                            "encoding": "16UC1", "is_bigendian": 0, "step": self.w * 2,
+                            "data": depth_mm[:depth_h].tobytes()})
         p = np.zeros((3, 4))
         p[:, :3] = self.K
-        self._put("info", T["sensor_msgs/msg/CameraInfo"](
-            header=hdr, height=self.h, width=self.w, distortion_model="plumb_bob", d=np.zeros(5),
-            k=self.K.reshape(-1), r=np.eye(3).reshape(-1), p=p.reshape(-1), binning_x=0, binning_y=0,
-            roi=T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)))
+        self._put("info", {"header": hdr, "height": self.h, "width": self.w, "distortion_model": "plumb_bob",
+                           "d": [0.0] * 5, "k": self.K.reshape(-1).tolist(), "r": np.eye(3).reshape(-1).tolist(),
+                           "p": p.reshape(-1).tolist(), "binning_x": 0, "binning_y": 0,
+                           "roi": {"x_offset": 0, "y_offset": 0, "height": 0, "width": 0, "do_rectify": False}})
         q = (0.0, 0.0, math.sin(self.yaw / 2), math.cos(self.yaw / 2))
-        cov = np.zeros(36)
-        self._put("odom", T["nav_msgs/msg/Odometry"](
-            header=_header(stamp, "map"), child_frame_id="base_link",
-            pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=T["geometry_msgs/msg/Pose"](
-                position=T["geometry_msgs/msg/Point"](x=odom_x, y=self.y, z=0.0),
-                orientation=T["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3])), covariance=cov),
-            twist=T["geometry_msgs/msg/TwistWithCovariance"](twist=T["geometry_msgs/msg/Twist"](
-                linear=T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
-                angular=T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)), covariance=cov)))
+        zero = {"x": 0.0, "y": 0.0, "z": 0.0}
+        self._put("odom", {
+            "header": _header(stamp, "map"), "child_frame_id": "base_link",
+            "pose": {"pose": {"position": {"x": odom_x, "y": self.y, "z": 0.0},
+                              "orientation": {"x": q[0], "y": q[1], "z": q[2], "w": q[3]}}, "covariance": [0.0] * 36},
+            "twist": {"twist": {"linear": zero, "angular": zero}, "covariance": [0.0] * 36}})
