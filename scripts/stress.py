@@ -1,9 +1,9 @@
 """Run the fleet's reliability tests many times while busy loops hold every core, and print how often each passed.
 
-The tests are the sharding, takeover, fault/restart and network-namespace ones (``--tests`` picks others: test
-files or node ids, comma-separated). One busy-loop process per core (``--competitors``) runs for the whole
-time at normal priority, so every test sees a machine with no idle core: a test that only passes on a quiet
-machine fails here. Each test file runs ``--runs`` times (each run a fresh pytest process, results read from
+The tests are the sharding, takeover, fault/restart, network-namespace and end-to-end fleet ones (``--tests``
+picks others: test files or node ids, comma-separated). One busy-loop process per core (``--competitors``) runs
+for the whole time at normal priority, so every test sees a machine with no idle core: a test that only passes on
+a quiet machine fails here. Each test file runs ``--runs`` times (each run a fresh pytest process, results read from
 its JUnit report); at the end the pass counts per test, then the recovery figures of
 ``bench/bench_recovery.py`` (``--bench-rounds`` rounds, under the same load; ``--bench-rounds 0`` skips it).
 
@@ -37,6 +37,7 @@ DEFAULT_TESTS = (
     "tests/gateway/test_gateway_restart.py",
     "tests/mapper/test_mapper_service.py::test_killed_mapper_resumes_from_snapshot",
     "tests/fleet/test_fleet_netns.py",
+    "tests/fleet/test_fleet_e2e.py",
 )
 BUSY = "import os\nos.nice(0)\nwhile True:\n    pass\n"
 

@@ -7,8 +7,10 @@ from __future__ import annotations
 
 import os
 import re
+import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -17,6 +19,7 @@ import pytest
 
 from eqa import keys
 from eqa.bus import Bus
+from eqa.health import check
 from eqa.launcher import ALL_SERVICES, Fleet, free_port
 from eqa.settings import Settings
 
@@ -125,8 +128,8 @@ def test_a_second_peer_joins_with_client_settings(fleet: Fleet):
 
 
 def test_eqa_health_from_another_process(fleet: Fleet):
-    """`eqa health` in a fresh process (as compose runs it) sees every service of the fleet at once: a session
-    just opened has not heard of every peer yet, so the check retries until its timeout."""
+    """`eqa health` in a fresh process (as compose runs it) sees every service of the fleet: it asks the
+    launcher's router, which holds every token (eqa.health.check_settings)."""
     env = {**os.environ, "EQA_ZENOH_CONNECT": fleet.endpoint, "EQA_ZENOH_LISTEN": ""}
     cmd = [sys.executable, "-m", "eqa_app", "health", *ALL_SERVICES]
     out = subprocess.run(cmd, capture_output=True, text=True, timeout=60, env=env, cwd=REPO)
@@ -134,6 +137,25 @@ def test_eqa_health_from_another_process(fleet: Fleet):
     out = subprocess.run([*cmd, "nosuch", "--timeout", "1"], capture_output=True, text=True, timeout=60, env=env,
                          cwd=REPO)
     assert out.returncode == 1 and "not alive: nosuch" in out.stderr and "EQA_ZENOH_CONNECT" in out.stderr
+
+
+def test_eqa_health_sees_a_peer_too_busy_to_link(fleet: Fleet):
+    """A service whose process gets no CPU for a while (a loaded machine, made certain here by SIGSTOP for less
+    than the Zenoh lease) still holds its token at the router, so the check reports it alive. A check that had
+    to link to every peer itself would wait on that peer's handshake and report it dead."""
+    victim = fleet.child("stopper").proc
+    assert victim is not None
+    # the resume comes from a timer: a check waiting on the stopped peer's handshake blocks until it
+    resume = threading.Timer(4.0, os.kill, (victim.pid, signal.SIGCONT))
+    settings = fleet.settings.model_copy(update={"zenoh_connect": [fleet.endpoint], "zenoh_listen": []})
+    os.kill(victim.pid, signal.SIGSTOP)
+    resume.start()
+    try:
+        missing = check(settings, list(ALL_SERVICES), timeout=2.0)
+    finally:
+        resume.cancel()
+        os.kill(victim.pid, signal.SIGCONT)
+    assert missing == []
 
 
 @pytest.mark.parametrize(
