@@ -69,6 +69,22 @@ def test_every_example_of_the_help_runs_as_it_says(tmp_path: Path) -> None:
             check_task(body["instruction"], body["scene"], tmp_path)  # raises naming what the house lacks
 
 
+def test_every_eqa_task_command_in_the_readme_and_docs_names_objects_its_house_has(tmp_path: Path) -> None:
+    from eqa_app.cli import build_parser
+    from eqa_app.task import _body, check_task
+
+    found = []
+    for doc in [REPO / "README.md", *sorted((REPO / "docs").rglob("*.md"))]:
+        for m in re.finditer(r"eqa task( \"[^\"]*\")?( --[a-z-]+( [^ #`\n]+)?)*", doc.read_text()):
+            argv = shlex.split(m.group(0))[1:]
+            if "--help" in argv:
+                continue
+            body = _body(build_parser().parse_args(argv), tmp_path)
+            check_task(body["instruction"], body["scene"], tmp_path)  # raises naming what the house lacks
+            found.append(argv)
+    assert len(found) >= 5, found
+
+
 def test_a_task_the_house_cannot_hold_fails_fast_with_exit_2_and_what_it_has(tmp_path: Path) -> None:
     env = {**os.environ, "EQA_DATA_DIR": str(tmp_path), "PYTHONPATH": str(REPO)}
     out = subprocess.run([sys.executable, "-m", "eqa_app", "task", "Move the mug from the kitchen counter to the "
