@@ -47,10 +47,12 @@ def help_text() -> str:
     examples = f"""examples:
   eqa task
       the demo: {DEMO_TASK_ID} of the tuning seed 11, a typical task there (eqa_app/task_demo.py: helios
-      succeeds in {wins} of {pool}); its run ends "{DEMO_OUTCOME}", exit 1
+      succeeds in {wins} of {pool}), with the draws of its benchmark run, so it ends as that run did:
+      "{DEMO_OUTCOME}"; exit {0 if DEMO_OUTCOME == "success" else 1}
   eqa task "Move the kettle from the kitchen counter to the coffee table" --scene gen-15000
-      pick and place in generated house 15000 (start pose sampled from --seed 0); prints each step, then the
-      phases FindObj, Pick, FindRec, Place, SR; exit 0 when the kettle ends on a coffee table, else 1
+      pick and place in generated house 15000 (start pose sampled from seed 0, fresh detector draws each
+      run); prints each step, then the phases FindObj, Pick, FindRec, Place, SR; exit 0 when the kettle
+      ends on a coffee table, else 1
   eqa task "Find a potted plant" --scene gen-15000 --ablation trusting --seed 3 --max-steps 10
       object search by the trusting agent (it acts on its first detection), at most 10 steps; --seed 3
       repeats the start pose and the simulated detector's draws, so every run prints the same steps: it

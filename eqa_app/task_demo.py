@@ -14,7 +14,8 @@ Re-pick after the agent changed::
 
     nice -n 10 python -m eqa_app.task_demo          # ~10 min on 2 cores, writes bench/results/task-demo-seed11.jsonl
 
-It prints the chosen task, its outcome, the command and the :data:`eqa_app.task.DEMO_TASK_ID` line to set;
+It prints the chosen task, its outcome and the lines to set in :mod:`eqa_app.task` (``DEMO_TASK_ID``,
+``DEMO_OUTCOME``, ``DEMO_SUCCESSES``);
 ``tests/tasks/test_task_cli.py`` checks that the constant is the rule's pick on the committed results. The demo
 runs with the benchmark's seed and draws of that task (:func:`demo_draws`), so ``eqa task`` prints the outcome the
 rule saw (simulated detector, not a real detector).
@@ -117,7 +118,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{wins} of {len(runs)} succeeded; typical outcome: {'succeeded' if success else 'failed'} ({cause}, "
           f"{sum(r.cause == cause for r in runs)} runs)")
     print(f"demo: {demo.task_id} ({demo.max_steps} steps): {demo.text}")
-    print(f"set in eqa_app/task.py: DEMO_TASK_ID = {demo.task_id!r}")
+    print(f"set in eqa_app/task.py:\nDEMO_TASK_ID = {demo.task_id!r}\nDEMO_OUTCOME = {demo.text!r}\n"
+          f"DEMO_SUCCESSES = ({wins}, {len(runs)})")
     print(f"results: {args.out}")
     sys.stdout.flush()
     return 0
