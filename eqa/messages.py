@@ -311,6 +311,9 @@ class EpisodeStart(Message):
     # The internal id of the home whose memory the episode reads and extends (:func:`eqa.homes.home_id`);
     # None: the episode starts from an empty map and leaves no memory.
     home: str | None = None
+    # The key the simulated perception models draw from, with ``seed`` and the step (:attr:`DetectRequest.draws`);
+    # None: the episode id, fresh for every episode. The same key and seed repeat a run's draws.
+    draws: str | None = None
     # Ground truth for the target_oracle yardstick only (set by the benchmark runners, never by the gateway):
     # the walked distance from every cell of the house to the nearest target (services/sim/paths.py).
     target_paths: TargetPaths | None = None
@@ -324,6 +327,11 @@ class EpisodeStart(Message):
     @classmethod
     def _safe_home(cls, v: str | None) -> str | None:
         return None if v is None else keys.check_id(v, "home")
+
+    @field_validator("draws")
+    @classmethod
+    def _safe_draws(cls, v: str | None) -> str | None:
+        return None if v is None else keys.check_id(v, "draws")
 
     @model_validator(mode="after")
     def _paths_only_for_the_yardstick(self) -> EpisodeStart:
@@ -706,6 +714,12 @@ class DetectRequest(Message):
     labels: list[InstanceLabel] = Field(default_factory=list)
     depth: NDArray | None = None
     seed: int = 0
+    # With ``seed`` and ``step`` the key of a simulated model's draws (EpisodeStart.draws); None: the episode id.
+    draws: str | None = Field(default=None, min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_-]+$")
+
+    @property
+    def draw_key(self) -> str:
+        return self.draws or self.episode_id
 
     @model_validator(mode="after")
     def _thresholds(self) -> DetectRequest:
@@ -742,6 +756,12 @@ class ValueRequest(Message):
     labels: list[InstanceLabel] = Field(default_factory=list)
     depth: NDArray | None = None
     seed: int = 0
+    # With ``seed`` and ``step`` the key of a simulated model's draws (EpisodeStart.draws); None: the episode id.
+    draws: str | None = Field(default=None, min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_-]+$")
+
+    @property
+    def draw_key(self) -> str:
+        return self.draws or self.episode_id
 
 
 class ValueResult(Message):

@@ -12,13 +12,16 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import shutil
 import sys
+import textwrap
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, get_args
 
 from eqa import keys
+from eqa.event_log import Identity, event_identity
 from eqa.messages import BOUND_STRATEGIES, MAX_CHOICES, Pose2D, Question, Strategy, letters
 
 log = logging.getLogger(__name__)
@@ -87,6 +90,7 @@ def follow(url: str, body: dict[str, Any], token: str | None, timeout: float, qu
         if not quiet:
             print(f"episode {episode_id} on {r.json().get('robot')}", flush=True)
         n = 0
+        printer = StepPrinter(task=path == "/v1/tasks")
         with client.stream("GET", f"/v1/episodes/{episode_id}/events") as stream:
             for line in stream.iter_lines():
                 if not line.startswith("data:"):
@@ -94,31 +98,63 @@ def follow(url: str, body: dict[str, Any], token: str | None, timeout: float, qu
                 n += 1
                 event = json.loads(line[5:].strip())
                 if not quiet:
-                    _print_event(event)
+                    printer(event)
                 if event.get("kind") in ("episode_end",) or event.get("state") in ("stopped", "failed", "cancelled"):
                     break
         status = client.get(f"/v1/episodes/{episode_id}").json()
     return Outcome(status=status, events=n, seconds=time.monotonic() - t0)
 
 
-def _print_event(event: dict[str, Any]) -> None:
+def _line(head: str, text: str, width: int | None = None) -> str:
+    """``head`` then ``text`` whole, wrapped at words to the terminal's width (at least 60 columns), the
+    continuation lines under the text's start: a long reason is never cut."""
+    width = width or max(60, shutil.get_terminal_size((100, 24)).columns)
+    return textwrap.fill(text or "", width=width, initial_indent=head, subsequent_indent=" " * len(head),
+                         break_long_words=False, break_on_hyphens=False) or head.rstrip()
+
+
+class StepPrinter:
+    """Prints an episode's events as they come (:func:`_print_event`), each once: a step the sim sent again (a
+    resend, a re-drive after a service instance came or went) brings the same frame, decision and goal again
+    (:func:`eqa.event_log.event_identity`)."""
+
+    def __init__(self, task: bool = False, width: int | None = None) -> None:
+        self.task, self.width = task, width
+        self.printed: set[Identity] = set()
+
+    def __call__(self, event: dict[str, Any]) -> None:
+        identity = event_identity(event)
+        if identity in self.printed:
+            return
+        self.printed.add(identity)
+        _print_event(event, self.task, self.width)
+
+
+def _print_event(event: dict[str, Any], task: bool = False, width: int | None = None) -> None:
+    """One line (wrapped, :func:`_line`) per event a user follows an episode by. In a ``task`` episode a step is
+    the planner's goal; the stopper's decisions of its stand-in question (the ``max_steps`` rule, "running to the
+    step limit") say nothing the step count does not, and they come from another service than the goal of
+    the same step, so the bus may deliver either first: only the decision that ends the episode is printed."""
     kind = event.get("kind")
     if kind == "decision":
+        if task and not event.get("stop"):
+            return
         if event.get("rule") == "cp":
             pset = "{" + ",".join(event.get("prediction_set") or []) + "}"
-            print(f"  step {event.get('step'):>3}: set {pset:<11} {event.get('reason', '')}", flush=True)
+            print(_line(f"  step {event.get('step'):>3}: set {pset:<11} ", event.get("reason", ""), width), flush=True)
         else:
-            print(f"  step {event.get('step'):>3}: {event.get('reason', '')}", flush=True)
+            print(_line(f"  step {event.get('step'):>3}: ", event.get("reason", ""), width), flush=True)
     elif kind == "goal" and event.get("phase"):  # a task episode (eqa task)
         skill = event.get("skill") or "move"
         what = f"{skill} " if skill != "move" else ""
-        print(f"  step {event.get('step'):>3}: {event.get('phase'):<12} {what}{event.get('reason', '')[:100]}",
-              flush=True)
+        print(_line(f"  step {event.get('step'):>3}: {event.get('phase'):<12} ", f"{what}{event.get('reason', '')}",
+                    width), flush=True)
     elif kind == "frame" and event.get("skill"):
         s = event["skill"]
-        print(f"           {s['skill']} {'succeeded' if s['success'] else 'failed'}: {s['reason']}", flush=True)
+        print(_line(f"           {s['skill']} {'succeeded' if s['success'] else 'failed'}: ", s["reason"], width),
+              flush=True)
     elif kind == "error":
-        print(f"  error from {event.get('source')}: {event.get('reason')}", flush=True)
+        print(_line(f"  error from {event.get('source')}: ", event.get("reason", ""), width), flush=True)
 
 
 def add_episode_run_options(p: argparse.ArgumentParser, timeout_s: float, waits_for: str) -> None:

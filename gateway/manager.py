@@ -516,9 +516,9 @@ class EpisodeManager:
             )
 
     def submit(self, req: QuestionRequest, caller: Caller | None = None, *, task: Task | None = None,
-               ablation: Ablation = "helios", pick_limit: int | None = None) -> Submitted:
+               ablation: Ablation = "helios", pick_limit: int | None = None, draws: str | None = None) -> Submitted:
         """A question episode; with ``task`` a HELIOS task episode whose stand-in question is ``req``
-        (gateway/routers/tasks.py)."""
+        (gateway/routers/tasks.py). ``draws``: the simulated models' draw key (``EpisodeStart.draws``)."""
         owner = caller.tenant if caller is not None else ANONYMOUS
         if req.robot is not None and req.robot not in self.settings.robots:
             raise InvalidError(f"unknown robot {req.robot!r}; known: {', '.join(self.settings.robots)}", field="robot")
@@ -569,6 +569,7 @@ class EpisodeManager:
                 ablation=ablation,
                 pick_limit=pick_limit,
                 home=home,
+                draws=draws,
             )
             status = EpisodeStatus(
                 episode_id=episode_id,

@@ -23,7 +23,7 @@ from gateway.schemas import HOME_DESCRIPTION, HomeName, QuestionRequest, Submitt
 log = logging.getLogger(__name__)
 router = APIRouter(prefix="/v1", tags=["tasks"])
 
-_EXAMPLE = {"instruction": "Move the mug from the kitchen counter to the dining table", "scene": "gen-15000",
+_EXAMPLE = {"instruction": "Move the kettle from the kitchen counter to the coffee table", "scene": "gen-15000",
             "ablation": "helios", "pick_limit": 5}
 
 
@@ -42,7 +42,10 @@ class TaskRequest(BaseModel):
     pick_limit: int | None = Field(default=None, ge=1, le=1000,
                                    description="pick attempts; default EQA_HELIOS_PICK_ATTEMPTS (0 = unlimited)")
     max_steps: int | None = Field(default=None, ge=1, le=10_000)
-    seed: int = Field(default=0, ge=0, le=2**31 - 1)
+    seed: int = Field(default=0, ge=0, le=2**31 - 1, description="seed of the start pose sampling and the draws")
+    draws: Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_-]+$")] | None = Field(
+        default=None, description="the key the simulated perception models draw from (with seed and step); default: "
+        "the episode id, new for every episode. The same key, seed, task and start repeat a run step for step")
     record: StrictBool = True
     home: HomeName | None = Field(default=None, description=HOME_DESCRIPTION)
 
@@ -90,7 +93,8 @@ async def submit_task(body: TaskRequest, manager: ManagerDep, caller: SubmitterD
     limit = body.pick_limit if body.pick_limit is not None else (settings.helios_pick_attempts or None)
     stand_in = QuestionRequest(question=body.instruction.strip(), scene=body.scene, robot=body.robot,
                                start_pose=body.start_pose, stop_rule="max_steps", max_steps=body.max_steps,
-                               seed=body.seed, record=body.record, home=body.home)
+                               seed=body.seed, record=body.record, home=body.home, question_id=body.draws)
     return await run_in_threadpool(
-        functools.partial(manager.submit, stand_in, caller, task=task, ablation=body.ablation, pick_limit=limit)
+        functools.partial(manager.submit, stand_in, caller, task=task, ablation=body.ablation, pick_limit=limit,
+                          draws=body.draws)
     )

@@ -117,10 +117,11 @@ class ObjectMap:
     def task_classes(self) -> list[str]:
         return self.layer.classes[:-1]
 
-    def detect_request(self, frame: Frame, seed: int = 0) -> DetectRequest:
+    def detect_request(self, frame: Frame, seed: int = 0, draws: str | None = None) -> DetectRequest:
         return DetectRequest(
             episode_id=frame.episode_id, step=frame.step, rgb=frame.rgb, classes=self.task_classes,
             thresholds=self.thresholds, instances=frame.instances, labels=frame.labels, depth=frame.depth, seed=seed,
+            draws=draws,
         )
 
     def integrate(self, frame: Frame, result: DetectResult, without: frozenset[str] = frozenset()) -> UpdateStats:

@@ -202,10 +202,11 @@ def ask_objects(objects: ObjectMap, episode_map: EpisodeMap, frame: Frame, detec
                 values: Values) -> tuple[Any, Any]:
     """The frame's detections and per-target value prompts (HELIOS 3.1.2) from the scorer pool; each reply is
     the result, or the exception its request raised (:func:`call_pool`)."""
-    det = call_pool(detect, objects.detect_request(frame, seed=episode_map.start.seed))
+    start = episode_map.start
+    det = call_pool(detect, objects.detect_request(frame, seed=start.seed, draws=start.draws))
     val = call_pool(values, ValueRequest(
         episode_id=episode_map.episode_id, step=frame.step, rgb=frame.rgb, targets=objects.task_classes,
-        instances=frame.instances, labels=frame.labels, depth=frame.depth, seed=episode_map.start.seed,
+        instances=frame.instances, labels=frame.labels, depth=frame.depth, seed=start.seed, draws=start.draws,
     ))
     return det, val
 

@@ -27,6 +27,7 @@ Pure functions; the planner shell keeps the memory (:class:`SearchMemory`).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
@@ -84,6 +85,17 @@ class Choice:
     value: float  # V (Eq. 10)
     x: float
     y: float
+    other: float | None = None  # V of the best option of the other kind (None: there is none), for the reason
+
+
+def describe(choice: Choice, committed: bool = False) -> str:
+    """The decision of :func:`choose` in words: the kind chosen, its V (Eq. 10) and the best V of the other
+    kind (what a step's reason says the agent decided)."""
+    mine = "frontier" if choice.kind == "frontier" else f"candidate {choice.ref}"
+    theirs = "best candidate" if choice.kind == "frontier" else "best frontier"
+    other = f"{theirs} V {choice.other:.3g}" if choice.other is not None else f"no {theirs.split()[1]}"
+    kept = ", the frontier it is on its way to" if committed else ""
+    return f"global search (Eq. 10): {mine} V {choice.value:.3g}{kept}; {other}"
 
 
 @dataclass
@@ -186,4 +198,5 @@ def choose(robot_xy: tuple[float, float], frontiers: Sequence[FrontierOption],
     if best.kind == "frontier":
         f = next(f for f in frontiers if f.index == best.ref)
         memory.choose_frontier(f)
-    return best
+    other = next((c.value for c in ranked if c.kind != best.kind), None)
+    return dataclasses.replace(best, other=other)

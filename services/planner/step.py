@@ -93,6 +93,9 @@ class StepPlan:
 
     kind: str  # "move" | "turn" | "done"
     reason: str
+    # A move to a frontier: the reason's part about the path alone (where to, how far, the clearance), without
+    # the frontier's index and the strategy's note; for a caller that chose the frontier itself (a task step).
+    route: str = ""
     pose: Pose2D | None = None
     path: list[tuple[float, float]] = field(default_factory=list)  # robot -> goal pose (<= max_step_m)
     full_path: list[tuple[float, float]] = field(default_factory=list)  # robot -> approach point
@@ -395,16 +398,16 @@ def plan_step(
     gx, gy = path[-1]
     yaw, what = _advance(mem, frontier, path, arrived, pose, strategy, sampled, committed)
     moved = path_length(path)
-    reason = (
-        f"{note}; {what} frontier {idx} ({frontier.x:.1f}, {frontier.y:.1f}) "
-        f"moving {moved:.1f} of {float(geo[idx]):.1f} m (clearance {pg.clearance_m:.2f} m)"
-    )
+    route = (f"({frontier.x:.1f}, {frontier.y:.1f}) moving {moved:.1f} of {float(geo[idx]):.1f} m "
+             f"(clearance {pg.clearance_m:.2f} m)")
+    reason = f"{note}; {what} frontier {idx} {route}"
     if dropped_note:
         reason += f"; {dropped_note}"
     return finish(
         StepPlan(
             "move",
             reason,
+            route=f"{what} the frontier at {route}",
             pose=Pose2D(x=gx, y=gy, yaw=wrap(yaw)),
             path=path,
             full_path=full,

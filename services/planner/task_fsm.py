@@ -29,6 +29,7 @@ continues the task where it was.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -315,7 +316,9 @@ class TaskMachine:
             return self._finish(False, f"{reason}; no frontier left to explore")
         self.phase = "searching"
         ref = self.committed if any(c.ref == self.committed for c in ranked) else ranked[0].ref
-        return Action("frontier", "searching", ref, reason=reason)
+        value = next(c.value for c in ranked if c.ref == ref)
+        kept = ", the frontier it is on its way to" if ref == self.committed else ""
+        return Action("frontier", "searching", ref, reason=f"{reason}: V {value:.3g}{kept}")
 
     def _last_resort(self, robot: tuple[float, float, float], objects: Sequence[SeenObject]) -> Action | None:
         """Nothing left to explore but candidates of the phase's class are known: rather than end the episode
@@ -375,7 +378,8 @@ class TaskMachine:
                 continue
             self.phase = "local_search"
             return Action("move", "local_search", self.queue_owner, (g.x, g.y, g.yaw), g.pitch,
-                          "local search of a start receptacle candidate")
+                          f"local search of {self.start_receptacle} {self.queue_owner}: a gaze point "
+                          f"({len(self.queue)} more)")
         if self.ablation == "trusting":
             return self._best_frontier(robot, frontiers, "trusting: frontier of highest value", objects)
         start = self.start_receptacle or ""
@@ -389,13 +393,16 @@ class TaskMachine:
         if choice is None:
             return self._last_resort(robot, objects) or self._finish(
                 False, "nothing left to search: no frontier and no candidate start receptacle")
+        said = helios.describe(choice, choice.kind == "frontier" and choice.ref == self.committed)
         if choice.kind == "frontier":
             self.phase = "searching"
-            return Action("frontier", "searching", choice.ref, reason=f"global search: frontier V {choice.value:.4g}")
+            return Action("frontier", "searching", choice.ref, reason=said)
         self.memory.visited.add(choice.ref)
         o = by_id[choice.ref]
         self.queue, self.queue_owner = list(o.gaze), o.instance_id
-        return self._search(robot, frontiers, objects)  # the first gaze point (or, with none, the next choice)
+        a = self._search(robot, frontiers, objects)  # the first gaze point (or, with none, the next choice)
+        mine = a.phase == "local_search" and a.ref == o.instance_id
+        return dataclasses.replace(a, reason=f"{said}; {a.reason}") if mine else a
 
     def _goal(self, robot: tuple[float, float, float], frontiers: Sequence[FrontierOption],
               objects: Sequence[SeenObject]) -> Action:

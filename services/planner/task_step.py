@@ -261,7 +261,9 @@ def task_step(machine: TaskMachine, grid: GridSpec, free: np.ndarray, occupied: 
                 if plan.kind == "turn" and turn is None:
                     turn = TaskStep(plan, "move", None, act.phase, plan.memory)
                 continue
-            plan.reason = f"{act.reason}; {plan.reason}"
+            # the machine chose the frontier (Eq. 10): its reason, then the path; the path planner's own choice
+            # among the one frontier it was given ("uniform over reachable frontiers") decided nothing
+            plan.reason = f"{act.reason}; {plan.route or plan.reason}"
             return TaskStep(plan, "move", None, act.phase, plan.memory)
         assert act.pose is not None
         ps = plan_to_pose(grid, free, occupied, pose, act.pose, params, near=act.near, dist_field=dist_field,
@@ -296,6 +298,7 @@ def _keep_clear(plan: StepPlan, grid: GridSpec, field: np.ndarray, pose: Pose2D,
     plan.path = path
     plan.pose = Pose2D(x=bx, y=by, yaw=wrap(math.atan2(by - ay, bx - ax)))
     plan.reason = f"{plan.reason}; cut at {bx:.2f}, {by:.2f} before an obstacle"
+    plan.route = f"{plan.route}; cut at {bx:.2f}, {by:.2f} before an obstacle" if plan.route else ""
     plan.memory = mem
     return plan
 

@@ -3,8 +3,9 @@
 On ``EpisodeStart`` it loads (or generates) the question's scene, places the robot at the question's
 start pose (or samples one with 0.5 m clearance, seeded by ``EpisodeStart.seed``) and publishes step 0;
 on a ``Goal`` of that episode it moves the robot to the goal pose and publishes the next step. A bad scene,
-a pose in collision, off the floor or not finite, or a mesh that does not parse gets an ``ErrorReply`` on
-``sim/error`` (with episode and step), and the service goes on serving every robot.
+a pose in collision, off the floor or not finite, a mesh that does not parse, or a task naming an object or
+receptacle the house lacks (:func:`services.sim.tasks.scene_lacks`) gets an ``ErrorReply`` on ``sim/error`` (with
+episode and step), and the service goes on serving every robot.
 
 The service is an :class:`eqa.episode_service.EpisodeService` (start/cancel/end, stored state, recorders and
 error answers come from there; see its docstring for what the sim keeps in its own shell and why). After every
@@ -335,6 +336,13 @@ class SimService(EpisodeService[_Episode]):
                 pose = sample_start_pose(scene, np.random.default_rng(start.seed), START_CLEARANCE)
             except ValueError as exc:
                 self.error(robot, start.episode_id, 0, str(exc))
+                return None
+        if start.task is not None and not start.task.object_ids:
+            from services.sim.tasks import scene_lacks
+
+            lacks = scene_lacks(start.task, scene)
+            if lacks is not None:  # its skills could never succeed: refused like a bad start pose
+                self.error(robot, start.episode_id, 0, f"task refused: {lacks}")
                 return None
         ep = _Episode(start.episode_id, scene, renderer, pose, start.max_steps, start)
         ep.task = SimTask.from_start(start, scene, pose)

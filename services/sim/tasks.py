@@ -276,7 +276,41 @@ def with_ground_truth(task: Task, scene: Scene, start: Pose2D) -> Task:
             ok = goal_mask & reach & np.isfinite(geo)
             if ok.any():
                 update["shortest_path_m"] = round(float(geo[ok].min()), 3)
-    if not update.get("object_ids"):
-        log.warning("task %r in %s: the house has no %s%s; its skills cannot succeed", task.text, scene.id,
-                    task.object, f" on a {task.start_receptacle}" if task.start_receptacle else "")
+    lacks = scene_lacks(task, scene)
+    if lacks is not None:
+        log.warning("task %r: %s; its skills cannot succeed", task.text, lacks)
     return task.model_copy(update=update)
+
+
+MAX_LISTED = 24  # classes or pairs named in a "the house has no ..." line at most
+
+
+def _listing(items: list[str]) -> str:
+    more = f", ... ({len(items) - MAX_LISTED} more)" if len(items) > MAX_LISTED else ""
+    return ", ".join(items[:MAX_LISTED]) + more
+
+
+def scene_lacks(task: Task, scene: Scene) -> str | None:
+    """One line saying what of ``task`` the house ``scene`` lacks and what it has instead, or None when it has
+    everything the task names: for pick and place an object of the class standing on a start receptacle of
+    its class and an instance of the goal receptacle class, for an object search an object of the class. Such a
+    task cannot succeed in the simulator (its skills read the scene graph), so the simulator refuses it and
+    ``eqa task`` checks it before starting a fleet."""
+    objs = scene.objects()
+    classes = {o.category for o in objs}
+    if task.kind == "find_object":
+        if task.object in classes:
+            return None
+        small = sorted(display_name(c) for c in classes if c in catalog.SMALL_OBJECTS)
+        return f"{scene.id} has no {display_name(task.object)} (its small objects: {_listing(small)})"
+    pairs = sorted({(o.category, scene.instances[o.support].category) for o in objs
+                    if o.support is not None and o.support in scene.instances})
+    if (task.object, task.start_receptacle) not in pairs:
+        on = [f"{display_name(a)} on {display_name(b)}" for a, b in pairs if a in PICKABLE]
+        return (f"{scene.id} has no {display_name(task.object)} on a {display_name(task.start_receptacle or '')} "
+                f"(its pickable objects: {_listing(on)})")
+    if task.goal_receptacle not in classes:
+        goals = sorted(display_name(c) for c in classes if c in GOAL_RECEPTACLES)
+        return (f"{scene.id} has no {display_name(task.goal_receptacle or '')} (its goal receptacles: "
+                f"{_listing(goals)})")
+    return None

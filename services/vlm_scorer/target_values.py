@@ -72,6 +72,6 @@ def _oracle_value(backend: OracleBackend, req: ValueRequest, target: str) -> flo
                 dist = float(np.median(d)) if d.size else None
         best_q = max(best_q, backend.view_quality(pixels / float(h * w), dist))
     prior = max((cs.prior(cat, rk) for rk in rooms), default=cs.UNKNOWN_PRIOR)
-    rng = np.random.default_rng([req.seed, zlib.crc32(req.episode_id.encode()), req.step, zlib.crc32(cat.encode())])
+    rng = np.random.default_rng([req.seed, zlib.crc32(req.draw_key.encode()), req.step, zlib.crc32(cat.encode())])
     value = 0.1 + 0.4 * prior + 0.45 * best_q + rng.normal(0.0, 0.05)
     return float(np.clip(value, 0.01, 0.99))

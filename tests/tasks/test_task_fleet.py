@@ -70,3 +70,24 @@ def test_a_task_without_a_budget_gets_the_task_budget(client: httpx.Client) -> N
     assert c.get(f"/v1/episodes/{eid}").json()["max_steps"] == int(6 * area**0.5)
     c.post(f"/v1/episodes/{eid}/cancel")
     assert wait_for(lambda: c.get(f"/v1/episodes/{eid}").json()["state"] in ("cancelled", "stopped"), EPISODE_S)
+
+
+def test_a_task_the_house_lacks_reaches_the_terminal_as_an_error_with_exit_2(client: httpx.Client,
+                                                                              gw_settings: Settings) -> None:
+    """``eqa task --url`` (a running gateway: the CLI cannot check the server's scenes): the simulator refuses
+    the task, the episode fails at once, the terminal shows the simulator's line saying what the house has."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from support.gateway import TOKEN
+
+    repo = Path(__file__).resolve().parents[2]
+    env = {**os.environ, "EQA_DATA_DIR": str(gw_settings.data_dir), "PYTHONPATH": str(repo), "COLUMNS": "300"}
+    out = subprocess.run([sys.executable, "-m", "eqa_app", "task", "Find a piano", "--scene", f"gen-{HOUSE}",
+                          "--url", str(client.base_url), "--token", TOKEN, "--no-record"],
+                         capture_output=True, text=True, timeout=EPISODE_S, env=env, cwd=repo)
+    assert out.returncode == 2, out
+    assert f"error from sim: task refused: gen-{HOUSE} has no piano (its small objects: " in out.stdout, out.stdout
+    assert "failed after 0 of" in out.stdout and "sim refused the episode" in out.stdout, out.stdout

@@ -33,7 +33,8 @@ two-stage detectors bleed over object borders), each a knob of :class:`OracleDet
 ``EQA_DETECTOR_GROUND_TRUTH=true`` turns it into the paper's ground-truth-semantics yardstick (Table 4):
 every visible pixel of a requested class, score 1, no error of any kind (``model == "ground-truth-semantics"``).
 
-Draws come from generators seeded by (``seed``, episode id, step[, instance id]): the same request gives the
+Draws come from generators seeded by (``seed``, draw key, step[, instance id]), the draw key being the episode id
+unless the request names one (``DetectRequest.draws``, a repeatable run): the same request gives the
 same detections, and errors are view-dependent (a different step is a different draw), which is what
 multi-view fusion can correct. The defaults are set by hand to plausible rates; they were not tuned on
 results.
@@ -192,7 +193,7 @@ class OracleDetector(Detector):
         h, w = inst.shape
         area = float(h * w)
         depth = np.asarray(req.depth) if req.depth is not None else None
-        base = [req.seed, _h(req.episode_id), req.step]
+        base = [req.seed, _h(req.draw_key), req.step]
         dets: list[Detection] = []
         labels: list[InstanceLabel] = sorted(req.labels, key=lambda lab: lab.id)
         for lab in labels:
