@@ -693,6 +693,7 @@ def print_results(res: dict[str, Any]) -> None:
 
 
 def cmd_home(args: argparse.Namespace) -> int:
+    from eqa.messages import eps_in_bounds
     from eqa.service import setup_logging
     from eqa_app.bench_common import _settings
     from eqa_app.cli import UsageError
@@ -700,7 +701,7 @@ def cmd_home(args: argparse.Namespace) -> int:
 
     if not (1 <= args.cal_houses <= 100 and 1 <= args.test_houses <= 100 and 1 <= args.questions <= 10):
         raise UsageError("--cal-houses and --test-houses must be 1..100, --questions 1..10")
-    if not 0 < args.eps < 1 or not 1 <= args.workers <= 16:
+    if not eps_in_bounds(args.eps) or not 1 <= args.workers <= 16:
         raise UsageError("--eps must be in (0, 1), --workers 1..16")
     if args.changes < 0 or args.changes * (args.questions - 1) > MAX_ROUNDS:
         raise UsageError(f"--changes times (--questions - 1) must be 0..{MAX_ROUNDS} (rounds of a changed house)")
