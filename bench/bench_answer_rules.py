@@ -36,9 +36,10 @@ from eqa.messages import letters
 from eqa.seeds import EVALUATION_SEEDS, TUNING_SEED
 from eqa_app.evaluation import bootstrap_indices, bootstrap_mean_ci, sign_test_p, wilson_ci
 from eqa_app.stop_sensitivity import load_recording, recording_path
-from services.stopper.answer_memory import FUSIONS, AnswerRule, memory_answer, transform
+from services.stopper.answer_memory import FUSIONS, AnswerRule, transform
 from services.stopper.calibration import read_jsonl
-from services.stopper.conformal import conformal_quantile, in_set, nonconformity, relevance_weighted_confidence
+from services.stopper.conformal import conformal_quantile, nonconformity
+from services.stopper.replay import replay_arrays
 
 LABEL = "simulated perception model, not a VLM"
 TRACES = Path("bench/results/explore-seeds/traces")
@@ -82,22 +83,8 @@ class Out:
 
 def replay(ep: Ep, rule: AnswerRule, q_hat: float | None) -> Out:
     """What ``decide`` does with the answer rule ``rule``: CP with ``q_hat`` (None = run to the limit)."""
-    n = len(ep.rel)
-    t_end = min(n, ep.max_steps) - 1
-    covered = None
-    if q_hat is not None:
-        f, r = transform(ep.f, ep.rel, rule)
-        running = np.logical_and.accumulate(in_set(relevance_weighted_confidence(f, r), q_hat), axis=0)
-        covered = bool(running[-1, ep.truth])
-        sizes = running.sum(axis=1)
-        hit = np.flatnonzero(sizes[: t_end + 1] <= 1)
-        if hit.size:
-            t = int(hit[0])
-            ans = int(np.flatnonzero(running[t])[0]) if sizes[t] == 1 else memory_answer(
-                ep.f[: t + 1], ep.rel[: t + 1], rule)
-            return Out(ans == ep.truth, (t + 1) / ep.max_steps, covered)
-    ans = memory_answer(ep.f[: t_end + 1], ep.rel[: t_end + 1], rule)
-    return Out(ans == ep.truth, (t_end + 1) / ep.max_steps, covered)
+    stop = replay_arrays(ep.f, ep.rel, ep.max_steps, "max_steps" if q_hat is None else "cp", q_hat, rule)
+    return Out(stop.answer == ep.truth, (stop.step + 1) / ep.max_steps, stop.covers(ep.truth))
 
 
 def paired(a: list[Out], b: list[Out], seed: int = 0, n_boot: int = 4000) -> dict[str, float]:

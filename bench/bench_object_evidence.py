@@ -138,27 +138,12 @@ def combined(ep: ObjEpisode, params: Any) -> np.ndarray:
 
 
 def replay(ep: ObjEpisode, f: np.ndarray, q_hat: float | None) -> tuple[bool, float, bool | None]:
-    """As :func:`services.stopper.state.decide` (single-view answer rule) on the distributions ``f``."""
-    from services.stopper.conformal import in_set, relevance_weighted_confidence
+    """As :func:`services.stopper.state.decide` (single-view answer rule) on the distributions ``f``: CP with
+    ``q_hat`` (None = run to the limit)."""
+    from services.stopper.replay import replay_arrays
 
-    rel = np.asarray(ep.relevance)
-    n = len(rel)
-    t_end = min(n, ep.max_steps) - 1
-
-    def fb(t: int) -> int:
-        return int(np.argmax(f[int(np.argmax(rel[: t + 1]))]))
-
-    if q_hat is not None:
-        running = np.logical_and.accumulate(in_set(relevance_weighted_confidence(f, rel), q_hat), axis=0)
-        covered = bool(running[-1, ep.truth])
-        sizes = running.sum(axis=1)
-        hit = np.flatnonzero(sizes[: t_end + 1] <= 1)
-        if hit.size:
-            t = int(hit[0])
-            ans = int(np.flatnonzero(running[t])[0]) if sizes[t] == 1 else fb(t)
-            return ans == ep.truth, (t + 1) / ep.max_steps, covered
-        return fb(t_end) == ep.truth, (t_end + 1) / ep.max_steps, covered
-    return fb(t_end) == ep.truth, (t_end + 1) / ep.max_steps, None
+    stop = replay_arrays(f, np.asarray(ep.relevance), ep.max_steps, "max_steps" if q_hat is None else "cp", q_hat)
+    return stop.answer == ep.truth, (stop.step + 1) / ep.max_steps, stop.covers(ep.truth)
 
 
 def evaluate(out: Path, seeds: list[int], tuning_seed: int) -> dict[str, Any]:

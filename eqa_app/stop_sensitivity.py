@@ -324,49 +324,14 @@ class Episode:
                    trace.max_steps)
 
 
-def _fallback(ep: Episode, t: int) -> int:
-    import numpy as np
-
-    return int(np.argmax(ep.f[int(np.argmax(ep.rel[: t + 1]))]))
-
-
-def _entropy(f: Any) -> Any:
-    import numpy as np
-
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return -np.where(f > 0, f * np.log(np.where(f > 0, f, 1.0)), 0.0).sum(axis=1)
-
-
 def replay_fast(ep: Episode, rule: str, parameter: float) -> Outcome:
-    """What :func:`services.stopper.state.decide` does step by step, on arrays: ``rule`` is ``cp`` (parameter
-    = q_hat), ``relevance``, ``entropy`` (parameter = threshold) or ``max_steps``."""
-    import numpy as np
+    """What :func:`services.stopper.state.decide` does step by step, on arrays
+    (:func:`services.stopper.replay.replay_arrays`): ``rule`` is ``cp`` (parameter = q_hat), ``relevance``,
+    ``entropy`` (parameter = threshold) or ``max_steps``."""
+    from services.stopper.replay import replay_arrays
 
-    from services.stopper.conformal import in_set, relevance_weighted_confidence
-
-    n = len(ep.rel)
-    last = n - 1
-    limit = [t for t in range(n) if t >= ep.max_steps - 1]
-    t_limit = limit[0] if limit else None
-    covered = None
-    if rule == "cp":
-        masks = in_set(relevance_weighted_confidence(ep.f, ep.rel), parameter)
-        running = np.logical_and.accumulate(masks, axis=0)
-        covered = bool(running[-1, ep.truth])  # Claim 1: the intersection over all steps = the sequence set
-        sizes = running.sum(axis=1)
-        hit = np.flatnonzero(sizes <= 1)
-        t = int(hit[0]) if hit.size else None
-        if t is not None and (t_limit is None or t <= t_limit):
-            answer = int(np.flatnonzero(running[t])[0]) if sizes[t] == 1 else _fallback(ep, t)
-            return Outcome(answer == ep.truth, (t + 1) / ep.max_steps, covered)
-    elif rule in ("relevance", "entropy"):
-        stat = ep.rel > parameter if rule == "relevance" else _entropy(ep.f) < parameter
-        hit = np.flatnonzero(stat)
-        t = int(hit[0]) if hit.size else None
-        if t is not None and (t_limit is None or t <= t_limit):
-            return Outcome(int(np.argmax(ep.f[t])) == ep.truth, (t + 1) / ep.max_steps)
-    t = t_limit if t_limit is not None else last
-    return Outcome(_fallback(ep, t) == ep.truth, (t + 1) / ep.max_steps, covered)
+    stop = replay_arrays(ep.f, ep.rel, ep.max_steps, rule, parameter)
+    return Outcome(stop.answer == ep.truth, (stop.step + 1) / ep.max_steps, stop.covers(ep.truth))
 
 
 # ---- the sweep ---------------------------------------------------------------------------------------------
