@@ -34,7 +34,8 @@ import numpy as np
 
 from eqa.messages import letters
 from eqa.seeds import EVALUATION_SEEDS, TUNING_SEED
-from eqa_app.evaluation import bootstrap_indices, bootstrap_mean_ci, sign_test_p, wilson_ci
+from eqa_app.stats import paired_outcomes, wilson_ci
+from eqa_app.stop_sensitivity import Outcome as Out
 from eqa_app.stop_sensitivity import load_recording, recording_path
 from services.stopper.answer_memory import FUSIONS, AnswerRule, transform
 from services.stopper.calibration import read_jsonl
@@ -74,36 +75,15 @@ def kappa(ep: Ep, rule: AnswerRule) -> float:
     return nonconformity(f, r, ep.truth)
 
 
-@dataclass(frozen=True)
-class Out:
-    correct: bool
-    norm_steps: float
-    covered: bool | None = None
-
-
 def replay(ep: Ep, rule: AnswerRule, q_hat: float | None) -> Out:
     """What ``decide`` does with the answer rule ``rule``: CP with ``q_hat`` (None = run to the limit)."""
     stop = replay_arrays(ep.f, ep.rel, ep.max_steps, "max_steps" if q_hat is None else "cp", q_hat, rule)
     return Out(stop.answer == ep.truth, (stop.step + 1) / ep.max_steps, stop.covers(ep.truth))
 
 
-def paired(a: list[Out], b: list[Out], seed: int = 0, n_boot: int = 4000) -> dict[str, float]:
-    """a - b: success difference with a paired bootstrap 95 % CI and the exact sign test; steps difference."""
-    ca = np.array([x.correct for x in a], dtype=float)
-    cb = np.array([x.correct for x in b], dtype=float)
-    sa = np.array([x.norm_steps for x in a])
-    sb = np.array([x.norm_steps for x in b])
-    idx = bootstrap_indices(ca.size, n_boot, seed)
-    d = ca - cb
-    ds = sa - sb
-    ci_low, ci_high = bootstrap_mean_ci(d, idx)
-    steps_ci_low, steps_ci_high = bootstrap_mean_ci(ds, idx)
-    a_only = int(((ca == 1) & (cb == 0)).sum())
-    b_only = int(((cb == 1) & (ca == 0)).sum())
-    return {"n": int(ca.size), "success_a": float(ca.mean()), "success_b": float(cb.mean()),
-            "diff": float(d.mean()), "ci_low": ci_low, "ci_high": ci_high, "a_only": a_only, "b_only": b_only,
-            "p": sign_test_p(a_only, b_only), "steps_a": float(sa.mean()), "steps_b": float(sb.mean()),
-            "steps_diff": float(ds.mean()), "steps_ci_low": steps_ci_low, "steps_ci_high": steps_ci_high}
+def paired(a: list[Out], b: list[Out]) -> dict[str, float]:
+    """a - b on the same episodes (:func:`eqa_app.stats.paired_outcomes`, 4000 bootstrap resamples)."""
+    return paired_outcomes(a, b, n_boot=4000)
 
 
 def load(recordings: Path, seed: int, split: str, n: int | None) -> list[Ep]:

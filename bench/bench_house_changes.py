@@ -22,7 +22,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from eqa_app.evaluation import wilson_ci
+from eqa_app.stats import wilson_ci
 from services.sim.change_impact import impact
 from services.sim.changes import MAX_ROUNDS, next_house
 from services.sim.library import load_or_generate

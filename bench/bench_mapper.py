@@ -39,6 +39,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from eqa.messages import EpisodeStart, Frame, Pose2D, Question, encode
 from eqa.settings import Settings
 from eqa.store import EmbeddedStore
+from eqa_app.stats import percentile as pct
 from services.mapper.episode_map import EpisodeMap, Timer
 from services.sim.camera import camera_pose, intrinsics
 from services.sim.library import load_or_generate
@@ -106,10 +107,6 @@ class Open3DTSDF:
 
 BASELINE_REV = "5f008c0"  # the project's first TSDF, projection and snapshot
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def pct(values: list[float], q: float) -> float:
-    return float(np.percentile(values, q)) if values else float("nan")
 
 
 def load_baseline(rev: str) -> tuple[types.ModuleType, types.ModuleType]:

@@ -148,7 +148,7 @@ def replay(ep: ObjEpisode, f: np.ndarray, q_hat: float | None) -> tuple[bool, fl
 
 def evaluate(out: Path, seeds: list[int], tuning_seed: int) -> dict[str, Any]:
     from bench.bench_answer_rules import Out, paired
-    from eqa_app.evaluation import wilson_ci
+    from eqa_app.stats import wilson_ci
     from services.stopper.conformal import conformal_quantile, nonconformity
     from services.stopper.object_evidence import EvidenceParams
 

@@ -42,15 +42,12 @@ sys.path.insert(0, str(ROOT / "tests"))
 import torch  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
+from eqa_app.stats import percentile as pct  # noqa: E402
 from services.mapper.objects.config import ObjectLayerConfig  # noqa: E402
 from services.mapper.objects.gaussians import GaussianStore  # noqa: E402
 from services.mapper.objects.layer import ObjectLayer, pixel_classes  # noqa: E402
 
 LABEL = "simulated detector, not a real detector"
-
-
-def pct(values: list[float], q: float) -> float:
-    return float(np.percentile(np.asarray(values), q)) if values else float("nan")
 
 
 def synthetic_frame(w: int, h: int, frac: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -63,14 +63,11 @@ from eqa.messages import (
     encode,
 )
 from eqa.settings import Settings
+from eqa_app.stats import percentile as pct
 
 # External figures (see the module docstring): not timed here, never divided by our timings.
 EXTERNAL_REFERENCE_MS = {"figures off": 200.0, "figures on": 5800.0}
 EXTERNAL_REFERENCE_SOURCE = "project task brief (date, load and method not recorded); not measured in this run"
-
-
-def pct(values: list[float], q: float) -> float:
-    return float(np.percentile(np.asarray(values, dtype=np.float64), q)) if values else float("nan")
 
 
 def fmt(values: list[float]) -> str:

@@ -474,10 +474,6 @@ def settle(pid: int, quiet_ns: int = 200_000, window_s: float = 0.005, max_s: fl
 # ---- the run ---------------------------------------------------------------------------------------------------
 
 
-def pct(values: list[float], q: float) -> float:
-    return float(np.percentile(np.asarray(values, dtype=np.float64), q)) if values else float("nan")
-
-
 def uptime() -> str:
     a, b, c = os.getloadavg()
     return f"load average {a:.2f} {b:.2f} {c:.2f}"
@@ -595,6 +591,8 @@ def plot(rows: list[dict[str, Any]], out: Path, title: str) -> None:
 
 
 def summary(values: list[float]) -> dict[str, float]:
+    from eqa_app.stats import percentile as pct
+
     return {"p50": pct(values, 50), "p95": pct(values, 95)}
 
 
@@ -643,6 +641,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from eqa_app.stats import percentile as pct
     from services.sim.library import load_or_generate
 
     tmp = Path(tempfile.mkdtemp(prefix="bench-reference-"))

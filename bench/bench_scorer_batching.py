@@ -63,6 +63,7 @@ from eqa.launcher import free_port  # noqa: E402
 from eqa.messages import ErrorReply, Question, ScoreRequest, ScoreResult, decode, encode  # noqa: E402
 from eqa.scorer_client import ScorerClient  # noqa: E402
 from eqa.settings import Settings  # noqa: E402
+from eqa_app.stats import percentile as pct  # noqa: E402
 
 QUESTIONS = [
     ("Is the stove in the kitchen turned off?", ["Yes", "No"]),
@@ -75,11 +76,6 @@ QUESTIONS = [
     ("What is on the kitchen counter next to the sink?", ["a kettle", "a toaster", "a plant", "nothing"]),
 ]
 MODES = ("off", "on")
-
-
-def _pct(v: list[float], q: float) -> float:
-    s = sorted(v)
-    return s[min(len(s) - 1, round(q / 100 * (len(s) - 1)))] if s else float("nan")
 
 
 def _robot_requests(robot: int, steps: int, h: int, w: int) -> list[ScoreRequest]:
@@ -339,7 +335,7 @@ def main(argv: list[str] | None = None) -> int:
                 as_ref = all(vals["off"][rid] == reference[rid] for rid in checked)
                 identical &= same and as_ref
                 row = {"robots": n, "rate": {m: statistics.median(rates[m]) for m in MODES},
-                       "lat": {m: (_pct(lats[m], 50), _pct(lats[m], 95)) for m in MODES},
+                       "lat": {m: (pct(lats[m], 50), pct(lats[m], 95)) for m in MODES},
                        "cpu": {m: sum(cpus[m]) / served[m] * 1e3 for m in MODES},
                        "ccpu": {m: sum(ccpus[m]) / served[m] * 1e3 for m in MODES},
                        "same": same, "ref": (len(checked), as_ref), "load": os.getloadavg()[0]}

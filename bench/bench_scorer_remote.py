@@ -34,10 +34,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "tests"))
 
-
-def _pct(v: list[float], q: float) -> float:
-    s = sorted(v)
-    return s[min(len(s) - 1, round(q / 100 * (len(s) - 1)))] if s else float("nan")
+from eqa_app.stats import percentile as pct  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -123,11 +120,11 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{'client':<32} {'step p50 ms':>11} {'p95 ms':>7} {'client CPU ms/step':>19}")
     for name in clients:
         n = len(times[name])
-        print(f"{name:<32} {_pct(times[name], 50):11.1f} {_pct(times[name], 95):7.1f} {cpus[name] / n * 1e3:19.2f}")
+        print(f"{name:<32} {pct(times[name], 50):11.1f} {pct(times[name], 95):7.1f} {cpus[name] / n * 1e3:19.2f}")
     print(f"\na replica's batch of {args.batch} steps, {args.rounds * 2} alternating rounds (the shipped client)")
     print(f"{'':<32} {'batch p50 ms':>12} {'ms per step':>11} {'client CPU ms/step':>19}")
     for name, v in batch_times.items():
-        p50 = _pct(v, 50)
+        p50 = pct(v, 50)
         print(f"{name:<32} {p50:12.1f} {p50 / args.batch:11.1f} {batch_cpu[name] / (len(v) * args.batch) * 1e3:19.2f}")
     return 0
 

@@ -29,6 +29,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from eqa_app.stats import percentile as pct
 from services.sim.camera import camera_pose, intrinsics
 from services.sim.housegen import generate_house
 from services.sim.motion import sample_start_pose
@@ -36,8 +37,8 @@ from services.sim.questions import benchmark
 from services.sim.render import Renderer
 
 
-def pct(xs: list[float], q: float) -> float:
-    return float(np.percentile(np.asarray(xs) * 1000.0, q))
+def ms(seconds: list[float]) -> np.ndarray:
+    return np.asarray(seconds) * 1000.0
 
 
 def old_render_module(rev: str) -> ModuleType:
@@ -99,7 +100,7 @@ def identical_to(rev: str, houses: int, frames: int, width: int, height: int) ->
                     mismatches += 1
                     print(f"MISMATCH house gen-{1 + s:05d} pose {k} hidden {sorted(hidden)}", flush=True)
         print(f"house gen-{1 + s:05d}: {frames} poses rendered, {mismatches} mismatches so far", flush=True)
-    po, pn = pct(t_old, 50), pct(t_new, 50)
+    po, pn = pct(ms(t_old), 50), pct(ms(t_new), 50)
     print(f"{n_frames} frames {width}x{height} ({n_hidden} with an object hidden) over {houses} houses: "
           f"{'byte-identical' if mismatches == 0 else f'{mismatches} DIFFER'} to {rev}")
     print(f"CPU per frame p50: {rev} {po:.2f} ms, ours {pn:.2f} ms, ours/{rev} {pn / po:.3f} "
@@ -125,7 +126,7 @@ def main(argv: list[str] | None = None) -> int:
         t = time.perf_counter()
         generate_house(1000 + s)
         gen.append(time.perf_counter() - t)
-    print(f"scene generation: mean {np.mean(gen) * 1000:.0f} ms, p95 {pct(gen, 95):.0f} ms per house "
+    print(f"scene generation: mean {np.mean(gen) * 1000:.0f} ms, p95 {pct(ms(gen), 95):.0f} ms per house "
           f"({args.houses} houses)")
 
     scene = generate_house(1)
@@ -147,10 +148,10 @@ def main(argv: list[str] | None = None) -> int:
         t = time.perf_counter()
         rend.labels(out.instances)
         labels.append(time.perf_counter() - t)
-    print(f"raw ray cast {args.width}x{args.height}: p50 {pct(raw, 50):.1f} ms, p95 {pct(raw, 95):.1f} ms")
-    print(f"RGB-D+instance frame {args.width}x{args.height}: p50 {pct(full, 50):.1f} ms, "
-          f"p95 {pct(full, 95):.1f} ms (target p50 < 30 ms)")
-    print(f"labels: p50 {pct(labels, 50):.2f} ms")
+    print(f"raw ray cast {args.width}x{args.height}: p50 {pct(ms(raw), 50):.1f} ms, p95 {pct(ms(raw), 95):.1f} ms")
+    print(f"RGB-D+instance frame {args.width}x{args.height}: p50 {pct(ms(full), 50):.1f} ms, "
+          f"p95 {pct(ms(full), 95):.1f} ms (target p50 < 30 ms)")
+    print(f"labels: p50 {pct(ms(labels), 50):.2f} ms")
     if args.full_benchmark:
         with tempfile.TemporaryDirectory() as tmp:
             t = time.perf_counter()

@@ -23,13 +23,10 @@ import numpy as np
 os.environ.setdefault("RERUN_TELEMETRY_ENABLED", "false")
 
 from eqa.messages import EpisodeStart, Question, StepScores, StopConfig
+from eqa_app.stats import percentile as pct
 from services.stopper import baselines, conformal, synthetic
 from services.stopper.calibration import calibrate
 from services.stopper.state import CalibrationChoice, EpisodeRecord, decide
-
-
-def pct(values: list[float], q: float) -> float:
-    return float(np.percentile(np.asarray(values), q))
 
 
 def bench_decide(n: int) -> None:

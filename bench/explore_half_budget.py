@@ -18,6 +18,7 @@ from pathlib import Path
 
 from eqa.seeds import EVALUATION_SEEDS
 from eqa_app import evaluation as ev
+from eqa_app import stats
 from services.stopper.calibration import Trace, read_jsonl
 
 
@@ -44,9 +45,9 @@ def main(argv: list[str] | None = None) -> int:
         ids = [q for q in runs if q in semantic]
         a = sum(ev.correct_at_budget(runs[q], args.budget) and not ev.correct_at_budget(semantic[q], 1.0) for q in ids)
         b = sum(ev.correct_at_budget(semantic[q], 1.0) and not ev.correct_at_budget(runs[q], args.budget) for q in ids)
-        d, lo, hi = ev.paired_diff_ci(a, b, len(ids))
+        d, lo, hi = stats.paired_diff_ci(a, b, len(ids))
         print(f"{name} at {args.budget:g} T vs semantic at T: n {len(ids)}, right only it {a} / only semantic {b}, "
-              f"sign p {ev.sign_test_p(a, b):.2g}, difference {d:+.3f} [{lo:+.3f}, {hi:+.3f}]")
+              f"sign p {stats.sign_test_p(a, b):.2g}, difference {d:+.3f} [{lo:+.3f}, {hi:+.3f}]")
     return 0
 
 

@@ -212,7 +212,7 @@ CEILING_REASONS = ("seen", "small", "near, faced", "near, not faced", "never nea
 
 
 def summarise(name: str, eps: list[Episode], base: list[Episode] | None) -> dict[str, Any]:
-    from eqa_app.evaluation import sign_test_p
+    from eqa_app.stats import sign_test_p
 
     out: dict[str, Any] = {"variant": name, "n": len(eps)}
     for b in (0.5, 1.0):

@@ -226,12 +226,14 @@ def _collect_cores(questions: list[Any], settings: Any, strategy: str, name: str
 
 def _summary(traces: list[Any], ev: Any) -> dict[str, Any]:
     """Success per budget with Wilson 95 % intervals, and when the evidence was first seen."""
+    from eqa_app import stats
+
     n = len(traces)
     success = ev.success_at_budgets(traces)
     return {
         "n": n,
         "success": success,
-        "success_ci95": [list(ev.wilson_ci(round(v * n), n)) for v in success],
+        "success_ci95": [list(stats.wilson_ci(round(v * n), n)) for v in success],
         "evidence_share": ev.evidence_share(traces),
         "first_evidence_at": ev.first_evidence(traces),
         "median_first_evidence": ev.median_first_evidence(traces),

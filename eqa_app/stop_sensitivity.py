@@ -38,7 +38,7 @@ from typing import Any
 
 from eqa.seeds import EVALUATION_SEEDS
 from eqa_app.core_runner import StepHooks
-from eqa_app.evaluation import bootstrap_indices, bootstrap_mean_ci, sign_test_p, wilson_ci
+from eqa_app.stats import paired_outcomes, wilson_ci
 
 log = logging.getLogger("stop_sensitivity")
 
@@ -452,19 +452,13 @@ def choose_operating_point(runs: dict[float, list[Outcome]], target: float) -> f
 
 
 def paired_steps(a: list[Outcome], b: list[Outcome], seed: int = 0, n_boot: int = 2000) -> dict[str, float]:
-    """Mean per-episode difference of normalised steps (a - b) with a paired bootstrap 95 % CI, and the exact
-    sign test of the success discordance (only a right / only b right)."""
-    import numpy as np
-
-    d = np.array([x.norm_steps - y.norm_steps for x, y in zip(a, b, strict=True)])
-    ci_low, ci_high = bootstrap_mean_ci(d, bootstrap_indices(d.size, n_boot, seed))
-    a_only = sum(x.correct and not y.correct for x, y in zip(a, b, strict=True))
-    b_only = sum(y.correct and not x.correct for x, y in zip(a, b, strict=True))
-    nz = d[d != 0]
-    pos = int((nz > 0).sum())
-    return {"mean_diff": float(d.mean()) if d.size else math.nan, "ci_low": ci_low,
-            "ci_high": ci_high, "steps_sign_p": sign_test_p(pos, int(nz.size) - pos),
-            "a_only_right": a_only, "b_only_right": b_only, "success_sign_p": sign_test_p(a_only, b_only)}
+    """Mean per-episode difference of normalised steps (a - b) with a paired bootstrap 95 % CI and its sign
+    test, and the exact sign test of the success discordance (only a right / only b right)
+    (:func:`eqa_app.stats.paired_outcomes`)."""
+    r = paired_outcomes(a, b, seed, n_boot)
+    return {"mean_diff": r["steps_diff"], "ci_low": r["steps_ci_low"], "ci_high": r["steps_ci_high"],
+            "steps_sign_p": r["steps_sign_p"], "a_only_right": r["a_only"], "b_only_right": r["b_only"],
+            "success_sign_p": r["p"]}
 
 
 def sweep(seeds: dict[int, SeedData], tuning_seed: int, eval_seeds: list[int], modes: list[str],

@@ -181,12 +181,13 @@ def _trace(qid: str, rels: list[float], right_from: int | None, T: int = 10):
 
 def test_seed_pooled_statistics() -> None:
     from eqa_app import evaluation as ev
+    from eqa_app import stats
 
-    lo, hi = ev.wilson_ci(5, 10)
+    lo, hi = stats.wilson_ci(5, 10)
     assert lo < 0.5 < hi and lo > 0.2 and hi < 0.8
-    d, lo, hi = ev.paired_diff_ci(10, 2, 100)
+    d, lo, hi = stats.paired_diff_ci(10, 2, 100)
     assert math.isclose(d, 0.08) and lo > 0 and hi < 0.2
-    assert ev.paired_diff_ci(3, 3, 50)[0] == 0.0
+    assert stats.paired_diff_ci(3, 3, 50)[0] == 0.0
 
     # a sees the evidence at step 2 (and is right from then), b only at step 7
     a = [_trace(f"q{i}", [0.1, 0.1, 0.5] + [0.1] * 7, 2) for i in range(6)]
