@@ -6,7 +6,7 @@ step, never LSV / GSV, so the robot's path is the same at every level. This tool
 
 1. **records** full-length episodes (``max_steps``) with the pure cores in one process per worker (sim render ->
    mapper -> oracle scorer -> planner, the functions the services call; no bus, no store, as
-   ``bench/tune_oracle.py``), keeping per step what the oracle perceived: the target instances and the
+   ``eqa_app/benches/tune_oracle.py``), keeping per step what the oracle perceived: the target instances and the
    related-but-wrong ones with their image share and distance, the view's clutter, and the level-0 scores;
 2. **re-scores** those perceptions at any miscalibration level (the draws are seeded per (question, step) as in
    the service; at level 0 the re-scored f and Rel are checked equal to the recorded ones) into

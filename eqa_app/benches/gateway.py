@@ -11,8 +11,8 @@ machine's load average, errors and how far the episode got meanwhile; then fills
 POSTs that must be refused at once (429 + Retry-After); then cancels everything. Exit code 1 when any
 request failed.
 
-    python bench/bench_gateway.py                  # 200 rps for 30 s
-    python bench/bench_gateway.py --rate 50 --duration 5
+    python -m eqa_app.benches.gateway                  # 200 rps for 30 s
+    python -m eqa_app.benches.gateway --rate 50 --duration 5
 
 ``--refusals``: the cost of refusals instead (no services, only the gateway process and its Redis): an
 open-loop mix at --rate (default 500 req/s) of requests that must be refused: a valid token over its rate limit
@@ -20,7 +20,7 @@ open-loop mix at --rate (default 500 req/s) of requests that must be refused: a 
 answered from the headers, a new connection each) and submissions against a full queue (429); prints the
 latency percentiles of each kind and the machine's load.
 
-    python bench/bench_gateway.py --refusals --rate 500 --duration 20
+    python -m eqa_app.benches.gateway --refusals --rate 500 --duration 20
 """
 
 from __future__ import annotations
@@ -42,12 +42,12 @@ from tqdm import tqdm
 
 os.environ.setdefault("RERUN_TELEMETRY_ENABLED", "false")
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # test support: tests/support/fleet.py
-
-from support.fleet import GatewayProcess, fleet_settings, wait_for
-
 from eqa.launcher import Fleet, LaunchError, free_port
 from eqa.settings import Settings
+from eqa_app.benches import harness
+
+harness.use_test_support()
+from support.fleet import GatewayProcess, fleet_settings, wait_for  # noqa: E402
 
 TOKEN = "bench-token"
 
@@ -307,7 +307,7 @@ def post_with_full_queue(c: httpx.Client, body: dict, queue_max: int, n: int) ->
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = harness.parser(__doc__)
     ap.add_argument("--rate", type=float, default=200.0, help="requests per second (default 200)")
     ap.add_argument("--duration", type=float, default=30.0, help="seconds of load (default 30)")
     ap.add_argument("--connections", type=int, default=16, help="keep-alive connections = max in flight (16)")

@@ -2,7 +2,7 @@
 object-only layer against the same layer over every observed surface (paper Fig. 4), and a multi-view fusion
 figure like the paper's Fig. 2.
 
-    python bench/bench_objects.py [--parts time,memory,fusion] [--width 640 --height 480] [--steps 30]
+    python -m eqa_app.benches.objects [--parts time,memory,fusion] [--width 640 --height 480] [--steps 30]
                                   [--house 5] [--out bench/results]
 
 * time: synthetic 640x480 frames (a wall 3 m away, a detected object 2.5 m away covering a growing share of
@@ -27,17 +27,15 @@ import argparse
 import json
 import math
 import os
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
 os.environ.setdefault("RERUN_TELEMETRY_ENABLED", "false")
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
-sys.path.insert(0, str(ROOT / "tests"))
+from eqa_app.benches import harness
+
+harness.use_test_support()
 
 import torch  # noqa: E402
 from tqdm import tqdm  # noqa: E402
@@ -102,8 +100,7 @@ def part_time(args: argparse.Namespace) -> dict:
 
 
 def house_frames(args: argparse.Namespace):
-    from bench_mapper import trajectory
-
+    from eqa_app.benches.mapper import trajectory
     from services.sim.camera import camera_pose, intrinsics
     from services.sim.housegen import generate_house
     from services.sim.render import Renderer
@@ -291,7 +288,7 @@ def plot_time_memory(path: Path, time_res: dict | None, mem_res: dict | None) ->
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = harness.parser(__doc__)
     ap.add_argument("--parts", default="time,memory,fusion", help="comma-separated: time, memory, fusion")
     ap.add_argument("--width", type=int, default=640)
     ap.add_argument("--height", type=int, default=480)
@@ -299,7 +296,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--house", type=int, default=5, help="memory: generated house seed")
     ap.add_argument("--seed", type=int, default=1, help="memory: detector and trajectory seed (an evaluation seed)")
     ap.add_argument("--repeats", type=int, default=9, help="time: frames timed per case (round-robin)")
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results")
+    ap.add_argument("--out", type=Path, default=harness.RESULTS)
     args = ap.parse_args(argv)
     parts = {p.strip() for p in args.parts.split(",") if p.strip()}
     unknown = parts - {"time", "memory", "fusion"}

@@ -1,12 +1,13 @@
-"""Object evidence: the floor plan's rooms (as bench_object_evidence.py) against the whole
+"""Object evidence: the floor plan's rooms (as eqa_app/benches/object_evidence.py) against the whole
 explored map (what the product does: the mapper has no floor plan), from the SAME object layer per episode,
 both against VLM-only answers. Full budget, single-view answer rule, test split of the evaluation seeds, the
-knobs fixed at the settings' defaults (psi_min, weight: chosen on the tuning seed 11 by bench_object_evidence).
+knobs fixed at the settings' defaults (psi_min, weight: chosen on the tuning seed 11 by
+eqa_app.benches.object_evidence).
 No CP here (that needs calibration recordings per variant).
 
 SIMULATED PERCEPTION MODEL (oracle scorer) and SIMULATED DETECTOR, not a VLM / detector.
 
-    PYTHONPATH=. .venv/bin/python bench/bench_object_evidence_region.py --out /tmp/wm --n 32 \\
+    PYTHONPATH=. .venv/bin/python -m eqa_app.benches.object_evidence_region --out /tmp/wm --n 32 \\
         --json bench/results/object_evidence_region.json
 
 Records resumably into ``--out`` (one pickle per seed), prints per category the success of VLM-only,
@@ -15,7 +16,6 @@ floor-plan evidence and whole-map evidence with paired tests (bootstrap 95 % CI,
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import pickle
@@ -25,11 +25,13 @@ from typing import Any
 
 import numpy as np
 
+from eqa_app.benches import harness
+
 
 def record(out: Path, n: int, seeds: list[int]) -> None:
     from tqdm import tqdm
 
-    import bench.bench_object_evidence as bench_obj
+    import eqa_app.benches.object_evidence as bench_obj
     import services.mapper.question_objects as qo_mod
     from eqa.settings import Settings
     from services.sim.questions import benchmark
@@ -62,9 +64,9 @@ def record(out: Path, n: int, seeds: list[int]) -> None:
 
 
 def evaluate(out: Path, seeds: list[int]) -> dict[str, Any]:
-    import bench.bench_object_evidence as bench_obj
-    from bench.bench_answer_rules import Out, paired
+    import eqa_app.benches.object_evidence as bench_obj
     from eqa.settings import Settings
+    from eqa_app.benches.answer_rules import Out, paired
     from services.mapper.question_objects import WHOLE_MAP_CATEGORIES
     from services.stopper.object_evidence import EvidenceParams
 
@@ -106,7 +108,7 @@ def evaluate(out: Path, seeds: list[int]) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = harness.parser(__doc__)
     ap.add_argument("--out", type=Path, required=True, help="recording directory (resumable)")
     ap.add_argument("--n", type=int, default=32, help="existence+counting test questions per seed (alternating)")
     ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3], help="evaluation seeds")

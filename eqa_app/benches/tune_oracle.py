@@ -15,13 +15,12 @@ The exploration path itself depends only weakly on these knobs (GSV's "target se
 a good guide, not the benchmark: the published figures come from ``eqa bench`` through the real services.
 The labels say so: this is a SIMULATED PERCEPTION MODEL, not a VLM.
 
-    python bench/tune_oracle.py --limit 100 --strategy semantic            # record + default sweep
-    python bench/tune_oracle.py --load var/tune/semantic-100.pkl          # sweep again, no recording
+    python -m eqa_app.benches.tune_oracle --limit 100 --strategy semantic            # record + default sweep
+    python -m eqa_app.benches.tune_oracle --load var/tune/semantic-100.pkl          # sweep again, no recording
 """
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import itertools
 import logging
@@ -34,6 +33,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from eqa_app.benches import harness
 
 log = logging.getLogger("tune_oracle")
 
@@ -139,7 +140,7 @@ def sweep(episodes: list[EpisodeRecord], grid: dict[str, list[float]]) -> None:
 def main(argv: list[str] | None = None) -> int:
     from eqa.seeds import TUNING_SEED, check_tuning_seed
 
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = harness.parser(__doc__)
     p.add_argument("--strategy", default="semantic", help="exploration strategy of the recorded episodes")
     p.add_argument("--limit", type=int, default=100, help="questions (category mix kept)")
     p.add_argument("--split", default="all", choices=["calibration", "test", "all"])

@@ -19,7 +19,7 @@ standbys (``EQA_STANDBY``, :mod:`eqa.standby`: a killed process is replaced by a
 one) and without them (a new process is started); with standbys a round starts only once every service has a
 ready standby again.
 
-    python bench/bench_recovery.py [--rounds 3] [--services sim,mapper,planner,stopper,vlm_scorer] [--no-join]
+    python -m eqa_app.benches.recovery [--rounds 3] [--services sim,mapper,planner,stopper,vlm_scorer] [--no-join]
                                    [--standby on,off]
 
 Prints one line per round, then median/p90/min/max per case and mode, and writes ``bench/results/recovery.json``.
@@ -43,18 +43,18 @@ from pathlib import Path
 import numpy as np
 
 os.environ.setdefault("RERUN_TELEMETRY_ENABLED", "false")
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-
-from support.exactly_once import StepLedger, wait_on
-from support.scorer import stop_process
 
 from eqa import keys, sharding
 from eqa.launcher import PIPELINE, STEADY_S, Fleet, free_port
 from eqa.messages import EpisodeCancel, EpisodeStart, Frame, Question, StopConfig
 from eqa.settings import Settings
+from eqa_app.benches import harness
 
-RESULTS = Path(__file__).resolve().parent / "results" / "recovery.json"
+harness.use_test_support()
+from support.exactly_once import StepLedger, wait_on  # noqa: E402
+from support.scorer import stop_process  # noqa: E402
+
+RESULTS = harness.RESULTS / "recovery.json"
 SCENE = "gen-00001"
 SERVICES = ("sim", "mapper", "planner", "stopper", "vlm_scorer")
 STATEFUL = ("sim", "mapper", "planner", "stopper")
@@ -231,7 +231,7 @@ def _join_round(fleet: Fleet, frames: Frames, args: argparse.Namespace, episodes
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = harness.parser(__doc__)
     p.add_argument("--rounds", type=int, default=3, help="kills per service and joins (default 3)")
     p.add_argument("--services", default=",".join(SERVICES), help=f"services to kill (default {','.join(SERVICES)})")
     p.add_argument("--join", action=argparse.BooleanOptionalAction, default=True,
@@ -311,7 +311,7 @@ def main(argv: list[str] | None = None) -> int:
             rproc.wait(timeout=10)
     problems = ledger.problems(episodes)
     summary = {
-        "command": "python bench/bench_recovery.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "command": "python -m eqa_app.benches.recovery " + " ".join(argv if argv is not None else sys.argv[1:]),
         "instances": args.instances, "scorers": args.scorers, "size": [args.width, args.height],
         "cores": os.cpu_count(), "loadavg_at_start": [round(x, 2) for x in load_start],
         "loadavg_at_end": [round(x, 2) for x in os.getloadavg()], "step_resend_s": 30.0,

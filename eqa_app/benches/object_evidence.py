@@ -12,15 +12,13 @@ SIMULATED PERCEPTION MODEL (oracle scorer) and SIMULATED DETECTOR, not a VLM / d
    accuracy); on seeds 1-3 VLM-only and combined answers are compared at the full budget and under CP (each
    calibrated per seed on its calibration split with its own rule), paired, per category, with coverage.
 
-    PYTHONPATH=. .venv/bin/python bench/bench_object_evidence.py record --seeds 11 1 2 3 --n 30 --out DIR
-    PYTHONPATH=. .venv/bin/python bench/bench_object_evidence.py eval --out DIR
+    PYTHONPATH=. .venv/bin/python -m eqa_app.benches.object_evidence record --seeds 11 1 2 3 --n 30 --out DIR
+    PYTHONPATH=. .venv/bin/python -m eqa_app.benches.object_evidence eval --out DIR
 """
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
-import json
 import pickle
 import sys
 import time
@@ -28,6 +26,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from eqa_app.benches import harness
 
 LABEL = "simulated perception model and simulated detector, not a VLM / detector"
 EPS_EVAL = (0.1, 0.2, 0.3)
@@ -147,7 +147,7 @@ def replay(ep: ObjEpisode, f: np.ndarray, q_hat: float | None) -> tuple[bool, fl
 
 
 def evaluate(out: Path, seeds: list[int], tuning_seed: int) -> dict[str, Any]:
-    from bench.bench_answer_rules import Out, paired
+    from eqa_app.benches.answer_rules import Out, paired
     from eqa_app.stats import wilson_ci
     from services.stopper.conformal import conformal_quantile, nonconformity
     from services.stopper.object_evidence import EvidenceParams
@@ -222,7 +222,7 @@ def evaluate(out: Path, seeds: list[int], tuning_seed: int) -> dict[str, Any]:
 def main(argv: list[str] | None = None) -> int:
     from eqa.seeds import EVALUATION_SEEDS, TUNING_SEED
 
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = harness.parser(__doc__)
     sub = p.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("record", help="record episodes with the object layer (resumable)")
     r.add_argument("--seeds", type=int, nargs="+", default=[TUNING_SEED, *EVALUATION_SEEDS])
@@ -236,9 +236,7 @@ def main(argv: list[str] | None = None) -> int:
         record(a.seeds, a.n, a.out)
         return 0
     res = evaluate(a.out, list(EVALUATION_SEEDS), TUNING_SEED)
-    a.results.parent.mkdir(parents=True, exist_ok=True)
-    a.results.write_text(json.dumps(res, indent=1))
-    print(f"results: {a.results}", file=sys.stderr)
+    harness.write_json(a.results, res)
     return 0
 
 

@@ -26,12 +26,11 @@ formed from them (a ratio must come from two things timed in the same run). docs
 side-by-side run (same 40 rendered 640x480 frames, interleaved, load ~7): reference mapper+planner p50
 564.6 ms against ours 40.1 ms. The figures here are p50 / p95 in milliseconds unless stated.
 
-    python bench/bench_pipeline.py [--steps 25] [--questions 2] [--sizes 640x480,320x240] [--skip-fleet]
+    python -m eqa_app.benches.pipeline [--steps 25] [--questions 2] [--sizes 640x480,320x240] [--skip-fleet]
 """
 
 from __future__ import annotations
 
-import argparse
 import logging
 import math
 import os
@@ -45,7 +44,6 @@ from typing import Any
 import numpy as np
 
 os.environ.setdefault("RERUN_TELEMETRY_ENABLED", "false")
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from eqa import keys
 from eqa.launcher import free_port
@@ -63,6 +61,7 @@ from eqa.messages import (
     encode,
 )
 from eqa.settings import Settings
+from eqa_app.benches import harness
 from eqa_app.stats import percentile as pct
 
 # External figures (see the module docstring): not timed here, never divided by our timings.
@@ -380,7 +379,7 @@ def in_process(base: Settings, scene_id: str, size: tuple[int, int], steps: int,
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = harness.parser(__doc__)
     ap.add_argument("--steps", type=int, default=25, help="steps per question (cap on max_steps)")
     ap.add_argument("--questions", type=int, default=2, help="questions per fleet run")
     ap.add_argument("--sizes", default="640x480,320x240", help="image sizes of the throughput runs")

@@ -12,12 +12,11 @@ random Eq. A6-like weights, strategy ``semantic``. "search" = traversable blocks
 "step" = everything :func:`services.planner.step.plan_step` does (validation, search, approach points,
 sampling, path read-out and shortening, truncation to 3 m).
 
-    python bench/bench_planner.py [--steps 40] [--maps house,maze] [--seed 0]
+    python -m eqa_app.benches.planner [--steps 40] [--maps house,maze] [--seed 0]
 """
 
 from __future__ import annotations
 
-import argparse
 import math
 import sys
 import time
@@ -26,6 +25,7 @@ import numpy as np
 from scipy import ndimage
 
 from eqa.messages import Frontier, GridSpec, Pose2D
+from eqa_app.benches import harness
 from services.planner.sampling import step_rng
 from services.planner.step import Memory, PlannerParams, plan_step
 from services.planner.synthetic import maze_map
@@ -100,7 +100,7 @@ def run(name: str, grid: GridSpec, free: np.ndarray, occ: np.ndarray, steps: int
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = harness.parser(__doc__)
     ap.add_argument("--steps", type=int, default=40, help="planning steps per map (default 40)")
     ap.add_argument("--maps", default="house,maze", help="comma-separated: house, maze (default both)")
     ap.add_argument("--seed", type=int, default=0)

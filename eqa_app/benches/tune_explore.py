@@ -11,7 +11,7 @@ It refuses the evaluation seeds (``eqa.seeds.check_tuning_seed``): knobs chosen 
 are chosen on seed 11 and the published figures come from seeds 1, 2, 3 through the real services
 (``eqa bench explore --seeds 1 2 3``). Scorer: the SIMULATED PERCEPTION MODEL (oracle), not a VLM.
 
-    python bench/tune_explore.py --limit 60 --variant fbe --variant semantic \\
+    python -m eqa_app.benches.tune_explore --limit 60 --variant fbe --variant semantic \\
         --variant semantic:planner.distance_decay_m=0 --variant target_oracle --variant perfect_sv
 
 A variant is ``STRATEGY[:KNOB=VALUE,...]`` with knobs ``mapper.<MapperConfig field>``,
@@ -20,7 +20,6 @@ A variant is ``STRATEGY[:KNOB=VALUE,...]`` with knobs ``mapper.<MapperConfig fie
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import logging
@@ -32,6 +31,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from eqa_app.benches import harness
 
 log = logging.getLogger("tune_explore")
 
@@ -267,7 +268,7 @@ def tuning_questions(seed: int, split: str, limit: int | None, settings: Any) ->
 def main(argv: list[str] | None = None) -> int:
     from eqa.seeds import TUNING_SEED, check_tuning_seed
 
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = harness.parser(__doc__)
     p.add_argument("--seed", type=int, default=TUNING_SEED, help=f"benchmark seed (default the tuning seed "
                    f"{TUNING_SEED}; evaluation seeds are refused)")
     p.add_argument("--variant", action="append", default=[], help="STRATEGY[:knob=value,...] (repeatable)")

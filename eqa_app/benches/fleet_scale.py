@@ -13,14 +13,14 @@ machine's load drifts over both alike. Per run:
   the run / steps run. 1 / that = steps per second one core of that service sustains; the service with the
   highest CPU per step saturates first.
 
-    python bench/bench_fleet_scale.py [--instances 1,2] [--robots 4] [--episodes 12] [--steps 8] [--rounds 2]
+    python -m eqa_app.benches.fleet_scale [--instances 1,2] [--robots 4] [--episodes 12] [--steps 8] [--rounds 2]
 
 ``--trees OLD,NEW`` compares source trees instead (e.g. git worktrees at two commits): each round runs this
 script of each tree in turn (OLD NEW OLD NEW ...; ``--instances`` 1 unless given, the tree's own code in its
 processes, a private Redis each), and prints episodes/min per tree and round, the NEW/OLD ratio of each round
 (both measured back to back under the same load) and its median, and the load average before each run.
 
-    python bench/bench_fleet_scale.py --trees /work/wt-old,/work/wt-new --robots 4 --rounds 3
+    python -m eqa_app.benches.fleet_scale --trees /work/wt-old,/work/wt-new --robots 4 --rounds 3
 """
 
 from __future__ import annotations
@@ -37,20 +37,20 @@ from collections import defaultdict
 from pathlib import Path
 from typing import Any
 
-os.environ.setdefault("RERUN_TELEMETRY_ENABLED", "false")
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-
 import numpy as np
-from support.exactly_once import Ends, StepLedger
 from tqdm import tqdm
 
 from eqa import keys
 from eqa.launcher import PIPELINE, Fleet, free_port
 from eqa.messages import EpisodeEnd, EpisodeStart, Question, StopConfig
 from eqa.settings import Settings
+from eqa_app.benches import harness
 
-RESULTS = Path(__file__).resolve().parent / "results" / "fleet_scale.json"
+os.environ.setdefault("RERUN_TELEMETRY_ENABLED", "false")
+harness.use_test_support()
+from support.exactly_once import Ends, StepLedger  # noqa: E402
+
+RESULTS = harness.RESULTS / "fleet_scale.json"
 TICK = os.sysconf("SC_CLK_TCK")
 QUESTIONS = [("gen-00001", "Is there a bed in the bedroom?", ["Yes", "No"]),
              ("gen-00002", "Where is the sofa? A) bedroom B) living room", ["bedroom", "living room"]),
@@ -126,12 +126,22 @@ def run_config(n: int, args: argparse.Namespace, redis_url: str, root: Path) -> 
     }
 
 
+def _tree_command(tree: Path) -> list[str] | None:
+    """How this benchmark of source tree ``tree`` starts: a module of its application package, or the script of a
+    tree that kept its benchmarks under ``bench/``; None when it has neither."""
+    if (tree / "eqa_app" / "benches" / "fleet_scale.py").is_file():
+        return harness.command("fleet_scale")
+    if (tree / "bench" / "eqa_app/benches/fleet_scale.py").is_file():
+        return [sys.executable, str(tree / "bench" / "eqa_app/benches/fleet_scale.py")]
+    return None
+
+
 def compare_trees(trees: list[Path], args: argparse.Namespace) -> int:
     """Run this benchmark of each tree in turn, ``--rounds`` times; one robot fleet per run (see the docstring)."""
     for t in trees:
-        if not (t / "bench" / "bench_fleet_scale.py").is_file():
-            print(f"error: {t} has no bench/bench_fleet_scale.py (give source trees, e.g. git worktrees)",
-                  file=sys.stderr)
+        if _tree_command(t) is None:
+            print(f"error: {t} has no eqa_app/benches/fleet_scale.py or eqa_app/benches/fleet_scale.py (give source "
+                  f"trees, e.g. git worktrees)", file=sys.stderr)
             return 2
     instances = args.instances if args.instances != "1,2" else "1"
     runs: list[dict[str, Any]] = []
@@ -140,7 +150,7 @@ def compare_trees(trees: list[Path], args: argparse.Namespace) -> int:
             for t in trees:
                 out = Path(tmp) / f"run-{r}-{t.name}.json"
                 load = os.getloadavg()[0]
-                cmd = [sys.executable, str(t / "bench" / "bench_fleet_scale.py"), "--instances", instances,
+                cmd = [*(_tree_command(t) or []), "--instances", instances,
                        "--robots", str(args.robots), "--episodes", str(args.episodes), "--steps", str(args.steps),
                        "--rounds", "1", "--timeout", str(args.timeout), "--out", str(out)]
                 env = {**os.environ, "PYTHONPATH": str(t)}
@@ -163,7 +173,7 @@ def compare_trees(trees: list[Path], args: argparse.Namespace) -> int:
             [x for x in runs if x["tree"] == base], [x for x in runs if x["tree"] == str(t)], strict=True)]
         print(f"  ratio {t.name}/{trees[0].name} per round (back to back): "
               + ", ".join(f"{q:.2f}" for q in ratios) + f"; median {np.median(ratios):.2f}")
-    summary = {"command": "python bench/bench_fleet_scale.py " + " ".join(sys.argv[1:]), "cores": os.cpu_count(),
+    summary = {"command": "python -m eqa_app.benches.fleet_scale " + " ".join(sys.argv[1:]), "cores": os.cpu_count(),
                "loadavg_at_end": [round(x, 2) for x in os.getloadavg()], "runs": runs}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(summary, indent=2))
@@ -172,7 +182,7 @@ def compare_trees(trees: list[Path], args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = harness.parser(__doc__)
     p.add_argument("--instances", default="1,2", help="comma-separated instance counts to compare (default 1,2)")
     p.add_argument("--robots", type=int, default=4)
     p.add_argument("--episodes", type=int, default=12, help="episodes per run")
@@ -216,7 +226,7 @@ def main(argv: list[str] | None = None) -> int:
             proc.terminate()
             proc.wait(timeout=10)
     load = os.getloadavg()
-    summary = {"command": "python bench/bench_fleet_scale.py " + " ".join(argv or sys.argv[1:]),
+    summary = {"command": "python -m eqa_app.benches.fleet_scale " + " ".join(argv or sys.argv[1:]),
                "cores": os.cpu_count(), "loadavg_at_end": [round(x, 2) for x in load], "runs": runs}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(summary, indent=2))

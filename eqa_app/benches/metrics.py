@@ -9,15 +9,13 @@ goes through the step-latency histogram, the claim counter and ~6 timed store ca
 rounds (same process, same store) so that drift of the machine's load hits both alike; the figures are the
 median over rounds of each round's mean per step, in microseconds, and the hooks' own costs from timeit.
 
-    python bench/bench_metrics.py [--steps 300] [--rounds 8]
+    python -m eqa_app.benches.metrics [--steps 300] [--rounds 8]
 """
 
 from __future__ import annotations
 
-import argparse
 import os
 import statistics
-import sys
 import tempfile
 import threading
 import time
@@ -25,14 +23,13 @@ import timeit
 from pathlib import Path
 from typing import Any
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
 from eqa import keys, metrics
 from eqa.episode_service import EpisodeService
 from eqa.launcher import free_port
 from eqa.messages import Decision, EpisodeStart, Question, StepScores
 from eqa.settings import Settings
 from eqa.store import EmbeddedStore
+from eqa_app.benches import harness
 
 
 class Probe(EpisodeService[dict[str, Any]]):
@@ -90,11 +87,11 @@ def hook_costs(store: EmbeddedStore) -> dict[str, tuple[float, float]]:
     return out
 
 
-def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def main(argv: list[str] | None = None) -> int:
+    parser = harness.parser(__doc__)
     parser.add_argument("--steps", type=int, default=300, help="steps per round")
     parser.add_argument("--rounds", type=int, default=8, help="rounds of each (off and on alternate)")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
         settings = Settings(data_dir=Path(tmp), zenoh_mode="peer", zenoh_listen=[f"tcp/127.0.0.1:{free_port()}"],
                             zenoh_connect=[], zenoh_multicast=False, record=False)

@@ -3,12 +3,11 @@ success vs. normalized steps on SYNTHETIC exchangeable episodes (services/stoppe
 VLM that is confident and biased on irrelevant views) — a small analogue of Explore-EQA Fig. 9, not a
 result about any real model.
 
-    python bench/bench_stopper.py [--n-cal 300] [--n-test 2000] [--seed 0] [--no-zenoh]
+    python -m eqa_app.benches.stopper [--n-cal 300] [--n-test 2000] [--seed 0] [--no-zenoh]
 """
 
 from __future__ import annotations
 
-import argparse
 import logging
 import os
 import socket
@@ -23,6 +22,7 @@ import numpy as np
 os.environ.setdefault("RERUN_TELEMETRY_ENABLED", "false")
 
 from eqa.messages import EpisodeStart, Question, StepScores, StopConfig
+from eqa_app.benches import harness
 from eqa_app.stats import percentile as pct
 from services.stopper import baselines, conformal, synthetic
 from services.stopper.calibration import calibrate
@@ -164,14 +164,14 @@ def bench_zenoh(steps: int) -> None:
     )
 
 
-def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def main(argv: list[str] | None = None) -> int:
+    parser = harness.parser(__doc__)
     parser.add_argument("--n-cal", type=int, default=300, help="calibration episodes (default 300, as the paper)")
     parser.add_argument("--n-test", type=int, default=2000, help="held-out synthetic episodes")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--steps", type=int, default=200, help="steps for the latency figures")
     parser.add_argument("--no-zenoh", action="store_true", help="skip the Zenoh round-trip figure")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     bench_decide(args.steps)
     bench_calibrate(args.n_cal, args.seed)

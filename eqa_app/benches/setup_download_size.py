@@ -2,7 +2,7 @@
 scripts/setup.sh installs it: torch 2.13.0, then ``-e .[dev]``), each sized from its file (a configured local
 directory) or by an HTTP HEAD of its URL; written to bench/results/setup-download/sizes.json.
 
-    .venv/bin/python bench/setup_download_size.py [--isolated-torch]
+    .venv/bin/python -m eqa_app.benches.setup_download_size [--isolated-torch]
 
 ``--isolated-torch`` also sizes what ``pip install torch==2.13.0`` takes from PyPI alone (no configured indexes:
 the CUDA build and its nvidia wheels). Nothing is installed (``pip install --dry-run``). The llama.cpp sdist
@@ -21,7 +21,9 @@ import urllib.parse
 import urllib.request
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
+from eqa_app.benches import harness
+
+REPO = harness.REPO
 OUT = REPO / "bench" / "results" / "setup-download" / "sizes.json"
 
 
@@ -47,10 +49,10 @@ def table(items: list[dict]) -> list[dict]:
     return sorted(rows, key=lambda r: -r["bytes"])
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--isolated-torch", action="store_true")
-    a = ap.parse_args()
+    a = ap.parse_args(argv)
     out: dict = {"command": "pip install --dry-run --ignore-installed --report - torch==2.13.0 -e .[dev]"}
     # with the configured indexes (here a local directory holds torch 2.13.0+cpu; elsewhere add PyTorch's CPU
     # index as scripts/setup.sh does, for torch alone: an extra index is asked for every package resolved)

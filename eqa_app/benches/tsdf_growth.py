@@ -1,6 +1,6 @@
 """TSDF integrate's tail: the cost of the frames that make the grid grow, this tree against a git revision.
 
-Both volumes fuse the same rendered frames (a trajectory through each house, as in ``bench_mapper.py``) into
+Both volumes fuse the same rendered frames (a trajectory through each house, as in ``eqa_app/benches/mapper.py``) into
 fresh volumes, ``--repeats`` times, interleaved frame by frame (ours, baseline, ours, ...), so a load drift
 hits both alike. Per frame the minimum over the repeats is kept: the frame's own cost without the machine's
 noise, which is what a tail made by the algorithm (copying the whole volume when the grid grows) shows up in.
@@ -10,23 +10,20 @@ whether the tail is the growth or the frames themselves (a frame that sees new t
 voxels), and how many of the frames at or above p95 grew the grid with p95/p50 over the frames that did not; then
 whether the two trees' volumes are bit-identical after every frame.
 
-    python bench/bench_tsdf_growth.py [--scenes gen-00007 gen-00042] [--steps 40] [--repeats 5] [--baseline REV]
+    python -m eqa_app.benches.tsdf_growth [--scenes gen-00007 gen-00042] [--steps 40] [--repeats 5] [--baseline REV]
 """
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from bench_mapper import load_baseline, pct, same_volume, trajectory
-
+from eqa_app.benches import harness
+from eqa_app.benches.mapper import load_baseline, same_volume, trajectory
+from eqa_app.stats import percentile as pct
 from services.mapper.tsdf import TSDFVolume
 from services.sim.camera import camera_pose, intrinsics
 from services.sim.library import load_or_generate
@@ -59,7 +56,7 @@ def _timed_ensure(vol: object) -> list[float]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = harness.parser(__doc__)
     ap.add_argument("--scenes", nargs="+", default=["gen-00007", "gen-00042", "gen-00151"],
                     help="generated houses to walk through (default: three)")
     ap.add_argument("--steps", type=int, default=40, help="frames per house (default 40)")
@@ -78,7 +75,7 @@ def main(argv: list[str] | None = None) -> int:
     except LookupError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    scenes = Path(__file__).resolve().parents[1] / "var" / "scenes"  # generated once, then loaded
+    scenes = harness.REPO / "var" / "scenes"  # generated once, then loaded
     houses = [_frames(s, args.steps, args.width, args.height, scenes)
               for s in tqdm(args.scenes, desc="rendering", leave=False)]
     trees = {"ours": TSDFVolume, "baseline": base_tsdf.TSDFVolume}

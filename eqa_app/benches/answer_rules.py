@@ -18,14 +18,11 @@ Printed and stored (``bench/results/answer_rules.json``): for the chosen rule an
 difference; (b) CP at several eps, each rule calibrated per seed on its own calibration split *with its own
 rule*: coverage of the sequence-level set next to 1 - eps, success, normalised steps, paired tests.
 
-    PYTHONPATH=. .venv/bin/python bench/bench_answer_rules.py --recordings var/answer-rules --record
+    PYTHONPATH=. .venv/bin/python -m eqa_app.benches.answer_rules --recordings var/answer-rules --record
 """
 
 from __future__ import annotations
 
-import argparse
-import json
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -34,6 +31,7 @@ import numpy as np
 
 from eqa.messages import letters
 from eqa.seeds import EVALUATION_SEEDS, TUNING_SEED
+from eqa_app.benches import harness
 from eqa_app.stats import paired_outcomes, wilson_ci
 from eqa_app.stop_sensitivity import Outcome as Out
 from eqa_app.stop_sensitivity import load_recording, recording_path
@@ -138,7 +136,7 @@ def record_missing(recordings: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = harness.parser(__doc__)
     p.add_argument("--recordings", type=Path, required=True, help="stop_sensitivity recordings (calibration splits)")
     p.add_argument("--record", action="store_true", help="first record what is missing (RECORD_PLAN; ~20 min "
                    "of CPU on an idle core, 2.4 s per episode)")
@@ -214,9 +212,7 @@ def main(argv: list[str] | None = None) -> int:
             rc = res["cp"][f"{eps:g}"]["paired"][c]
             print(f"    {c:<15} n={rc['n']:>3} success {rc['success_a']:.3f} vs {rc['success_b']:.3f} p={rc['p']:.3g}"
                   f"  coverage {cov_cat['a'][c]:.3f} vs {cov_cat['b'][c]:.3f}")
-    a.out.parent.mkdir(parents=True, exist_ok=True)
-    a.out.write_text(json.dumps(res, indent=1))
-    print(f"\nresults: {a.out}", file=sys.stderr)
+    harness.write_json(a.out, res)
     return 0
 
 

@@ -12,7 +12,6 @@ The numbers depend on the machine and on what else runs on it.
 
 from __future__ import annotations
 
-import argparse
 import os
 import statistics
 import subprocess
@@ -26,9 +25,10 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
 os.environ.setdefault("RERUN_TELEMETRY_ENABLED", "false")
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "tests"))
+from eqa_app.benches import harness
+
+REPO = harness.REPO
+harness.use_test_support()
 
 from eqa.bus import Bus  # noqa: E402
 from eqa.launcher import free_port  # noqa: E402
@@ -37,7 +37,7 @@ from eqa.settings import Settings  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = harness.parser(__doc__)
     ap.add_argument("--requests", type=int, default=60, help="requests per replica-count measurement")
     ap.add_argument("--replicas", default="1,2,4", help="comma-separated replica counts")
     ap.add_argument("--size", default="120x160", help="image HxW")

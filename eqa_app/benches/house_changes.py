@@ -2,7 +2,7 @@
 whether rounds 1..k of changes of its house (``gen-<seed>-c<k>``, services/sim/changes.py) affect it (its answer or
 its evidence changed), change its answer, or leave it without ground truth; and the time to build a round.
 
-    python bench/bench_house_changes.py --seeds 1 2 3 --rounds 4 --split test \
+    python -m eqa_app.benches.house_changes --seeds 1 2 3 --rounds 4 --split test \
         --out bench/results/homes-api/house-changes.json
 
 Ground truth of the simulator's scene graph only: no scorer, detector or robot runs. The figures say how many of a
@@ -19,8 +19,6 @@ import tempfile
 import time
 from collections import Counter, defaultdict
 from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from eqa_app.stats import wilson_ci
 from services.sim.change_impact import impact
@@ -85,7 +83,7 @@ def summarize(rows: list[dict], rounds: int) -> dict[str, dict[str, object]]:
     return out
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
     ap.add_argument("--rounds", type=int, default=4, help=f"k = 1..rounds (at most {MAX_ROUNDS})")
@@ -93,7 +91,7 @@ def main() -> int:
     ap.add_argument("--limit", type=int, default=None, help="first N questions of the split per seed")
     ap.add_argument("--scenes-dir", default=None, help="default: a temporary directory")
     ap.add_argument("--out", default=None, help="JSON summary")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     if not 1 <= args.rounds <= MAX_ROUNDS:
         ap.error(f"--rounds must be 1..{MAX_ROUNDS}")
     with tempfile.TemporaryDirectory() as tmp:
@@ -103,7 +101,7 @@ def main() -> int:
         wall = time.perf_counter() - t0
     rows = [r for s in per_seed for r in s.pop("_rows")]  # type: ignore[union-attr]
     summary = {
-        "command": "python bench/bench_house_changes.py " + " ".join(sys.argv[1:]),
+        "command": "python -m eqa_app.benches.house_changes " + " ".join(sys.argv[1:] if argv is None else argv),
         "what": "share of benchmark questions whose answer or evidence rounds 1..k of house changes touch; "
                 "simulator ground truth (scene graph), no perception model",
         "seeds": args.seeds, "split": args.split, "rounds": args.rounds,

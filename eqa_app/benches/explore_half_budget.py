@@ -6,19 +6,19 @@ x T with semantic's at T: the questions only one of the two gets right, the exac
 of the difference (eqa_app.evaluation's helpers). Scorer of the stored runs: oracle, a simulated perception
 model, not a VLM/detector.
 
-    python bench/explore_half_budget.py --strategies gain perfect_gain target_oracle \\
+    python -m eqa_app.benches.explore_half_budget --strategies gain perfect_gain target_oracle \\
         --traces bench/results/explore-seeds/traces bench/results/explore-strategies/traces \\
                  bench/results/explore-yardsticks/traces bench/results/explore-perfect/traces
 """
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 from eqa.seeds import EVALUATION_SEEDS
 from eqa_app import evaluation as ev
 from eqa_app import stats
+from eqa_app.benches import harness
 from services.stopper.calibration import Trace, read_jsonl
 
 
@@ -33,7 +33,7 @@ def load(dirs: list[Path], strategy: str) -> dict[str, Trace]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = harness.parser(__doc__)
     p.add_argument("--strategies", nargs="+", required=True)
     p.add_argument("--traces", nargs="+", type=Path, required=True, metavar="DIR")
     p.add_argument("--budget", type=float, default=0.5, help="the strategy's budget, x T (default 0.5)")

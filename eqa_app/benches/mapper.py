@@ -16,12 +16,11 @@ incremental one when the tree has it) with its bytes, MapUpdate encoding and the
 incremental snapshot's bytes are written both as the mapper writes them (one ``Store.set_many`` call: one Redis
 round trip) and key by key (a round trip per key), alternating which goes first.
 
-    python bench/bench_mapper.py [--steps 30] [--width 640 --height 480] [--scene gen-00007] [--baseline REV]
+    python -m eqa_app.benches.mapper [--steps 30] [--width 640 --height 480] [--scene gen-00007] [--baseline REV]
 """
 
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import subprocess
@@ -34,11 +33,11 @@ from pathlib import Path
 import numpy as np
 
 os.environ.setdefault("RERUN_TELEMETRY_ENABLED", "false")
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from eqa.messages import EpisodeStart, Frame, Pose2D, Question, encode
 from eqa.settings import Settings
 from eqa.store import EmbeddedStore
+from eqa_app.benches import harness
 from eqa_app.stats import percentile as pct
 from services.mapper.episode_map import EpisodeMap, Timer
 from services.sim.camera import camera_pose, intrinsics
@@ -106,7 +105,7 @@ class Open3DTSDF:
 
 
 BASELINE_REV = "5f008c0"  # the project's first TSDF, projection and snapshot
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = harness.REPO
 
 
 def load_baseline(rev: str) -> tuple[types.ModuleType, types.ModuleType]:
@@ -150,7 +149,7 @@ def line(name: str, v: list[float], note: str = "") -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = harness.parser(__doc__)
     ap.add_argument("--steps", type=int, default=30)
     ap.add_argument("--width", type=int, default=640)
     ap.add_argument("--height", type=int, default=480)

@@ -7,7 +7,7 @@ user provides::
 
     git clone https://github.com/Stanford-ILIAD/explore-eqa DIR
     python -m venv REFVENV && REFVENV/bin/pip install numpy numba matplotlib scipy scikit-image scikit-learn
-    python bench/bench_reference.py --reference DIR --reference-python REFVENV/bin/python
+    python -m eqa_app.benches.reference --reference DIR --reference-python REFVENV/bin/python
 
 (``--reference-python`` defaults to this interpreter, which works once it has scikit-image and scikit-learn.)
 The reference runs in a worker process of that interpreter, started by this script; the two sides take turns
@@ -33,7 +33,7 @@ global value ``0.6``):
   grows with what is seen): ``EpisodeMap.integrate`` (TSDF fusion with free-space carving and explored marks,
   robot footprint, 2D projection, prompt points), ``apply_scores`` (Eq. 3 values), ``compute_frontiers``
   (frontiers and their Eq. A6 weights), ``map_update`` and ``plan_step`` (strategy ``semantic``): "ours".
-  "ours + snapshot" adds what bench_pipeline's "mapper+planner, figures off" also counts: the incremental
+  "ours + snapshot" adds what eqa_app.benches.pipeline's "mapper+planner, figures off" also counts: the incremental
   snapshot written to an embedded store and the MapUpdate encoded and decoded; the reference has none.
 * **reference** (its HM-EQA settings, ``cfg/vlm_exp.yaml``: ``tsdf_grid_size`` 0.1 m, truncation 5 voxels,
   bounds = the navigable area's bounding box, as ``get_scene_bnds`` takes them from the navmesh, and
@@ -44,7 +44,7 @@ global value ``0.6``):
   ``find_next_pose`` (``flag_no_val_weight`` for the first 2 steps). The robot's yaw is passed in the
   reference's angle convention (``yaw - pi/2``).
 
-Both are fed the same frames: a fixed trajectory per house (``bench_mapper.trajectory``: a farthest-point
+Both are fed the same frames: a fixed trajectory per house (``eqa_app.benches.mapper.trajectory``: a farthest-point
 spread of free cells visited in nearest-neighbour order), rendered once by our simulator at ``--width x
 --height`` (RGB, depth along the optical axis, the camera-to-world pose in the OpenCV convention both sides
 use, our intrinsics). Neither planner's output moves the camera (open loop), so both see the same frames.
@@ -52,7 +52,7 @@ Before the timed steps each side integrates two frames of a throw-away map (numb
 ``perf_counter``; CPU is the process's CPU time over the step (all threads: the reference's numba kernels run
 ``parallel=True`` on every core), and the main thread's CPU time.
 
-    python bench/bench_reference.py --reference DIR [--reference-python PY] [--steps 40]
+    python -m eqa_app.benches.reference --reference DIR [--reference-python PY] [--steps 40]
         [--houses gen-00014,gen-00028,gen-00004,gen-00000] [--out bench/results/perf/reference_step.png]
 """
 
@@ -342,6 +342,8 @@ class Reference:
 
     def __init__(self, python: str, ref_dir: Path) -> None:
         env = dict(os.environ, MPLBACKEND="Agg")
+        # run by path, not as a module: the reference's interpreter has none of this repository's packages, and
+        # this file imports none of them at module level
         self.proc = subprocess.Popen([python, str(Path(__file__).resolve()), "--worker", str(ref_dir)],
                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env)
         hello, _ = recv(self.proc.stdout)  # type: ignore[arg-type]
@@ -491,10 +493,8 @@ def ref_commit(ref_dir: Path) -> str:
 
 
 def render_frames(scene: Any, steps: int, width: int, height: int, seed: int) -> list[Any]:
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from bench_mapper import trajectory
-
     from eqa.messages import Frame
+    from eqa_app.benches.mapper import trajectory
     from services.sim.camera import camera_pose, intrinsics
     from services.sim.render import Renderer
 
@@ -597,7 +597,9 @@ def summary(values: list[float]) -> dict[str, float]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    from eqa_app.benches import harness
+
+    ap = harness.parser(__doc__)
     ap.add_argument("--reference", type=Path, help="a checkout of github.com/Stanford-ILIAD/explore-eqa")
     ap.add_argument("--reference-python", default=sys.executable,
                     help="interpreter that can import the reference (numpy, numba, matplotlib, scipy, "
@@ -640,7 +642,6 @@ def main(argv: list[str] | None = None) -> int:
               file=sys.stderr)
         return 2
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
     from eqa_app.stats import percentile as pct
     from services.sim.library import load_or_generate
 

@@ -2,7 +2,7 @@
 conformal calibration made in sampling mode on the tiny Qwen2-VL served by ``transformers serve``, with its
 coverage on held-out episodes.
 
-    .venv/bin/python bench/bench_scorer_modes.py [--steps 10] [--cal 8] [--test 8] [--samples 4]
+    .venv/bin/python -m eqa_app.benches.scorer_modes [--steps 10] [--cal 8] [--test 8] [--samples 4]
 
 Latency (round-robin, one step of each mode in turn, so load changes hit every mode alike; the machine is shared
 and noisy, read the ratios): ``hf`` (the tiny model in-process, probabilities read from the logits),
@@ -17,7 +17,6 @@ Writes bench/results/scorer_modes.json.
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import statistics
@@ -26,9 +25,10 @@ import tempfile
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "tests"))
-sys.path.insert(0, str(REPO))
+from eqa_app.benches import harness
+
+REPO = harness.REPO
+harness.use_test_support()
 
 from support.scorer import (  # noqa: E402
     OpenAIDouble,
@@ -123,8 +123,8 @@ def calibration(serve_url: str, serve_model: str, n_cal: int, n_test: int, sampl
     }
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def main(argv: list[str] | None = None) -> int:
+    ap = harness.parser(__doc__)
     ap.add_argument("--steps", type=int, default=10, help="latency rounds (one step of each mode per round)")
     ap.add_argument("--samples", type=int, nargs="+", default=[2, 4, 8], help="k for the sampling-mode latency")
     ap.add_argument("--cal", type=int, default=8, help="calibration-split questions")
@@ -132,7 +132,7 @@ def main() -> int:
     ap.add_argument("--cal-samples", type=int, default=4, help="k for the calibration episodes")
     ap.add_argument("--skip-calibration", action="store_true")
     ap.add_argument("--out", type=Path, default=REPO / "bench" / "results" / "scorer_modes.json")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     from services.vlm_scorer.tiny import build_tiny_qwen2vl
 
     if not serve_installed():
@@ -147,7 +147,8 @@ def main() -> int:
             from services.vlm_scorer.backends.remote import probe_endpoint
 
             check = probe_endpoint(url, model, samples=args.cal_samples)
-            result: dict = {"command": " ".join(["bench/bench_scorer_modes.py", *sys.argv[1:]]),
+            given = sys.argv[1:] if argv is None else argv
+            result: dict = {"command": " ".join(["python -m eqa_app.benches.scorer_modes", *given]),
                             "check": check.lines(),
                             "latency": latency(url, model, model_dir, args.steps, args.samples)}
             args.out.parent.mkdir(parents=True, exist_ok=True)

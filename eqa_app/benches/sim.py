@@ -1,7 +1,7 @@
 """Simulator benchmark: render time per 640x480 RGB + depth + instance frame (p50/p95), the raw ray cast
 alone, scene generation time, and the time to build the whole question benchmark.
 
-    python bench/bench_sim.py [--frames 100] [--houses 10] [--width 640 --height 480] [--full-benchmark]
+    python -m eqa_app.benches.sim [--frames 100] [--houses 10] [--width 640 --height 480] [--full-benchmark]
 
 ``--identical-to REV`` instead checks the renderer against ``services/sim/render.py`` of git revision ``REV``
 (loaded from ``git show`` into a private module, nothing of it kept in the tree): ``--frames`` poses in each of
@@ -10,16 +10,14 @@ episode holding an object (the largest instance in view hidden); rgb, depth and 
 shapes) must be equal (exit 1 otherwise). It also times both, CPU seconds (``time.process_time``) per frame,
 interleaved in alternating order, and prints p50 of each and the NEW/OLD ratio of the medians.
 
-    python bench/bench_sim.py --identical-to 5f008c0 --houses 3 --frames 100 --width 320 --height 240
+    python -m eqa_app.benches.sim --identical-to 5f008c0 --houses 3 --frames 100 --width 320 --height 240
 """
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import importlib.util
 import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -27,8 +25,7 @@ from types import ModuleType
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
+from eqa_app.benches import harness
 from eqa_app.stats import percentile as pct
 from services.sim.camera import camera_pose, intrinsics
 from services.sim.housegen import generate_house
@@ -43,7 +40,7 @@ def ms(seconds: list[float]) -> np.ndarray:
 
 def old_render_module(rev: str) -> ModuleType:
     """``services/sim/render.py`` of git revision ``rev`` as a private module (from ``git show``)."""
-    root = Path(__file__).resolve().parents[1]
+    root = harness.REPO
     src = subprocess.run(["git", "show", f"{rev}:services/sim/render.py"], cwd=root, check=True,
                          capture_output=True, text=True).stdout
     with tempfile.TemporaryDirectory() as tmp:
@@ -109,7 +106,7 @@ def identical_to(rev: str, houses: int, frames: int, width: int, height: int) ->
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = harness.parser(__doc__)
     ap.add_argument("--frames", type=int, default=100, help="frames to render per measurement")
     ap.add_argument("--houses", type=int, default=10, help="houses to generate for the generation time")
     ap.add_argument("--width", type=int, default=640)

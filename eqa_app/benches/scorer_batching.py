@@ -27,14 +27,13 @@ Printed per robot count and mode:
 The tiny model is not a real VLM: the figures say what merging the steps of several robots saves in a
 replica's per-call work on this CPU, not what a GPU serving a real model would gain.
 
-    python bench/bench_scorer_batching.py [--robots 1 2 4 8 16] [--steps 6] [--rounds 4] [--clients 2]
+    python -m eqa_app.benches.scorer_batching [--robots 1 2 4 8 16] [--steps 6] [--rounds 4] [--clients 2]
         [--reference bench/results/perf/scorer_values_d726069.json]
-    python bench/bench_scorer_batching.py --record FILE --robots 16 --steps 8   # values of this tree, one by one
+    python -m eqa_app.benches.scorer_batching --record FILE --robots 16 --steps 8   # values of this tree, one by one
 """
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import json
 import os
@@ -51,11 +50,10 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
 os.environ.setdefault("RERUN_TELEMETRY_ENABLED", "false")
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "tests"))
+from eqa_app.benches import harness
 
-from bench_fleet_scale import cpu_seconds  # noqa: E402
+REPO = harness.REPO
+harness.use_test_support()
 
 from eqa import keys  # noqa: E402
 from eqa.bus import Bus  # noqa: E402
@@ -63,6 +61,7 @@ from eqa.launcher import free_port  # noqa: E402
 from eqa.messages import ErrorReply, Question, ScoreRequest, ScoreResult, decode, encode  # noqa: E402
 from eqa.scorer_client import ScorerClient  # noqa: E402
 from eqa.settings import Settings  # noqa: E402
+from eqa_app.benches.fleet_scale import cpu_seconds  # noqa: E402
 from eqa_app.stats import percentile as pct  # noqa: E402
 
 QUESTIONS = [
@@ -162,9 +161,10 @@ class Clients:
     """The client processes, each holding a share of the robots."""
 
     def __init__(self, n: int, hub_port: int, data_dir: Path) -> None:
-        self.procs = [subprocess.Popen([sys.executable, __file__, "--client", str(hub_port), str(data_dir / f"c{i}"),
-                                        f"c{i}"], cwd=REPO, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
-                                       env={**os.environ, "EQA_LOG_LEVEL": "WARNING"})
+        self.procs = [subprocess.Popen(harness.command("scorer_batching", "--client", str(hub_port),
+                                                       str(data_dir / f"c{i}"), f"c{i}"),
+                                       cwd=REPO, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+                                       env={**harness.environment(), "EQA_LOG_LEVEL": "WARNING"})
                       for i in range(n)]
         for p in self.procs:
             self._read(p)
@@ -240,7 +240,7 @@ def _load() -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = harness.parser(__doc__)
     ap.add_argument("--robots", type=int, nargs="+", default=[1, 2, 4, 8, 16], help="concurrent robot counts (1..64)")
     ap.add_argument("--steps", type=int, default=6, help="steps per robot per round (1..100, default 6)")
     ap.add_argument("--rounds", type=int, default=4,

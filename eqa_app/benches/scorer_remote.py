@@ -17,12 +17,11 @@ after the other, wall and CPU per step. The model is
 random and tiny: the figures are the protocol's cost and how much of the server's work the concurrency overlaps,
 not a real model's speed.
 
-    python bench/bench_scorer_remote.py [--steps 12] [--rounds 3] [--size 120x160]
+    python -m eqa_app.benches.scorer_remote [--steps 12] [--rounds 3] [--size 120x160]
 """
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 import tempfile
@@ -30,15 +29,16 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "tests"))
+from eqa_app.benches import harness
+
+REPO = harness.REPO
+harness.use_test_support()
 
 from eqa_app.stats import percentile as pct  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = harness.parser(__doc__)
     ap.add_argument("--steps", type=int, default=12, help="steps per client per round (1..100, default 12)")
     ap.add_argument("--rounds", type=int, default=3, help="alternating rounds (1..20, default 3)")
     ap.add_argument("--size", default="120x160", help="frame HxW (default 120x160)")
