@@ -35,7 +35,7 @@ lint: setup
 	$(PY) -m ruff check .
 
 bench: setup
-	$(PY) bench/run_all.py
+	$(PY) -m eqa_app.benches
 
 up: setup
 	$(VENV)/bin/eqa up

@@ -56,6 +56,11 @@ PERFECT_VALUE_RULE: dict[str, str] = {"perfect_sv": "semantic", "perfect_vlfm": 
 # (``Question.targets``). The gateway and the CLI refuse them; only ``eqa bench`` runs them.
 BOUND_STRATEGIES: frozenset[str] = frozenset({"target_oracle", *PERFECT_VALUE_RULE})
 StopRule = Literal["cp", "entropy", "relevance", "max_steps"]
+# The CP miscoverage level eps (Explore-EQA Eq. 10: 1 - eps is the success wanted) lies in the open interval
+# (EPS_GT, EPS_LT): at 0 the quantile rank ceil((N+1)(1-eps)) exceeds every N, at 1 nothing is covered. The bus,
+# the gateway's request schema and the calibration all check these bounds.
+EPS_GT = 0.0
+EPS_LT = 1.0
 EpisodeState = Literal["queued", "running", "stopped", "failed", "cancelled"]
 ScorerBackend = Literal["oracle", "hf", "remote"]
 
@@ -65,6 +70,11 @@ MAX_YAW_RAD = 10_000.0
 SCENE_ID = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]{0,63}")
 """A scene id: ``gen-<seed>`` or an installed scene (HM3D ``00009-vLpv2VX547B``); matched whole (``fullmatch``:
 no trailing newline, no path separators or dots)."""
+
+
+def eps_in_bounds(value: float) -> bool:
+    """Whether ``value`` is a finite CP miscoverage level in the open interval ``(EPS_GT, EPS_LT)``."""
+    return math.isfinite(value) and EPS_GT < value < EPS_LT
 
 
 def check_scene_id(value: str) -> str:
@@ -288,7 +298,9 @@ class StopConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
     rule: StopRule = "cp"
-    eps: StrictFloat = Field(default=0.2, gt=0.0, lt=1.0, description="CP miscoverage: 1-eps is the success wanted")
+    eps: StrictFloat = Field(
+        default=0.2, gt=EPS_GT, lt=EPS_LT, description="CP miscoverage: 1-eps is the success wanted"
+    )
     threshold: StrictFloat | None = Field(
         default=None, ge=0.0, le=100.0, allow_inf_nan=False, description="entropy (nats) or relevance threshold"
     )

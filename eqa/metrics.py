@@ -4,7 +4,7 @@ The metrics live in prometheus-client's default registry and are defined here on
 services in one process (the embedded tests run them in threads) share them and nothing is registered twice;
 a ``service`` label tells them apart. Counting is off until :func:`enable` (or :func:`serve`) is called: the
 hooks in the kernel (:func:`inc`, :func:`observe`, :func:`timer`, :func:`timed_store`) then cost one flag test,
-so a process without a metrics port pays nothing measurable (bench/bench_metrics.py).
+so a process without a metrics port pays nothing measurable (eqa_app/benches/metrics.py).
 
 * :func:`serve` starts the HTTP exposition of a service process on ``EQA_METRICS_PORT`` (0 = off) and
   ``EQA_METRICS_HOST``; :func:`exposition` gives the same text to the gateway's ``/metrics`` route.

@@ -210,7 +210,7 @@ class StopperSettings(SettingsGroup):
     # question episodes track the target class in the HELIOS object layer and the stopper
     # combines its evidence with the VLM's answer (services/stopper/object_evidence.py); off by default.
     object_evidence: bool = Field(default=False, description="object evidence for existence/counting questions")
-    # chosen on the tuning seed 11 (bench/bench_object_evidence.py eval; bench/results/answer_rules_objects.json)
+    # chosen on the tuning seed 11 (eqa_app/benches/object_evidence.py eval; bench/results/answer_rules_objects.json)
     object_evidence_psi_min: float = Field(default=0.1, ge=0.0, le=1.0, description="Psi from which an instance counts")
     object_evidence_weight: float = Field(default=0.75, ge=0.0, le=1.0, description="the layer's weight in the pool")
 

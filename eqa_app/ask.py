@@ -22,7 +22,17 @@ from typing import Any, get_args
 
 from eqa import keys
 from eqa.event_log import Identity, event_identity
-from eqa.messages import BOUND_STRATEGIES, MAX_CHOICES, Pose2D, Question, Strategy, letters
+from eqa.messages import (
+    BOUND_STRATEGIES,
+    EPS_GT,
+    EPS_LT,
+    MAX_CHOICES,
+    Pose2D,
+    Question,
+    Strategy,
+    eps_in_bounds,
+    letters,
+)
 
 log = logging.getLogger(__name__)
 
@@ -213,8 +223,8 @@ def _body(args: argparse.Namespace, scenes_dir: Path) -> tuple[dict[str, Any], Q
         body = {"question": args.question, "choices": args.choices, "scene": args.scene,
                 "start_pose": args.pose.model_dump() if args.pose else None, "max_steps": args.max_steps}
         demo = None
-    if not 0.0 < args.eps < 1.0:
-        raise AskError(f"--eps must be between 0 and 1 (exclusive), got {args.eps}")
+    if not eps_in_bounds(args.eps):
+        raise AskError(f"--eps must be between {EPS_GT:g} and {EPS_LT:g} (exclusive), got {args.eps}")
     if args.max_steps is not None:
         if args.max_steps < 1:
             raise AskError("--max-steps must be at least 1")

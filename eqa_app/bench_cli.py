@@ -226,12 +226,14 @@ def _collect_cores(questions: list[Any], settings: Any, strategy: str, name: str
 
 def _summary(traces: list[Any], ev: Any) -> dict[str, Any]:
     """Success per budget with Wilson 95 % intervals, and when the evidence was first seen."""
+    from eqa_app import stats
+
     n = len(traces)
     success = ev.success_at_budgets(traces)
     return {
         "n": n,
         "success": success,
-        "success_ci95": [list(ev.wilson_ci(round(v * n), n)) for v in success],
+        "success_ci95": [list(stats.wilson_ci(round(v * n), n)) for v in success],
         "evidence_share": ev.evidence_share(traces),
         "first_evidence_at": ev.first_evidence(traces),
         "median_first_evidence": ev.median_first_evidence(traces),
@@ -506,10 +508,42 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=int, default=2, help="processes of the cores runner (default 2)")
 
 
+def cmd_component(args: argparse.Namespace) -> int:
+    """``eqa bench component [NAME [ARGS]]``: that benchmark's ``main(ARGS)``, or the default set."""
+    import importlib
+
+    from eqa_app.benches.harness import names
+
+    if args.name is None:
+        from eqa_app.benches.__main__ import main
+
+        return main(args.args)
+    if args.name not in names():
+        from eqa_app.cli import UsageError
+
+        raise UsageError(f"no benchmark {args.name!r}; choose from {', '.join(names())}")
+    return int(importlib.import_module(f"eqa_app.benches.{args.name}").main(args.args) or 0)
+
+
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("bench", help="reproduce the paper's comparisons (Fig. 7, 9, A6, A7)",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="bench_command", metavar="WHAT", required=True)
+    base_help = p.format_help
+
+    def format_help() -> str:  # the catalogue reads every benchmark's source: only when help is printed
+        from eqa_app.benches.harness import catalogue
+
+        return (f"{base_help()}\ncomponent benchmarks (eqa bench component NAME [ARGS], or "
+                f"python -m eqa_app.benches.NAME [ARGS]):\n{catalogue()}\n")
+
+    p.format_help = format_help  # type: ignore[method-assign]
+    c = sub.add_parser("component", help="a component benchmark (eqa bench --help lists them), or the default set",
+                       description="Run one component benchmark with its own arguments (NAME --help for them), or "
+                                   "with no NAME the default set in turn (make bench).")
+    c.add_argument("name", nargs="?", default=None, help="the benchmark (eqa bench --help lists them)")
+    c.add_argument("args", nargs=argparse.REMAINDER, help="its arguments")
+    c.set_defaults(func=cmd_component)
     e = sub.add_parser("explore", help="success vs normalised step budget per exploration strategy",
                        description="Success rate against the normalised step budget (0.1..1.0 of T) for each "
                        "exploration strategy (Explore-EQA Fig. 7), per category (Fig. A6) and by house size (Fig. A7).")

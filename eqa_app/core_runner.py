@@ -10,9 +10,9 @@ step with the planner service's refusal policy (:mod:`services.planner.refusals`
 (:func:`eqa_app.benchmark_runner.question_seed`, per-step planner generators), so a question gives the same
 trace either way up to float32 rounding (``tests/fleet/test_core_runner_golden.py`` runs tuning-seed questions
 through both). Every in-process runner (:func:`core_episode`, :mod:`eqa_app.stop_sensitivity`,
-``bench/tune_oracle.py``, ``bench/tune_explore.py``, ``bench/bench_object_evidence.py``) is this loop with its
-own :class:`StepHooks`. It is not a replacement for the fleet's end-to-end test, and figures say which runner
-made them.
+``eqa_app/benches/tune_oracle.py``, ``eqa_app/benches/tune_explore.py``, ``eqa_app/benches/object_evidence.py``) is
+this loop with its own :class:`StepHooks`. It is not a replacement for the fleet's end-to-end test, and figures say
+which runner made them.
 """
 
 from __future__ import annotations

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from eqa.messages import MemoryScore, StepScores, StopConfig, letters
+from eqa_app.stats import Z95, paired_diff_ci, sign_test_p
 from services.stopper.calibration import CalibrationTable, Trace, calibrate
 from services.stopper.conformal import fallback_answer
 from services.stopper.state import CalibrationChoice, EpisodeRecord, decide
@@ -58,55 +59,6 @@ class Paired:
     diff: float = 0.0
     ci_low: float = 0.0
     ci_high: float = 0.0
-
-
-Z95 = 1.959963984540054
-
-
-def wilson_ci(k: int, n: int, z: float = Z95) -> tuple[float, float]:
-    """Wilson score 95 % interval of a success rate k / n ((nan, nan) for n = 0)."""
-    if n == 0:
-        return math.nan, math.nan
-    p = k / n
-    den = 1 + z * z / n
-    mid = (p + z * z / (2 * n)) / den
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
-    return max(0.0, mid - half), min(1.0, mid + half)
-
-
-def paired_diff_ci(a_only: int, b_only: int, n: int, z: float = Z95) -> tuple[float, float, float]:
-    """Difference of two paired success rates, (a_only - b_only) / n, and its 95 % Wald interval for matched
-    pairs (se = sqrt(a_only + b_only - (a_only - b_only)^2 / n) / n)."""
-    if n == 0:
-        return math.nan, math.nan, math.nan
-    d = (a_only - b_only) / n
-    se = math.sqrt(max(a_only + b_only - (a_only - b_only) ** 2 / n, 0.0)) / n
-    return d, d - z * se, d + z * se
-
-
-def sign_test_p(a_only: int, b_only: int) -> float:
-    """Exact two-sided sign test: P(a split at least this uneven | each discordant question a fair coin)."""
-    n = a_only + b_only
-    if n == 0:
-        return 1.0
-    tail = sum(math.comb(n, k) for k in range(min(a_only, b_only) + 1)) / 2**n
-    return min(1.0, 2.0 * tail)
-
-
-def bootstrap_indices(n: int, n_boot: int, seed: int = 0) -> np.ndarray:
-    """``n_boot`` resamples (rows) of ``n`` paired items, drawn with replacement from the generator of ``seed``."""
-    if n == 0:
-        return np.zeros((n_boot, 0), dtype=np.int64)
-    return np.random.default_rng(seed).integers(0, n, size=(n_boot, n))
-
-
-def bootstrap_mean_ci(values: np.ndarray, idx: np.ndarray) -> tuple[float, float]:
-    """Percentile 95 % bootstrap interval of the mean of ``values`` (per-item paired differences) over the
-    resamples ``idx`` (:func:`bootstrap_indices`); (nan, nan) without items."""
-    if values.size == 0:
-        return math.nan, math.nan
-    means = values[idx].mean(axis=1)
-    return float(np.quantile(means, 0.025)), float(np.quantile(means, 0.975))
 
 
 def paired_comparison(a: Sequence[Trace], b: Sequence[Trace], budgets: Sequence[float]) -> list[Paired]:

@@ -371,7 +371,7 @@ def wrong_singleton(prediction_set: Any, answer: str) -> bool:
 def singletons(sel: list[dict[str, Any]]) -> dict[str, Any]:
     """Wrong-singleton rates (:func:`wrong_singleton`), warm vs cold on the same questions: Wilson intervals, the
     paired sign test over the questions where only one of them is a wrong singleton, the difference's interval."""
-    from eqa_app import evaluation as ev
+    from eqa_app import stats
 
     n = len(sel)
     if n == 0:
@@ -380,13 +380,20 @@ def singletons(sel: list[dict[str, Any]]) -> dict[str, Any]:
     kw = sum(r["warm_wrong_singleton"] for r in sel)
     w_only = sum(1 for r in sel if r["warm_wrong_singleton"] and not r["cold_wrong_singleton"])
     c_only = sum(1 for r in sel if r["cold_wrong_singleton"] and not r["warm_wrong_singleton"])
-    diff, lo, hi = ev.paired_diff_ci(w_only, c_only, n)
+    diff, lo, hi = stats.paired_diff_ci(w_only, c_only, n)
     kwc, kcc = sum(r["warm_correct"] for r in sel), sum(r["cold_correct"] for r in sel)
     return {"n": n, "cold_wrong_singleton": kc / n, "warm_wrong_singleton": kw / n,
-            "cold_ci": list(ev.wilson_ci(kc, n)), "warm_ci": list(ev.wilson_ci(kw, n)),
-            "paired": {"warm_only": w_only, "cold_only": c_only, "p_value": ev.sign_test_p(w_only, c_only),
+            "cold_ci": list(stats.wilson_ci(kc, n)), "warm_ci": list(stats.wilson_ci(kw, n)),
+            "paired": {"warm_only": w_only, "cold_only": c_only, "p_value": stats.sign_test_p(w_only, c_only),
                        "diff": diff, "ci_low": lo, "ci_high": hi},
             "cold_success": kcc / n, "warm_success": kwc / n}
+
+
+def _steps_ratio(warm: Any, cold: Any, axis: int = -1) -> Any:
+    """Total warm steps over total cold steps (vectorised over bootstrap resamples)."""
+    import numpy as np
+
+    return warm.sum(axis=axis) / np.maximum(cold.sum(axis=axis), 1e-9)
 
 
 def paired(sel: list[dict[str, Any]]) -> dict[str, Any]:
@@ -395,7 +402,7 @@ def paired(sel: list[dict[str, Any]]) -> dict[str, Any]:
     steps, success rates with Wilson intervals and the paired sign test on success."""
     import numpy as np
 
-    from eqa_app import evaluation as ev
+    from eqa_app import stats
 
     n = len(sel)
     if n == 0:
@@ -405,18 +412,17 @@ def paired(sel: list[dict[str, Any]]) -> dict[str, Any]:
     fewer, more = int((ws < cs).sum()), int((ws > cs).sum())
     a_only = sum(1 for r in sel if r["warm_correct"] and not r["cold_correct"])
     b_only = sum(1 for r in sel if r["cold_correct"] and not r["warm_correct"])
-    diff, lo, hi = ev.paired_diff_ci(a_only, b_only, n)
-    idx = ev.bootstrap_indices(n, 2000, seed=0)
-    ratio_boot = ws[idx].sum(axis=1) / np.maximum(cs[idx].sum(axis=1), 1e-9)
+    diff, lo, hi = stats.paired_diff_ci(a_only, b_only, n)
+    ratio_ci = stats.bootstrap_ci(_steps_ratio, [ws, cs], n_boot=2000, seed=0)
     kw, kc = sum(r["warm_correct"] for r in sel), sum(r["cold_correct"] for r in sel)
     return {
         "n": n, "cold_steps_mean": float(cs.mean()), "warm_steps_mean": float(ws.mean()),
         "steps_ratio": float(ws.sum() / max(cs.sum(), 1e-9)),
-        "steps_ratio_ci": [float(np.quantile(ratio_boot, 0.025)), float(np.quantile(ratio_boot, 0.975))],
-        "steps_sign_test": {"warm_fewer": fewer, "warm_more": more, "p_value": ev.sign_test_p(fewer, more)},
+        "steps_ratio_ci": list(ratio_ci),
+        "steps_sign_test": {"warm_fewer": fewer, "warm_more": more, "p_value": stats.sign_test_p(fewer, more)},
         "cold_success": kc / n, "warm_success": kw / n,
-        "cold_success_ci": list(ev.wilson_ci(kc, n)), "warm_success_ci": list(ev.wilson_ci(kw, n)),
-        "success_paired": {"warm_only": a_only, "cold_only": b_only, "p_value": ev.sign_test_p(a_only, b_only),
+        "cold_success_ci": list(stats.wilson_ci(kc, n)), "warm_success_ci": list(stats.wilson_ci(kw, n)),
+        "success_paired": {"warm_only": a_only, "cold_only": b_only, "p_value": stats.sign_test_p(a_only, b_only),
                            "diff": diff, "ci_low": lo, "ci_high": hi},
         "memory_steps_mean": float(np.mean([r["memory_steps"] for r in sel])),
     }
@@ -427,7 +433,7 @@ def summarise(rows: list[dict[str, Any]], args: argparse.Namespace, settings: An
     import numpy as np
 
     from eqa.messages import letters
-    from eqa_app import evaluation as ev
+    from eqa_app import stats
     from eqa_app.bench_common import scorer_label
     from services.stopper.conformal import relevance_weighted_confidence, sequence_set
 
@@ -444,7 +450,7 @@ def summarise(rows: list[dict[str, Any]], args: argparse.Namespace, settings: An
         k, n = sum(hits), len(hits)
         p = k / n if n else math.nan
         coverage.append({"eps": entry.eps, "q_hat": entry.q_hat, "target": 1 - entry.eps, "coverage": p, "n": n,
-                         "se": math.sqrt(p * (1 - p) / n) if n else math.nan, "wilson": list(ev.wilson_ci(k, n))})
+                         "se": math.sqrt(p * (1 - p) / n) if n else math.nan, "wilson": list(stats.wilson_ci(k, n))})
     sizes = [r for r in rows if r["views"]]
     return {
         "scorer": scorer_label(settings),
@@ -590,7 +596,7 @@ def run_tasks(args: argparse.Namespace, settings: Any) -> dict[str, Any]:
 def metric_pairs(sel: list[dict[str, Any]], metric: str) -> dict[str, Any]:
     """One task metric warm vs cold on the same tasks (those that have it): rates with Wilson intervals and the
     paired sign test."""
-    from eqa_app import evaluation as ev
+    from eqa_app import stats
 
     have = [r for r in sel if f"cold_{metric}" in r]
     n = len(have)
@@ -600,10 +606,10 @@ def metric_pairs(sel: list[dict[str, Any]], metric: str) -> dict[str, Any]:
     kw = sum(1 for r in have if r[f"warm_{metric}"] > 0)
     w_only = sum(1 for r in have if r[f"warm_{metric}"] > 0 >= r[f"cold_{metric}"])
     c_only = sum(1 for r in have if r[f"cold_{metric}"] > 0 >= r[f"warm_{metric}"])
-    diff, lo, hi = ev.paired_diff_ci(w_only, c_only, n)
-    return {"n": n, "cold": kc / n, "warm": kw / n, "cold_ci": list(ev.wilson_ci(kc, n)),
-            "warm_ci": list(ev.wilson_ci(kw, n)), "warm_only": w_only, "cold_only": c_only,
-            "p_value": ev.sign_test_p(w_only, c_only), "diff": diff, "ci_low": lo, "ci_high": hi}
+    diff, lo, hi = stats.paired_diff_ci(w_only, c_only, n)
+    return {"n": n, "cold": kc / n, "warm": kw / n, "cold_ci": list(stats.wilson_ci(kc, n)),
+            "warm_ci": list(stats.wilson_ci(kw, n)), "warm_only": w_only, "cold_only": c_only,
+            "p_value": stats.sign_test_p(w_only, c_only), "diff": diff, "ci_low": lo, "ci_high": hi}
 
 
 def summarise_tasks(rows: list[dict[str, Any]], args: argparse.Namespace, settings: Any) -> dict[str, Any]:
@@ -693,6 +699,7 @@ def print_results(res: dict[str, Any]) -> None:
 
 
 def cmd_home(args: argparse.Namespace) -> int:
+    from eqa.messages import eps_in_bounds
     from eqa.service import setup_logging
     from eqa_app.bench_common import _settings
     from eqa_app.cli import UsageError
@@ -700,7 +707,7 @@ def cmd_home(args: argparse.Namespace) -> int:
 
     if not (1 <= args.cal_houses <= 100 and 1 <= args.test_houses <= 100 and 1 <= args.questions <= 10):
         raise UsageError("--cal-houses and --test-houses must be 1..100, --questions 1..10")
-    if not 0 < args.eps < 1 or not 1 <= args.workers <= 16:
+    if not eps_in_bounds(args.eps) or not 1 <= args.workers <= 16:
         raise UsageError("--eps must be in (0, 1), --workers 1..16")
     if args.changes < 0 or args.changes * (args.questions - 1) > MAX_ROUNDS:
         raise UsageError(f"--changes times (--questions - 1) must be 0..{MAX_ROUNDS} (rounds of a changed house)")

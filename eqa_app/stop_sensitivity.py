@@ -6,7 +6,7 @@ step, never LSV / GSV, so the robot's path is the same at every level. This tool
 
 1. **records** full-length episodes (``max_steps``) with the pure cores in one process per worker (sim render ->
    mapper -> oracle scorer -> planner, the functions the services call; no bus, no store, as
-   ``bench/tune_oracle.py``), keeping per step what the oracle perceived: the target instances and the
+   ``eqa_app/benches/tune_oracle.py``), keeping per step what the oracle perceived: the target instances and the
    related-but-wrong ones with their image share and distance, the view's clutter, and the level-0 scores;
 2. **re-scores** those perceptions at any miscalibration level (the draws are seeded per (question, step) as in
    the service; at level 0 the re-scored f and Rel are checked equal to the recorded ones) into
@@ -38,7 +38,7 @@ from typing import Any
 
 from eqa.seeds import EVALUATION_SEEDS
 from eqa_app.core_runner import StepHooks
-from eqa_app.evaluation import bootstrap_indices, bootstrap_mean_ci, sign_test_p, wilson_ci
+from eqa_app.stats import paired_outcomes, wilson_ci
 
 log = logging.getLogger("stop_sensitivity")
 
@@ -324,49 +324,14 @@ class Episode:
                    trace.max_steps)
 
 
-def _fallback(ep: Episode, t: int) -> int:
-    import numpy as np
-
-    return int(np.argmax(ep.f[int(np.argmax(ep.rel[: t + 1]))]))
-
-
-def _entropy(f: Any) -> Any:
-    import numpy as np
-
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return -np.where(f > 0, f * np.log(np.where(f > 0, f, 1.0)), 0.0).sum(axis=1)
-
-
 def replay_fast(ep: Episode, rule: str, parameter: float) -> Outcome:
-    """What :func:`services.stopper.state.decide` does step by step, on arrays: ``rule`` is ``cp`` (parameter
-    = q_hat), ``relevance``, ``entropy`` (parameter = threshold) or ``max_steps``."""
-    import numpy as np
+    """What :func:`services.stopper.state.decide` does step by step, on arrays
+    (:func:`services.stopper.replay.replay_arrays`): ``rule`` is ``cp`` (parameter = q_hat), ``relevance``,
+    ``entropy`` (parameter = threshold) or ``max_steps``."""
+    from services.stopper.replay import replay_arrays
 
-    from services.stopper.conformal import in_set, relevance_weighted_confidence
-
-    n = len(ep.rel)
-    last = n - 1
-    limit = [t for t in range(n) if t >= ep.max_steps - 1]
-    t_limit = limit[0] if limit else None
-    covered = None
-    if rule == "cp":
-        masks = in_set(relevance_weighted_confidence(ep.f, ep.rel), parameter)
-        running = np.logical_and.accumulate(masks, axis=0)
-        covered = bool(running[-1, ep.truth])  # Claim 1: the intersection over all steps = the sequence set
-        sizes = running.sum(axis=1)
-        hit = np.flatnonzero(sizes <= 1)
-        t = int(hit[0]) if hit.size else None
-        if t is not None and (t_limit is None or t <= t_limit):
-            answer = int(np.flatnonzero(running[t])[0]) if sizes[t] == 1 else _fallback(ep, t)
-            return Outcome(answer == ep.truth, (t + 1) / ep.max_steps, covered)
-    elif rule in ("relevance", "entropy"):
-        stat = ep.rel > parameter if rule == "relevance" else _entropy(ep.f) < parameter
-        hit = np.flatnonzero(stat)
-        t = int(hit[0]) if hit.size else None
-        if t is not None and (t_limit is None or t <= t_limit):
-            return Outcome(int(np.argmax(ep.f[t])) == ep.truth, (t + 1) / ep.max_steps)
-    t = t_limit if t_limit is not None else last
-    return Outcome(_fallback(ep, t) == ep.truth, (t + 1) / ep.max_steps, covered)
+    stop = replay_arrays(ep.f, ep.rel, ep.max_steps, rule, parameter)
+    return Outcome(stop.answer == ep.truth, (stop.step + 1) / ep.max_steps, stop.covers(ep.truth))
 
 
 # ---- the sweep ---------------------------------------------------------------------------------------------
@@ -487,19 +452,13 @@ def choose_operating_point(runs: dict[float, list[Outcome]], target: float) -> f
 
 
 def paired_steps(a: list[Outcome], b: list[Outcome], seed: int = 0, n_boot: int = 2000) -> dict[str, float]:
-    """Mean per-episode difference of normalised steps (a - b) with a paired bootstrap 95 % CI, and the exact
-    sign test of the success discordance (only a right / only b right)."""
-    import numpy as np
-
-    d = np.array([x.norm_steps - y.norm_steps for x, y in zip(a, b, strict=True)])
-    ci_low, ci_high = bootstrap_mean_ci(d, bootstrap_indices(d.size, n_boot, seed))
-    a_only = sum(x.correct and not y.correct for x, y in zip(a, b, strict=True))
-    b_only = sum(y.correct and not x.correct for x, y in zip(a, b, strict=True))
-    nz = d[d != 0]
-    pos = int((nz > 0).sum())
-    return {"mean_diff": float(d.mean()) if d.size else math.nan, "ci_low": ci_low,
-            "ci_high": ci_high, "steps_sign_p": sign_test_p(pos, int(nz.size) - pos),
-            "a_only_right": a_only, "b_only_right": b_only, "success_sign_p": sign_test_p(a_only, b_only)}
+    """Mean per-episode difference of normalised steps (a - b) with a paired bootstrap 95 % CI and its sign
+    test, and the exact sign test of the success discordance (only a right / only b right)
+    (:func:`eqa_app.stats.paired_outcomes`)."""
+    r = paired_outcomes(a, b, seed, n_boot)
+    return {"mean_diff": r["steps_diff"], "ci_low": r["steps_ci_low"], "ci_high": r["steps_ci_high"],
+            "steps_sign_p": r["steps_sign_p"], "a_only_right": r["a_only"], "b_only_right": r["b_only"],
+            "success_sign_p": r["p"]}
 
 
 def sweep(seeds: dict[int, SeedData], tuning_seed: int, eval_seeds: list[int], modes: list[str],

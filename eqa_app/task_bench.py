@@ -57,7 +57,7 @@ from eqa.task_traces import (
     format_breakdown,
     replay_metrics,
 )
-from eqa_app.evaluation import sign_test_p as sign_test
+from eqa_app.stats import sign_test_p as sign_test
 from eqa_app.task_results import TaskResult, task_seed
 
 log = logging.getLogger(__name__)

@@ -10,6 +10,8 @@ from pydantic import BaseModel, ConfigDict, Field, StrictBool, field_validator, 
 from eqa import keys
 from eqa.messages import (
     BOUND_STRATEGIES,
+    EPS_GT,
+    EPS_LT,
     MAX_CHOICES,
     SCENE_ID,
     EpisodeState,
@@ -96,7 +98,8 @@ class QuestionRequest(BaseModel):
     )
     stop_rule: StopRule = Field(default="cp", description="stopping rule (cp = multi-step conformal prediction)")
     eps: float = Field(
-        default=0.2, gt=0.0, lt=1.0, allow_inf_nan=False, description="CP miscoverage level: 1-eps coverage wanted"
+        default=0.2, gt=EPS_GT, lt=EPS_LT, allow_inf_nan=False,
+        description="CP miscoverage level: 1-eps coverage wanted",
     )
     threshold: float | None = Field(
         default=None, ge=0.0, le=100.0, allow_inf_nan=False, description="entropy (nats) or relevance threshold"

@@ -5,7 +5,7 @@ picks others: test files or node ids, comma-separated). One busy-loop process pe
 for the whole time at normal priority, so every test sees a machine with no idle core: a test that only passes on
 a quiet machine fails here. Each test file runs ``--runs`` times (each run a fresh pytest process, results read from
 its JUnit report); at the end the pass counts per test, then the recovery figures of
-``bench/bench_recovery.py`` (``--bench-rounds`` rounds, under the same load; ``--bench-rounds 0`` skips it).
+``python -m eqa_app.benches.recovery`` (``--bench-rounds`` rounds, under the same load; ``--bench-rounds 0`` skips it).
 
 A test that fails even once here has a bug (in the code or the test): fix it; never add a retry.
 
@@ -96,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
                    help=f"busy-loop processes (default one per core: {os.cpu_count()})")
     p.add_argument("--timeout", type=float, default=900.0, help="seconds for one pytest run (default 900)")
     p.add_argument("--bench-rounds", type=int, default=3,
-                   help="rounds of bench/bench_recovery.py at the end (default 3; 0 = skip)")
+                   help="rounds of eqa_app.benches.recovery at the end (default 3; 0 = skip)")
     p.add_argument("--failures", type=Path, default=None,
                    help="directory for the output of every failed run (default: a temporary one, printed)")
     args = p.parse_args(argv)
@@ -139,9 +139,10 @@ def main(argv: list[str] | None = None) -> int:
                       f"({secs:.0f} s){where}", flush=True)
         bench_lines: list[str] = []
         if args.bench_rounds:
-            print(f"bench/bench_recovery.py --rounds {args.bench_rounds} under the same load ...", flush=True)
-            proc = subprocess.run([sys.executable, "bench/bench_recovery.py", "--rounds", str(args.bench_rounds)],
-                                  cwd=REPO, capture_output=True, text=True, timeout=args.timeout * 2)
+            print(f"eqa_app.benches.recovery --rounds {args.bench_rounds} under the same load ...", flush=True)
+            proc = subprocess.run([sys.executable, "-m", "eqa_app.benches.recovery", "--rounds",
+                                   str(args.bench_rounds)], cwd=REPO, capture_output=True, text=True,
+                                  timeout=args.timeout * 2)
             out = proc.stdout.splitlines()
             head = next((i for i, line in enumerate(out) if line.startswith("case ")), len(out))
             bench_lines = out[head:] or (proc.stdout + proc.stderr).splitlines()[-10:]
@@ -159,7 +160,7 @@ def main(argv: list[str] | None = None) -> int:
         skipped = f" (skipped {c['skipped']})" if c["skipped"] else ""
         print(f"{c['passed']:>5}/{runs:<5} {name}{skipped}{mark}")
     if bench_lines:
-        print("\nrecovery (bench/bench_recovery.py, same load):")
+        print("\nrecovery (eqa_app/benches/recovery.py, same load):")
         print("\n".join(bench_lines))
     if not ok:
         print(f"\nfailed runs' output: {failures}")

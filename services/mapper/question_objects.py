@@ -51,7 +51,7 @@ log = logging.getLogger(__name__)
 
 CATEGORIES = ("counting", "existence")  # the question categories the class-level layer can answer (not colours)
 # The categories that get evidence when the region is the whole map (no floor plan: the product). Chosen on the
-# tuning seed 11 (bench/bench_object_evidence_region.py, n = 48): whole-map evidence vs VLM-only, existence
+# tuning seed 11 (eqa_app/benches/object_evidence_region.py, n = 48): whole-map evidence vs VLM-only, existence
 # +16.7 points, counting +0.0 (the count of the class anywhere in the map is not the count in the asked room,
 # and the bounding-box explored share is a poor stand-in for the room's). Seeds 1-3: existence +14.6, counting
 # -8.3 points (bench/results/object_evidence_region.json).

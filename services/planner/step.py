@@ -60,7 +60,7 @@ class PlannerParams(BaseModel):
     # 3 m: fbe observes 94 % of the reachable floor of 20 generated houses within T (92 % with 10 m, 91 % off)
     distance_decay_m: float | None = Field(default=3.0, ge=0)
     # the deterministic rules vlfm / gain / topo (services.planner.frontier_rules), chosen on the tuning seed 11
-    # (bench/tune_explore.py; docs/results/exploration-strategies.md): value units (ln SV) per metre of path
+    # (eqa_app/benches/tune_explore.py; docs/results/exploration-strategies.md): value units (ln SV) per metre of path
     rule_cost_per_m: float = Field(default=0.1, ge=0, le=10)
     rule_commit_margin: float = Field(default=0.1, ge=0, le=10)  # value units
     gain_weight: float = Field(default=0.5, ge=0, le=100)  # value units for a fully unknown disk

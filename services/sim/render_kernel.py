@@ -1,6 +1,6 @@
 """Compiled per-pixel loops of :class:`services.sim.render.Renderer` (numba): the world rays of a view and the
 frame from the ray cast's hits. Each does, pixel by pixel, the float32 operations of the numpy form it replaces
-in the same order, so the frames are byte-identical (``python bench/bench_sim.py --identical-to REV``,
+in the same order, so the frames are byte-identical (``python -m eqa_app.benches.sim --identical-to REV``,
 tests/sim/test_sim_render.py); what it saves is numpy's strided column writes and temporaries (about 1 ms of a
 320x240 frame, most of what the sim spends outside open3d's ray cast).
 

@@ -46,6 +46,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from eqa.messages import EPS_GT, EPS_LT, eps_in_bounds
+
 PROB_SUM_TOL = 1e-3  # |sum(f) - 1| allowed for an answer distribution
 # (N+1)(1-eps) is computed in floating point; an exact integer product must not round up to the next one.
 _CEIL_TOL = 1e-9
@@ -65,8 +67,10 @@ def check_eps(eps: float) -> float:
         value = float(eps)
     except (TypeError, ValueError) as exc:
         raise CalibrationError(f"eps must be a number in (0, 1), got {eps!r}") from exc
-    if not math.isfinite(value) or not 0.0 < value < 1.0:
-        raise CalibrationError(f"eps must be in the open interval (0, 1) (1 - eps is the success wanted), got {eps!r}")
+    if not eps_in_bounds(value):
+        raise CalibrationError(
+            f"eps must be in the open interval ({EPS_GT:g}, {EPS_LT:g}) (1 - eps is the success wanted), got {eps!r}"
+        )
     return value
 
 

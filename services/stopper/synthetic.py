@@ -1,4 +1,4 @@
-"""Synthetic exchangeable EQA episodes, for checking the stopping rules' statistics (tests, ``bench/``).
+"""Synthetic exchangeable EQA episodes, for checking the stopping rules' statistics (tests, ``eqa_app/benches/``).
 
 Not used by the service. Each episode draws a true answer, a step limit, and per step a view that is either
 relevant (the VLM is right with probability ``accuracy``, relevance runs low as in Explore-EQA Fig. A5) or

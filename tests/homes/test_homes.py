@@ -457,8 +457,8 @@ def test_bench_wrong_singletons_are_paired_on_the_same_questions() -> None:
 def test_bench_task_metrics_are_paired_on_the_tasks_that_have_them() -> None:
     """``eqa bench home --tasks``: a pick-and-place metric is compared on the tasks that have it (an object search
     has no FindObj), warm against cold on the same task."""
-    from eqa_app.evaluation import sign_test_p
     from eqa_app.home_bench import metric_pairs
+    from eqa_app.stats import sign_test_p
 
     rows = [{"cold_FindObj": 1.0, "warm_FindObj": 0.0}, {"cold_FindObj": 0.0, "warm_FindObj": 1.0},
             {"cold_FindObj": 0.0, "warm_FindObj": 1.0}, {"cold_FindObj": 1.0, "warm_FindObj": 1.0}, {}]

@@ -72,13 +72,7 @@ def test_curves_report_success_steps_and_cp_coverage():
 
 
 def test_paired_comparison_counts_discordant_questions_and_exact_sign_test():
-    from math import comb
-
-    from eqa_app.evaluation import evidence_share, first_evidence, paired_comparison, sign_test_p
-
-    assert sign_test_p(0, 0) == 1.0 and sign_test_p(3, 3) == 1.0
-    assert sign_test_p(5, 0) == pytest.approx(2 / 32)  # 5 heads of 5 fair coins, both tails
-    assert sign_test_p(1, 9) == pytest.approx(2 * (comb(10, 0) + comb(10, 1)) / 1024)
+    from eqa_app.evaluation import evidence_share, first_evidence, paired_comparison
     right, wrong = [(SURE_B, 0.9)], [(SURE_D, 0.9)]
     # q0: both right, q1: only a right, q2: only a right, q3: only b right, q4: only b right at the full budget
     a = [_trace(right, qid="q0"), _trace(right, qid="q1"), _trace(right, qid="q2"), _trace(wrong, qid="q3"),
@@ -91,27 +85,6 @@ def test_paired_comparison_counts_discordant_questions_and_exact_sign_test():
     assert evidence_share(a, 0.3) == pytest.approx(1.0) and evidence_share([_trace([(UNIFORM, 0.1)])]) == 0.0
     late = _trace([(UNIFORM, 0.1), (UNIFORM, 0.1), (SURE_B, 0.5), (UNIFORM, 0.1)])  # first at step 2 of T = 4
     assert first_evidence([late, _trace([(UNIFORM, 0.1)])]) == pytest.approx(0.5)
-
-
-def test_wilson_interval_is_clipped_to_the_unit_interval_and_matches_the_formula():
-    from eqa_app.evaluation import wilson_ci
-
-    lo, hi = wilson_ci(5, 10)
-    assert lo == pytest.approx(0.2366, abs=1e-4) and hi == pytest.approx(0.7634, abs=1e-4)
-    assert 0.0 <= wilson_ci(0, 7)[0] < 1e-12 and wilson_ci(7, 7)[1] == 1.0
-    assert all(np.isnan(v) for v in wilson_ci(0, 0))
-
-
-def test_bootstrap_interval_of_paired_differences():
-    from eqa_app.evaluation import bootstrap_indices, bootstrap_mean_ci
-
-    idx = bootstrap_indices(20, 500, seed=3)
-    assert idx.shape == (500, 20) and (idx == bootstrap_indices(20, 500, seed=3)).all()
-    assert bootstrap_mean_ci(np.full(20, 0.25), idx) == (0.25, 0.25)
-    d = np.r_[np.ones(10), -np.ones(10)]  # no difference on average: the interval straddles 0
-    lo, hi = bootstrap_mean_ci(d, idx)
-    assert lo < 0 < hi and lo == pytest.approx(-hi, abs=0.1)
-    assert all(np.isnan(v) for v in bootstrap_mean_ci(np.array([]), bootstrap_indices(0, 10)))
 
 
 def test_category_round_robin_keeps_the_mix():

@@ -10,7 +10,7 @@ import ast
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[2]
-PACKAGES = ("eqa", "services", "gateway", "bench")
+PACKAGES = ("eqa", "eqa_app", "services", "gateway")
 
 
 def _module_path(root: Path, module: str) -> Path | None:
@@ -65,8 +65,8 @@ def test_every_imported_name_exists() -> None:
 
 
 def test_a_name_the_module_lacks_is_found(tmp_path: Path) -> None:
-    (tmp_path / "bench").mkdir()
-    (tmp_path / "bench" / "__init__.py").write_text("")
-    (tmp_path / "bench" / "a.py").write_text("def f():\n    from bench.b import g, h\n")
-    (tmp_path / "bench" / "b.py").write_text("try:\n    import x as g\nexcept ImportError:\n    g = None\n")
-    assert missing_imports(tmp_path) == ["bench/a.py:2: bench.b has no h"]
+    (tmp_path / "eqa_app").mkdir()
+    (tmp_path / "eqa_app" / "__init__.py").write_text("")
+    (tmp_path / "eqa_app" / "a.py").write_text("def f():\n    from eqa_app.b import g, h\n")
+    (tmp_path / "eqa_app" / "b.py").write_text("try:\n    import x as g\nexcept ImportError:\n    g = None\n")
+    assert missing_imports(tmp_path) == ["eqa_app/a.py:2: eqa_app.b has no h"]

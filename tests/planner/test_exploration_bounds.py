@@ -4,7 +4,6 @@ read ground truth, the product refuses them, and the tuning tools refuse the eva
 from __future__ import annotations
 
 import math
-import sys
 from typing import Any
 
 import numpy as np
@@ -118,17 +117,10 @@ def test_the_product_refuses_the_yardsticks() -> None:
     assert QuestionRequest(question="Where is the mug?", scene="gen-00001", strategy="semantic").strategy == "semantic"
 
 
-def _tune_explore() -> Any:  # the module bench/tune_explore.py
-    import importlib.util
-    from pathlib import Path
+def _tune_explore() -> Any:
+    from eqa_app.benches import tune_explore
 
-    path = Path(__file__).resolve().parents[2] / "bench" / "tune_explore.py"
-    spec = importlib.util.spec_from_file_location("tune_explore", path)
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["tune_explore"] = mod  # dataclasses look their module up
-    spec.loader.exec_module(mod)
-    return mod
+    return tune_explore
 
 
 def test_tuning_tool_refuses_evaluation_seeds(capsys: pytest.CaptureFixture[str]) -> None:
@@ -181,12 +173,13 @@ def _trace(qid: str, rels: list[float], right_from: int | None, T: int = 10):
 
 def test_seed_pooled_statistics() -> None:
     from eqa_app import evaluation as ev
+    from eqa_app import stats
 
-    lo, hi = ev.wilson_ci(5, 10)
+    lo, hi = stats.wilson_ci(5, 10)
     assert lo < 0.5 < hi and lo > 0.2 and hi < 0.8
-    d, lo, hi = ev.paired_diff_ci(10, 2, 100)
+    d, lo, hi = stats.paired_diff_ci(10, 2, 100)
     assert math.isclose(d, 0.08) and lo > 0 and hi < 0.2
-    assert ev.paired_diff_ci(3, 3, 50)[0] == 0.0
+    assert stats.paired_diff_ci(3, 3, 50)[0] == 0.0
 
     # a sees the evidence at step 2 (and is right from then), b only at step 7
     a = [_trace(f"q{i}", [0.1, 0.1, 0.5] + [0.1] * 7, 2) for i in range(6)]
@@ -220,15 +213,8 @@ def test_success_split_by_evidence() -> None:
 
 
 def test_oracle_tuning_tool_refuses_evaluation_seeds(capsys: pytest.CaptureFixture[str]) -> None:
-    import importlib.util
-    from pathlib import Path
+    from eqa_app.benches import tune_oracle as mod
 
-    path = Path(__file__).resolve().parents[2] / "bench" / "tune_oracle.py"
-    spec = importlib.util.spec_from_file_location("tune_oracle", path)
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["tune_oracle"] = mod
-    spec.loader.exec_module(mod)
     for seed in (1, 2, 3, 0):
         with pytest.raises(SystemExit) as exc:
             mod.main(["--seed", str(seed)])

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import sys
-
 import numpy as np
 import pytest
 
@@ -20,6 +18,7 @@ from services.stopper.answer_memory import (
 )
 from services.stopper.calibration import calibrate
 from services.stopper.conformal import conformal_quantile, sequence_set
+from services.stopper.replay import replay_arrays
 from services.stopper.state import CalibrationChoice, EpisodeRecord, decide
 
 
@@ -113,29 +112,16 @@ def _record(k: int, q_hat: float, probs: np.ndarray) -> EpisodeRecord:
     return rec
 
 
-def _bench_replay():  # the benchmark's replay, which the published figures use
-    import importlib.util
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[2] / "bench" / "bench_answer_rules.py"
-    spec = importlib.util.spec_from_file_location("bench_answer_rules", path)
-    mod = importlib.util.module_from_spec(spec)  # type: ignore[arg-type]
-    sys.modules["bench_answer_rules"] = mod  # dataclasses look their module up
-    spec.loader.exec_module(mod)  # type: ignore[union-attr]
-    return mod
-
-
 @pytest.mark.parametrize("k", [0, 3])
-def test_decide_with_memory_matches_the_benchmark_replay(k: int) -> None:
+def test_decide_with_memory_matches_the_array_replay(k: int) -> None:
     """The stopper's decide() with the answer memory stops at the step and with the answer the offline
-    benchmark replays (so the benchmark's figures are the service's behaviour)."""
-    bench = _bench_replay()
+    benchmarks replay (services/stopper/replay.py; so the benchmarks' figures are the service's behaviour)."""
     rule = AnswerRule(k)
     cal = synthetic.episodes(120, seed=31)
     q_hat = calibrate([synthetic.to_trace(e, f"q{i}") for i, e in enumerate(cal)], [0.2],
                       answer_rule=rule).entries[0].q_hat
     n_stop_early = 0
-    for i, e in enumerate(synthetic.episodes(25, seed=32)):
+    for e in synthetic.episodes(25, seed=32):
         rec = _record(k, q_hat, e.probs)
         d = None
         for t in range(e.probs.shape[0]):
@@ -145,10 +131,9 @@ def test_decide_with_memory_matches_the_benchmark_replay(k: int) -> None:
             if d.stop:
                 break
         assert d is not None and d.stop
-        ep = bench.Ep(f"q{i}", "synthetic", e.probs, e.relevance, e.answer, e.probs.shape[0])
-        out = bench.replay(ep, rule, q_hat)
-        assert out.correct == (d.answer == "ABCDEFGH"[e.answer])
-        assert out.norm_steps == pytest.approx((d.step + 1) / e.probs.shape[0])
+        out = replay_arrays(e.probs, e.relevance, e.probs.shape[0], "cp", q_hat, rule)
+        assert "ABCDEFGH"[out.answer] == d.answer
+        assert out.step == d.step
         n_stop_early += d.step + 1 < e.probs.shape[0]
         if k:
             assert "answer memory memory-3-loglinear" in d.reason

@@ -1,6 +1,6 @@
 """Running the gateway on a free loopback port, in a thread or as a ``python -m gateway`` process, next to a
 fleet of real services started by :class:`eqa.launcher.Fleet`; a small SSE client. Used by the gateway
-tests and ``bench/bench_gateway.py``."""
+tests and ``eqa_app/benches/gateway.py``."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Object-layer scenarios in generated houses (tests and bench/bench_objects.py): views of an instance from
+"""Object-layer scenarios in generated houses (tests and eqa_app/benches/objects.py): views of an instance from
 free floor around it, rendered with open3d, detected by the simulated detector, fused into an ObjectLayer."""
 
 from __future__ import annotations
