@@ -115,6 +115,8 @@ def test_every_deployment_has_replicas_labels_probes_resources_and_the_image():
         selector = d["spec"]["selector"]["matchLabels"]
         assert selector.items() <= SMOKE.pod_labels(d).items(), f"{name}: selector does not match its pods"
         assert selector == {"app.kubernetes.io/name": "eqa", "app.kubernetes.io/component": name}
+        # a crashed process is restarted in its pod (the only policy a Deployment allows; podman honours others)
+        assert d["spec"]["template"]["spec"].get("restartPolicy", "Always") == "Always", name
         for c in SMOKE.containers(d):
             for probe in ("readinessProbe", "livenessProbe"):
                 assert probe in c, f"{name}: no {probe}"
