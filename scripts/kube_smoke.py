@@ -3,8 +3,8 @@
 There is no Kubernetes cluster here, nor kustomize or kubectl: the base is rendered by :func:`render`, which
 reads exactly the ``resources`` of deploy/k8s/kustomization.yaml (and refuses any other kustomize field, so
 that it can never silently skip a transformation), then played with podman, which runs Deployments (one pod
-per replica), ConfigMaps (``envFrom``), PersistentVolumeClaims (named volumes), resources, ``fieldRef``s and
-restart policies, but not Services and not readiness probes. So the smoke stands in for what a cluster does
+per replica), ConfigMaps (``envFrom``), PersistentVolumeClaims (named volumes), resources and restart
+policies, but not Services and not readiness probes. So the smoke stands in for what a cluster does
 beyond that, and only for that:
 
 * **Service DNS**: every Deployment is played on its own, on one podman network, with each Service that
@@ -16,8 +16,8 @@ beyond that, and only for that:
   ``podman exec`` (argument vector, no shell), ``httpGet`` and ``tcpSocket`` against the pod's address.
 * **Ports**: podman 4.3 publishes every ``containerPort`` on the host as if it had a ``hostPort``, so the
   played copy of a Deployment has no ``ports`` (nor probes: above); nothing else of the base is changed but
-  the images (:data:`SMOKE_IMAGES`, what an overlay's ``images:`` would set). ``--render`` prints the base as played,
-  with those images.
+  the images (:data:`SMOKE_IMAGES`, what an overlay's ``images:`` would set). ``--render`` prints the rendered base with
+  those images (ports and probes still in).
 * **The gateway Service**: requests go to the address of the gateway pod once its readiness passes (what the
   Service's endpoints would hold), on the Service's target port.
 
