@@ -206,7 +206,7 @@ def play(docs: list[Doc], workdir: Path) -> list[Doc]:
     if claims:
         f = workdir / "00-claims.yaml"
         f.write_text(yaml.safe_dump_all(claims, sort_keys=False))
-        podman("kube", "play", str(f))
+        podman("kube", "play", "--network", NETWORK, str(f))  # else podman makes a default kube network
     played = []
     for i, d in enumerate([d for d in docs if d.get("kind") == "Deployment"], start=1):
         name = d["metadata"]["name"]
