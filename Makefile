@@ -8,7 +8,7 @@ export HF_HUB_OFFLINE := 1
 export SE_AVOID_STATS := true
 export SE_OFFLINE := true
 
-.PHONY: setup demo test test-servers lint bench up clean compose-smoke
+.PHONY: setup demo test test-servers lint bench up clean compose-smoke kube-smoke
 
 setup:
 	@VENV=$(VENV) bash scripts/setup.sh
@@ -46,6 +46,15 @@ compose-smoke:
 	bash scripts/containers.sh setup
 	bash scripts/containers.sh build
 	python3 scripts/compose_smoke.py
+
+# The Kubernetes base deploy/k8s played with `podman kube play`, one question through it (not part of `make test`:
+# the image build of compose-smoke, then about 2 min; docs/deployment.md "Kubernetes"). podman needs catatonit
+# for the pods' infra containers (no pause image can be pulled here).
+kube-smoke: setup
+	bash scripts/containers.sh setup
+	@bash -c '. scripts/apt.sh; command -v catatonit >/dev/null 2>&1 || apt_install kube-smoke catatonit'
+	bash scripts/containers.sh build
+	$(PY) scripts/kube_smoke.py
 
 clean:
 	rm -rf var .pytest_cache .ruff_cache

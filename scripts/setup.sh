@@ -43,3 +43,21 @@ if [ ! -f "$stamp" ]; then
   rm -f "$VENV"/.eqa-installed-*
   touch "$stamp"
 fi
+
+# promtool (tests/fleet/test_prometheus_rules.py, tests/fleet/test_compose.py): the binary alone, taken out of
+# Debian's prometheus package into the venv's bin. Installing the package would also install and start a
+# Prometheus server (its init script), which a test machine does not want.
+if ! command -v promtool >/dev/null 2>&1 && [ ! -x "$VENV/bin/promtool" ]; then
+  tmp=$(mktemp -d)
+  if ! (cd "$tmp" && apt-get download -qq prometheus >/dev/null 2>&1) && [ "$(id -u)" = 0 ]; then
+    apt-get update -qq && (cd "$tmp" && apt-get download -qq prometheus >/dev/null 2>&1) || true
+  fi
+  deb=$(ls "$tmp"/prometheus_*.deb 2>/dev/null | head -1)
+  if [ -n "$deb" ] && dpkg-deb --fsys-tarfile "$deb" | tar -x -C "$tmp" ./usr/bin/promtool; then
+    install -m 0755 "$tmp/usr/bin/promtool" "$VENV/bin/promtool"
+    echo "setup: promtool $("$VENV/bin/promtool" --version 2>&1 | sed -n '1s/^promtool, version \([^ ]*\).*/\1/p') from Debian's prometheus package in $VENV/bin"
+  else
+    echo "setup: promtool could not be fetched (apt-get download prometheus); the rules tests will skip saying why" >&2
+  fi
+  rm -rf "$tmp"
+fi
