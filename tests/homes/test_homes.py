@@ -6,6 +6,7 @@ episode without a home unchanged."""
 from __future__ import annotations
 
 import math
+import threading
 import time
 from pathlib import Path
 
@@ -26,11 +27,11 @@ from eqa.messages import (
     StopConfig,
 )
 from eqa.settings import Settings
-from eqa.store import Store
+from eqa.store import RedisStore, Store
 from eqa_app.evaluation import replay
 from services.mapper.episode_map import EpisodeMap
 from services.mapper.home_memory import HomeMap, ViewInfo, ViewPool, coverage, select_views
-from services.mapper.home_shell import HomeMemory, view_key
+from services.mapper.home_shell import HomeMemory, objects_key, view_key
 from services.sim import camera
 from services.sim.library import load_or_generate
 from services.sim.questions import generate_questions
@@ -328,6 +329,83 @@ def test_a_reset_waits_for_a_write_back_in_progress_and_deletes_nothing_when_it_
     store.delete(homes.lock_key(home))
     assert homes.delete_home(store, home, 60.0) == 1 and store.keys(homes.prefix(home)) == []
     assert homes.reset_mark(store, home) is not None
+
+
+def test_an_expired_home_lock_released_late_leaves_the_next_holders_lock(store: Store, monkeypatch) -> None:
+    home = "h-lock"
+    monkeypatch.setattr(homes, "LOCK_TTL_S", 0.3)
+    with homes.locked(store, home, "mapper-1", 0.0) as first:
+        assert first is not None
+        time.sleep(0.4)  # held past the TTL: the lock expired
+        second = homes.take_lock(store, home, "mapper-2", 0.0)
+        assert second is not None and second != first
+    # mapper-1's block ended: its release named its own token and left mapper-2's lock
+    assert store.get(homes.lock_key(home)) == second.encode()
+    assert homes.take_lock(store, home, "reset", 0.0) is None
+    assert homes.release_lock(store, home, second) and store.get(homes.lock_key(home)) is None
+
+
+class _SlowCommitStore(RedisStore):
+    """A real Redis store whose first read of one key waits for an event: a mapper whose commit stalls (a slow
+    store, a paused process) after it read the home's index, past the lock's TTL."""
+
+    def __init__(self, url: str, slow_key: str, go: threading.Event) -> None:
+        super().__init__(url)
+        self.slow_key, self.go, self.stalled = slow_key, go, threading.Event()
+
+    def get(self, key: str) -> bytes | None:
+        if key == self.slow_key and not self.stalled.is_set():
+            self.stalled.set()
+            assert self.go.wait(20.0)
+        return super().get(key)
+
+
+def test_a_commit_slower_than_the_lock_ttl_merges_what_was_committed_meanwhile(
+        house, redis_url: str, tmp_path: Path, monkeypatch) -> None:
+    """Two mapper instances end episodes of one home; the first stalls inside its commit (after reading the
+    index) longer than the lock's TTL, so the second takes the expired lock and commits. The first must not
+    write over that commit: its write is refused (the index changed) and it commits again, merging both."""
+    _scene, renderer, q = house
+    home = "h-slow"
+    monkeypatch.setattr(homes, "LOCK_TTL_S", 0.5)
+    settings = Settings(data_dir=tmp_path / "var", home_max_views=4)
+    go = threading.Event()
+    slow = _SlowCommitStore(redis_url, objects_key(home), go)
+    fast = RedisStore(redis_url)
+    try:
+        fast.delete_many([*fast.keys(homes.prefix(home)), homes.reset_key(home)])
+        a = HomeMemory(settings.model_copy(update={"instance": "mapper-a"}), lambda: slow, lambda: fake_scorer([]))
+        b = HomeMemory(settings.model_copy(update={"instance": "mapper-b"}), lambda: fast, lambda: fake_scorer([]))
+        maps = {}
+        for eid, mem in (("ep-a", a), ("ep-b", b)):  # both start from the empty home
+            em = EpisodeMap(start_of(q, eid, home))
+            mem.start(em.start, em)
+            maps[eid] = em
+        for k in range(3):
+            for eid, mem, offset in (("ep-a", a, 0), ("ep-b", b, 3)):
+                f = frame_at(renderer, eid, k, turn(q.start_pose, k + offset))
+                maps[eid].integrate(f)
+                mem.observe(maps[eid], f)
+        done: dict[str, object] = {}
+        t = threading.Thread(target=lambda: done.setdefault("a", a.finish(maps["ep-a"])))
+        t.start()
+        assert slow.stalled.wait(20.0)  # a holds the lock and has read the index (version 0)
+        second = b.finish(maps["ep-b"])  # waits for a's lock to expire, then commits
+        assert second is not None and second.version == 1
+        go.set()
+        t.join(30.0)
+        first = done["a"]
+        assert first is not None and first.version == 2 and first.episodes == 2  # b's commit kept, not overwritten
+        assert {v.episode_id for v in first.views} == {"ep-a", "ep-b"}
+        stored = a.read_map(home)
+        x, y = HomeMap.from_episode(maps["ep-a"]), HomeMap.from_episode(maps["ep-b"])
+        assert stored is not None and stored.explored_cells() == y.merge(x).explored_cells()
+        assert fast.get(homes.lock_key(home)) is None
+        assert homes.delete_home(fast, home, 60.0) >= 3
+    finally:
+        go.set()
+        slow.close()
+        fast.close()
 
 
 # ---- the service over Zenoh ---------------------------------------------------------------------------------
