@@ -532,6 +532,30 @@ def test_bench_wrong_singletons_are_paired_on_the_same_questions() -> None:
     assert singletons([]) == {"n": 0}
 
 
+def test_budget_matched_cold_is_the_cold_trace_answered_at_the_warm_limit() -> None:
+    """The headline's comparison: a cold trace that would stop at step 9 under its own budget, cut at a warm limit
+    of 4, answers at step 4 with the fallback answer; a limit above its own budget changes nothing; a warm trace is
+    refused."""
+    from eqa_app.home_bench import budget_matched, matched, paired
+    from services.stopper.calibration import Trace, TraceStep
+
+    vague, sure = TraceStep(answer_probs=[0.3, 0.3, 0.2, 0.2], relevance=0.9), TraceStep(
+        answer_probs=[0.97, 0.01, 0.01, 0.01], relevance=0.9)
+    cold = Trace(question_id="q", scene="s", choices=["a", "b", "c", "d"], answer="A", max_steps=20, strategy="fbe",
+                 steps=[vague] * 8 + [sure] * 12)
+    stop, cal = StopConfig(rule="cp", eps=0.2), CalibrationChoice(q_hat=1.8, eps=0.2, asked_eps=0.2, n=10, source="t")
+    assert replay(cold, stop, cal).steps == 9
+    cut = replay(budget_matched(cold, 4), stop, cal)
+    assert cut.steps == 4 and cut.max_steps == 4 and len(cut.prediction_set) > 1
+    assert replay(budget_matched(cold, 50), stop, cal) == replay(cold, stop, cal)
+    with pytest.raises(ValueError, match="memory steps"):
+        budget_matched(cold.model_copy(update={"memory_steps": 2}), 4)
+    rows = [{"cold_steps": 20, "warm_steps": 4, "matched_steps": 5, "cold_correct": True, "warm_correct": True,
+             "matched_correct": False, "memory_steps": 3}] * 4
+    res = paired(matched(rows))
+    assert res["steps_ratio"] == pytest.approx(0.8) and res["success_paired"]["warm_only"] == 4
+
+
 def test_bench_task_metrics_are_paired_on_the_tasks_that_have_them() -> None:
     """``eqa bench home --tasks``: a pick-and-place metric is compared on the tasks that have it (an object search
     has no FindObj), warm against cold on the same task."""
