@@ -707,8 +707,9 @@ def print_results(res: dict[str, Any]) -> None:
             print(f"positions 2.., warm vs {name}: steps ratio {later['steps_ratio']:.3f} "
                   f"[{later['steps_ratio_ci'][0]:.3f}, {later['steps_ratio_ci'][1]:.3f}], warm fewer "
                   f"{later['steps_sign_test']['warm_fewer']} more {later['steps_sign_test']['warm_more']}, sign test p "
-                  f"{later['steps_sign_test']['p_value']:.3g}; successes warm {round(later['warm_success'] * later['n'])}"
-                  f" vs {round(later['cold_success'] * later['n'])}, warm-cold {sp['diff']:+.3f} [{sp['ci_low']:+.3f}, "
+                  f"{later['steps_sign_test']['p_value']:.3g}; successes warm "
+                  f"{round(later['warm_success'] * later['n'])} vs {round(later['cold_success'] * later['n'])}, "
+                  f"warm-cold {sp['diff']:+.3f} [{sp['ci_low']:+.3f}, "
                   f"{sp['ci_high']:+.3f}] p {sp['p_value']:.3g}")
     budget = res.get("budget_matched_vs_cold", {})
     if budget.get("n"):
