@@ -197,6 +197,7 @@ def run_house(args: tuple[int, int, int, str, float, float | None, dict[str, Any
                                                       view_bins=settings.view_bins, view_agree=settings.view_agree))
                 memory.start(start, emap)
                 loaded = memory.episodes[start.episode_id].loaded_cells
+                warm = memory.warm_start(start.episode_id)  # (None for the first question: a cold start)
                 record = EpisodeRecord.from_start(start, "cores")
                 q_hat = cold_q_hat if pos == 0 or warm_q_hat is None else warm_q_hat
                 record.calibration = _calibration(q_hat, eps)
@@ -212,7 +213,7 @@ def run_house(args: tuple[int, int, int, str, float, float | None, dict[str, Any
                 trace = Trace(question_id=q.id, scene=q.scene, category=q.category, choices=q.choices, answer=q.answer,
                               max_steps=limit, strategy=strategy, steps=hooks.steps[: hooks.memory_steps + limit],
                               episode_id=start.episode_id, end_reason=reason, stop_rule="max_steps",
-                              memory_steps=hooks.memory_steps)
+                              memory_steps=hooks.memory_steps, warm=warm)
                 index_after = hooks.committed
                 out.append({"position": pos + 1, "trace": trace.model_dump(mode="json"), "loaded_cells": loaded,
                             "views": 0 if index_after is None else len(index_after.views),

@@ -57,7 +57,17 @@ import numpy as np
 
 from eqa import homes
 from eqa.budget import warm_step_limit
-from eqa.messages import DetectResult, EpisodeStart, ErrorReply, Frame, MemoryScore, ScoreRequest, ScoreResult
+from eqa.messages import (
+    DetectResult,
+    EpisodeStart,
+    ErrorReply,
+    Frame,
+    MemoryBounds,
+    MemoryScore,
+    ScoreRequest,
+    ScoreResult,
+    WarmStart,
+)
 from eqa.settings import Settings
 from eqa.store import Store
 from services.mapper import snapshots
@@ -332,6 +342,18 @@ class HomeMemory:
         """A question's step limit in a house the home map covers ``covered_m2`` of (None: ``max_steps``)."""
         limit = warm_step_limit(start.max_steps, covered_m2, self.settings.home_warm_budget)
         return limit if limit < start.max_steps else None
+
+    def warm_start(self, episode_id: str) -> WarmStart | None:
+        """:attr:`eqa.messages.StepScores.warm` of a question that started from its home's memory (the home held
+        a committed episode), with the bounds its memory steps and budget were made with; None: a cold start (no
+        home, an empty home, a task)."""
+        ep = self.episodes.get(episode_id)
+        if ep is None or ep.base_version < 1 or ep.geometry_only:
+            return None
+        s = self.settings
+        return WarmStart(version=ep.base_version, bounds=MemoryBounds(
+            max_views=s.home_max_views, warm_views=s.home_warm_views, memory_steps=s.home_memory_steps,
+            warm_budget=s.home_warm_budget, warm_area=s.home_warm_area, stale_weight=s.home_stale_weight))
 
     def step_limit(self, episode_id: str) -> int | None:
         """The episode's step limit for the stopper (:attr:`eqa.messages.StepScores.step_limit`), None: its own."""

@@ -210,8 +210,9 @@ class MapperService(EpisodeService[EpisodeMap]):
         pending = self._pool.submit(self._timed_score, robot, episode_map, frame)
         # the extensions' own requests (detections, value prompts) on their workers meanwhile
         pending_ext: list[Future[Any] | None] = [ext.submit(robot, episode_map, frame) for ext in self.extensions]
-        out = StepOutputs(memory=memory,
-                          step_limit=self.homes.step_limit(episode_map.episode_id) if frame.step == 0 else None)
+        first = frame.step == 0
+        out = StepOutputs(memory=memory, step_limit=self.homes.step_limit(episode_map.episode_id) if first else None,
+                          warm=self.homes.warm_start(episode_map.episode_id) if first else None)
         t0 = time.perf_counter()
         candidates = episode_map.find_frontier_candidates()
         t0 = timer.lap("frontiers", t0)
@@ -270,7 +271,8 @@ class MapperService(EpisodeService[EpisodeMap]):
         if result is not None:
             first = frame.step == 0
             out = StepOutputs(memory=self.homes.memory(episode_map.episode_id) if first else [],
-                              step_limit=self.homes.step_limit(episode_map.episode_id) if first else None)
+                              step_limit=self.homes.step_limit(episode_map.episode_id) if first else None,
+                              warm=self.homes.warm_start(episode_map.episode_id) if first else None)
             for ext in self.extensions:  # e.g. the stored joint answer
                 result = ext.scores(episode_map, frame, result, out, {})
             for ext in self.extensions:
@@ -294,6 +296,7 @@ class MapperService(EpisodeService[EpisodeMap]):
             answer_views=out.answer_views,  # steps of the joint answer (EQA_ANSWER_MEMORY_MODE=joint)
             memory=out.memory,  # warm start: the home's views re-scored for this question (step 0)
             step_limit=out.step_limit,  # warm start: the question's budget in the explored house (step 0)
+            warm=out.warm,  # warm start: the home's version and memory bounds (step 0; the stopper's table)
         )
 
     def _timed_score(self, robot: str, episode_map: EpisodeMap, frame: Frame) -> tuple[ScoreResult | None, float]:
