@@ -427,7 +427,7 @@ def test_home_carried_over_warm_started_through_a_scorer_replica_and_continued_e
         for k in range(4):
             bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), frame_at(renderer, "ep-h1", k, turn(q.start_pose, k)))
             m, s = out.step(k)
-            assert s.memory == []  # nothing to remember yet
+            assert s.memory == [] and s.warm is None  # nothing to remember yet: the first question is a cold one
         first_area = m.explored_area_m2
         bus.publish(keys.stream(ROBOT, keys.EPISODE_END), end("ep-h1", 4))
         # the commit writes the index, then the summary: wait for the last of them
@@ -448,6 +448,9 @@ def test_home_carried_over_warm_started_through_a_scorer_replica_and_continued_e
         # its budget: appendix B's for the floor the home map left (20 steps stand for 44.4 m2), at least 6
         explored_m2 = mapper.homes.episodes["ep-h2"].loaded_cells * m0.grid.resolution ** 2
         assert explored_m2 > 0 and s0.step_limit == warm_step_limit(20, explored_m2, 0.3) < 20
+        # a warm start, with the bounds its memory steps and budget were made with (the stopper's table check)
+        assert s0.warm is not None and s0.warm.version == 1
+        assert (s0.warm.bounds.max_views, s0.warm.bounds.warm_budget) == (3, 0.3)
         assert out.errors.empty(), out.errors.get()
 
         # the cold reference: the same frame without a home sees only itself, no memory steps, no home keys
@@ -459,7 +462,7 @@ def test_home_carried_over_warm_started_through_a_scorer_replica_and_continued_e
         ref.integrate(frame_at(renderer, "ep-ref", 0, q.start_pose))
         assert c0.explored_area_m2 == pytest.approx(ref.explored_area_m2())
         assert c0.explored_area_m2 < m0.explored_area_m2
-        assert cs0.memory == [] and cs0.step_limit is None
+        assert cs0.memory == [] and cs0.step_limit is None and cs0.warm is None
         bus.publish(keys.stream(ROBOT, keys.EPISODE_END), end("ep-cold", 1))
         assert mapper.drain()
         time.sleep(0.3)
@@ -470,7 +473,8 @@ def test_home_carried_over_warm_started_through_a_scorer_replica_and_continued_e
         other = rig.instance(settings.model_copy(update={"instance": "mapper-b"}))
         bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), frame_at(renderer, "ep-h2", 1, turn(q.start_pose, 4)))
         m1, s1 = out.step(1)
-        assert s1.memory == [] and s1.step_limit is None and m1.explored_area_m2 >= m0.explored_area_m2
+        assert s1.memory == [] and s1.step_limit is None and s1.warm is None
+        assert m1.explored_area_m2 >= m0.explored_area_m2
         assert other.homes.step_limit("ep-h2") == s0.step_limit  # carried with the episode's state
         # the candidate keyframe of step 0 came over with the episode's state (cells read back from the store)
         pool = other.homes.episodes["ep-h2"].pool.views
