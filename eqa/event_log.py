@@ -80,7 +80,10 @@ def _step_scores(msg: StepScores) -> dict[str, Any]:
 
 
 def _decision(msg: Decision) -> dict[str, Any]:
+    # a warm start's calibration (Decision.warm_calibrated) only where there is one: cold episodes' events unchanged
+    warm = {} if msg.warm_calibrated is None else {"warm_calibrated": msg.warm_calibrated}
     return {
+        **warm,
         "step": msg.step,
         "rule": msg.rule,
         "stop": msg.stop,

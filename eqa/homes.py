@@ -11,7 +11,7 @@ Store layout (every key of one home starts with :func:`prefix`):
 * ``eqa:home:{home}:summary``  JSON :class:`HomeSummary`, rewritten by the mapper whenever the home changes;
 * ``eqa:home:{home}:map.png``  optional: a PNG picture of the home's map, which the gateway serves and the
   console shows as it is (``GET /v1/homes/{name}/map.png``);
-* ``eqa:home:{home}:lock``     held by whoever writes or deletes the home (:func:`take_lock`);
+* ``eqa:home:{home}:lock``     held by whoever writes or deletes the home (:func:`take_lock`): its holder's token;
 * ``eqa:home:{home}:*``        the mapper's parts of the home (its map and view memory);
 * ``eqa:homereset:{home}``     a token written by every reset (:func:`delete_home`), outside the home's prefix
   so it outlives the reset: an episode that started before a reset and ends after it finds another token and
@@ -21,6 +21,7 @@ Store layout (every key of one home starts with :func:`prefix`):
 from __future__ import annotations
 
 import hashlib
+import logging
 import re
 import time
 import uuid
@@ -31,6 +32,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from eqa import keys
 from eqa.store import Store
+
+log = logging.getLogger(__name__)
 
 PREFIX = "eqa:home:"
 RESET_PREFIX = "eqa:homereset:"
@@ -102,29 +105,40 @@ def reset_key(home: str) -> str:
     return f"{RESET_PREFIX}{keys.check_id(home, 'home')}"
 
 
-def take_lock(store: Store, home: str, holder: str, wait_s: float) -> bool:
-    """Take the home's lock (``set_if_absent`` with :data:`LOCK_TTL_S`), waiting up to ``wait_s``; False when
-    another holder kept it that long. The holder releases it with ``store.delete(lock_key(home))``
-    (:func:`locked` does both)."""
+def take_lock(store: Store, home: str, holder: str, wait_s: float, ttl_s: float | None = None) -> str | None:
+    """Take the home's lock, waiting up to ``wait_s``: its token (``holder`` and a random part, so two takes by
+    one instance differ), or None when another holder kept it that long. The lock expires after ``ttl_s``
+    (:data:`LOCK_TTL_S`) so that a dead holder does not block the home; a live holder slower than that loses it,
+    and its release (:func:`release_lock`) then deletes nothing: it names the token it took, and the store
+    deletes the key only while it still holds that token (``Store.delete_if_equal``). What the holder writes
+    must therefore be guarded on its own (the mapper's commit: a compare-and-set on the home's index,
+    ``Store.set_many_if``)."""
+    token = f"{holder}:{uuid.uuid4().hex}"
     deadline = time.monotonic() + wait_s
     while True:
-        if store.set_if_absent(lock_key(home), holder.encode(), ttl_s=LOCK_TTL_S):
-            return True
+        if store.set_if_absent(lock_key(home), token.encode(), ttl_s=LOCK_TTL_S if ttl_s is None else ttl_s):
+            return token
         if time.monotonic() > deadline:
-            return False
+            return None
         time.sleep(0.05)
 
 
+def release_lock(store: Store, home: str, token: str) -> bool:
+    """Release the home's lock taken with ``token``: True when it was still held by it (deleted), False when it
+    had expired (and maybe been taken by another holder, whose lock stays)."""
+    return store.delete_if_equal(lock_key(home), token.encode())
+
+
 @contextmanager
-def locked(store: Store, home: str, holder: str, wait_s: float) -> Iterator[bool]:
-    """The home's lock for the ``with`` block (:func:`take_lock`): yields whether it was taken; a taken lock is
-    released at the block's end, whatever happens in it."""
-    taken = take_lock(store, home, holder, wait_s)
+def locked(store: Store, home: str, holder: str, wait_s: float, ttl_s: float | None = None) -> Iterator[str | None]:
+    """The home's lock for the ``with`` block (:func:`take_lock`): yields its token (None: not taken); a taken
+    lock is released at the block's end, whatever happens in it, if it is still this holder's."""
+    token = take_lock(store, home, holder, wait_s, ttl_s)
     try:
-        yield taken
+        yield token
     finally:
-        if taken:
-            store.delete(lock_key(home))
+        if token is not None and not release_lock(store, home, token):
+            log.warning("home %s: the lock of %s expired before its release (held past its TTL)", home, holder)
 
 
 def reset_mark(store: Store, home: str) -> str | None:

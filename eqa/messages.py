@@ -567,6 +567,33 @@ class MemoryScore(BaseModel):
     seen_at: float = 0.0  # when the view was taken (unix seconds)
 
 
+class MemoryBounds(BaseModel):
+    """What a warm start's memory steps and budget depend on (``EQA_HOME_*``): a conformal table calibrated on
+    warm traces holds (Claim 1) for warm episodes run with the same bounds only, so traces and tables record
+    them and the stopper warns on a mismatch (docs/homes.md, "The exchangeability assumption")."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    max_views: int = Field(ge=0, le=MAX_HOME_VIEWS)  # EQA_HOME_MAX_VIEWS
+    warm_views: int = Field(ge=0, le=MAX_HOME_VIEWS)  # EQA_HOME_WARM_VIEWS
+    memory_steps: int = Field(ge=0, le=MAX_HOME_VIEWS)  # EQA_HOME_MEMORY_STEPS
+    warm_budget: float = Field(ge=0.0, le=1.0)  # EQA_HOME_WARM_BUDGET
+    warm_area: Literal["explored", "observed"]  # EQA_HOME_WARM_AREA
+    stale_weight: float = Field(ge=0.0, le=1.0)  # EQA_HOME_STALE_WEIGHT
+
+    def differences(self, other: MemoryBounds) -> list[str]:
+        """``name: mine vs other`` for every bound that differs."""
+        return [f"{k} {v!r} vs {getattr(other, k)!r}" for k, v in self.model_dump().items() if getattr(other, k) != v]
+
+
+class WarmStart(BaseModel):
+    """A question that started from its home's memory (the home held a committed episode): the home's version
+    it started from and the memory's bounds. The first question in an empty home has none: it is a cold one."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    version: int = Field(ge=1)
+    bounds: MemoryBounds
+
+
 class StepScores(Message):
     """What the stopper needs of one step: the answer distribution and the relevance."""
 
@@ -590,6 +617,9 @@ class StepScores(Message):
     # warm start (step 0 only): the episode's step limit in a home whose map already covers part of the house
     # (eqa.budget.warm_step_limit); the stopper answers at it instead of at EpisodeStart.max_steps
     step_limit: StrictInt | None = Field(default=None, ge=1, le=10_000)
+    # warm start (step 0 only): the episode started from its home's memory; the stopper then stops it on the
+    # warm table (EQA_HOME_CALIBRATION_NAME) or says that its stopping is not calibrated for warm starts
+    warm: WarmStart | None = None
 
 
 class Decision(Message):
@@ -604,6 +634,10 @@ class Decision(Message):
     scores: dict[str, float] = Field(default_factory=dict)  # rho^t_y (CP) or other rule's statistic
     answer: str | None = None
     q_hat: float | None = None
+    # CP in a warm episode (StepScores.warm): True when q_hat is from a table calibrated on warm traces of the same
+    # memory bounds, False when the stopping is not calibrated for this warm start (the reason says why); None:
+    # a cold episode (or a cold table used as one)
+    warm_calibrated: bool | None = None
 
 
 class Goal(Message):

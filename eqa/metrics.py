@@ -186,8 +186,9 @@ def timed_step(service: str, input_kind: str) -> Callable[[F], F]:
     return wrap
 
 
-STORE_OPS = ("get", "set", "delete", "keys", "set_if_absent", "append", "read", "stream_len", "get_many",
-             "delete_many", "set_many", "index_add", "index_remove", "index_page", "index_below", "index_len")
+STORE_OPS = ("get", "set", "delete", "keys", "set_if_absent", "delete_if_equal", "set_many_if", "append", "read",
+             "stream_len", "get_many", "delete_many", "set_many", "index_add", "index_remove", "index_page",
+             "index_below", "index_len")
 _store_depth = threading.local()
 
 

@@ -433,6 +433,13 @@ class HomeSettings(SettingsGroup):
         description="homes one tenant may hold (a question or task naming a new home past it gets 429; delete one "
         "with DELETE /v1/homes/{name})",
     )
+    homes_max_bytes_per_tenant: int = Field(
+        default=2 * 1024 * 1024 * 1024, ge=1024, le=1024 * 1024 * 1024 * 1024,
+        description="bytes one tenant's homes may hold together: an episode naming a home is admitted only if the "
+        "tenant's other homes (their stored bytes; EQA_HOME_MAX_BYTES for those with an episode queued or running) "
+        "plus EQA_HOME_MAX_BYTES for this one fit (429 otherwise; delete a home with DELETE /v1/homes/{name}); at "
+        "least EQA_HOME_MAX_BYTES",
+    )
     homes_retention_days: float = Field(
         default=90.0, gt=0,
         description="a home no episode has used for this long is deleted with its memory (the gateway's watchdog)",
@@ -513,8 +520,10 @@ class HomeSettings(SettingsGroup):
     )
     home_calibration_name: str = Field(
         default="",
-        description="CP calibration table of episodes in a home (warm starts: memory steps in their traces); "
-        "empty = EQA_CALIBRATION_NAME",
+        description="CP calibration table of warm starts (questions whose home held memory; the first question in "
+        "an empty home is cold and uses EQA_CALIBRATION_NAME), calibrated on warm traces of the same memory bounds; "
+        "empty = none: warm questions stop on the cold table and their decisions and answer say they are not "
+        "calibrated for warm starts",
     )
 
 
@@ -537,6 +546,16 @@ class Settings(
                 "EQA_ANSWER_MEMORY_MODE=joint takes its views from EQA_ANSWER_MEMORY_VIEWS; set EQA_ANSWER_MEMORY_K=0 "
                 "(the stopper's fusion of per-view answers is the other answer-memory mode, not an addition to it)"
             )
+        return self
+
+    @model_validator(mode="after")
+    def _tenant_bytes_hold_a_home(self) -> Settings:
+        """One home may grow to EQA_HOME_MAX_BYTES: a tenant bound below it would refuse every episode in a home."""
+        if self.homes_max_bytes_per_tenant < self.home_max_bytes:
+            raise ValueError(
+                f"EQA_HOMES_MAX_BYTES_PER_TENANT={self.homes_max_bytes_per_tenant} is below EQA_HOME_MAX_BYTES="
+                f"{self.home_max_bytes} (one home's bound): no episode could name a home; raise it or lower "
+                "EQA_HOME_MAX_BYTES")
         return self
 
     @property

@@ -152,6 +152,18 @@ class Store(ABC):
         """Atomically set ``key`` if it does not exist; True when set (a lock)."""
 
     @abstractmethod
+    def delete_if_equal(self, key: str, value: bytes) -> bool:
+        """Atomically delete ``key`` if it holds ``value``; True when deleted (a lock released by its holder only:
+        one whose lock expired and was taken by another deletes nothing)."""
+
+    @abstractmethod
+    def set_many_if(self, guard: str, expected: bytes | None, items: list[tuple[str, bytes]],
+                    ttl_s: float | None = None, then_delete: list[str] | None = None) -> bool:
+        """Compare-and-set over several keys: atomically, if ``guard`` holds ``expected`` (None: absent), set
+        ``items`` and then delete ``then_delete``, and return True; otherwise change nothing and return False.
+        ``items`` may set ``guard`` itself (a versioned index written with what it describes)."""
+
+    @abstractmethod
     def append(self, stream: str, value: bytes, ttl_s: float | None = None) -> str:
         """Append to a stream; return the new entry id. ``ttl_s``: the stream expires that long after its last
         append (Redis; the embedded store keeps streams until they are deleted)."""
@@ -250,6 +262,35 @@ class RedisStore(Store):
 
     def set_if_absent(self, key: str, value: bytes, ttl_s: float | None = None) -> bool:
         return bool(self._r.set(key, value, nx=True, px=int(ttl_s * 1000) if ttl_s else None))
+
+    # the holder's check and the delete in one step on the server (between a GET and a DEL of the client the
+    # lock could expire and be taken by another)
+    _DELETE_IF_EQUAL = "if redis.call('GET', KEYS[1]) == ARGV[1] then return redis.call('DEL', KEYS[1]) end return 0"
+
+    def delete_if_equal(self, key: str, value: bytes) -> bool:
+        return bool(self._r.eval(self._DELETE_IF_EQUAL, 1, key, value))
+
+    def set_many_if(self, guard: str, expected: bytes | None, items: list[tuple[str, bytes]],
+                    ttl_s: float | None = None, then_delete: list[str] | None = None) -> bool:
+        import redis
+
+        px = int(ttl_s * 1000) if ttl_s else None
+        # WATCH / MULTI: the transaction is discarded when another client changed the guard after WATCH
+        with self._r.pipeline(transaction=True) as pipe:
+            try:
+                pipe.watch(guard)
+                if pipe.get(guard) != expected:
+                    pipe.unwatch()
+                    return False
+                pipe.multi()
+                for key, value in items:
+                    pipe.set(key, value, px=px)
+                if then_delete:
+                    pipe.delete(*then_delete)
+                pipe.execute()
+                return True
+            except redis.WatchError:
+                return False
 
     def append(self, stream: str, value: bytes, ttl_s: float | None = None) -> str:
         if not ttl_s:
@@ -375,6 +416,37 @@ class EmbeddedStore(Store):
                 conn.execute("COMMIT")
                 return False
             self.set(key, value, ttl_s)
+            conn.execute("COMMIT")
+            return True
+        except Exception:
+            conn.execute("ROLLBACK")
+            raise
+
+    def delete_if_equal(self, key: str, value: bytes) -> bool:
+        conn = self._conn()
+        conn.execute("BEGIN IMMEDIATE")  # the write lock of the file: no other process between check and delete
+        try:
+            held = self.get(key) == value
+            if held:
+                conn.execute("DELETE FROM kv WHERE k=?", (key,))
+            conn.execute("COMMIT")
+            return held
+        except Exception:
+            conn.execute("ROLLBACK")
+            raise
+
+    def set_many_if(self, guard: str, expected: bytes | None, items: list[tuple[str, bytes]],
+                    ttl_s: float | None = None, then_delete: list[str] | None = None) -> bool:
+        conn = self._conn()
+        conn.execute("BEGIN IMMEDIATE")
+        try:
+            if self.get(guard) != expected:
+                conn.execute("COMMIT")
+                return False
+            for key, value in items:
+                self.set(key, value, ttl_s)
+            for key in then_delete or []:
+                self.delete(key)
             conn.execute("COMMIT")
             return True
         except Exception:

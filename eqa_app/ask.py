@@ -80,6 +80,9 @@ class Outcome:
     status: dict[str, Any]
     events: int
     seconds: float
+    # a question that started from its home's memory and stopped on a table not calibrated for warm starts: the
+    # reason of its first such decision (Decision.warm_calibrated False)
+    warm_uncalibrated: str | None = None
 
 
 def follow(url: str, body: dict[str, Any], token: str | None, timeout: float, quiet: bool,
@@ -101,6 +104,7 @@ def follow(url: str, body: dict[str, Any], token: str | None, timeout: float, qu
             print(f"episode {episode_id} on {r.json().get('robot')}", flush=True)
         n = 0
         printer = StepPrinter(task=path == "/v1/tasks")
+        uncalibrated: str | None = None
         with client.stream("GET", f"/v1/episodes/{episode_id}/events") as stream:
             for line in stream.iter_lines():
                 if not line.startswith("data:"):
@@ -109,10 +113,23 @@ def follow(url: str, body: dict[str, Any], token: str | None, timeout: float, qu
                 event = json.loads(line[5:].strip())
                 if not quiet:
                     printer(event)
+                if event.get("kind") == "decision" and event.get("warm_calibrated") is False and uncalibrated is None:
+                    uncalibrated = str(event.get("reason", ""))
                 if event.get("kind") in ("episode_end",) or event.get("state") in ("stopped", "failed", "cancelled"):
                     break
         status = client.get(f"/v1/episodes/{episode_id}").json()
-    return Outcome(status=status, events=n, seconds=time.monotonic() - t0)
+    return Outcome(status=status, events=n, seconds=time.monotonic() - t0, warm_uncalibrated=uncalibrated)
+
+
+def warm_warning(reason: str) -> str:
+    """What ``eqa ask`` says of a question that started from its home's memory on a table not calibrated for warm
+    starts: the note of the decision's reason (``services.stopper.state.WARM_NOT_CALIBRATED`` onwards)."""
+    from services.stopper.state import WARM_NOT_CALIBRATED
+
+    at = reason.find(WARM_NOT_CALIBRATED)
+    note = reason[at:].rstrip(")") if at >= 0 else "stopping not calibrated for warm starts"
+    return (f"this question started from its home's memory and its {note} (the coverage 1 - eps of Explore-EQA "
+            "Claim 1 is not guaranteed; docs/homes.md, 'The exchangeability assumption')")
 
 
 def _line(head: str, text: str, width: int | None = None) -> str:
@@ -315,6 +332,8 @@ def _report(outcome: Outcome, settings: Any, demo: Question | None, as_json: boo
           f"stop reason: {s.get('stop_reason')}")
     if s.get("prediction_set"):
         print(f"prediction set: {{{', '.join(s['prediction_set'])}}}")
+    if outcome.warm_uncalibrated is not None:
+        print(f"warning: {warm_warning(outcome.warm_uncalibrated)}")
     if demo is not None and demo.answer is not None:
         verdict = "correct" if answer == demo.answer else "wrong"
         truth = demo.choices[letters(len(demo.choices)).index(demo.answer)]

@@ -197,6 +197,7 @@ def run_house(args: tuple[int, int, int, str, float, float | None, dict[str, Any
                                                       view_bins=settings.view_bins, view_agree=settings.view_agree))
                 memory.start(start, emap)
                 loaded = memory.episodes[start.episode_id].loaded_cells
+                warm = memory.warm_start(start.episode_id)  # (None for the first question: a cold start)
                 record = EpisodeRecord.from_start(start, "cores")
                 q_hat = cold_q_hat if pos == 0 or warm_q_hat is None else warm_q_hat
                 record.calibration = _calibration(q_hat, eps)
@@ -212,7 +213,7 @@ def run_house(args: tuple[int, int, int, str, float, float | None, dict[str, Any
                 trace = Trace(question_id=q.id, scene=q.scene, category=q.category, choices=q.choices, answer=q.answer,
                               max_steps=limit, strategy=strategy, steps=hooks.steps[: hooks.memory_steps + limit],
                               episode_id=start.episode_id, end_reason=reason, stop_rule="max_steps",
-                              memory_steps=hooks.memory_steps)
+                              memory_steps=hooks.memory_steps, warm=warm)
                 index_after = hooks.committed
                 out.append({"position": pos + 1, "trace": trace.model_dump(mode="json"), "loaded_cells": loaded,
                             "views": 0 if index_after is None else len(index_after.views),
@@ -332,6 +333,7 @@ def run(args: argparse.Namespace, settings: Any) -> dict[str, Any]:
             ct = cold[wt.question_id]
             w = ev.replay(wt, stop, cold_cal if r["position"] == 1 else warm_cal_choice)
             c = ev.replay(ct, stop, cold_cal)
+            m = ev.replay(budget_matched(ct, wt.max_steps), stop, cold_cal)
             if r["position"] > 1:  # what the warm steps owe to the warm table and to the memory steps
                 bare = wt.model_copy(update={"steps": wt.steps[wt.memory_steps:], "memory_steps": 0})
                 diagnosis["warm"] += w.steps
@@ -342,6 +344,7 @@ def run(args: argparse.Namespace, settings: Any) -> dict[str, Any]:
             rows.append({"seed": s, "house": i, "position": r["position"], "question": wt.question_id,
                          "category": wt.category, "cold_steps": c.steps, "warm_steps": w.steps,
                          "cold_correct": c.correct, "warm_correct": w.correct, "memory_steps": wt.memory_steps,
+                         "matched_steps": m.steps, "matched_correct": m.correct,
                          "max_steps": ct.max_steps, "warm_max_steps": wt.max_steps, "views": r["views"],
                          "bytes": r["bytes"],
                          "loaded_cells": r["loaded_cells"], "k": imp["k"], "affected": imp["affected"],
@@ -360,6 +363,22 @@ def run(args: argparse.Namespace, settings: Any) -> dict[str, Any]:
     (out / "home.json").write_text(json.dumps(results, indent=2))
     (out / "rows.json").write_text(json.dumps(rows, indent=1))
     return results
+
+
+def budget_matched(cold: Any, limit: int) -> Any:
+    """The cold trace ``cold`` as if it had run under a warm question's step limit ``limit``: its first ``limit``
+    steps, answered at that limit. Replayed, it is the cold episode with the warm episode's budget, so warm
+    against it measures what the memory (map and remembered views) saves; warm against the cold trace as it ran
+    mixes that with the smaller budget (:data:`services.mapper.home_shell` ``EQA_HOME_WARM_BUDGET``)."""
+    if cold.memory_steps:
+        raise ValueError(f"trace {cold.question_id} has memory steps: not a cold trace")
+    n = max(1, min(int(limit), cold.max_steps))
+    return cold.model_copy(update={"max_steps": n, "steps": cold.steps[:n]})
+
+
+def matched(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """``rows`` with the budget-matched cold episode (:func:`budget_matched`) in the place of the cold one."""
+    return [{**r, "cold_steps": r["matched_steps"], "cold_correct": r["matched_correct"]} for r in rows]
 
 
 def wrong_singleton(prediction_set: Any, answer: str) -> bool:
@@ -463,6 +482,13 @@ def summarise(rows: list[dict[str, Any]], args: argparse.Namespace, settings: An
         "q_hat": {"cold": {f"{e.eps:g}": e.q_hat for e in cold_table.entries},
                   "warm": {f"{e.eps:g}": e.q_hat for e in warm_table.entries}},
         "positions": per_position, "positions_2_on": later, "warm_coverage": coverage,
+        # the headline: warm against the same cold traces capped at each question's warm limit (memory's own
+        # saving); "positions_2_on" above is warm against cold as it ran (memory and the smaller budget together)
+        "positions_budget_matched": {str(p): paired(matched([r for r in rows if r["position"] == p]))
+                                     for p in sorted({r["position"] for r in rows})},
+        "positions_2_on_budget_matched": paired(matched([r for r in rows if r["position"] > 1])),
+        "budget_matched_vs_cold": paired([{**r, "warm_steps": r["matched_steps"], "warm_correct": r["matched_correct"]}
+                                          for r in rows if r["position"] > 1]),
         "changes": getattr(args, "changes", 0) or 0,
         "home_stale_weight": settings.home_stale_weight, "home_stale_age_s": settings.home_stale_age_s,
         "home_warm_budget": settings.home_warm_budget,
@@ -477,6 +503,8 @@ def summarise(rows: list[dict[str, Any]], args: argparse.Namespace, settings: An
                    "bytes_max": int(max((r["bytes"] for r in sizes), default=0))},
         "done_bar": {
             "steps_at_most_half": bool(later.get("steps_ratio", math.inf) <= 0.5),
+            "budget_matched_steps_at_most_0.6": bool(
+                paired(matched([r for r in rows if r["position"] > 1])).get("steps_ratio", math.inf) <= 0.6),
             "success_not_worse": bool(later.get("n", 0) and later["success_paired"]["ci_high"] >= 0),
             "coverage_within_se": all(c["coverage"] + c["se"] >= c["target"] for c in coverage if c["n"]),
         },
@@ -678,12 +706,23 @@ def print_results(res: dict[str, Any]) -> None:
             print(f"{pos:>8}  {p['n']:<3} {p['cold_steps_mean']:<11.2f} {p['warm_steps_mean']:<11.2f} "
                   f"{p['steps_ratio']:<6.2f} {p['cold_success']:<10.3f} {p['warm_success']:<10.3f} "
                   f"{p['memory_steps_mean']:.1f}")
-    later = res["positions_2_on"]
-    if later.get("n"):
-        print(f"positions 2..: steps ratio {later['steps_ratio']:.3f} {later['steps_ratio_ci']}, sign test p "
-              f"{later['steps_sign_test']['p_value']:.3g}; success warm-cold {later['success_paired']['diff']:+.3f} "
-              f"[{later['success_paired']['ci_low']:+.3f}, {later['success_paired']['ci_high']:+.3f}] p "
-              f"{later['success_paired']['p_value']:.3g}")
+    for name, key in (("budget-matched cold (memory's own saving)", "positions_2_on_budget_matched"),
+                      ("cold as run (memory and budget)", "positions_2_on")):
+        later = res.get(key, {})
+        if later.get("n"):
+            sp = later["success_paired"]
+            print(f"positions 2.., warm vs {name}: steps ratio {later['steps_ratio']:.3f} "
+                  f"[{later['steps_ratio_ci'][0]:.3f}, {later['steps_ratio_ci'][1]:.3f}], warm fewer "
+                  f"{later['steps_sign_test']['warm_fewer']} more {later['steps_sign_test']['warm_more']}, sign test p "
+                  f"{later['steps_sign_test']['p_value']:.3g}; successes warm "
+                  f"{round(later['warm_success'] * later['n'])} vs {round(later['cold_success'] * later['n'])}, "
+                  f"warm-cold {sp['diff']:+.3f} [{sp['ci_low']:+.3f}, "
+                  f"{sp['ci_high']:+.3f}] p {sp['p_value']:.3g}")
+    budget = res.get("budget_matched_vs_cold", {})
+    if budget.get("n"):
+        print(f"the budget alone (budget-matched cold vs cold): steps ratio {budget['steps_ratio']:.3f} "
+              f"[{budget['steps_ratio_ci'][0]:.3f}, {budget['steps_ratio_ci'][1]:.3f}], successes "
+              f"{round(budget['warm_success'] * budget['n'])} vs {round(budget['cold_success'] * budget['n'])}")
     for name, w in res["wrong_singletons"].items():
         if w.get("n"):
             print(f"wrong singletons, {name} questions (n {w['n']}): warm {w['warm_wrong_singleton']:.3f} "

@@ -619,6 +619,7 @@ class EpisodeManager:
                 f"home {name!r} is the house {known.house or 'of the robot (no scene)'}; this episode is in "
                 f"{house or 'the robot world (no scene)'}: name another home, or reset this one "
                 f"(DELETE /v1/homes/{name})")
+        self._check_home_bytes(owner, known.home if known is not None else homes_layout.home_id(owner, name))
         cap = self.settings.homes_max_per_tenant
         entry = self.homes.use(owner, name, house, cap)
         if entry is None:
@@ -627,6 +628,26 @@ class EpisodeManager:
                 f"(EQA_HOMES_MAX_PER_TENANT={cap}); name one of them, or delete one with DELETE /v1/homes/{{name}}",
             )
         return entry.home
+
+    def _check_home_bytes(self, owner: str, home: str) -> None:
+        """:class:`TooManyError` unless one more episode in ``home`` keeps ``owner``'s homes within
+        ``EQA_HOMES_MAX_BYTES_PER_TENANT``: the tenant's other homes count their stored bytes (the mapper's
+        summaries), or ``EQA_HOME_MAX_BYTES`` while an episode of theirs is queued or running (its commit may grow
+        them to that), and this home ``EQA_HOME_MAX_BYTES``. So the bound holds whatever the episodes admitted
+        write back (called under the manager's lock: admissions one at a time)."""
+        s = self.settings
+        cap, one = s.homes_max_bytes_per_tenant, s.home_max_bytes
+        others = [r for r in self.homes.page(owner, s.homes_max_per_tenant, 0) if r.home != home]
+        held = 0
+        for r, summary in zip(others, self.homes.summaries(others), strict=True):
+            held += one if self._home_episodes(r.home) else (summary.bytes if summary is not None else 0)
+        if held + one > cap:
+            raise TooManyError(
+                f"this token's homes hold {held} bytes (homes with an episode queued or running counted at "
+                f"EQA_HOME_MAX_BYTES={one}); one more episode in a home may add up to {one}, past the most one "
+                f"tenant may hold (EQA_HOMES_MAX_BYTES_PER_TENANT={cap}); delete a home with "
+                "DELETE /v1/homes/{name}, or wait for running episodes to end",
+            )
 
     def _home_episodes(self, home: str) -> list[str]:
         """Queued and running episodes of the home with internal id ``home``."""

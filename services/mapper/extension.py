@@ -63,6 +63,7 @@ from eqa.messages import (
     ScoreResult,
     ValueRequest,
     ValueResult,
+    WarmStart,
 )
 from eqa.recording import EpisodeRecorder
 from eqa.settings import Settings
@@ -162,6 +163,7 @@ class StepOutputs:
     answer_views: list[int] = field(default_factory=list)  # StepScores.answer_views
     memory: list[MemoryScore] = field(default_factory=list)  # StepScores.memory (the home's warm start)
     step_limit: int | None = None  # StepScores.step_limit (a question's budget in a known home)
+    warm: WarmStart | None = None  # StepScores.warm (a question that started from its home's memory)
 
 
 class MapperExtension(Protocol):

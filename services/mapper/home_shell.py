@@ -23,7 +23,10 @@ holder does not block it) and reads the index: still that version, its map repla
 started from it and only added observations); a newer version (another episode committed meanwhile), the
 stored map and its map are fused (:meth:`HomeMap.merge`, both keep the other's observations). Either way the
 views are chosen again from the stored ones and the episode's candidates together (:func:`select_views`), the
-version goes up by one, and the views left out are deleted.
+version goes up by one, and the views left out are deleted. The lock orders commits but cannot make them
+exclusive (it expires, so a commit slower than its TTL loses it): the map, object layer and index are written
+in one compare-and-set on the index read at the commit's start (``Store.set_many_if``), and a commit whose index
+changed meanwhile writes nothing and runs again, merging what the other writer committed.
 
 **A task in a home** (:meth:`HomeMemory.start` with its object layer, :meth:`HomeMemory.warm_objects`): it starts
 from the home's Gaussians that hold evidence for its classes (the carry-over rule of
@@ -54,7 +57,17 @@ import numpy as np
 
 from eqa import homes
 from eqa.budget import warm_step_limit
-from eqa.messages import DetectResult, EpisodeStart, ErrorReply, Frame, MemoryScore, ScoreRequest, ScoreResult
+from eqa.messages import (
+    DetectResult,
+    EpisodeStart,
+    ErrorReply,
+    Frame,
+    MemoryBounds,
+    MemoryScore,
+    ScoreRequest,
+    ScoreResult,
+    WarmStart,
+)
 from eqa.settings import Settings
 from eqa.store import Store
 from services.mapper.episode_map import EpisodeMap
@@ -86,6 +99,7 @@ log = logging.getLogger(__name__)
 
 STATE_KEY = "home"  # this memory's part of the mapper's episode state
 LOCK_WAIT_S = 20.0
+COMMIT_ATTEMPTS = 3  # commits of one episode whose index changed under them before it is given up
 
 
 def index_key(home: str) -> str:
@@ -189,6 +203,7 @@ class HomeMemory(MapperExtension):
         out.memory = self.warm(episode_map, frame)
         if frame.step == 0:
             out.step_limit = self.step_limit(episode_map.episode_id)
+            out.warm = self.warm_start(episode_map.episode_id)
             if self.detect is not None:
                 self.warm_objects(episode_map, self.objects(episode_map.episode_id), frame, self.detect)
         timing["home_warm"] = timing.get("home_warm", 0.0) + (time.perf_counter() - t0) * 1000.0
@@ -198,6 +213,7 @@ class HomeMemory(MapperExtension):
         if again and frame.step == 0:  # the first step sent again carries its memory steps and budget again
             out.memory = self.memory(episode_map.episode_id)
             out.step_limit = self.step_limit(episode_map.episode_id)
+            out.warm = self.warm_start(episode_map.episode_id)
         return result
 
     def finish(self, episode_map: EpisodeMap) -> None:
@@ -371,6 +387,18 @@ class HomeMemory(MapperExtension):
         limit = warm_step_limit(start.max_steps, covered_m2, self.settings.home_warm_budget)
         return limit if limit < start.max_steps else None
 
+    def warm_start(self, episode_id: str) -> WarmStart | None:
+        """:attr:`eqa.messages.StepScores.warm` of a question that started from its home's memory (the home held
+        a committed episode), with the bounds its memory steps and budget were made with; None: a cold start (no
+        home, an empty home, a task)."""
+        ep = self.episodes.get(episode_id)
+        if ep is None or ep.base_version < 1 or ep.geometry_only:
+            return None
+        s = self.settings
+        return WarmStart(version=ep.base_version, bounds=MemoryBounds(
+            max_views=s.home_max_views, warm_views=s.home_warm_views, memory_steps=s.home_memory_steps,
+            warm_budget=s.home_warm_budget, warm_area=s.home_warm_area, stale_weight=s.home_stale_weight))
+
     def step_limit(self, episode_id: str) -> int | None:
         """The episode's step limit for the stopper (:attr:`eqa.messages.StepScores.step_limit`), None: its own."""
         ep = self.episodes.get(episode_id)
@@ -528,18 +556,28 @@ class HomeMemory(MapperExtension):
         if em.step < 0:  # no frame integrated: nothing new to remember
             self.store.delete_many([view_key(ep.home, v.view_id) for v in ep.pool.views])
             return None
-        with homes.locked(self.store, ep.home, self.settings.instance, LOCK_WAIT_S) as taken:
-            if not taken:
-                log.error("home %s: lock not obtained in %.0f s; episode %s not remembered", ep.home, LOCK_WAIT_S,
-                          em.episode_id)
-                return None
-            if homes.reset_mark(self.store, ep.home) != ep.reset:
-                # the user reset the home after this episode started: its memory must not come back
-                self.store.delete_many([view_key(ep.home, v.view_id) for v in ep.pool.views])
-                log.info("home %s: reset since episode %s started; the episode is not remembered", ep.home,
-                         em.episode_id)
-                return None
-            return self._commit(ep, em, objects)
+        for attempt in range(COMMIT_ATTEMPTS):
+            with homes.locked(self.store, ep.home, self.settings.instance, LOCK_WAIT_S) as taken:
+                if not taken:
+                    log.error("home %s: lock not obtained in %.0f s; episode %s not remembered", ep.home,
+                              LOCK_WAIT_S, em.episode_id)
+                    return None
+                if homes.reset_mark(self.store, ep.home) != ep.reset:
+                    # the user reset the home after this episode started: its memory must not come back
+                    self.store.delete_many([view_key(ep.home, v.view_id) for v in ep.pool.views])
+                    log.info("home %s: reset since episode %s started; the episode is not remembered", ep.home,
+                             em.episode_id)
+                    return None
+                done = self._commit(ep, em, objects)
+                if done is not None:
+                    return done
+            # the index changed under this commit: its lock expired (a commit slower than the lock's TTL) and
+            # another writer committed or reset meanwhile; the next attempt reads what it wrote and merges
+            log.warning("home %s: index changed during episode %s's commit (attempt %d); committing again", ep.home,
+                        em.episode_id, attempt + 1)
+        log.error("home %s: episode %s not remembered: the index changed during %d commits", ep.home, em.episode_id,
+                  COMMIT_ATTEMPTS)
+        return None
 
     def _commit_objects(self, ep: EpisodeHome, em: EpisodeMap, objects: ObjectMap | None, index: HomeIndex,
                         budget: int) -> HomeObjects | None:
@@ -570,8 +608,11 @@ class HomeMemory(MapperExtension):
             out = out.bounded(len(out) // 2)
         return out if len(out.to_bytes()) <= budget else None
 
-    def _commit(self, ep: EpisodeHome, em: EpisodeMap, objects: ObjectMap | None = None) -> HomeIndex:
+    def _commit(self, ep: EpisodeHome, em: EpisodeMap, objects: ObjectMap | None = None) -> HomeIndex | None:
+        """Write the episode into the home; None when the index changed since this commit read it (nothing is
+        written then: the map, object layer and index go in one compare-and-set on the index's bytes)."""
         s = self.settings
+        read_as = self.store.get(index_key(ep.home))  # the guard of the write below
         index = self.read_index(ep.home) or HomeIndex()
         mine = HomeMap.from_episode(em)
         if index.version != ep.base_version:
@@ -597,14 +638,16 @@ class HomeMemory(MapperExtension):
         chosen = select_views(list(candidates.values()), s.home_max_views, budget)
         chosen_ids = {v.view_id for v in chosen}
         ttl = s.home_ttl_s
+        items: list[tuple[str, bytes]] = []
+        drop: list[str] = []
         if len(map_bytes) <= s.home_max_bytes:
-            self.store.set(map_key(ep.home), map_bytes, ttl_s=ttl)
+            items.append((map_key(ep.home), map_bytes))
         else:
-            self.store.delete(map_key(ep.home))
+            drop.append(map_key(ep.home))
         if objects_bytes:
-            self.store.set(objects_key(ep.home), objects_bytes, ttl_s=ttl)
+            items.append((objects_key(ep.home), objects_bytes))
         else:
-            self.store.delete(objects_key(ep.home))
+            drop.append(objects_key(ep.home))
         scene = em.start.question.scene
         # a change matters to views older than it: one older than every kept view is forgotten
         oldest = min((v.t for v in chosen), default=math.inf)
@@ -614,9 +657,11 @@ class HomeMemory(MapperExtension):
                         map_bytes=len(map_bytes) if len(map_bytes) <= s.home_max_bytes else 0,
                         created_at=index.created_at, objects_bytes=len(objects_bytes),
                         gaussians=0 if home_objects is None else len(home_objects))
-        if ep.objects_base:  # its own evidence is in the layer now: the copy it started from goes before the index
-            self.store.delete(objects_base_key(ep.home, em.episode_id))
-        self.store.set(index_key(ep.home), new.to_bytes(), ttl_s=ttl)
+        if ep.objects_base:  # its own evidence is in the layer now: the copy it started from goes with the index
+            drop.append(objects_base_key(ep.home, em.episode_id))
+        items.append((index_key(ep.home), new.to_bytes()))
+        if not self.store.set_many_if(index_key(ep.home), read_as, items, ttl_s=ttl, then_delete=drop):
+            return None
         # every kept view's TTL runs from now; the views left out go
         for v in chosen:
             raw = self.store.get(view_key(ep.home, v.view_id))

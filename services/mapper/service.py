@@ -281,6 +281,7 @@ class MapperService(EpisodeService[EpisodeMap]):
             answer_views=out.answer_views,  # steps of the joint answer (EQA_ANSWER_MEMORY_MODE=joint)
             memory=out.memory,  # warm start: the home's views re-scored for this question (step 0)
             step_limit=out.step_limit,  # warm start: the question's budget in the explored house (step 0)
+            warm=out.warm,  # warm start: the home's version and memory bounds (step 0; the stopper's table)
         )
 
     def _timed_score(self, robot: str, episode_map: EpisodeMap, frame: Frame) -> tuple[ScoreResult | None, float]:

@@ -40,7 +40,7 @@ from urllib.parse import quote
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from eqa.messages import EpisodeLabel, letters
+from eqa.messages import EpisodeLabel, WarmStart, letters
 from eqa.store import LABEL_PREFIX, Store, episode_trace_key
 from services.stopper.answer_memory import AnswerRule, transform
 from services.stopper.conformal import (
@@ -114,6 +114,13 @@ class Trace(BaseModel):
     stop_rule: str | None = None  # the episode's stop rule (calibration needs max_steps: full-length runs)
     # warm start: the first memory_steps steps are the home's remembered views re-scored before step 0
     memory_steps: int = Field(default=0, ge=0, le=256)
+    # warm start: the episode started from its home's memory, with these bounds (None: a cold start, or a trace
+    # that did not record it; memory_steps > 0 then still says warm)
+    warm: WarmStart | None = None
+
+    @property
+    def is_warm(self) -> bool:
+        return self.warm is not None or self.memory_steps > 0
 
     @property
     def full_length(self) -> bool:
@@ -288,6 +295,7 @@ def calibrate(
     if len(set(ids)) != len(ids):
         dup = sorted({i for i in ids if ids.count(i) > 1})
         raise CalibrationError(f"duplicate questions in the calibration set: {dup[:5]}")
+    home = home_of(items)
     rule = answer_rule or AnswerRule()
     kappas = [t.kappa(rule) for t in items]
     n = len(kappas)
@@ -311,6 +319,7 @@ def calibrate(
     ]
     prov = dict(provenance or {})
     prov["answer_rule"] = rule.name
+    prov["home"] = home
     prov.setdefault("strategies", sorted({t.strategy for t in items}))
     prov.setdefault("mean_steps", float(np.mean([len(t.steps) for t in items])))
     cats = [t.category for t in items]
@@ -319,6 +328,30 @@ def calibrate(
         raise CalibrationError("per-category calibration asked, but no calibration trace has a category")
     return CalibrationTable(name=name, n=n, kappas=kappas, question_ids=ids, entries=entries, provenance=prov,
                             groups=groups, categories=cats)
+
+
+def home_of(traces: Sequence[Trace]) -> dict[str, Any]:
+    """What a table of ``traces`` records of their starts (``provenance["home"]``): ``{"warm": False}`` for cold
+    episodes, ``{"warm": True, "bounds": ...}`` for warm ones (the memory bounds they share, None when the traces
+    did not record them). :class:`CalibrationError` for cold and warm traces together, or warm traces of
+    different memory bounds: Claim 1 needs the calibration episodes exchangeable with the episodes the table
+    stops, and memory steps add terms to Eq. 9's min over steps, so one table cannot hold for both."""
+    warm = [t for t in traces if t.is_warm]
+    if warm and len(warm) != len(traces):
+        cold = [t.question_id for t in traces if not t.is_warm]
+        raise CalibrationError(
+            f"mixed cold and warm traces: {len(cold)} cold (e.g. {cold[:3]}) and {len(warm)} warm (memory steps from "
+            f"a home, e.g. {[t.question_id for t in warm[:3]]}); calibrate them apart, a cold table for "
+            "EQA_CALIBRATION_NAME and a warm one for EQA_HOME_CALIBRATION_NAME")
+    if not warm:
+        return {"warm": False}
+    bounds = {t.warm.bounds for t in warm if t.warm is not None}
+    unrecorded = any(t.warm is None for t in warm)
+    if len(bounds) > 1 or (bounds and unrecorded):
+        kinds = sorted(b.model_dump_json() for b in bounds) + (["not recorded"] if unrecorded else [])
+        raise CalibrationError(f"warm traces of {len(kinds)} different memory bounds ({'; '.join(kinds)}): "
+                               "calibrate each set of bounds apart")
+    return {"warm": True, "bounds": next(iter(bounds)).model_dump() if bounds else None}
 
 
 # ---- persistence ----------------------------------------------------------------------------------------

@@ -133,14 +133,7 @@ class StopperService(EpisodeService[EpisodeRecord]):
             self._finish(episode, "failed", f"invalid stop threshold: {exc}", None)
             return None
         if start.stop.rule == "cp":
-            name = self.settings.calibration_name
-            if start.home is not None and self.settings.home_calibration_name:
-                name = self.settings.home_calibration_name  # warm episodes' own table (memory steps in the traces)
-            try:
-                table, where = load_table(self.store, name)
-            except ValueError as exc:  # bad table name in settings
-                table, where = None, str(exc)
-            choice, why = resolve_calibration(table, where, start.stop.eps, name, start.question.category)
+            choice, why = self._calibration(self.settings.calibration_name, start)
             if choice is None:
                 log.error("episode %s: %s", start.episode_id, why)
                 self._finish(episode, "failed", why, None)
@@ -148,6 +141,16 @@ class StopperService(EpisodeService[EpisodeRecord]):
             if choice.note:
                 log.warning("episode %s: %s", start.episode_id, choice.note)
             episode.calibration = choice
+            if start.home is not None and start.task is None:
+                # a question in a home is warm only if its home held memory, which the mapper says with its first
+                # step (StepScores.warm); the warm table is resolved now, as the cold one, and taken then
+                home_name = self.settings.home_calibration_name
+                if home_name:
+                    episode.warm_calibration, why = self._calibration(home_name, start)
+                    episode.warm_missing = why
+                else:
+                    episode.warm_missing = ("no warm table is named (EQA_HOME_CALIBRATION_NAME is empty): calibrate "
+                                            "one on warm traces and name it there")
         self._save_trace(episode)
         log.info(
             "episode %s started on %s: rule %s, %d steps max",
@@ -157,6 +160,14 @@ class StopperService(EpisodeService[EpisodeRecord]):
             episode.max_steps,
         )
         return episode
+
+    def _calibration(self, name: str, start: EpisodeStart) -> tuple[Any, str]:
+        """The q_hat of table ``name`` for the episode (:func:`resolve_calibration`), or None and why not."""
+        try:
+            table, where = load_table(self.store, name)
+        except ValueError as exc:  # bad table name in settings
+            table, where = None, str(exc)
+        return resolve_calibration(table, where, start.stop.eps, name, start.question.category)
 
     def on_scores(self, robot: str, episode: EpisodeRecord, scores: StepScores) -> None:
         if robot != episode.robot:
@@ -178,6 +189,9 @@ class StopperService(EpisodeService[EpisodeRecord]):
         if decision is None:
             self.answer_again(robot, episode, scores)
             return
+        if decision.warm_calibrated is False and not episode.probs:  # once, at the first step of a warm start
+            log.warning("episode %s: %s", episode.episode_id,
+                        work.calibration.note if work.calibration else "stopping not calibrated for warm starts")
         work.last_decision = decision
         self.episodes[episode.episode_id] = work
         self._save_trace(work)

@@ -15,6 +15,7 @@ import logging
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -24,10 +25,12 @@ from eqa.messages import (
     EpisodeEnd,
     EpisodeStart,
     EpisodeState,
+    MemoryBounds,
     Question,
     StepScores,
     StopConfig,
     Strategy,
+    WarmStart,
     letters,
 )
 from services.stopper import baselines
@@ -57,6 +60,11 @@ class CalibrationChoice(BaseModel):
     mode: str | None = None  # ... and its mode: logprobs / sampling
     category: str | None = None  # Mondrian: the category whose own q_hat this is
     answer_rule: str | None = None  # the answer rule the table was calibrated with (None = single)
+    # the episodes the table was calibrated on (provenance "home"): cold, warm (with the memory bounds of their
+    # warm starts, None when the traces did not record them) or unknown (a table that records neither)
+    table_kind: Literal["cold", "warm", "unknown"] = "unknown"
+    warm_bounds: MemoryBounds | None = None
+    warm_calibrated: bool | None = None  # in a warm episode: whether this table holds for its warm start
 
 
 # q_hat that keeps every label (kappa <= 2 always): a Mondrian group too small to certify the asked eps
@@ -114,10 +122,72 @@ def resolve_calibration(
     backend = table.provenance.get("scorer_backend")
     mode = table.provenance.get("scorer_mode")
     rule = table.provenance.get("answer_rule")
+    kind, bounds = table_home(table)
     choice = CalibrationChoice(q_hat=entry.q_hat, eps=entry.eps, asked_eps=eps, n=table.n, source=where, note=note,
                                backend=str(backend) if backend else None, mode=str(mode) if mode else None,
-                               answer_rule=str(rule) if rule else None)
+                               answer_rule=str(rule) if rule else None, table_kind=kind, warm_bounds=bounds)
     return choice, ""
+
+
+WARM_NOT_CALIBRATED = "warm start: stopping not calibrated for warm starts"
+
+
+def table_home(table: CalibrationTable) -> tuple[Literal["cold", "warm", "unknown"], MemoryBounds | None]:
+    """Whether ``table`` was calibrated on cold or warm episodes, and the memory bounds of the warm ones
+    (``provenance["home"]``, written by :func:`services.stopper.calibration.calibrate`)."""
+    home = table.provenance.get("home")
+    if not isinstance(home, dict) or not isinstance(home.get("warm"), bool):
+        return "unknown", None
+    if not home["warm"]:
+        return "cold", None
+    try:
+        bounds = MemoryBounds.model_validate(home["bounds"]) if home.get("bounds") else None
+    except ValueError:
+        bounds = None
+    return "warm", bounds
+
+
+def _noted(cal: CalibrationChoice, note: str, **update: object) -> CalibrationChoice:
+    return cal.model_copy(update={"note": "; ".join(n for n in (cal.note, note) if n), **update})
+
+
+def calibration_for_start(episode: EpisodeRecord, warm: WarmStart | None) -> None:
+    """At an episode's first step, the table its stopping runs on. A cold start (``warm`` None: no home, or the
+    first question in an empty home) keeps the cold table; a warm start takes the warm table the stopper
+    resolved at the start (``episode.warm_calibration``, ``EQA_HOME_CALIBRATION_NAME``) when there is one, else
+    keeps the cold table. Either way a warm start is marked ``warm_calibrated`` (in every Decision): False, with
+    the reason in the calibration's note (so in every decision's and the end's reason), when its stopping is not
+    calibrated for it: no warm table, a table of cold episodes, a table that records no memory bounds, or one
+    whose bounds differ from the episode's. Memory steps add terms to Eq. 9's min over steps, so a cold table's
+    q_hat says nothing of a warm episode's coverage (Claim 1 needs exchangeable calibration traces)."""
+    cal = episode.calibration
+    if cal is None:
+        return
+    if warm is None:
+        if cal.table_kind == "warm":
+            episode.calibration = _noted(cal, "the table was calibrated on warm starts; this episode starts cold")
+        return
+    episode.warm = warm
+    table = episode.warm_calibration
+    if table is None:
+        why = episode.warm_missing or "no warm table"
+        episode.calibration = _noted(cal, f"{WARM_NOT_CALIBRATED}: {why}; stopping on the cold table",
+                                     warm_calibrated=False)
+        return
+    problems = []
+    if table.table_kind == "cold":
+        problems.append(f"table {table.source} was calibrated on cold episodes")
+    elif table.warm_bounds is None:
+        problems.append(f"table {table.source} records no memory bounds")
+    else:
+        diff = table.warm_bounds.differences(warm.bounds)
+        if diff:
+            problems.append(f"memory bounds differ from table {table.source}'s (table vs episode: {', '.join(diff)})")
+    if problems:
+        episode.calibration = _noted(table, f"{WARM_NOT_CALIBRATED}: {'; '.join(problems)}", warm_calibrated=False)
+    else:
+        episode.calibration = table.model_copy(update={"warm_calibrated": True})
+
 
 
 def backend_mismatch(cal: CalibrationChoice, scores_backend: str | None) -> str:
@@ -165,6 +235,11 @@ class EpisodeRecord(BaseModel):
     # warm start: the leading entries of probs / relevance are the home's re-scored views (StepScores.memory),
     # decided on before step 0 and not counted as steps
     memory_steps: int = Field(default=0, ge=0)
+    # a question in a home: the warm table resolved at the start (None: none, warm_missing says why), taken at
+    # the first step if that step says the episode started warm (calibration_for_start); warm: that start
+    warm_calibration: CalibrationChoice | None = None
+    warm_missing: str = ""
+    warm: WarmStart | None = None
 
     @property
     def answer_rule(self) -> AnswerRule:
@@ -210,6 +285,7 @@ class EpisodeRecord(BaseModel):
             end_reason=end_reason,
             stop_rule=self.stop.rule,
             memory_steps=self.memory_steps,
+            warm=self.warm,
         )
 
     def fallback(self) -> str | None:
@@ -313,6 +389,7 @@ def cp_rule(step: RuleStep) -> Decision:
         scores={y: float(r) for y, r in zip(labels, rho, strict=True)},
         answer=answer,
         q_hat=cal.q_hat,
+        warm_calibrated=cal.warm_calibrated,
     )
 
 
@@ -404,6 +481,8 @@ def decide(episode: EpisodeRecord, scores: StepScores) -> Decision | None:
     if scores.step <= episode.last_step:
         return None
     rule = STOP_RULES[episode.stop.rule]
+    if not episode.probs and not episode.task and episode.stop.rule == "cp":
+        calibration_for_start(episode, scores.warm)
     if scores.step_limit is not None and not episode.probs and not episode.task:
         # a question in a home whose map explored part of the house: its budget is what appendix B gives the
         # floor left (eqa.budget.warm_step_limit); the trace's max_steps is this limit, so a table calibrated on

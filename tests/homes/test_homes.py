@@ -6,6 +6,7 @@ episode without a home unchanged."""
 from __future__ import annotations
 
 import math
+import threading
 import time
 from pathlib import Path
 
@@ -26,11 +27,11 @@ from eqa.messages import (
     StopConfig,
 )
 from eqa.settings import Settings
-from eqa.store import Store
+from eqa.store import RedisStore, Store
 from eqa_app.evaluation import replay
 from services.mapper.episode_map import EpisodeMap
 from services.mapper.home_memory import HomeMap, ViewInfo, ViewPool, coverage, select_views
-from services.mapper.home_shell import HomeMemory, view_key
+from services.mapper.home_shell import HomeMemory, objects_key, view_key
 from services.sim import camera
 from services.sim.library import load_or_generate
 from services.sim.questions import generate_questions
@@ -330,6 +331,83 @@ def test_a_reset_waits_for_a_write_back_in_progress_and_deletes_nothing_when_it_
     assert homes.reset_mark(store, home) is not None
 
 
+def test_an_expired_home_lock_released_late_leaves_the_next_holders_lock(store: Store, monkeypatch) -> None:
+    home = "h-lock"
+    monkeypatch.setattr(homes, "LOCK_TTL_S", 0.3)
+    with homes.locked(store, home, "mapper-1", 0.0) as first:
+        assert first is not None
+        time.sleep(0.4)  # held past the TTL: the lock expired
+        second = homes.take_lock(store, home, "mapper-2", 0.0)
+        assert second is not None and second != first
+    # mapper-1's block ended: its release named its own token and left mapper-2's lock
+    assert store.get(homes.lock_key(home)) == second.encode()
+    assert homes.take_lock(store, home, "reset", 0.0) is None
+    assert homes.release_lock(store, home, second) and store.get(homes.lock_key(home)) is None
+
+
+class _SlowCommitStore(RedisStore):
+    """A real Redis store whose first read of one key waits for an event: a mapper whose commit stalls (a slow
+    store, a paused process) after it read the home's index, past the lock's TTL."""
+
+    def __init__(self, url: str, slow_key: str, go: threading.Event) -> None:
+        super().__init__(url)
+        self.slow_key, self.go, self.stalled = slow_key, go, threading.Event()
+
+    def get(self, key: str) -> bytes | None:
+        if key == self.slow_key and not self.stalled.is_set():
+            self.stalled.set()
+            assert self.go.wait(20.0)
+        return super().get(key)
+
+
+def test_a_commit_slower_than_the_lock_ttl_merges_what_was_committed_meanwhile(
+        house, redis_url: str, tmp_path: Path, monkeypatch) -> None:
+    """Two mapper instances end episodes of one home; the first stalls inside its commit (after reading the
+    index) longer than the lock's TTL, so the second takes the expired lock and commits. The first must not
+    write over that commit: its write is refused (the index changed) and it commits again, merging both."""
+    _scene, renderer, q = house
+    home = "h-slow"
+    monkeypatch.setattr(homes, "LOCK_TTL_S", 0.5)
+    settings = Settings(data_dir=tmp_path / "var", home_max_views=4)
+    go = threading.Event()
+    slow = _SlowCommitStore(redis_url, objects_key(home), go)
+    fast = RedisStore(redis_url)
+    try:
+        fast.delete_many([*fast.keys(homes.prefix(home)), homes.reset_key(home)])
+        a = HomeMemory(settings.model_copy(update={"instance": "mapper-a"}), lambda: slow, lambda: fake_scorer([]))
+        b = HomeMemory(settings.model_copy(update={"instance": "mapper-b"}), lambda: fast, lambda: fake_scorer([]))
+        maps = {}
+        for eid, mem in (("ep-a", a), ("ep-b", b)):  # both start from the empty home
+            em = EpisodeMap(start_of(q, eid, home))
+            mem.start(em.start, em)
+            maps[eid] = em
+        for k in range(3):
+            for eid, mem, offset in (("ep-a", a, 0), ("ep-b", b, 3)):
+                f = frame_at(renderer, eid, k, turn(q.start_pose, k + offset))
+                maps[eid].integrate(f)
+                mem.observe(maps[eid], f)
+        done: dict[str, object] = {}
+        t = threading.Thread(target=lambda: done.setdefault("a", a.finish(maps["ep-a"])))
+        t.start()
+        assert slow.stalled.wait(20.0)  # a holds the lock and has read the index (version 0)
+        second = b.finish(maps["ep-b"])  # waits for a's lock to expire, then commits
+        assert second is not None and second.version == 1
+        go.set()
+        t.join(30.0)
+        first = done["a"]
+        assert first is not None and first.version == 2 and first.episodes == 2  # b's commit kept, not overwritten
+        assert {v.episode_id for v in first.views} == {"ep-a", "ep-b"}
+        stored = a.read_map(home)
+        x, y = HomeMap.from_episode(maps["ep-a"]), HomeMap.from_episode(maps["ep-b"])
+        assert stored is not None and stored.explored_cells() == y.merge(x).explored_cells()
+        assert fast.get(homes.lock_key(home)) is None
+        assert homes.delete_home(fast, home, 60.0) >= 3
+    finally:
+        go.set()
+        slow.close()
+        fast.close()
+
+
 # ---- the service over Zenoh ---------------------------------------------------------------------------------
 def end(episode_id: str, steps: int) -> EpisodeEnd:
     return EpisodeEnd(episode_id=episode_id, robot=ROBOT, state="stopped", reason="test", steps=steps)
@@ -349,7 +427,7 @@ def test_home_carried_over_warm_started_through_a_scorer_replica_and_continued_e
         for k in range(4):
             bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), frame_at(renderer, "ep-h1", k, turn(q.start_pose, k)))
             m, s = out.step(k)
-            assert s.memory == []  # nothing to remember yet
+            assert s.memory == [] and s.warm is None  # nothing to remember yet: the first question is a cold one
         first_area = m.explored_area_m2
         bus.publish(keys.stream(ROBOT, keys.EPISODE_END), end("ep-h1", 4))
         # the commit writes the index, then the summary: wait for the last of them
@@ -370,6 +448,9 @@ def test_home_carried_over_warm_started_through_a_scorer_replica_and_continued_e
         # its budget: appendix B's for the floor the home map left (20 steps stand for 44.4 m2), at least 6
         explored_m2 = mapper.homes.episodes["ep-h2"].loaded_cells * m0.grid.resolution ** 2
         assert explored_m2 > 0 and s0.step_limit == warm_step_limit(20, explored_m2, 0.3) < 20
+        # a warm start, with the bounds its memory steps and budget were made with (the stopper's table check)
+        assert s0.warm is not None and s0.warm.version == 1
+        assert (s0.warm.bounds.max_views, s0.warm.bounds.warm_budget) == (3, 0.3)
         assert out.errors.empty(), out.errors.get()
 
         # the cold reference: the same frame without a home sees only itself, no memory steps, no home keys
@@ -381,7 +462,7 @@ def test_home_carried_over_warm_started_through_a_scorer_replica_and_continued_e
         ref.integrate(frame_at(renderer, "ep-ref", 0, q.start_pose))
         assert c0.explored_area_m2 == pytest.approx(ref.explored_area_m2())
         assert c0.explored_area_m2 < m0.explored_area_m2
-        assert cs0.memory == [] and cs0.step_limit is None
+        assert cs0.memory == [] and cs0.step_limit is None and cs0.warm is None
         bus.publish(keys.stream(ROBOT, keys.EPISODE_END), end("ep-cold", 1))
         assert mapper.drain()
         time.sleep(0.3)
@@ -392,7 +473,8 @@ def test_home_carried_over_warm_started_through_a_scorer_replica_and_continued_e
         other = rig.instance(settings.model_copy(update={"instance": "mapper-b"}))
         bus.publish(keys.stream(ROBOT, keys.SIM_FRAME), frame_at(renderer, "ep-h2", 1, turn(q.start_pose, 4)))
         m1, s1 = out.step(1)
-        assert s1.memory == [] and s1.step_limit is None and m1.explored_area_m2 >= m0.explored_area_m2
+        assert s1.memory == [] and s1.step_limit is None and s1.warm is None
+        assert m1.explored_area_m2 >= m0.explored_area_m2
         assert other.homes.step_limit("ep-h2") == s0.step_limit  # carried with the episode's state
         # the candidate keyframe of step 0 came over with the episode's state (cells read back from the store)
         pool = other.homes.episodes["ep-h2"].pool.views
@@ -452,6 +534,30 @@ def test_bench_wrong_singletons_are_paired_on_the_same_questions() -> None:
     assert (res["paired"]["warm_only"], res["paired"]["cold_only"]) == (5, 1)
     assert res["paired"]["diff"] == pytest.approx(4 / 8) and 0 < res["paired"]["p_value"] < 0.25
     assert singletons([]) == {"n": 0}
+
+
+def test_budget_matched_cold_is_the_cold_trace_answered_at_the_warm_limit() -> None:
+    """The headline's comparison: a cold trace that would stop at step 9 under its own budget, cut at a warm limit
+    of 4, answers at step 4 with the fallback answer; a limit above its own budget changes nothing; a warm trace is
+    refused."""
+    from eqa_app.home_bench import budget_matched, matched, paired
+    from services.stopper.calibration import Trace, TraceStep
+
+    vague, sure = TraceStep(answer_probs=[0.3, 0.3, 0.2, 0.2], relevance=0.9), TraceStep(
+        answer_probs=[0.97, 0.01, 0.01, 0.01], relevance=0.9)
+    cold = Trace(question_id="q", scene="s", choices=["a", "b", "c", "d"], answer="A", max_steps=20, strategy="fbe",
+                 steps=[vague] * 8 + [sure] * 12)
+    stop, cal = StopConfig(rule="cp", eps=0.2), CalibrationChoice(q_hat=1.8, eps=0.2, asked_eps=0.2, n=10, source="t")
+    assert replay(cold, stop, cal).steps == 9
+    cut = replay(budget_matched(cold, 4), stop, cal)
+    assert cut.steps == 4 and cut.max_steps == 4 and len(cut.prediction_set) > 1
+    assert replay(budget_matched(cold, 50), stop, cal) == replay(cold, stop, cal)
+    with pytest.raises(ValueError, match="memory steps"):
+        budget_matched(cold.model_copy(update={"memory_steps": 2}), 4)
+    rows = [{"cold_steps": 20, "warm_steps": 4, "matched_steps": 5, "cold_correct": True, "warm_correct": True,
+             "matched_correct": False, "memory_steps": 3}] * 4
+    res = paired(matched(rows))
+    assert res["steps_ratio"] == pytest.approx(0.8) and res["success_paired"]["warm_only"] == 4
 
 
 def test_bench_task_metrics_are_paired_on_the_tasks_that_have_them() -> None:

@@ -395,3 +395,75 @@ def test_eqa_ask_sends_the_home(tmp_path: Path) -> None:
     body, _ = ask._body(args, tmp_path)
     assert body["home"] == "flat-1" and body["scene"] == SCENE
     assert "home" not in ask._body(parser.parse_args(["ask", "Where is it?", "--scene", SCENE]), tmp_path)[0]
+
+
+def test_eqa_ask_says_when_a_warm_question_stopped_on_a_table_not_calibrated_for_warm_starts(gw, capsys) -> None:
+    """The stopper's decisions of a warm start on the cold table carry ``warm_calibrated`` False (the services'
+    part: tests/stopper/test_warm_calibration.py); `eqa ask` follows the gateway's event stream and says so under
+    the answer. Here the stopper's messages come from the test's own Zenoh peer, over the real gateway."""
+    from eqa.messages import Decision, EpisodeEnd
+    from eqa_app import ask
+    from services.stopper.state import WARM_NOT_CALIBRATED
+
+    g, _c = gw
+    starts, bus = _starts(g.settings)
+    note = f"{WARM_NOT_CALIBRATED}: no warm table is named (EQA_HOME_CALIBRATION_NAME is empty)"
+    out: dict[str, ask.Outcome] = {}
+    t = threading.Thread(target=lambda: out.setdefault("o", ask.follow(
+        g.url, {**Q, "home": "flat-ask"}, "tok-a", 30.0, quiet=False)))
+    t.start()
+    try:
+        assert wait_for(lambda: bool(starts), timeout=15.0)
+        s = starts[0]
+        time.sleep(0.5)  # the client's event stream is open before the episode's messages come
+        reason = (f"one answer left in the prediction set: A (CP eps=0.2, q_hat=1.2, N=40; {note}; stopping on the "
+                  "cold table)")
+        bus.publish(keys.stream(s.robot, keys.STOPPER_DECISION), Decision(
+            episode_id=s.episode_id, step=0, rule="cp", stop=True, reason=reason, prediction_set=["A"], answer="A",
+            q_hat=1.2, warm_calibrated=False))
+        bus.publish(keys.stream(s.robot, keys.EPISODE_END), EpisodeEnd(
+            episode_id=s.episode_id, robot=s.robot, state="stopped", reason=reason, answer="A", steps=1,
+            max_steps=3, prediction_set=["A"]))
+        t.join(30.0)
+    finally:
+        bus.__exit__(None, None, None)
+    outcome = out["o"]
+    assert outcome.warm_uncalibrated is not None and outcome.status["state"] == "stopped"
+    ask._report(outcome, g.settings, None, False)
+    printed = capsys.readouterr().out
+    assert "warning: this question started from its home's memory and its " + WARM_NOT_CALIBRATED in printed
+    assert "EQA_HOME_CALIBRATION_NAME is empty" in printed.split("warning:")[1]
+
+
+def test_a_tenants_homes_are_bounded_in_bytes(tmp_path: Path, redis_url: str) -> None:
+    """EQA_HOMES_MAX_BYTES_PER_TENANT: an episode naming a home is admitted only while the tenant's other homes
+    (stored bytes, or EQA_HOME_MAX_BYTES while an episode of theirs runs) and this one's bound fit; past it a 429
+    naming the setting and nothing stored; another tenant has its own bound; a bound below one home's is refused."""
+    one = 1_000_000
+    s = _settings(tmp_path, redis_url, home_max_bytes=one, homes_max_bytes_per_tenant=2_500_000)
+    _clear(s)
+    with GatewayThread(s) as g, httpx.Client(base_url=g.url, timeout=30) as c:
+        first = c.post("/v1/questions", json={**Q, "home": "b1"}, headers=A)
+        second = c.post("/v1/questions", json={**Q, "home": "b2"}, headers=A)
+        assert first.status_code == 202 and second.status_code == 202, second.text
+        # b1 and b2 have running episodes: 2 x 1 MB counted, one more home would need 3 MB
+        r = c.post("/v1/questions", json={**Q, "home": "b3"}, headers=A)
+        assert r.status_code == 429 and "EQA_HOMES_MAX_BYTES_PER_TENANT=2500000" in r.json()["detail"], r.text
+        assert c.post("/v1/tasks", json={"instruction": "Find a mug", "scene": SCENE, "home": "b3"},
+                      headers=A).status_code == 429
+        assert c.get("/v1/homes/b3", headers=A).status_code == 404  # nothing stored
+        assert c.post("/v1/questions", json={**Q, "home": "b1"}, headers=A).status_code == 202  # its own bound
+        assert c.post("/v1/questions", json={**Q, "home": "b3"}, headers=B).status_code == 202  # another tenant
+        assert c.post("/v1/questions", json=Q, headers=A).status_code == 202  # no home: no bound
+        # b2's episode ends and the mapper wrote 0.2 MB: 1 MB (b1 runs) + 0.2 MB + 1 MB fit
+        assert c.delete(f"/v1/episodes/{second.json()['episode_id']}", headers=A).json()["state"] == "cancelled"
+        with open_store(s) as store:
+            homes.write_summary(store, homes.HomeSummary(home=homes.home_id(_tenant("tok-a"), "b2"), bytes=200_000))
+        assert c.post("/v1/questions", json={**Q, "home": "b3"}, headers=A).status_code == 202
+        for h in (A, B):
+            for ep in c.get("/v1/episodes", headers=h).json()["episodes"]:
+                if ep["state"] in ("queued", "running"):
+                    c.delete(f"/v1/episodes/{ep['episode_id']}", headers=h)
+    _clear(s)
+    with pytest.raises(ValueError, match="EQA_HOMES_MAX_BYTES_PER_TENANT=1000000 is below EQA_HOME_MAX_BYTES"):
+        Settings(home_max_bytes=2_000_000, homes_max_bytes_per_tenant=1_000_000)

@@ -49,6 +49,28 @@ def test_set_if_absent_is_a_lock(store):
     assert store.get("eqa:lock") == b"a"
 
 
+def test_delete_if_equal_releases_only_the_holders_value(store):
+    assert store.set_if_absent("eqa:lock", b"token-a", ttl_s=0.2)
+    time.sleep(0.3)  # a's lock expired; b takes it
+    assert store.set_if_absent("eqa:lock", b"token-b", ttl_s=30)
+    assert not store.delete_if_equal("eqa:lock", b"token-a")  # a's late release leaves b's lock
+    assert store.get("eqa:lock") == b"token-b"
+    assert store.delete_if_equal("eqa:lock", b"token-b") and store.get("eqa:lock") is None
+    assert not store.delete_if_equal("eqa:lock", b"token-b")
+
+
+def test_set_many_if_writes_only_over_the_expected_guard(store):
+    assert store.set_many_if("eqa:idx", None, [("eqa:part", b"p1"), ("eqa:idx", b"v1")], then_delete=["eqa:old"])
+    assert store.get("eqa:idx") == b"v1" and store.get("eqa:part") == b"p1"
+    store.set("eqa:old", b"x")
+    # a writer that read v1 and one that read nothing: only the first writes
+    assert not store.set_many_if("eqa:idx", None, [("eqa:part", b"late"), ("eqa:idx", b"v1-late")])
+    assert store.set_many_if("eqa:idx", b"v1", [("eqa:part", b"p2"), ("eqa:idx", b"v2")], ttl_s=30,
+                             then_delete=["eqa:old"])
+    assert not store.set_many_if("eqa:idx", b"v1", [("eqa:part", b"p3"), ("eqa:idx", b"v3")])
+    assert (store.get("eqa:idx"), store.get("eqa:part"), store.get("eqa:old")) == (b"v2", b"p2", None)
+
+
 def test_streams_are_ordered_and_resumable(store):
     ids = [store.append("eqa:events:1", f"e{i}".encode()) for i in range(50)]
     assert len(set(ids)) == 50

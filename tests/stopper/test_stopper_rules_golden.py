@@ -44,7 +44,10 @@ def test_rule_decisions_unchanged(case: dict) -> None:
     for i, st in enumerate(seq["steps"][: len(case["decisions"])]):
         d = decide(episode, StepScores(episode_id="e", step=i, answer_probs=st["answer_probs"],
                                        relevance=st["relevance"], backend="oracle"))
+        # (warm_calibrated is a warm start's calibration flag: None for these cold episodes, and not in the fixture)
         got.append(None if d is None else json.loads(d.model_dump_json(exclude={"sent_at"})))
+        if got[-1] is not None and got[-1].get("warm_calibrated", "absent") is None:
+            del got[-1]["warm_calibrated"]
     assert got == case["decisions"]
 
 

@@ -402,3 +402,35 @@ def test_a_step_of_an_episode_another_instance_ended_is_not_decided_again(
     svc.drain()
     assert not any(d.episode_id == eid and d.step == 2 for d in lis.decisions)
     assert eid not in svc.episodes and svc.store.get(STATE_PREFIX + eid) is None
+
+
+def test_a_question_in_a_home_stops_on_the_warm_table_only_when_it_started_warm(
+        hub_settings: Settings, settings: Settings) -> None:
+    """EQA_HOME_CALIBRATION_NAME names the warm table; the first question in an empty home (no StepScores.warm)
+    is a cold question and stops on the cold table; a question that started from the home's memory on the warm
+    one, and its decisions say so."""
+    from eqa.messages import MemoryBounds, MemoryScore, WarmStart
+
+    bounds = MemoryBounds(max_views=24, warm_views=24, memory_steps=0, warm_budget=0.15, warm_area="observed",
+                          stale_weight=0.0)
+    warm_start = WarmStart(version=1, bounds=bounds)
+    warm_traces = [synthetic.to_trace(e, f"w{i}").model_copy(update={"memory_steps": 1, "warm": warm_start})
+                   for i, e in enumerate(synthetic.episodes(40, seed=5))]
+    warm_table = calibrate(warm_traces, [0.2], name="home-warm")
+    store = EmbeddedStore(settings.data_dir / "store.sqlite")
+    save_table(store, _table())
+    save_table(store, warm_table)
+    store.close()
+    cold_q = _table().lookup(0.2)[0].q_hat  # type: ignore[index]
+    warm_q = warm_table.lookup(0.2)[0].q_hat  # type: ignore[index]
+    assert cold_q != warm_q
+    with listened_stopper(hub_settings, settings.model_copy(update={"home_calibration_name": "home-warm"})) as (
+            lis, _svc):
+        for eid, warm in (("ep-home-first", None), ("ep-home-warm", warm_start)):
+            lis.send(keys.EPISODE_START, _start(eid).model_copy(update={"home": "h-0123456789abcdef"}))
+            memory = [MemoryScore(answer_probs=[0.25] * 4, relevance=0.1)] if warm else []
+            lis.send(keys.MAPPER_SCORES, _scores(eid, 0, [0.3, 0.3, 0.2, 0.2], 0.2).model_copy(
+                update={"memory": memory, "warm": warm}))
+        first, warm_d = lis.decision("ep-home-first", 0), lis.decision("ep-home-warm", 0)
+        assert first.q_hat == cold_q and first.warm_calibrated is None
+        assert warm_d.q_hat == warm_q and warm_d.warm_calibrated is True
