@@ -8,7 +8,6 @@ from __future__ import annotations
 import json
 import random
 import socket
-import time
 from pathlib import Path
 from typing import Any
 
@@ -134,8 +133,18 @@ def test_metrics_count_what_happened_in_an_episode(fleet: Fleet):
         # while the episode ran: one running question episode on the gateway
         assert value(during, "eqa_gateway_episodes", state="running", kind="question") == 1
         assert value(during, "eqa_gateway_service_instances", service="vlm_scorer") == 2
-        time.sleep(0.5)  # the last step's observations are made after its message went out
-        after = _scrape_all(fleet)
+        # the last step's observations are made after its message went out: scrape until every service
+        # counted every step (bounded), then check everything on that scrape
+        scraped: dict[str, dict[str, list[Samples]]] = {}
+
+        def counted() -> bool:
+            scraped["after"] = _scrape_all(fleet)
+            return all(_total(scraped["after"][s], "eqa_step_seconds_count", service=s)
+                       - _total(before[s], "eqa_step_seconds_count", service=s) >= STEPS
+                       for s in ("sim", "mapper", "planner", "stopper"))
+
+        assert wait_for(counted, timeout=30, every=0.2), "a service had not counted every step after 30 s"
+        after = scraped["after"]
         gw = parse(client.get("/metrics").text)
 
     def delta(process: str, name: str, **labels: str) -> float:
@@ -202,8 +211,17 @@ def test_every_process_logs_json_lines_with_the_episode_context(fleet: Fleet):
     with httpx.Client(base_url=_gw(fleet), timeout=30) as client:
         eid, st, _ = _episode(fleet, client)
     assert st["state"] == "stopped"
-    time.sleep(0.5)
-    logs = {c.service: _json_lines(c.log_path) for c in fleet.children if c.service != "vlm_scorer"}
+    children = [c for c in fleet.children if c.service != "vlm_scorer"]
+
+    def logged() -> bool:  # each process writes its lines of the episode's end after the end went out
+        try:
+            return all(any(r.get("episode") == eid for r in _json_lines(c.log_path))
+                       for c in children if c.service in ("mapper", "planner", "stopper", "gateway"))
+        except ValueError:  # a line being written; the final read below parses every line
+            return False
+
+    assert wait_for(logged, timeout=30, every=0.2), "a service logged nothing of the episode within 30 s"
+    logs = {c.service: _json_lines(c.log_path) for c in children}
     for service, records in logs.items():
         assert records, service
         for r in records:
