@@ -385,12 +385,12 @@ def test_a_commit_slower_than_the_lock_ttl_merges_what_was_committed_meanwhile(
             for eid, mem, offset in (("ep-a", a, 0), ("ep-b", b, 3)):
                 f = frame_at(renderer, eid, k, turn(q.start_pose, k + offset))
                 maps[eid].integrate(f)
-                mem.observe(maps[eid], f)
+                mem.offer_view(maps[eid], f)
         done: dict[str, object] = {}
-        t = threading.Thread(target=lambda: done.setdefault("a", a.finish(maps["ep-a"])))
+        t = threading.Thread(target=lambda: done.setdefault("a", a.commit(maps["ep-a"])))
         t.start()
         assert slow.stalled.wait(20.0)  # a holds the lock and has read the index (version 0)
-        second = b.finish(maps["ep-b"])  # waits for a's lock to expire, then commits
+        second = b.commit(maps["ep-b"])  # waits for a's lock to expire, then commits
         assert second is not None and second.version == 1
         go.set()
         t.join(30.0)
