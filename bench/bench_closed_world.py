@@ -19,7 +19,7 @@ thresholds are declared in ``docs/results/closed-world-answers.md`` before any r
    and strategy on the calibration split's existence and counting questions with the same rule, with coverage.
 
     PYTHONPATH=. .venv/bin/python bench/bench_closed_world.py record --out DIR --workers 2
-    PYTHONPATH=. .venv/bin/python bench/bench_closed_world.py eval --out DIR --json bench/results/closed_world.json
+    PYTHONPATH=. .venv/bin/python bench/bench_closed_world.py eval --out DIR
 """
 
 from __future__ import annotations
@@ -458,6 +458,36 @@ def evaluate(out: Path) -> dict[str, Any]:
     return res
 
 
+def plot(res: dict[str, Any], path: Path) -> None:
+    """Success of the rules and of today's answering per question kind, at 0.5 T and T, per strategy."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    strategies = list(res["strategies"])
+    fig, axes = plt.subplots(1, len(strategies), figsize=(6.5 * len(strategies), 4.2), squeeze=False)
+    for ax, strategy in zip(axes[0], strategies, strict=True):
+        budgets = res["strategies"][strategy]["budgets"]
+        kinds = [k for k in budgets["1"] if k != "all"] + ["all"]
+        x = list(range(len(kinds)))
+        for j, (b, key, hatch) in enumerate((("0.5", "success_b", ""), ("0.5", "success_a", ""),
+                                             ("1", "success_b", "//"), ("1", "success_a", "//"))):
+            vals = [budgets[b][k][key] for k in kinds]
+            label = f"{'rules' if key == 'success_a' else 'today'} at {b} T"
+            ax.bar([i + (j - 1.5) * 0.2 for i in x], vals, 0.2, label=label, hatch=hatch,
+                   color="tab:orange" if key == "success_a" else "tab:blue", alpha=0.55 if b == "0.5" else 1.0)
+        ax.set_xticks(x, [f"{k}\nn={budgets['1'][k]['n']}\np={budgets['1'][k]['p']:.2g}" for k in kinds], fontsize=8)
+        ax.set_ylim(0, 1)
+        ax.set_ylabel("success")
+        ax.set_title(f"{strategy}, seeds 1-3 (p: paired sign test at T)", fontsize=9)
+        ax.legend(fontsize=7, loc="lower right")
+    fig.suptitle(f"closed-world existence and counting across views; scorer: {LABEL}", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -466,7 +496,8 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--workers", type=int, default=1)
     e = sub.add_parser("eval")
     e.add_argument("--out", type=Path, required=True)
-    e.add_argument("--json", type=Path, default=Path("bench/results/closed_world.json"))
+    e.add_argument("--json", type=Path, default=Path("bench/results/closed-world/closed_world.json"))
+    e.add_argument("--png", type=Path, default=Path("bench/results/closed-world/closed_world.png"))
     a = p.parse_args(argv)
     if a.cmd == "record":
         record(a.out, a.workers)
@@ -474,6 +505,7 @@ def main(argv: list[str] | None = None) -> int:
     res = evaluate(a.out)
     a.json.parent.mkdir(parents=True, exist_ok=True)
     a.json.write_text(json.dumps(res, indent=1))
+    plot(res, a.png)
     print(f"results: {a.json}", file=sys.stderr)
     return 0
 
