@@ -175,6 +175,18 @@ def load(out: Path, seed: int, split: str, strategy: str) -> list[CWEpisode]:
         return _Unpickler(fh).load()
 
 
+def load_all(outs: list[Path], seed: int, split: str, strategy: str) -> list[CWEpisode]:
+    """The recordings of several ``--out`` directories (two recorders, disjoint groups) together."""
+    seen: set[str] = set()
+    eps: list[CWEpisode] = []
+    for out in outs:
+        for e in load(out, seed, split, strategy):
+            if e.qid not in seen:
+                seen.add(e.qid)
+                eps.append(e)
+    return eps
+
+
 def questions(split: str, categories: tuple[str, ...], n: int | None, bench: Any) -> list[Any]:
     from services.sim.questions import category_round_robin
 
@@ -182,7 +194,7 @@ def questions(split: str, categories: tuple[str, ...], n: int | None, bench: Any
     return category_round_robin(qs, n, categories=categories)
 
 
-def record(out: Path, workers: int) -> None:
+def record(out: Path, workers: int, groups: list[int] | None = None) -> None:
     from tqdm import tqdm
 
     from eqa.settings import Settings
@@ -190,7 +202,9 @@ def record(out: Path, workers: int) -> None:
 
     out.mkdir(parents=True, exist_ok=True)
     benches: dict[int, Any] = {}
-    for seeds, split, strategy, categories, n in PLAN:
+    for g, (seeds, split, strategy, categories, n) in enumerate(PLAN):
+        if groups is not None and g not in groups:
+            continue
         todo: list[tuple[Any, int, str]] = []
         done: dict[int, list[CWEpisode]] = {}
         for seed in seeds:
@@ -366,13 +380,13 @@ def tune(eps: list[CWEpisode]) -> tuple[Any, list[dict[str, Any]], float]:
     return best[1], rows, base
 
 
-def evaluate(out: Path) -> dict[str, Any]:
+def evaluate(outs: list[Path]) -> dict[str, Any]:
 
     from bench.bench_answer_rules import Out, paired
     from eqa_app.evaluation import correct_at_budget, wilson_ci
     from services.stopper.conformal import conformal_quantile
 
-    tuning = [e for e in load(out, 11, "test", "semantic") if e.category == "existence"]
+    tuning = [e for e in load_all(outs, 11, "test", "semantic") if e.category == "existence"]
     chosen, rows, base = tune(tuning)
     print(f"scorer: oracle ({LABEL}); tuning seed 11, semantic, existence test questions: n = {len(tuning)}, "
           f"today's accuracy {base:.3f}")
@@ -395,9 +409,9 @@ def evaluate(out: Path) -> dict[str, Any]:
         cp_data: dict[int, tuple[list[CWEpisode], list[CWEpisode]]] = {}
         for seed in (1, 2, 3):
             traces = stored_traces(seed, strategy)
-            rec = {e.qid: e for e in load(out, seed, "test", strategy)}
+            rec = {e.qid: e for e in load_all(outs, seed, "test", strategy)}
             mismatched += check_against_traces(list(rec.values()), traces)
-            cp_data[seed] = (load(out, seed, "calibration", strategy), list(rec.values()))
+            cp_data[seed] = (load_all(outs, seed, "calibration", strategy), list(rec.values()))
             for qid, tr in traces.items():
                 cat = tr.category or ""
                 if cat in CATEGORIES and qid not in rec:
@@ -448,7 +462,9 @@ def evaluate(out: Path) -> dict[str, Any]:
             per = {c: paired([o for o, x in zip(outs["rule"], cats, strict=True) if x == c],
                              [o for o, x in zip(outs["today"], cats, strict=True) if x == c]) for c in set(cats)}
             r = paired(outs["rule"], outs["today"])
-            calibrated = "calibration split" if any(c for c, _ in cp_data.values()) else "2-fold cross-fit on test"
+            calibrated = ", ".join(f"seed {sd}: " + (f"calibration split (n={len(c)})" if c else
+                                                     "2-fold cross-fit on its test questions")
+                                   for sd, (c, t) in cp_data.items() if t)
             sres["cp"][f"{eps:g}"] = {"coverage": cov, "paired": r, "per_kind": per, "calibrated_on": calibrated}
             print(f"  CP eps={eps:g} ({calibrated}) n={r['n']}: success rule {r['success_a']:.3f} today "
                   f"{r['success_b']:.3f} p={r['p']:.3g} steps {r['steps_a']:.3f} vs {r['steps_b']:.3f}; coverage "
@@ -494,13 +510,15 @@ def main(argv: list[str] | None = None) -> int:
     r = sub.add_parser("record")
     r.add_argument("--out", type=Path, required=True)
     r.add_argument("--workers", type=int, default=1)
+    r.add_argument("--groups", type=int, nargs="+", default=None, help="only these PLAN entries (0-based), so "
+                   "two recorders can share the work in two --out directories")
     e = sub.add_parser("eval")
-    e.add_argument("--out", type=Path, required=True)
+    e.add_argument("--out", type=Path, nargs="+", required=True)
     e.add_argument("--json", type=Path, default=Path("bench/results/closed-world/closed_world.json"))
     e.add_argument("--png", type=Path, default=Path("bench/results/closed-world/closed_world.png"))
     a = p.parse_args(argv)
     if a.cmd == "record":
-        record(a.out, a.workers)
+        record(a.out, a.workers, a.groups)
         return 0
     res = evaluate(a.out)
     a.json.parent.mkdir(parents=True, exist_ok=True)
