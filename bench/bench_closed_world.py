@@ -239,7 +239,8 @@ TUNE_GRID = tuple((k, a, o) for k in (1, 2, 3) for a in (2.0, 4.0, 8.0) for o in
 def presence_steps(ep: CWEpisode) -> list[Any]:
     from services.stopper.closed_world import PresenceStep
 
-    return [PresenceStep(s.object_yes, s.in_room, s.room_area_m2, s.open_share) for s in ep.steps]
+    return [PresenceStep(object_yes=s.object_yes, in_room=s.in_room, room_area_m2=s.room_area_m2,
+                         open_share=min(s.open_share, 1.0)) for s in ep.steps]
 
 
 def layer_dist(ep: CWEpisode, t: int) -> Any:
@@ -439,7 +440,7 @@ def evaluate(outs: list[Path]) -> dict[str, Any]:
                       f"diff {r['diff']:+.3f} [{r['ci_low']:+.3f}, {r['ci_high']:+.3f}] only rule/today "
                       f"{r['a_only']}/{r['b_only']} p={r['p']:.3g} steps {r['steps_a']:.3f}")
         for eps in EPS_EVAL:
-            outs: dict[str, list[Out]] = {"rule": [], "today": []}
+            cp_outs: dict[str, list[Out]] = {"rule": [], "today": []}
             cats: list[str] = []
             for _seed, (cal, test) in cp_data.items():
                 if not test:
@@ -450,18 +451,18 @@ def evaluate(outs: list[Path]) -> dict[str, Any]:
                         continue
                     for key, on in (("rule", True), ("today", False)):
                         q = conformal_quantile([kappa(e, chosen, on) for e in c], eps)
-                        outs[key] += [Out(*cp_replay(e, chosen, on, q)) for e in t]
+                        cp_outs[key] += [Out(*cp_replay(e, chosen, on, q)) for e in t]
                     cats += [e.category for e in t]
             if not cats:
                 continue
             cov = {}
             for key in ("rule", "today"):
-                k = sum(bool(o.covered) for o in outs[key])
-                lo, hi = wilson_ci(k, len(outs[key]))
-                cov[key] = {"coverage": k / len(outs[key]), "ci_low": lo, "ci_high": hi, "n": len(outs[key])}
-            per = {c: paired([o for o, x in zip(outs["rule"], cats, strict=True) if x == c],
-                             [o for o, x in zip(outs["today"], cats, strict=True) if x == c]) for c in set(cats)}
-            r = paired(outs["rule"], outs["today"])
+                k = sum(bool(o.covered) for o in cp_outs[key])
+                lo, hi = wilson_ci(k, len(cp_outs[key]))
+                cov[key] = {"coverage": k / len(cp_outs[key]), "ci_low": lo, "ci_high": hi, "n": len(cp_outs[key])}
+            per = {c: paired([o for o, x in zip(cp_outs["rule"], cats, strict=True) if x == c],
+                             [o for o, x in zip(cp_outs["today"], cats, strict=True) if x == c]) for c in set(cats)}
+            r = paired(cp_outs["rule"], cp_outs["today"])
             calibrated = ", ".join(f"seed {sd}: " + (f"calibration split (n={len(c)})" if c else
                                                      "2-fold cross-fit on its test questions")
                                    for sd, (c, t) in cp_data.items() if t)

@@ -562,6 +562,18 @@ class MemoryScore(BaseModel):
     seen_at: float = 0.0  # when the view was taken (unix seconds)
 
 
+class PresenceEvidence(BaseModel):
+    """One step's signals of the closed-world existence rule (``services/stopper/closed_world.py``): P(Yes) to
+    PRESENCE and IN_ROOM (None: no room asked) and the asked room's extent on the robot's map
+    (``services/mapper/room_extent.py``)."""
+
+    model_config = ConfigDict(extra="forbid")
+    object_yes: float = Field(ge=0.0, le=1.0)
+    in_room: float | None = Field(default=None, ge=0.0, le=1.0)
+    room_area_m2: float = Field(ge=0.0, le=1e6)
+    open_share: float = Field(ge=0.0, le=1.0)
+
+
 class StepScores(Message):
     """What the stopper needs of one step: the answer distribution and the relevance."""
 
@@ -576,6 +588,7 @@ class StepScores(Message):
     choices: list[str] = Field(default_factory=list)
     mode: str = Field(default="", max_length=32)  # the scorer's mode (ScoreResult.mode)
     object_evidence: ObjectEvidence | None = None  # the object layer's evidence (question episodes)
+    presence: PresenceEvidence | None = None  # the closed-world rule's signals (EQA_CLOSED_WORLD)
     # joint answer memory: the steps whose views answer_probs was answered from in one prompt
     # (empty: answer_probs is this step's own view)
     answer_views: list[Annotated[int, Field(ge=0)]] = Field(default_factory=list, max_length=MAX_MEMORY_VIEWS)

@@ -129,5 +129,5 @@ class RoomExtent:
         near = ndimage.binary_dilation(room, structure=_EIGHT, iterations=CLOSE_CELLS)
         boundary = room & ~ndimage.binary_erosion(room, structure=_EIGHT, border_value=0)
         n_boundary = int(boundary.sum())
-        open_share = float((frontier & near).sum()) / n_boundary if n_boundary else 1.0
+        open_share = min(1.0, float((frontier & near).sum()) / n_boundary) if n_boundary else 1.0
         return RoomCoverage(area, open_share, area >= min_area_m2 and open_share <= max_open)

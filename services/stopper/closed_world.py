@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from eqa.messages import PresenceEvidence as PresenceStep
 from services.stopper.object_evidence import yes_no
 
 
@@ -61,26 +62,25 @@ class ClosedWorldParams:
             raise ValueError(f"closed-world padding must be in [0, 0.1), got {self.padding!r}")
 
 
-@dataclass(frozen=True)
-class PresenceStep:
-    """One step's signals (module docstring). ``in_room`` None: the question names no room."""
-
-    object_yes: float
-    in_room: float | None
-    room_area_m2: float
-    open_share: float
+def step_verdict(yes_so_far: int, s: PresenceStep, params: ClosedWorldParams) -> tuple[int, bool]:
+    """One step of the rule: ``(room views with the object so far, whether the rule concludes "No" here)``.
+    Once ``yes_so_far >= k_yes`` the rule never concludes."""
+    yes = yes_so_far
+    if s.in_room is not None and s.in_room >= params.in_room_min and s.object_yes >= params.presence_min:
+        yes += 1
+    if yes >= params.k_yes:
+        return yes, False
+    return yes, s.room_area_m2 >= params.min_area_m2 and s.open_share <= params.max_open
 
 
 def firing_step(steps: Sequence[PresenceStep], params: ClosedWorldParams) -> int | None:
     """The first step at which the rule concludes "No" (module docstring), or None."""
     yes = 0
     for t, s in enumerate(steps):
-        room_view = s.in_room is not None and s.in_room >= params.in_room_min
-        if room_view and s.object_yes >= params.presence_min:
-            yes += 1
+        yes, fires = step_verdict(yes, s, params)
         if yes >= params.k_yes:
             return None
-        if s.room_area_m2 >= params.min_area_m2 and s.open_share <= params.max_open:
+        if fires:
             return t
     return None
 

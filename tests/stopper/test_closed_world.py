@@ -12,7 +12,7 @@ CHOICES = ["(Do not choose this option)", "Yes", "(Do not choose this option)", 
 
 
 def _steps(*rows: tuple[float, float | None, float, float]) -> list[PresenceStep]:
-    return [PresenceStep(*r) for r in rows]
+    return [PresenceStep(object_yes=a, in_room=b, room_area_m2=c, open_share=d) for a, b, c, d in rows]
 
 
 def test_fires_once_the_room_is_observed_without_evidence():
