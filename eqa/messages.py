@@ -482,8 +482,19 @@ def _check_memory_views(views: list[np.ndarray]) -> list[np.ndarray]:
     return views
 
 
+class PresenceQuery(BaseModel):
+    """Two more yes/no prompts of a step (``services/vlm_scorer/prompts.py`` PRESENCE and IN_ROOM): is there an
+    ``object`` in the image, and is the image taken in the ``room`` (None: not asked). What the closed-world
+    existence rule (``services/stopper/closed_world.py``) and the room's extent read."""
+
+    model_config = ConfigDict(extra="forbid")
+    object: ClassName
+    room: ClassName | None = None
+
+
 class ScoreRequest(Message):
-    """The four queries of one step (Explore-EQA Eq. 1, 2, 5 and the answer distribution).
+    """The four queries of one step (Explore-EQA Eq. 1, 2, 5 and the answer distribution), and the presence
+    queries when ``presence`` names an object.
 
     Joint answer memory: with ``memory_views`` (1..16 images, each side <= 448 px) the request asks
     only for the answer distribution over ALL those views in one prompt (backends that take several images);
@@ -502,6 +513,7 @@ class ScoreRequest(Message):
     depth: NDArray | None = None
     seed: int = 0
     memory_views: list[NDArray] = Field(default_factory=list, max_length=MAX_MEMORY_VIEWS)
+    presence: PresenceQuery | None = None
 
     @field_validator("memory_views")
     @classmethod
@@ -527,6 +539,9 @@ class ScoreResult(Message):
     # of sampled completions, multiples of ``resolution`` = 1/valid samples); "" from older replicas
     mode: str = Field(default="", max_length=32)
     resolution: float = Field(default=0.0, ge=0.0, le=1.0)
+    # P(Yes) to the presence prompts (None: not asked, PresenceQuery)
+    object_yes: float | None = Field(default=None, ge=0.0, le=1.0)
+    in_room: float | None = Field(default=None, ge=0.0, le=1.0)
 
 
 class ErrorReply(Message):
@@ -594,6 +609,18 @@ class WarmStart(BaseModel):
     bounds: MemoryBounds
 
 
+class PresenceEvidence(BaseModel):
+    """One step's signals of the closed-world existence rule (``services/stopper/closed_world.py``): P(Yes) to
+    PRESENCE and IN_ROOM (None: no room asked) and the asked room's extent on the robot's map
+    (``services/mapper/room_extent.py``)."""
+
+    model_config = ConfigDict(extra="forbid")
+    object_yes: float = Field(ge=0.0, le=1.0)
+    in_room: float | None = Field(default=None, ge=0.0, le=1.0)
+    room_area_m2: float = Field(ge=0.0, le=1e6)
+    open_share: float = Field(ge=0.0, le=1.0)
+
+
 class StepScores(Message):
     """What the stopper needs of one step: the answer distribution and the relevance."""
 
@@ -608,6 +635,7 @@ class StepScores(Message):
     choices: list[str] = Field(default_factory=list)
     mode: str = Field(default="", max_length=32)  # the scorer's mode (ScoreResult.mode)
     object_evidence: ObjectEvidence | None = None  # the object layer's evidence (question episodes)
+    presence: PresenceEvidence | None = None  # the closed-world rule's signals (EQA_CLOSED_WORLD)
     # joint answer memory: the steps whose views answer_probs was answered from in one prompt
     # (empty: answer_probs is this step's own view)
     answer_views: list[Annotated[int, Field(ge=0)]] = Field(default_factory=list, max_length=MAX_MEMORY_VIEWS)

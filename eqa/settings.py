@@ -172,6 +172,11 @@ class SimulatedPerceptionSettings(SettingsGroup):
     oracle_miscal_view: float = Field(default=0.0, ge=0.0, le=1.0, description="Rel varies by view clutter")
     oracle_miscal_related: float = Field(default=0.0, ge=0.0, le=1.0, description="related-but-wrong object taken")
     oracle_miscal_irrelevant: float = Field(default=0.0, ge=0.0, le=1.0, description="confident no-evidence answers")
+    # presence queries ("is there an X in this image?", "is this the Y?"), oracle.py documents each
+    oracle_presence_miss: float = Field(default=0.15, ge=0.0, le=1.0, description="P(an instance is never recognised)")
+    oracle_presence_false_yes: float = Field(default=0.1, ge=0.0, le=1.0, description="P(hallucinated yes) per view")
+    oracle_presence_room_error: float = Field(default=0.1, ge=0.0, le=1.0, description="P(wrong room answer) per view")
+    oracle_presence_confidence: float = Field(default=0.85, ge=0.5, lt=1.0, description="mean P of the answer given")
 
 
 class PlannerSettings(SettingsGroup):

@@ -7,6 +7,9 @@
 * local semantic value LSV_p, Eq. 1: prompt s_LSV on the image annotated with lettered prompt points,
   candidates = the point letters.
 * global semantic value GSV, Eq. 2: prompt s_GSV, candidates Yes / No, value = P(Yes).
+* presence (the closed-world existence rule, ``services/stopper/closed_world.py``; not in either paper): prompt
+  PRESENCE "is there an <object> in this image?" and IN_ROOM "is this image taken in the <room>?", candidates
+  Yes / No, value = P(Yes); asked only when the request names an object (``ScoreRequest.presence``).
 * questions without choices (section VI-A): prompt PROPOSE asks for short candidate answers, one per line;
   :data:`eqa.messages.NOT_LISTED_CHOICE` is appended to what the model proposes.
 """
@@ -15,7 +18,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from eqa.messages import Question, letters
+from eqa.messages import PresenceQuery, Question, letters
 
 SYSTEM = "You are a helpful assistant."
 
@@ -41,6 +44,10 @@ PROPOSE = (
     "view, one per line, without numbering."
 )
 
+PRESENCE = "Is there {object} in this image? Answer with Yes or No."
+
+IN_ROOM = "Is this image taken in the {room}? Answer with Yes or No."
+
 YES_NO = ("Yes", "No")
 MAX_PROPOSALS = 4
 
@@ -49,7 +56,7 @@ MAX_PROPOSALS = 4
 class Query:
     """One next-token query: which image (plain or annotated), the prompt text and the candidate tokens."""
 
-    name: str  # "answer" | "relevance" | "lsv" | "gsv"
+    name: str  # "answer" | "relevance" | "lsv" | "gsv" | "presence" | "in_room"
     text: str
     candidates: tuple[str, ...]
     annotated: bool = False
@@ -75,8 +82,25 @@ def memory_answer_prompt(question: Question, choices: list[str], n_views: int) -
     return f"{MEMORY_PREAMBLE.format(n=n_views)}\n{answer_prompt(question, choices)}"
 
 
-def step_queries(question: Question, choices: list[str], n_points: int) -> list[Query]:
-    """The queries of one step, in batch order: answer, relevance, GSV, and LSV when there are points."""
+def _spoken(name: str) -> str:
+    return " ".join(name.replace("_", " ").split())
+
+
+def presence_queries(presence: PresenceQuery) -> list[Query]:
+    """PRESENCE for the object (with its article: "a mug", "an apple", "any shoes" for a plural-only class)
+    and IN_ROOM when a room is named."""
+    obj = _spoken(presence.object)
+    article = "any" if obj.endswith("s") and not obj.endswith("ss") else "an" if obj[0] in "aeiou" else "a"
+    out = [Query("presence", PRESENCE.format(object=f"{article} {obj}"), YES_NO)]
+    if presence.room:
+        out.append(Query("in_room", IN_ROOM.format(room=_spoken(presence.room)), YES_NO))
+    return out
+
+
+def step_queries(question: Question, choices: list[str], n_points: int,
+                 presence: PresenceQuery | None = None) -> list[Query]:
+    """The queries of one step, in batch order: answer, relevance, GSV, LSV when there are points, and the
+    presence queries when ``presence`` is given."""
     q = question.text.strip().rstrip("?.! ") + "?"
     out = [
         Query("answer", answer_prompt(question, choices), tuple(letters(len(choices)))),
@@ -85,6 +109,8 @@ def step_queries(question: Question, choices: list[str], n_points: int) -> list[
     ]
     if n_points >= 2:
         out.append(Query("lsv", LSV.format(question=q), tuple(letters(n_points)), annotated=True))
+    if presence is not None:
+        out += presence_queries(presence)
     return out
 
 

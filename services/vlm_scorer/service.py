@@ -204,6 +204,8 @@ class ScorerService(Service):
             proposed_choices=scores.proposed_choices,
             mode=scores.mode,
             resolution=scores.resolution,
+            object_yes=scores.object_yes,
+            in_room=scores.in_room,
         )
 
     def handle_joint(self, req: ScoreRequest, error: Any) -> Message:

@@ -46,6 +46,8 @@ class Scores:
     # completions, each a multiple of ``resolution`` (1 / the fewest valid samples of the step's queries)
     mode: str = "logprobs"
     resolution: float = 0.0
+    object_yes: float | None = None  # P(Yes) to PRESENCE / IN_ROOM (None: not asked)
+    in_room: float | None = None
 
 
 @dataclass
@@ -154,7 +156,8 @@ class ModelBackend(Backend):
             choices = proposed
         points = req.prompt_points
         annotated = annotate(req.rgb, points) if len(points) >= 2 else None
-        return ProbeItem(req.rgb, annotated, prompts.step_queries(req.question, choices, len(points))), proposed
+        queries = prompts.step_queries(req.question, choices, len(points), req.presence)
+        return ProbeItem(req.rgb, annotated, queries), proposed
 
     @staticmethod
     def finish(req: ScoreRequest, item: ProbeItem, proposed: list[str], raw: list[dict[str, float]]) -> Scores:
@@ -169,6 +172,8 @@ class ModelBackend(Backend):
             gsv=by_name["gsv"][0],
             proposed_choices=proposed,
             annotated=item.annotated,
+            object_yes=by_name["presence"][0] if "presence" in by_name else None,
+            in_room=by_name["in_room"][0] if "in_room" in by_name else None,
         )
 
     def score(self, req: ScoreRequest) -> Scores:

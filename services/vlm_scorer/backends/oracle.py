@@ -57,6 +57,26 @@ level 0, so one recorded run serves every level (``bench``'s sensitivity study r
   probability of the (biased) answer moves towards 0.99, ``top += level * (0.99 - top)`` (VII-G: "the VLM still
   outputs highly confident, biased answers" facing an empty wall; what makes the entropy rule stop early).
 
+Presence queries ("is there an X in this image?", "is this image taken in the Y?", the prompts ``PRESENCE``
+and ``IN_ROOM`` of :mod:`services.vlm_scorer.prompts`, asked when ``ScoreRequest.presence`` names an object
+class and maybe a room): :meth:`OracleBackend.presence` answers them from the current frame only, with the
+errors open VLMs show on such yes/no probes (object-hallucination benchmarks such as POPE, Li et al. 2023,
+report open VLMs answering "yes" for absent objects in roughly 5-30 % of probes and missing small objects):
+
+* object: every visible instance of the class (any room: the question is about the image) with a quality
+  ``E > 0`` (the perception above) is recognised with probability ``E``, unless the model consistently fails on
+  that instance (``presence_miss``, drawn once per (question, instance), as a VLM that takes one mug for a
+  vase does so from every side); with nothing recognised it still says "yes" with probability
+  ``presence_false_yes`` (a hallucination, drawn per view);
+* room: the view shows the room kind when at least half of the structure pixels in it (floor, walls, ceiling,
+  windows, which carry their room's kind) belong to a room of that kind; the answer is the other one with
+  probability ``presence_room_error`` (per view: a VLM confusing a bedroom with an office);
+* confidence: the P(Yes) reported is ``c`` for "yes" and ``1 - c`` for "no" with ``c`` drawn around
+  ``presence_confidence`` (sd 0.1, clipped to [0.5, 0.99]) whether the answer is right or wrong: as
+  confident when wrong as when right (miscalibrated).
+
+These knobs were set from the literature's error rates before any run and are not tuned on a benchmark.
+
 Every draw comes from a generator seeded by (``ScoreRequest.seed``, question id, step), so the same request
 gives the same numbers. The defaults aim at the paper's 56-65 % success at the full step budget for open
 VLMs; the same defaults serve every exploration and stopping strategy.
@@ -158,6 +178,10 @@ class OracleParams:
     miscal_view: float = 0.0
     miscal_related: float = 0.0
     miscal_irrelevant: float = 0.0
+    presence_miss: float = 0.15  # presence queries (module docstring)
+    presence_false_yes: float = 0.1
+    presence_room_error: float = 0.1
+    presence_confidence: float = 0.85
 
     @property
     def miscalibrated(self) -> bool:
@@ -502,7 +526,46 @@ class OracleBackend(Backend):
         if self.p.miscalibrated:  # the path (LSV, GSV) stays that of level 0; only f and Rel change
             probs, rel = self.miscalibrated_scores(req, choices, t, targets, self.related_views(req, t),
                                                    self.clutter(req))
-        return Scores(probs, rel, lsv, gsv, proposed)
+        out = Scores(probs, rel, lsv, gsv, proposed)
+        if req.presence is not None:  # its own generator: the four numbers above do not change
+            out.object_yes, out.in_room = self.presence(req, req.presence.object, req.presence.room)
+        return out
+
+    def presence(self, req: ScoreRequest, category: str, room_kind: str | None) -> tuple[float, float | None]:
+        """``(P(Yes) to "is there a <category> in this image?", P(Yes) to "is this image taken in the <room>?"
+        or None without a room)`` from the frame's labels only (module docstring, presence queries)."""
+        p = self.p
+        rng = np.random.default_rng([req.seed, _h(req.question.id), req.step, 23])
+        cat = cs.norm_category(category)
+        seen = False
+        for lab in req.labels:
+            if cs.norm_category(lab.category) != cat:
+                continue
+            _, frac, dist = self._view(req, lab)
+            quality = self.view_quality(frac, dist)
+            missed = np.random.default_rng([req.seed, _h(req.question.id), lab.id + 1, 29]).random() < p.presence_miss
+            if quality > 0 and not missed and rng.random() < quality:
+                seen = True
+        hallucinated = rng.random() < p.presence_false_yes
+        object_yes = self._yes_no_prob(rng, seen or hallucinated)
+        if not room_kind:
+            return object_yes, None
+        want = cs.canonical_room(room_kind)
+        total = mine = 0
+        for lab in req.labels:
+            if cs.norm_category(lab.category) not in STRUCTURE_CATEGORIES:
+                continue
+            n = int((req.instances == lab.id).sum()) if req.instances is not None else lab.pixels
+            total += n
+            mine += n if cs.canonical_room(lab.room_kind) == want else 0
+        in_room = total > 0 and mine >= 0.5 * total
+        if rng.random() < p.presence_room_error:
+            in_room = not in_room
+        return object_yes, self._yes_no_prob(rng, in_room)
+
+    def _yes_no_prob(self, rng: np.random.Generator, yes: bool) -> float:
+        c = float(np.clip(rng.normal(self.p.presence_confidence, 0.1), 0.5, 0.99))
+        return c if yes else 1.0 - c
 
     def miscalibrated_scores(self, req: ScoreRequest, choices: list[str], t: Target, targets: list[View],
                              related: list[View], clutter: float) -> tuple[list[float], float]:
