@@ -161,7 +161,9 @@ def _print_event(event: dict[str, Any], task: bool = False, width: int | None = 
     """One line (wrapped, :func:`_line`) per event a user follows an episode by. In a ``task`` episode a step is
     the planner's goal; the stopper's decisions of its stand-in question (the ``max_steps`` rule, "running to the
     step limit") say nothing the step count does not, and they come from another service than the goal of
-    the same step, so the bus may deliver either first: only the decision that ends the episode is printed."""
+    the same step, so the bus may deliver either first: only the decision that ends the episode is printed. The
+    planner's last goal (phase ``finished``) is not printed either: it races the episode's end to the gateway,
+    which records nothing of an ended episode, and the end's summary says the same (its step and reason)."""
     kind = event.get("kind")
     if kind == "decision":
         if task and not event.get("stop"):
@@ -171,7 +173,7 @@ def _print_event(event: dict[str, Any], task: bool = False, width: int | None = 
             print(_line(f"  step {event.get('step'):>3}: set {pset:<11} ", event.get("reason", ""), width), flush=True)
         else:
             print(_line(f"  step {event.get('step'):>3}: ", event.get("reason", ""), width), flush=True)
-    elif kind == "goal" and event.get("phase"):  # a task episode (eqa task)
+    elif kind == "goal" and event.get("phase") and event.get("phase") != "finished":  # a task episode (eqa task)
         skill = event.get("skill") or "move"
         what = f"{skill} " if skill != "move" else ""
         print(_line(f"  step {event.get('step'):>3}: {event.get('phase'):<12} ", f"{what}{event.get('reason', '')}",
