@@ -94,7 +94,7 @@ def test_podman_override_changes_only_what_cannot_be_pulled_here():
     assert all(p.startswith("127.0.0.1:") for p in services["gateway"]["ports"])
     router = services["zenoh"]["command"]
     assert router[:4] == ["python", "-m", "eqa_app", "router"] and "tcp/0.0.0.0:7447" in router
-    assert _module_exists("eqa")
+    assert _module_exists("eqa_app")
     assert set(services["zenoh"]["environment"]) <= env_names()
     assert services["redis"]["command"][0] == "redis-server"
 

@@ -42,9 +42,9 @@ ROBOT = "r0"
 W, H = 160, 120
 EPISODES = ("ep-gq", "ep-gt")  # a question with evidence and memory, a task
 LEFT_OUT = frozenset({"timing_ms", "sent_at", "request_id"})
-# fields the digests were recorded without, left out while empty (StepScores.memory, step_limit, warm: an episode in no
+# fields the digests were recorded without, left out while empty (StepScores.memory, step_limit, warm, presence: an episode in no
 # home)
-EMPTY_LEFT_OUT = frozenset({"memory", "step_limit", "warm"})
+EMPTY_LEFT_OUT = frozenset({"memory", "step_limit", "warm", "presence"})
 
 # sha256 of the canonical outputs (canonical() below) of the run in the test
 GOLDEN = {
