@@ -42,8 +42,8 @@ ROBOT = "r0"
 W, H = 160, 120
 EPISODES = ("ep-gq", "ep-gt")  # a question with evidence and memory, a task
 LEFT_OUT = frozenset({"timing_ms", "sent_at", "request_id"})
-# fields the digests were recorded without, left out while empty (StepScores.memory, step_limit, warm, presence: an episode in no
-# home)
+# fields the digests were recorded without, left out while empty (StepScores.memory, step_limit, warm, presence:
+# an episode in no home, no presence query)
 EMPTY_LEFT_OUT = frozenset({"memory", "step_limit", "warm", "presence"})
 
 # sha256 of the canonical outputs (canonical() below) of the run in the test
