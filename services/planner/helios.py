@@ -35,6 +35,8 @@ from typing import Literal
 
 Ablation = Literal["helios", "no_global", "trusting"]
 ABLATIONS: tuple[str, ...] = ("helios", "no_global", "trusting")
+ValueScale = Literal["paper", "best"]
+VALUE_SCALES: tuple[str, ...] = ("paper", "best")
 
 
 @dataclass(frozen=True)
@@ -113,6 +115,9 @@ class SearchMemory:
                 self.stored[c.instance_id] = StoredCandidate(c.instance_id, c.S, c.IG, c.x, c.y)
 
     def choose_frontier(self, f: FrontierOption) -> None:
+        """Add ``f`` to ``F'``: once per frontier the robot sets out for (the planner shell calls it when a
+        newly chosen frontier's path is planned), not at every call of :func:`choose` -- a choice kept while
+        the robot is on its way, or one whose path fails, is no new association of Eq. 9."""
         self.chosen.append(ChosenFrontier(f.x, f.y, f.F))
 
     def to_json(self) -> dict[str, object]:
@@ -158,23 +163,37 @@ def candidates_of(observed: Iterable[CandidateObservation], cs_a: float,
 
 
 def values(robot_xy: tuple[float, float], frontiers: Sequence[FrontierOption],
-           candidates: Sequence[CandidateObservation], memory: SearchMemory, alpha_d: float) -> list[Choice]:
-    """Eq. 10 for every frontier and candidate, highest first (ties: candidates first, then lower index)."""
+           candidates: Sequence[CandidateObservation], memory: SearchMemory, alpha_d: float,
+           scale: ValueScale = "paper") -> list[Choice]:
+    """Eq. 10 for every frontier and candidate, highest first (ties: candidates first, then lower index).
+
+    ``scale``: ``paper`` -- the benefits ``S IG`` and ``F F0`` as Eq. 10 writes them. Their size is set by IG, a
+    count of Gaussians (10-1000 here) and ``F0`` (which carries IG's scale onto ``F``), so Table 3's
+    ``alpha_d = 0.001`` per metre changes no ranking: the robot crosses the house for a frontier worth 1 % more.
+    ``best`` -- each benefit over the largest benefit of this step (the best option scores 1), so ``alpha_d`` is
+    the share of the best benefit one metre costs, whatever the scale of IG; the order of the benefits alone
+    (``alpha_d = 0``) is the same in both."""
+    if scale not in VALUE_SCALES:
+        raise ValueError(f"scale must be one of {VALUE_SCALES}, got {scale!r}")
     rx, ry = robot_xy
     F0 = f0_association(memory.chosen, list(memory.stored.values()), alpha_d)
-    out = [Choice("candidate", c.instance_id, c.S * c.IG - alpha_d * math.hypot(c.x - rx, c.y - ry), c.x, c.y)
-           for c in candidates]
-    out += [Choice("frontier", f.index, f.F * F0 - alpha_d * math.hypot(f.x - rx, f.y - ry), f.x, f.y)
-            for f in frontiers if math.isfinite(f.F)]
+    gains = [("candidate", c.instance_id, c.S * c.IG, c.x, c.y) for c in candidates]
+    gains += [("frontier", f.index, f.F * F0, f.x, f.y) for f in frontiers if math.isfinite(f.F)]
+    top = max((g[2] for g in gains if math.isfinite(g[2])), default=0.0)
+    norm = top if scale == "best" and top > 0 else 1.0
+    out = [Choice(kind, ref, gain / norm - alpha_d * math.hypot(x - rx, y - ry), x, y)  # type: ignore[arg-type]
+           for kind, ref, gain, x, y in gains]
     out.sort(key=lambda ch: (-ch.value, ch.kind != "candidate", ch.ref))
     return out
 
 
 def choose(robot_xy: tuple[float, float], frontiers: Sequence[FrontierOption],
            observed: Sequence[CandidateObservation], memory: SearchMemory, alpha_d: float, cs_a: float,
-           ablation: Ablation = "helios", committed: int | None = None) -> Choice | None:
+           ablation: Ablation = "helios", committed: int | None = None,
+           scale: ValueScale = "paper") -> Choice | None:
     """The next global-search target under ``ablation`` (module doc); None when there is nothing to go to.
-    Stores first detections in ``memory`` (and the chosen frontier, when one is chosen).
+    Stores first detections in ``memory``; the chosen frontier goes into ``F'`` only when the planner sets out
+    for it (:meth:`SearchMemory.choose_frontier`).
 
     ``committed``: the index of the frontier the robot is on its way to (chosen at an earlier step, not reached
     yet). Eq. 10 says the robot goes to the ``r`` of highest ``V``; we read it as a choice of where to go that
@@ -187,7 +206,7 @@ def choose(robot_xy: tuple[float, float], frontiers: Sequence[FrontierOption],
     cands = [] if ablation == "trusting" else candidates_of(observed, cs_a, memory.visited)
     if ablation != "trusting":
         memory.observe(candidates_of(observed, cs_a))
-    ranked = values(robot_xy, frontiers, cands, memory, alpha_d)
+    ranked = values(robot_xy, frontiers, cands, memory, alpha_d, scale)
     if not ranked:
         return None
     best = ranked[0]
@@ -195,8 +214,5 @@ def choose(robot_xy: tuple[float, float], frontiers: Sequence[FrontierOption],
         best = next((c for c in ranked if c.kind == "candidate"), best)
     if best.kind == "frontier" and committed is not None:
         best = next((c for c in ranked if c.kind == "frontier" and c.ref == committed), best)
-    if best.kind == "frontier":
-        f = next(f for f in frontiers if f.index == best.ref)
-        memory.choose_frontier(f)
     other = next((c.value for c in ranked if c.kind != best.kind), None)
     return dataclasses.replace(best, other=other)

@@ -43,7 +43,12 @@ ActionKind = Literal["frontier", "move", "pick", "place", "stop", "done"]
 Phase = Literal["searching", "local_search", "looking", "picking", "placing", "finished"]
 MAX_FAILS_PER_INSTANCE = 2
 MAX_LOOKS_PER_INSTANCE = 3  # gaze points visited to look again at one candidate (this implementation's bound)
-ARRIVED_M = 0.3  # a gaze pose counts as reached within this distance
+# A gaze pose counts as reached within this distance, here and in the path planner (task_step): one tolerance,
+# because a point the planner calls reached but the machine does not is asked for again at every step.
+ARRIVE_TOLERANCE_M = 0.5
+# An instance whose skill pose cannot be planned is left out of the decisions of that step only (the map grows and
+# the next step may reach it); after this many steps in a row it is ruled out (this implementation's bound).
+MAX_UNREACHABLE_STEPS = 3
 # The pose of a pick / place / stop: on the line from the object's centre to the chosen gaze point (or to the
 # robot when the object has no gaze point), this far from the centre, facing the object. The gaze contour lies
 # gaze_radius_m (0.9 m) beyond the footprint of the object's Gaussians, the very reach of the oracle pick
@@ -147,11 +152,13 @@ class Thresholds:
     cs_g: float = 0.3
     cs_b: float = 0.3
     tau_stop: float = 0.5  # Psi_g to stop an object search at (section 4.2; Table 3's tau_g)
+    value_scale: helios.ValueScale = "paper"  # Eq. 10's benefits as they are, or over the step's best (helios.values)
+    path_clearance: Literal["levels", "cut"] = "levels"  # how task paths meet the mapped clearance (task_step)
 
     @classmethod
     def from_settings(cls, s: Any) -> Thresholds:
         return cls(s.helios_alpha_d, s.helios_tau_g, s.helios_tau_b, s.helios_tau_inc, s.helios_cs_a, s.helios_cs_g,
-                   s.helios_cs_b, s.helios_tau_stop)
+                   s.helios_cs_b, s.helios_tau_stop, s.helios_value_scale, s.helios_path_clearance)
 
 
 @dataclass
@@ -170,6 +177,7 @@ class TaskMachine:
     queue: list[Gaze] = field(default_factory=list)  # local search: gaze points still to visit
     queue_owner: int | None = None
     fails: dict[int, int] = field(default_factory=dict)  # failed picks per instance
+    unreachable_steps: dict[int, int] = field(default_factory=dict)  # steps whose skill pose could not be planned
     bad_goals: set[int] = field(default_factory=set)  # goal instances a place failed on
     looked: dict[int, list[tuple[float, float]]] = field(default_factory=dict)  # gaze points looked from
     pending: Action | None = None  # the pick / place / stop action waiting for its outcome
@@ -177,6 +185,9 @@ class TaskMachine:
     checking: int | None = None  # find_object: the candidate the robot went to see from a gaze point before stopping
     # the frontier the robot is on its way to, given with each step (an argument of step, not kept state)
     committed: int | None = field(default=None, repr=False, compare=False)
+    # instances whose skill pose could not be planned in this planning step (begin_step clears it; not kept)
+    skip: set[int] = field(default_factory=set, repr=False, compare=False)
+    reopened: bool = field(default=False, repr=False, compare=False)  # once per call of step (not kept)
 
     def __post_init__(self) -> None:
         if self.kind == "pick_place" and (not self.start_receptacle or not self.goal_receptacle):
@@ -191,7 +202,7 @@ class TaskMachine:
         """The next action (module doc). ``committed``: the index of the frontier the robot is on its way to;
         it stays the frontier of choice while a frontier is what the machine goes to
         (:func:`services.planner.helios.choose`)."""
-        self.committed = committed
+        self.committed, self.reopened = committed, False
         if self.finished is not None:
             return self.finished
         if outcome is not None:
@@ -202,26 +213,40 @@ class TaskMachine:
             # no 3D layer: the detection it acts on is gone from the next frame's detections, so the trusting
             # agent keeps going to it until the skill's outcome comes (or the pose proves unreachable)
             return self.pending
-        if self.kind == "find_object":
-            return self._find(robot, frontiers, objects)
-        if self.holding:
-            return self._goal(robot, frontiers, objects)
-        return self._search(robot, frontiers, objects)
+        return self._decide(robot, frontiers, objects)
+
+    def begin_step(self) -> None:
+        """A new planning step: instances unreachable in the last one are options again (the map has grown)."""
+        self.skip = set()
 
     def unreachable(self, instance_id: int, action: Action | None = None) -> None:
         """The planner found no path to ``action``'s pose for this instance. A gaze point of a look
         (``looking``) counts as looked from, one of a local search is dropped (the queue already lost it):
-        the instance keeps its other gaze points. A skill pose (or no ``action`` given) rules the instance
-        out as a target / goal."""
+        the instance keeps its other gaze points. A skill pose (or no ``action`` given) leaves the instance out
+        of this step's decisions; after :data:`MAX_UNREACHABLE_STEPS` such steps it is ruled out as a target /
+        goal (one unplannable pose on a half-built map does not drop a candidate for good)."""
         if action is not None and action.kind == "move":
             if action.phase == "looking" and action.pose is not None:
                 self.looked.setdefault(instance_id, []).append((action.pose[0], action.pose[1]))
             return
         self.pending = None
-        if self.holding:
-            self.bad_goals.add(instance_id)
-        else:
-            self.fails[instance_id] = max(self.fails.get(instance_id, 0), MAX_FAILS_PER_INSTANCE)
+        if instance_id not in self.skip:
+            self.skip.add(instance_id)
+            self.unreachable_steps[instance_id] = self.unreachable_steps.get(instance_id, 0) + 1
+
+    def _reopen(self) -> bool:
+        """Nothing left to do: gaze points looked from, start receptacles searched and instances ruled out as
+        unreachable become options again (the map and the layer have changed since). False: nothing to reopen."""
+        if self.reopened or not (self.looked or self.memory.visited or self.unreachable_steps):
+            return False
+        self.reopened = True
+        self.looked, self.unreachable_steps = {}, {}
+        self.memory.visited = set()
+        return True
+
+    def _unreached(self) -> set[int]:
+        """Instances out of the decisions for want of a path: this step's, and those unreachable too often."""
+        return self.skip | {i for i, n in self.unreachable_steps.items() if n >= MAX_UNREACHABLE_STEPS}
 
     def _finish(self, success: bool, reason: str) -> Action:
         self.phase = "finished"
@@ -268,7 +293,8 @@ class TaskMachine:
         if len(done) >= MAX_LOOKS_PER_INSTANCE:
             left: tuple[Gaze, ...] = ()
         else:
-            left = tuple(g for g in o.gaze if not any(math.hypot(g.x - x, g.y - y) <= ARRIVED_M for x, y in done))
+            left = tuple(g for g in o.gaze
+                         if not any(math.hypot(g.x - x, g.y - y) <= ARRIVE_TOLERANCE_M for x, y in done))
         return SeenObject(o.instance_id, o.cls, o.scores, o.x, o.y, o.ig, left, o.half)
 
     def _approach(self, o: SeenObject, robot: tuple[float, float, float], best: bool) -> Gaze | None:
@@ -298,7 +324,7 @@ class TaskMachine:
             g = self._approach(self._unlooked(o), robot, best=True)
             if g is None:
                 return None
-            if math.hypot(g.x - robot[0], g.y - robot[1]) > ARRIVED_M:
+            if math.hypot(g.x - robot[0], g.y - robot[1]) > ARRIVE_TOLERANCE_M:
                 break
             done.append((g.x, g.y))
         else:
@@ -306,14 +332,30 @@ class TaskMachine:
         self.phase = "looking"
         return Action("move", "looking", o.instance_id, (g.x, g.y, g.yaw), g.pitch, reason)
 
+    def _decide(self, robot: tuple[float, float, float], frontiers: Sequence[FrontierOption],
+                objects: Sequence[SeenObject]) -> Action:
+        if self.kind == "find_object":
+            return self._find(robot, frontiers, objects)
+        if self.holding:
+            return self._goal(robot, frontiers, objects)
+        return self._search(robot, frontiers, objects)
+
+    def _nothing_left(self, robot: tuple[float, float, float], frontiers: Sequence[FrontierOption],
+                      objects: Sequence[SeenObject], reason: str) -> Action:
+        """No frontier and no candidate to act on or look at: reopen what was ruled out and decide again; then
+        act on the best known candidate (:meth:`_last_resort`); only then end the episode."""
+        if self._reopen():
+            return self._decide(robot, frontiers, objects)
+        last = self._last_resort(robot, objects)
+        if last is not None:
+            return last
+        return self._finish(False, reason)
+
     def _best_frontier(self, robot: tuple[float, float, float], frontiers: Sequence[FrontierOption],
                        reason: str, objects: Sequence[SeenObject] = ()) -> Action:
-        ranked = helios.values(robot[:2], frontiers, [], SearchMemory(), self.th.alpha_d)
+        ranked = helios.values(robot[:2], frontiers, [], SearchMemory(), self.th.alpha_d, self.th.value_scale)
         if not ranked:
-            last = self._last_resort(robot, objects)
-            if last is not None:
-                return last
-            return self._finish(False, f"{reason}; no frontier left to explore")
+            return self._nothing_left(robot, frontiers, objects, f"{reason}; no frontier left to explore")
         self.phase = "searching"
         ref = self.committed if any(c.ref == self.committed for c in ranked) else ranked[0].ref
         value = next(c.value for c in ranked if c.ref == ref)
@@ -323,12 +365,15 @@ class TaskMachine:
     def _last_resort(self, robot: tuple[float, float, float], objects: Sequence[SeenObject]) -> Action | None:
         """Nothing left to explore but candidates of the phase's class are known: rather than end the episode
         with steps left, act on the best of them (highest Psi, then S) below the threshold -- a skill call
-        that may fail costs less than a certain failure. None: no candidate left."""
+        that may fail costs less than a certain failure. None: no candidate left. Under a pick limit a pick is
+        no last resort: a failed one ends the task, a search that goes on may still find the object."""
         if self.kind == "find_object":
             skill, cls, excluded = "stop", self.object, self._ruled_out()
         elif self.holding:
-            skill, cls, excluded = "place", self.goal_receptacle or "", self.bad_goals
+            skill, cls, excluded = "place", self.goal_receptacle or "", self._bad_goals()
         else:
+            if self.budget.limit is not None:
+                return None
             skill, cls, excluded = "pick", self.object, self._ruled_out()
         pool = [(s[2], s[0], -o.instance_id, o) for o in objects if o.instance_id not in excluded
                 and (s := o.of(cls)) is not None and o.cls == cls and math.isfinite(s[2])]
@@ -339,8 +384,12 @@ class TaskMachine:
 
     # ---- pick and place ---------------------------------------------------------------------------------
     def _ruled_out(self) -> set[int]:
-        """Instances whose skill failed too often to try again."""
-        return {i for i, n in self.fails.items() if n >= MAX_FAILS_PER_INSTANCE}
+        """Instances whose skill failed too often to try again, or that cannot be reached (:meth:`_unreached`)."""
+        return {i for i, n in self.fails.items() if n >= MAX_FAILS_PER_INSTANCE} | self._unreached()
+
+    def _bad_goals(self) -> set[int]:
+        """Goal receptacles a place failed on, or that cannot be reached."""
+        return self.bad_goals | self._unreached()
 
     def _act_or_look(self, skill: str, robot: tuple[float, float, float], objects: Sequence[SeenObject], cls: str,
                      excluded: set[int], tau: float, cs: float) -> Action | None:
@@ -374,7 +423,7 @@ class TaskMachine:
         while self.queue:
             g = min(self.queue, key=lambda q: math.hypot(q.x - robot[0], q.y - robot[1]))
             self.queue.remove(g)
-            if math.hypot(g.x - robot[0], g.y - robot[1]) <= ARRIVED_M:
+            if math.hypot(g.x - robot[0], g.y - robot[1]) <= ARRIVE_TOLERANCE_M:
                 continue
             self.phase = "local_search"
             return Action("move", "local_search", self.queue_owner, (g.x, g.y, g.yaw), g.pitch,
@@ -389,10 +438,10 @@ class TaskMachine:
             if s is not None and o.cls == start:
                 observed.append(CandidateObservation(o.instance_id, s[0], o.ig, o.x, o.y))
         choice = helios.choose(robot[:2], frontiers, observed, self.memory, self.th.alpha_d, self.th.cs_a,
-                               self.ablation, self.committed)
+                               self.ablation, self.committed, self.th.value_scale)
         if choice is None:
-            return self._last_resort(robot, objects) or self._finish(
-                False, "nothing left to search: no frontier and no candidate start receptacle")
+            return self._nothing_left(robot, frontiers, objects,
+                                      "nothing left to search: no frontier and no candidate start receptacle")
         said = helios.describe(choice, choice.kind == "frontier" and choice.ref == self.committed)
         if choice.kind == "frontier":
             self.phase = "searching"
@@ -407,7 +456,7 @@ class TaskMachine:
     def _goal(self, robot: tuple[float, float, float], frontiers: Sequence[FrontierOption],
               objects: Sequence[SeenObject]) -> Action:
         goal = self.goal_receptacle or ""
-        a = self._act_or_look("place", robot, objects, goal, self.bad_goals, self.th.tau_b, self.th.cs_b)
+        a = self._act_or_look("place", robot, objects, goal, self._bad_goals(), self.th.tau_b, self.th.cs_b)
         if a is not None:
             return a
         return self._best_frontier(robot, frontiers, "goal receptacle search: frontier of highest value", objects)
@@ -452,6 +501,7 @@ class TaskMachine:
             "budget": {"attempts": self.budget.attempts, "successes": self.budget.successes},
             "memory": self.memory.to_json(), "queue": [vars(g) for g in self.queue], "queue_owner": self.queue_owner,
             "fails": {str(k): v for k, v in self.fails.items()}, "bad_goals": sorted(self.bad_goals),
+            "unreachable_steps": {str(k): v for k, v in self.unreachable_steps.items()},
             "looked": {str(k): [list(p) for p in v] for k, v in self.looked.items()},
             "pending": act(self.pending), "finished": act(self.finished), "checking": self.checking,
         }
@@ -473,6 +523,7 @@ class TaskMachine:
         m.queue_owner = d["queue_owner"]
         m.fails = {int(k): int(v) for k, v in d["fails"].items()}
         m.bad_goals = {int(v) for v in d["bad_goals"]}
+        m.unreachable_steps = {int(k): int(v) for k, v in d.get("unreachable_steps", {}).items()}
         m.looked = {int(k): [(float(p[0]), float(p[1])) for p in v] for k, v in d.get("looked", {}).items()}
         m.pending, m.finished = act(d["pending"]), act(d["finished"])
         m.checking = d.get("checking")

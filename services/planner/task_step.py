@@ -25,6 +25,7 @@ searched, in [0, 1]).
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 from dataclasses import dataclass, field
@@ -39,14 +40,25 @@ from eqa.messages import Frontier, GridSpec, Pose2D
 from services.planner.helios import FrontierOption
 from services.planner.paths import MapError, check_map, planning_grid, truncate
 from services.planner.step import Memory, PlannerParams, StepPlan, disk_mask, plan_step, wrap
-from services.planner.task_fsm import Action, SeenObject, SkillOutcome, TaskMachine
+from services.planner.task_fsm import ARRIVE_TOLERANCE_M, Action, SeenObject, SkillOutcome, TaskMachine
 
-ARRIVE_TOLERANCE_M = 0.5  # a gaze pose is reached from the nearest traversable point within this
 # A skill pose lies this far from the object's estimated footprint at most: the oracle pick's reach less a margin
 # for the footprint's error (Gaussians of a partly seen object; this implementation's choice, by hand).
 SKILL_REACH_MARGIN_M = 0.2
 SKILL_REACH_M = body.REACH_M - SKILL_REACH_MARGIN_M
 MAX_TRIES = 64  # actions asked of the machine in one step at most (each failed one removes an option)
+# A pickable object is small: its reach is measured to a footprint of at most this half-size around the estimated
+# centre. The footprint of its Gaussians grows with depth noise and with what lies around it (a towel's Gaussians
+# reach onto the cabinet), and a pick called within reach of that footprint found the object farther than the
+# arm's reach (evaluation traces: 4 of 21 failed picks).
+PICKABLE_HALF_M = 0.15
+
+
+def cut_clearances(levels: tuple[float, ...], need_m: float) -> tuple[float, ...]:
+    """The planning clearance levels that keep ``need_m`` (the mapped clearance every task path is cut at):
+    a route planned closer to an obstacle is cut there and the robot creeps along it. ``need_m`` itself is
+    the last level."""
+    return (*(c for c in levels if c > need_m), need_m)
 
 
 def clearance_field(grid: GridSpec, occupied: np.ndarray) -> np.ndarray:
@@ -235,14 +247,27 @@ def task_step(machine: TaskMachine, grid: GridSpec, free: np.ndarray, occupied: 
     again; when ``max_tries`` actions all fail the robot turns in place to see more (a new frame, new options)
     rather than ending the episode with steps left."""
     params = params or PlannerParams()
+    if machine.th.path_clearance == "cut":
+        params = dataclasses.replace(params, clearances_m=cut_clearances(params.clearances_m,
+                                                                         body.mapped_clearance_m()))
+    machine.begin_step()
     robot = (pose.x, pose.y, pose.yaw)
     dist_field = clearance_field(grid, occupied) if np.shape(occupied) == (grid.rows, grid.cols) else None
-    # frontiers the robot already went to are no option (plan_step would refuse them and turn in place)
-    options = [o for o in frontier_options(frontiers)
+    # frontiers the robot already went to are no option (plan_step would refuse them and turn in place) -- while
+    # others are left: when every frontier is one gone to, they are all options again (the map around them has
+    # changed; ending the search with steps left finds nothing)
+    every = frontier_options(frontiers)
+    options = [o for o in every
                if not any(math.hypot(o.x - vx, o.y - vy) <= params.visited_radius_m for vx, vy in memory.visited)]
+    reopened = not options and bool(every)
+    if reopened:
+        options = every
+        memory = memory.copy()
+        memory.visited = []
     turn: TaskStep | None = None  # plan_step's turn in place (it counts the turns) for an unreachable frontier
     for _ in range(max_tries):
-        act: Action = machine.step(robot, options, objects, outcome, committed_option(memory, options, params))
+        committed = committed_option(memory, options, params)
+        act: Action = machine.step(robot, options, objects, outcome, committed)
         outcome = None  # consumed
         if act.kind == "done":
             if turn is not None:
@@ -264,9 +289,16 @@ def task_step(machine: TaskMachine, grid: GridSpec, free: np.ndarray, occupied: 
             # the machine chose the frontier (Eq. 10): its reason, then the path; the path planner's own choice
             # among the one frontier it was given ("uniform over reachable frontiers") decided nothing
             plan.reason = f"{act.reason}; {plan.route or plan.reason}"
+            if reopened:
+                plan.reason += "; every frontier left is one gone to before: all are options again"
+            if act.ref != committed:
+                machine.memory.choose_frontier(next(o for o in options if o.index == act.ref))  # F' (Eq. 9)
             return TaskStep(plan, "move", None, act.phase, plan.memory)
         assert act.pose is not None
-        ps = plan_to_pose(grid, free, occupied, pose, act.pose, params, near=act.near, dist_field=dist_field,
+        near = act.near
+        if act.kind == "pick" and near is not None:
+            near = (near[0], near[1], min(near[2], PICKABLE_HALF_M), min(near[3], PICKABLE_HALF_M))
+        ps = plan_to_pose(grid, free, occupied, pose, act.pose, params, near=near, dist_field=dist_field,
                           refused=memory.refused)
         if ps.plan is None:
             if act.ref is not None:

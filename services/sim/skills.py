@@ -5,11 +5,16 @@ and the collision test of a base motion.
   object instance is in the current frame (at least :data:`PICK_MIN_PIXELS_FRAC` of the image) and within
   reach (:data:`REACH_M` from the base centre to the nearest point of the object's box, horizontally). A failed
   pick therefore reveals ground truth ("not here"), which is why the paper counts and limits the attempts.
-* **place** is the paper's heuristic: the object is dropped from :data:`DROP_CLEARANCE_M` above the highest
-  point of the region in front of the robot (:data:`PLACE_REGION`), falls straight down until its footprint
-  touches the scene, and stays only when its contacts surround its centre with a margin (else it tips away
-  from them and falls to what is below). Success = it stays, on an instance of the goal receptacle. The scene's
-  geometry is probed with open3d ray casts, like the renderer.
+* **place** is the paper's heuristic (the OVMM baseline's heuristic place): the region in front of the robot
+  (:data:`PLACE_REGION`) is probed downwards; the probes that land on the goal receptacle's class stand for the
+  class's segmentation mask in the frame (a perfect mask: the OVMM ground-truth-semantics setting), and the
+  placement point is the mask's probe with the most mask probes at its height (within :data:`SLAB_HEIGHT_M`)
+  around it (within :data:`SLAB_RADIUS_M`) -- the flattest free spot of the receptacle, away from what stands on
+  it and from its edges. With no probe on the class the object is dropped above the highest point in front.
+  It is dropped from :data:`DROP_CLEARANCE_M` above that point, falls straight down until its footprint touches
+  the scene, and stays only when its contacts surround its centre with a margin (else it tips away from them
+  and falls to what is below). Success = it stays, on an instance of the goal receptacle. The scene's geometry
+  is probed with open3d ray casts, like the renderer.
 * **collisions**: a base motion collides when the straight segments of its path pass closer than
   :data:`COLLISION_RADIUS_M` to a wall or furniture (ground-truth navigable grid); the sim teleports the robot
   to valid goals, so a colliding path is counted (OVMM counts collisions as failures), not simulated.
@@ -39,6 +44,10 @@ PROBE_TOP_Z = 2.0  # m, probes start here (below the 2.7 m ceiling, above every 
 DROP_CLEARANCE_M = 0.05  # the object is released this far above the highest point
 CONTACT_TOL_M = 0.01  # footprint probes within this of the rest height touch the support
 STABILITY_MARGIN = 0.25  # share of the half footprint the contacts must extend past the centre on each side
+# the placement slab of the heuristic place: neighbours within this horizontal radius and this height of a
+# candidate point count for it (OVMM's heuristic place scores points the same way: 0.2 m around, 1.5 cm)
+SLAB_RADIUS_M = 0.2
+SLAB_HEIGHT_M = 0.015
 COLLISION_RADIUS_M = robot.COLLISION_RADIUS_M  # a path closer than this to an obstacle collides
 
 
@@ -191,10 +200,24 @@ def _region_points(pose: Pose2D) -> np.ndarray:
     return np.stack([x.ravel(), y.ravel()], axis=1)
 
 
+def _slab_point(pts: np.ndarray, z: np.ndarray, mask: np.ndarray) -> int:
+    """The probe of ``mask`` with the most probes of ``mask`` within SLAB_RADIUS_M around it and SLAB_HEIGHT_M
+    of its height (ties: the one nearest their centroid)."""
+    idx = np.flatnonzero(mask)
+    P, Z = pts[idx], z[idx]
+    near = (np.linalg.norm(P[:, None, :] - P[None, :, :], axis=2) <= SLAB_RADIUS_M) & (
+        np.abs(Z[:, None] - Z[None, :]) <= SLAB_HEIGHT_M)
+    score = near.sum(axis=1)
+    best = np.flatnonzero(score == score.max())
+    centroid = P[best].mean(axis=0)
+    return int(idx[best[np.argmin(np.linalg.norm(P[best] - centroid, axis=1))]])
+
+
 def place(scene: Scene, pose: Pose2D, object_size: tuple[float, float, float], goal_ids: list[int],
-          held_id: int | None = None) -> PlaceResult:
+          held_id: int | None = None, goal_category: str | None = None) -> PlaceResult:
     """The heuristic place with its drop test (module doc). ``held_id``: the object in the gripper, which is no
-    longer where it was picked (it must not be landed on)."""
+    longer where it was picked (it must not be landed on). ``goal_category``: the goal receptacle's class, whose
+    probes are the segmentation mask the placement point is chosen on (None: the highest point in front)."""
     ex = frozenset() if held_id is None else frozenset({int(held_id)})
     pts = _region_points(pose)
     z, inst = cast_down(scene, pts, exclude=ex)
@@ -204,12 +227,19 @@ def place(scene: Scene, pose: Pose2D, object_size: tuple[float, float, float], g
     usable = np.isfinite(z) & ~structure
     if not usable.any():
         return PlaceResult(False, "nothing in front of the robot to place on")
-    zz = np.where(usable, z, -np.inf)
-    top = float(zz.max())
-    # a flat top gives many equally high probes: take the one nearest to their centroid
-    level = np.flatnonzero(zz >= top - CONTACT_TOL_M)
-    centroid = pts[level].mean(axis=0)
-    k = int(level[np.argmin(np.linalg.norm(pts[level] - centroid, axis=1))])
+    on_goal = usable & np.array([goal_category is not None and int(inst[k]) in scene.instances
+                                 and scene.instances[int(inst[k])].category == goal_category
+                                 for k in range(len(inst))], bool)
+    if on_goal.any():
+        k = _slab_point(pts, z, on_goal)
+        top = float(z[k])
+    else:
+        zz = np.where(usable, z, -np.inf)
+        top = float(zz.max())
+        # a flat top gives many equally high probes: take the one nearest to their centroid
+        level = np.flatnonzero(zz >= top - CONTACT_TOL_M)
+        centroid = pts[level].mean(axis=0)
+        k = int(level[np.argmin(np.linalg.norm(pts[level] - centroid, axis=1))])
     drop = (float(pts[k, 0]), float(pts[k, 1]), top + DROP_CLEARANCE_M)
     # footprint of the object (axis-aligned, as the gripper holds it), 5 x 5 probes, from just below the release
     w, d, h = object_size

@@ -92,7 +92,8 @@ class TaskEpisode:
             return skills.PlaceResult(False, "nothing held to place")
         info = scene.instances.get(self.held_id)
         size = info.size if info is not None else OBJECT_SIZE_DEFAULT
-        r = skills.place(scene, pose, size, self.task.goal_receptacle_ids, self.held_id)  # type: ignore[arg-type]
+        r = skills.place(scene, pose, size, self.task.goal_receptacle_ids, self.held_id,  # type: ignore[arg-type]
+                         self.task.goal_receptacle)
         self.placed = r.success
         self.held_id = None
         self.skill_log.append({"skill": "place", "success": r.success, "reason": r.reason})

@@ -75,7 +75,7 @@ def test_ablations_choose_differently_on_the_same_state() -> None:
     front = FrontierOption(0, x=0.0, y=1.0, F=1.0)
     m = _memory()
     assert helios.choose((0.0, 0.0), [front], [cand], m, 0.001, 0.3, "helios").kind == "frontier"
-    assert m.chosen[-1] == ChosenFrontier(0.0, 1.0, 1.0)  # the chosen frontier is remembered with F
+    assert m.chosen == _memory().chosen  # F' grows when the planner sets out for it, not when it is chosen
     assert 7 in m.stored and m.stored[7].S0 == 0.5  # the first detection is stored
     assert helios.choose((0.0, 0.0), [front], [cand], _memory(), 0.001, 0.3, "no_global").kind == "candidate"
     assert helios.choose((0.0, 0.0), [front], [cand], _memory(), 0.001, 0.3, "trusting").kind == "frontier"
@@ -269,7 +269,7 @@ def test_choose_keeps_the_committed_frontier_but_a_better_candidate_wins() -> No
     assert h.choose((0.0, 0.0), fr, [], h.SearchMemory(), 0.001, 0.3).ref == 0
     mem = h.SearchMemory()
     kept = h.choose((0.0, 0.0), fr, [], mem, 0.001, 0.3, committed=1)
-    assert (kept.kind, kept.ref) == ("frontier", 1) and mem.chosen[-1].F0 == 0.4  # F' stores the one gone to
+    assert (kept.kind, kept.ref) == ("frontier", 1) and not mem.chosen  # F' grows in the planner shell
     # a candidate with S IG = 0.8 * 2 = 1.6 > 0.9 F0 (F0 = 1: no previous frontier): the candidate
     cand = [h.CandidateObservation(7, 0.8, 2.0, 1.0, 1.0)]
     won = h.choose((0.0, 0.0), fr, cand, h.SearchMemory(), 0.001, 0.3, committed=1)

@@ -92,6 +92,19 @@ def test_place_on_the_table_in_front(room) -> None:
     assert r.rest_xyz is not None and r.rest_xyz[2] == pytest.approx(0.75 + 0.055, abs=0.012)
 
 
+def test_place_chooses_a_free_spot_of_the_goal_receptacle_not_what_stands_on_it(room) -> None:
+    """The heuristic place chooses its point on the goal receptacle's pixels (the flattest free spot of the
+    class's mask), so an object standing on the receptacle is no landing place; with no class given, the highest
+    point in front (here the mug's top) takes the object."""
+    facing = Pose2D(x=1.6, y=2.5, yaw=0.0)  # the region x 1.9..2.6, y 2.2..2.8 holds the mug at x, y 2.45..2.55
+    blind = place(room, facing, (0.1, 0.1, 0.11), goal_ids=[2])
+    assert blind.drop_xyz is not None and blind.drop_xyz[2] > 0.86 and "tipped" in blind.reason  # off the mug
+    r = place(room, facing, (0.1, 0.1, 0.11), goal_ids=[2], goal_category="dining_table")
+    assert r.success and r.support_id == 2 and r.drop_xyz is not None and r.reason.startswith("placed on")
+    assert r.rest_xyz is not None and r.rest_xyz[2] == pytest.approx(0.75 + 0.055, abs=0.012)
+    assert max(abs(r.drop_xyz[0] - 2.5), abs(r.drop_xyz[1] - 2.5)) >= 0.05 + 0.05  # clear of the mug's box
+
+
 def test_place_on_a_thin_post_tips_off(room) -> None:
     # the highest point in front is the post's top (1.0 m): a 0.3 m object balanced on 4 cm tips over, falls
     r = place(room, Pose2D(x=3.9, y=2.5, yaw=0.0), (0.3, 0.3, 0.1), goal_ids=[2, 3])

@@ -8,7 +8,7 @@ import numpy as np
 
 from eqa.messages import Frontier, GridSpec, Pose2D
 from services.planner.step import Memory, PlannerParams
-from services.planner.task_fsm import Gaze, SeenObject, TaskMachine
+from services.planner.task_fsm import MAX_UNREACHABLE_STEPS, Gaze, SeenObject, TaskMachine
 from services.planner.task_step import plan_to_pose, task_step
 
 GRID = GridSpec(origin_x=0.0, origin_y=0.0, resolution=0.1, rows=100, cols=100)
@@ -54,7 +54,7 @@ def test_task_step_asks_for_the_skill_only_on_arrival() -> None:
     assert (near.plan.pose.x, near.plan.pose.y) == (3.0, 4.4)
 
 
-def test_unreachable_gaze_rules_the_instance_out_and_falls_back_to_a_frontier() -> None:
+def test_an_unreachable_skill_pose_falls_back_to_a_frontier_and_rules_out_only_after_repeated_steps() -> None:
     _, occ = _room()
     behind = occ.copy()
     behind[:, 50] = True
@@ -63,7 +63,13 @@ def test_unreachable_gaze_rules_the_instance_out_and_falls_back_to_a_frontier() 
     m = TaskMachine("pick_place", "mug", "table", "counter")
     st = task_step(m, GRID, ~behind, behind, Pose2D(x=1.0, y=1.0), [frontier], [mug], None, Memory(),
                    np.random.default_rng(0), PlannerParams())
-    assert st.phase == "searching" and st.plan.kind == "move" and m.fails[20] >= 2
+    assert st.phase == "searching" and st.plan.kind == "move"
+    assert 20 not in m.fails and m.unreachable_steps == {20: 1}  # one step on a half-built map drops nothing
+    for k in range(2, MAX_UNREACHABLE_STEPS + 1):
+        task_step(m, GRID, ~behind, behind, Pose2D(x=1.0, y=1.0), [frontier], [mug], None, Memory(),
+                  np.random.default_rng(0), PlannerParams())
+        assert m.unreachable_steps == {20: k}
+    assert 20 in m._ruled_out()
 
 
 def test_the_frontier_on_the_way_stays_the_choice_until_reached() -> None:
