@@ -1,0 +1,102 @@
+"""HELIOS task search and skills: one arrival tolerance, candidates kept after an unplannable pose, nothing ended
+while something can be reopened, Eq. 9's F' once per frontier set out for, picks planned to the object itself, no
+last-resort pick under a pick limit (services/planner/task_fsm.py, task_step.py, helios.py)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from eqa.messages import Frontier, GridSpec, Pose2D
+from services.planner import task_fsm
+from services.planner import task_step as ts
+from services.planner.step import Memory
+from services.planner.task_fsm import MAX_LOOKS_PER_INSTANCE, Gaze, SeenObject, TaskMachine
+
+ROBOT = (0.0, 0.0, 0.0)
+
+
+def _machine(**kw: object) -> TaskMachine:
+    return TaskMachine("pick_place", "mug", "table", "counter", **kw)  # type: ignore[arg-type]
+
+
+def _room() -> tuple[GridSpec, np.ndarray, np.ndarray]:
+    """A 10 m x 10 m free room at 0.05 m cells with walls around it."""
+    g = GridSpec(origin_x=0.0, origin_y=0.0, resolution=0.05, rows=200, cols=200)
+    free = np.zeros((200, 200), bool)
+    free[2:-2, 2:-2] = True
+    return g, free, ~free
+
+
+def test_a_gaze_point_the_planner_calls_reached_is_not_asked_for_again() -> None:
+    """The planner arrives within ARRIVE_TOLERANCE_M of a gaze point; the machine must count the same distance
+    as arrived, or it asks for the look it has had at every step (a run stood 73 of 77 steps)."""
+    assert ts.ARRIVE_TOLERANCE_M is task_fsm.ARRIVE_TOLERANCE_M
+    g0 = Gaze(0.4, 0.0, 0.0, psi_prime=0.6)  # 0.4 m away: reached for the planner
+    g1 = Gaze(3.0, 0.0, 0.0, psi_prime=0.55)
+    mug = SeenObject(1, "mug", {"mug": (0.45, 0.1, 0.35)}, 1.5, 1.0, 1.0, (g0, g1))
+    act = _machine().step(ROBOT, [], [mug])
+    assert (act.kind, act.phase, act.ref) == ("move", "looking", 1)
+    assert act.pose is not None and act.pose[:2] == (3.0, 0.0)
+
+
+def test_with_nothing_left_the_looks_reopen_instead_of_a_last_resort_pick_under_a_limit() -> None:
+    """No frontier, the only candidate's looks used up, one pick allowed: looking again can still raise Psi above
+    tau_g, a pick below it would likely spend the only pick and end the task."""
+    m = _machine(pick_limit=1)
+    gaze = tuple(Gaze(0.5 * k + 1.0, 1.0, 0.0, psi_prime=0.6 - 0.01 * k) for k in range(5))
+    mug = SeenObject(1, "mug", {"mug": (0.45, 0.1, 0.35)}, 2.0, 2.0, 1.0, gaze)
+    m.looked[1] = [(g.x, g.y) for g in gaze[:MAX_LOOKS_PER_INSTANCE]]
+    act = m.step(ROBOT, [], [mug])
+    assert (act.kind, act.phase, act.ref) == ("move", "looking", 1)
+    assert not m.finished and m.budget.attempts == 0
+
+
+def test_no_last_resort_pick_under_a_limit_and_the_episode_goes_on() -> None:
+    m = _machine(pick_limit=1)
+    mug = SeenObject(20, "mug", {"mug": (0.3, 0.2, 0.1)}, 2.0, 0.0, 1.0, ())  # no gaze point, nothing to reopen
+    act = m.step(ROBOT, [], [mug])
+    assert act.kind == "done" and "nothing left" in act.reason  # no pick of a Psi 0.1 candidate
+    unlimited = _machine()
+    assert unlimited.step(ROBOT, [], [mug]).kind == "pick"  # without a limit a failed pick costs nothing
+
+
+def test_frontiers_gone_to_before_are_options_again_when_no_other_is_left() -> None:
+    g, free, occ = _room()
+    fr = [Frontier(x=8.0, y=5.0, nx=1.0, ny=0.0, size=5, sv=0.5)]
+    mem = Memory()
+    mem.visited = [(8.0, 5.0)]
+    st = ts.task_step(_machine(), g, free, occ, Pose2D(x=2.0, y=5.0, yaw=0.0), fr, [], None, mem,
+                      np.random.default_rng(0))
+    assert st.plan.kind == "move" and st.phase == "searching", st.plan.reason
+    assert "all are options again" in st.plan.reason
+
+
+def test_f_prime_grows_once_per_frontier_set_out_for() -> None:
+    """Eq. 9's F' holds the frontiers chosen before; a frontier kept while the robot is on its way (several
+    planner steps) is one choice, not one per step."""
+    g, free, occ = _room()
+    fr = [Frontier(x=9.0, y=5.0, nx=1.0, ny=0.0, size=5, sv=0.5)]  # 8 m away: several steps
+    m = _machine()
+    pose, mem = Pose2D(x=1.0, y=5.0, yaw=0.0), Memory()
+    for _ in range(3):
+        st = ts.task_step(m, g, free, occ, pose, fr, [], None, mem, np.random.default_rng(0))
+        assert st.plan.kind == "move" and st.plan.pose is not None
+        pose, mem = st.plan.pose, st.memory
+    assert len(m.memory.chosen) == 1 and m.memory.chosen[0].F0 == 0.5
+
+
+def test_a_pick_is_planned_within_reach_of_the_object_not_of_its_gaussians_footprint() -> None:
+    """A target whose Gaussians spread 0.6 m around its centre: within reach of that footprint the robot may be
+    1 m from the object; the pick is planned to reach the object's centre region instead."""
+    g, free, occ = _room()
+    mug = SeenObject(7, "mug", {"mug": (0.9, 0.05, 0.85)}, 5.0, 5.0, 1.0, (Gaze(5.0, 3.4, math.pi / 2),),
+                     (0.6, 0.6))
+    m = _machine()
+    robot = Pose2D(x=5.0, y=4.0, yaw=math.pi / 2)  # 1.0 m from the centre, 0.4 m from the footprint
+    st = ts.task_step(m, g, free, occ, robot, [], [mug], None, Memory(), np.random.default_rng(0))
+    assert (st.phase, st.skill) == ("picking", "pick"), st.plan.reason
+    p = st.plan.pose
+    assert p is not None and math.hypot(p.x - 5.0, p.y - 5.0) < 0.7  # moved in before the pick, not from 1.0 m
+    assert math.hypot(p.x - 5.0, p.y - 5.0) <= ts.SKILL_REACH_M + ts.PICKABLE_HALF_M * math.sqrt(2)
