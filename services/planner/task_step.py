@@ -25,7 +25,6 @@ searched, in [0, 1]).
 
 from __future__ import annotations
 
-import dataclasses
 import itertools
 import math
 from dataclasses import dataclass, field
@@ -248,8 +247,8 @@ def task_step(machine: TaskMachine, grid: GridSpec, free: np.ndarray, occupied: 
     rather than ending the episode with steps left."""
     params = params or PlannerParams()
     if machine.th.path_clearance == "cut":
-        params = dataclasses.replace(params, clearances_m=cut_clearances(params.clearances_m,
-                                                                         body.mapped_clearance_m()))
+        params = params.model_copy(update={"clearances_m": cut_clearances(params.clearances_m,
+                                                                          body.mapped_clearance_m())})
     machine.begin_step()
     robot = (pose.x, pose.y, pose.yaw)
     dist_field = clearance_field(grid, occupied) if np.shape(occupied) == (grid.rows, grid.cols) else None

@@ -100,3 +100,22 @@ def test_a_pick_is_planned_within_reach_of_the_object_not_of_its_gaussians_footp
     p = st.plan.pose
     assert p is not None and math.hypot(p.x - 5.0, p.y - 5.0) < 0.7  # moved in before the pick, not from 1.0 m
     assert math.hypot(p.x - 5.0, p.y - 5.0) <= ts.SKILL_REACH_M + ts.PICKABLE_HALF_M * math.sqrt(2)
+
+
+def test_with_cut_clearance_a_task_path_is_planned_at_the_clearance_it_is_cut_at() -> None:
+    """A gap of 0.5 m: planned at 0.1-0.2 m clearance and cut at the mapped clearance, the robot would creep into it
+    step after step; planned at the levels that keep the mapped clearance, the route goes around."""
+    from eqa import robot as body
+    from services.planner.task_fsm import Thresholds
+
+    assert ts.cut_clearances((0.3, 0.2, 0.1), 0.25) == (0.3, 0.25)
+    g, free, occ = _room()
+    occ[:, 100:104] = True  # a wall at x = 5.0 .. 5.2 with a 0.5 m gap at y 4.0 .. 4.5 and a wide one at y 8 .. 9.5
+    occ[80:90, 100:104] = False
+    occ[160:190, 100:104] = False
+    free = ~occ
+    fr = [Frontier(x=7.0, y=4.25, nx=1.0, ny=0.0, size=5, sv=0.5)]
+    m = _machine(th=Thresholds(path_clearance="cut"))
+    st = ts.task_step(m, g, free, occ, Pose2D(x=3.0, y=4.25, yaw=0.0), fr, [], None, Memory(),
+                      np.random.default_rng(0))
+    assert st.plan.kind == "move" and st.plan.clearance_m >= body.mapped_clearance_m() - 1e-9, st.plan.reason
