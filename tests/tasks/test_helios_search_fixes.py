@@ -103,16 +103,17 @@ def test_a_pick_is_planned_within_reach_of_the_object_not_of_its_gaussians_footp
 
 
 def test_with_cut_clearance_a_task_path_is_planned_at_the_clearance_it_is_cut_at() -> None:
-    """A gap of 0.5 m: planned at 0.1-0.2 m clearance and cut at the mapped clearance, the robot would creep into it
-    step after step; planned at the levels that keep the mapped clearance, the route goes around."""
+    """Planned at a level below the mapped clearance (0.2 m here) and cut at the mapped clearance, the robot
+    creeps along the cut route step after step; planned at the levels that keep the mapped clearance, it is not
+    cut."""
     from eqa import robot as body
     from services.planner.task_fsm import Thresholds
 
     assert ts.cut_clearances((0.3, 0.2, 0.1), 0.25) == (0.3, 0.25)
     g, free, occ = _room()
-    occ[:, 100:104] = True  # a wall at x = 5.0 .. 5.2 with a 0.5 m gap at y 4.0 .. 4.5 and a wide one at y 8 .. 9.5
+    occ[:, 100:104] = True  # a wall at x = 5.0 .. 5.2 with a 0.5 m gap at y 4.0 .. 4.5 and a 0.7 m one at y 8 .. 8.7
     occ[80:90, 100:104] = False
-    occ[160:190, 100:104] = False
+    occ[160:174, 100:104] = False
     free = ~occ
     fr = [Frontier(x=7.0, y=4.25, nx=1.0, ny=0.0, size=5, sv=0.5)]
     m = _machine(th=Thresholds(path_clearance="cut"))
