@@ -103,6 +103,43 @@ def safe_prefix(path: list[tuple[float, float]], field: np.ndarray, grid: GridSp
     return out, True
 
 
+ESCAPE_RADIUS_M = 1.5  # how far a wedged robot looks for a point that keeps the mapped clearance
+
+
+def escape_move(grid: GridSpec, free: np.ndarray, field: np.ndarray, pose: Pose2D, memory: Memory,
+                radius_m: float = ESCAPE_RADIUS_M) -> StepPlan | None:
+    """A robot closer than the mapped clearance to a mapped obstacle (the map grew around it, or it was cut
+    into a gap) can plan no path at that clearance, and turning in place does not get it out: a straight move
+    to the nearest known-free point within ``radius_m`` that keeps the mapped clearance, never coming closer to
+    an obstacle than the robot is now (:func:`safe_prefix`). None: the robot keeps the clearance, or no such
+    point."""
+    need = body.mapped_clearance_m()
+    here = float(_clearance_at(field, grid, np.array([[pose.x, pose.y]]))[0])
+    if here >= need:
+        return None
+    origin = gridm.origin_of(grid)
+    r0, c0 = gridm.cell_of_point(pose.x, pose.y, origin, grid.resolution)
+    k = math.ceil(radius_m / grid.resolution)
+    rows = np.arange(max(0, r0 - k), min(grid.rows, r0 + k + 1))
+    cols = np.arange(max(0, c0 - k), min(grid.cols, c0 + k + 1))
+    R, C = np.meshgrid(rows, cols, indexing="ij")
+    ok = np.asarray(free, bool)[R, C] & (field[R, C] >= need)
+    x, y = gridm.cell_center(R[ok], C[ok], origin, grid.resolution)
+    d = np.hypot(x - pose.x, y - pose.y)
+    for i in np.argsort(d, kind="stable")[:400]:
+        if d[i] > radius_m:
+            break
+        goal = (float(x[i]), float(y[i]))
+        path, whole = safe_prefix([(pose.x, pose.y), goal], field, grid, need)
+        if whole:
+            yaw = wrap(math.atan2(goal[1] - pose.y, goal[0] - pose.x))
+            return StepPlan("move", f"closer than {need:.2f} m to an obstacle ({here:.2f} m): backing out to "
+                            f"({goal[0]:.2f}, {goal[1]:.2f}), {float(d[i]):.2f} m", pose=Pose2D(x=goal[0], y=goal[1],
+                                                                                                  yaw=yaw),
+                            path=path, clearance_m=need, memory=memory.copy())
+    return None
+
+
 @dataclass
 class PoseStep:
     plan: StepPlan | None  # None: the pose cannot be reached
@@ -269,6 +306,11 @@ def task_step(machine: TaskMachine, grid: GridSpec, free: np.ndarray, occupied: 
         act: Action = machine.step(robot, options, objects, outcome, committed)
         outcome = None  # consumed
         if act.kind == "done":
+            out = escape_move(grid, free, dist_field, pose, memory) if turn is not None and dist_field is not None \
+                else None
+            if out is not None:
+                machine.finished, machine.phase = None, "searching"
+                return TaskStep(out, "move", None, "searching", out.memory)
             if turn is not None:
                 # out of options only because this step's frontiers proved unreachable (a skill outcome ends
                 # the episode on the first try, before any): turn in place to see more, plan_step's rule
@@ -306,6 +348,9 @@ def task_step(machine: TaskMachine, grid: GridSpec, free: np.ndarray, occupied: 
         ps.plan.reason = f"{act.reason}; {ps.plan.reason}"
         skill = act.kind if act.kind in ("pick", "place", "stop") and ps.arrived else "move"
         return TaskStep(ps.plan, skill, act.ref, act.phase, memory.copy())
+    out = escape_move(grid, free, dist_field, pose, memory) if dist_field is not None else None
+    if out is not None:
+        return TaskStep(out, "move", None, machine.phase, out.memory)
     if turn is not None:
         return turn
     yaw = wrap(pose.yaw + math.radians(params.turn_deg))

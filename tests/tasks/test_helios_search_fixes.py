@@ -120,3 +120,21 @@ def test_with_cut_clearance_a_task_path_is_planned_at_the_clearance_it_is_cut_at
     st = ts.task_step(m, g, free, occ, Pose2D(x=3.0, y=4.25, yaw=0.0), fr, [], None, Memory(),
                       np.random.default_rng(0))
     assert st.plan.kind == "move" and st.plan.clearance_m >= body.mapped_clearance_m() - 1e-9, st.plan.reason
+
+
+def test_a_wedged_robot_backs_out_instead_of_turning_in_place() -> None:
+    """0.1 m from a wall, with the only frontier cut off: no path keeps the mapped clearance from where it stands,
+    and turning in place would repeat to the end of the episode; it backs out to a point that keeps it."""
+    from eqa import robot as body
+
+    g, free, occ = _room()
+    occ[:, 140:144] = True  # a closed wall at x = 7.0 .. 7.2: the frontier behind it cannot be reached
+    free = ~occ
+    fr = [Frontier(x=8.5, y=5.0, nx=1.0, ny=0.0, size=5, sv=0.5)]
+    pose = Pose2D(x=1.0, y=0.22, yaw=0.0)  # 0.12 m from the wall cells' centres
+    st = ts.task_step(_machine(), g, free, occ, pose, fr, [], None, Memory(), np.random.default_rng(0))
+    assert st.plan.kind == "move" and "backing out" in st.plan.reason, st.plan.reason
+    p = st.plan.pose
+    field = ts.clearance_field(g, occ)
+    assert p is not None and float(field[int(p.y / 0.05), int(p.x / 0.05)]) >= body.mapped_clearance_m()
+    assert math.hypot(p.x - pose.x, p.y - pose.y) <= ts.ESCAPE_RADIUS_M
