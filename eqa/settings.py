@@ -297,14 +297,17 @@ class HeliosSettings(SettingsGroup):
     # --- HELIOS ---
     helios_alpha_cs: float = Field(default=1.0, ge=0.0, description="alpha_cs: uncertainty weight, Eq. 7/11")
     helios_alpha_d: float = Field(
-        default=0.001, ge=0.0, description="alpha_d: distance weight, Eq. 8/10 (per metre; with "
-        "EQA_HELIOS_VALUE_SCALE=best, the share of the step's best benefit a metre costs)")
+        default=0.05, ge=0.0, description="alpha_d: distance weight, Eq. 8/10 (per metre; with "
+        "EQA_HELIOS_VALUE_SCALE=best, the share of the step's best benefit a metre costs; Table 3: 0.001 on the "
+        "paper's scale; 0.05 with best chosen on tuning seed 11, docs/results/helios-tasks.md)")
     helios_value_scale: Literal["paper", "best"] = Field(
-        default="paper", description="Eq. 10's benefits S IG and F F0 as they are (paper) or over the step's largest "
-        "(best), so that alpha_d weighs distance whatever the scale of IG (services/planner/helios.py:values)")
+        default="best", description="Eq. 10's benefits S IG and F F0 as they are (paper) or over the step's largest "
+        "(best), so that alpha_d weighs distance whatever the scale of IG (services/planner/helios.py:values; "
+        "chosen on tuning seed 11)")
     helios_path_clearance: Literal["levels", "cut"] = Field(
         default="levels", description="task paths: planned at the planner's clearance levels and cut at the mapped "
-        "clearance (levels), or planned only at levels that keep the mapped clearance (cut)")
+        "clearance (levels), or planned only at levels that keep the mapped clearance (cut; fewer successes on "
+        "tuning seed 11, docs/results/helios-tasks.md)")
     helios_tau_g: float = Field(default=0.4, description="tau_g: Psi_g threshold to pick the object (Table 3: 0.5; "
                                 "0.4 chosen on tuning seed 11, docs/results/helios-tables.md)")
     helios_tau_stop: float = Field(default=0.6, description="tau_g of an object search: Psi_g threshold to stop at "

@@ -103,40 +103,45 @@ def safe_prefix(path: list[tuple[float, float]], field: np.ndarray, grid: GridSp
     return out, True
 
 
-ESCAPE_RADIUS_M = 1.5  # how far a wedged robot looks for a point that keeps the mapped clearance
+ESCAPE_RADIUS_M = 1.5  # how far a stuck robot looks for a more open point
+ESCAPE_MIN_M = 0.3  # and how far at least it moves (a point next to it plans no differently)
+ESCAPE_OPEN_M = 0.1  # a robot that keeps the mapped clearance looks for this much more of it
 
 
 def escape_move(grid: GridSpec, free: np.ndarray, field: np.ndarray, pose: Pose2D, memory: Memory,
                 radius_m: float = ESCAPE_RADIUS_M) -> StepPlan | None:
-    """A robot closer than the mapped clearance to a mapped obstacle (the map grew around it, or it was cut
-    into a gap) can plan no path at that clearance, and turning in place does not get it out: a straight move
-    to the nearest known-free point within ``radius_m`` that keeps the mapped clearance, never coming closer to
-    an obstacle than the robot is now (:func:`safe_prefix`). None: the robot keeps the clearance, or no such
-    point."""
+    """No action could be planned from where the robot stands: it is closer than the mapped clearance to a
+    mapped obstacle (the map grew around it, or a path was cut into a gap), or the planning grid's blocks
+    around it are shut; turning in place does not change either. A straight move to the nearest known-free
+    point between ESCAPE_MIN_M and ``radius_m`` away that keeps the mapped clearance (ESCAPE_OPEN_M more when
+    the robot already keeps it), never coming closer to an obstacle than the robot is now
+    (:func:`safe_prefix`). None: no such point."""
     need = body.mapped_clearance_m()
     here = float(_clearance_at(field, grid, np.array([[pose.x, pose.y]]))[0])
-    if here >= need:
-        return None
+    want = need if here < need else need + ESCAPE_OPEN_M
     origin = gridm.origin_of(grid)
     r0, c0 = gridm.cell_of_point(pose.x, pose.y, origin, grid.resolution)
     k = math.ceil(radius_m / grid.resolution)
     rows = np.arange(max(0, r0 - k), min(grid.rows, r0 + k + 1))
     cols = np.arange(max(0, c0 - k), min(grid.cols, c0 + k + 1))
     R, C = np.meshgrid(rows, cols, indexing="ij")
-    ok = np.asarray(free, bool)[R, C] & (field[R, C] >= need)
+    ok = np.asarray(free, bool)[R, C] & (field[R, C] >= want)
     x, y = gridm.cell_center(R[ok], C[ok], origin, grid.resolution)
     d = np.hypot(x - pose.x, y - pose.y)
     for i in np.argsort(d, kind="stable")[:400]:
         if d[i] > radius_m:
             break
+        if d[i] < ESCAPE_MIN_M:
+            continue
         goal = (float(x[i]), float(y[i]))
         path, whole = safe_prefix([(pose.x, pose.y), goal], field, grid, need)
         if whole:
             yaw = wrap(math.atan2(goal[1] - pose.y, goal[0] - pose.x))
-            return StepPlan("move", f"closer than {need:.2f} m to an obstacle ({here:.2f} m): backing out to "
-                            f"({goal[0]:.2f}, {goal[1]:.2f}), {float(d[i]):.2f} m", pose=Pose2D(x=goal[0], y=goal[1],
-                                                                                                  yaw=yaw),
-                            path=path, clearance_m=need, memory=memory.copy())
+            why = (f"closer than {need:.2f} m to an obstacle ({here:.2f} m)" if here < need
+                   else "no action can be planned from here")
+            return StepPlan("move", f"{why}: backing out to ({goal[0]:.2f}, {goal[1]:.2f}), {float(d[i]):.2f} m "
+                            "away, where more room is", pose=Pose2D(x=goal[0], y=goal[1], yaw=yaw), path=path,
+                            clearance_m=want, memory=memory.copy())
     return None
 
 
