@@ -18,8 +18,11 @@ target decision (Eq. 11 with ``tau_g``), then the local search in progress, then
 reach) counts against the pick limit (:class:`~services.planner.decisions.PickBudget`); the instance is ruled out
 after :data:`MAX_FAILS_PER_INSTANCE` failures. A candidate is looked at from at most
 :data:`MAX_LOOKS_PER_INSTANCE` gaze points; then the look rule passes to the next candidate. With no frontier
-left but candidates of the phase's class known, the machine acts on the best of them rather than end the
-episode with steps left. Ablations: ``trusting`` has no 3D layer (the mapper gives it each frame's detections
+left, what was ruled out reopens (gaze points looked from, searched start receptacles, instances unreachable);
+then, with candidates of the phase's class known, the machine acts on the best of them (no pick under a pick
+limit) rather than end the episode with steps left. A skill pose the planner cannot reach leaves the instance out
+of that step; :data:`MAX_UNREACHABLE_STEPS` such steps rule it out.
+Ablations: ``trusting`` has no 3D layer (the mapper gives it each frame's detections
 alone) and acts on the first detection, going to it until the skill was tried (no gaze choice, no objective);
 ``no_global`` always prefers a candidate over a frontier.
 

@@ -5,8 +5,11 @@ into the step's goal on the 2D map.
   commitment and turning-in-place rules as question episodes);
 * ``move`` / ``pick`` / ``place`` / ``stop`` -> :func:`plan_to_pose`: a collision-free path to the gaze pose
   (at most ``max_step_m`` per step, like every goal); the skill is asked for only on the step the robot arrives
-  (``Goal.skill``), before that the goal is a plain move; a pose that cannot be reached rules the instance out
-  (:meth:`~services.planner.task_fsm.TaskMachine.unreachable`) and the machine decides again;
+  (``Goal.skill``), before that the goal is a plain move; a pose that cannot be reached takes the option away
+  for this step (:meth:`~services.planner.task_fsm.TaskMachine.unreachable`) and the machine decides again;
+  a frontier the machine sets out for goes into Eq. 9's ``F'``; when every frontier is one gone to, all are
+  options again; when no action can be planned at all, the robot backs out to a more open point
+  (:func:`escape_move`);
 * ``done`` -> ``Goal.done`` with the reason.
 
 One collision model (:mod:`eqa.robot`): every path of a task step -- to a frontier, a gaze point or a skill
