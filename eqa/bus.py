@@ -27,7 +27,7 @@ import zenoh
 from eqa import keys, metrics, security
 from eqa.codec import CodecError
 from eqa.messages import ErrorReply, M, Message, decode, encode
-from eqa.settings import Settings
+from eqa.settings import BusSettings, SettingsGroup
 
 log = logging.getLogger(__name__)
 
@@ -38,7 +38,7 @@ class BusError(RuntimeError):
     """The session could not be opened (nothing listens there, or it refused this node's credentials)."""
 
 
-def zenoh_config(settings: Settings) -> zenoh.Config:
+def zenoh_config(settings: BusSettings) -> zenoh.Config:
     """Zenoh configuration from settings: mode, listen/connect endpoints, multicast scouting, and the bus
     security of :mod:`eqa.security` when configured."""
     conf = zenoh.Config()
@@ -141,7 +141,7 @@ class _SerialQueryable:
 class Bus:
     """One Zenoh session of one service instance. Use as a context manager."""
 
-    def __init__(self, settings: Settings, service: str, instance: str | None = None) -> None:
+    def __init__(self, settings: SettingsGroup, service: str, instance: str | None = None) -> None:
         self.settings = settings
         self.service = keys.check_id(service, "service")
         self.instance = keys.check_id(instance or settings.instance, "instance")

@@ -71,7 +71,7 @@ from eqa.codec import CodecError, packb, unpackb
 from eqa.messages import STREAM_TYPES, EpisodeCancel, EpisodeEnd, EpisodeStart, ErrorReply, Message, decode, encode
 from eqa.recording import EpisodeRecorder
 from eqa.service import Service
-from eqa.settings import Settings
+from eqa.settings import SettingsGroup
 from eqa.sharding import Shard
 from eqa.store import EPISODE_STATE_TTL_S, Store, episode_end_key, episode_part_key, episode_state_key
 
@@ -151,7 +151,7 @@ class EpisodeService(Service, Generic[S]):
     error_stream: ClassVar[Pair | None] = None
     answer_invalid_start: ClassVar[bool] = False
 
-    def __init__(self, settings: Settings, bus: Bus | None = None, store: Store | None = None) -> None:
+    def __init__(self, settings: SettingsGroup, bus: Bus | None = None, store: Store | None = None) -> None:
         super().__init__(settings, bus, store)
         self.episodes: dict[str, S] = {}
         self.meta: dict[str, EpisodeMeta] = {}

@@ -24,7 +24,7 @@ from typing import Any, ClassVar, TypeVar
 from prometheus_client import REGISTRY, Counter, Gauge, Histogram, generate_latest, start_http_server
 from prometheus_client.exposition import CONTENT_TYPE_LATEST
 
-from eqa.settings import Settings
+from eqa.settings import MonitoringSettings
 
 log = logging.getLogger(__name__)
 
@@ -228,7 +228,7 @@ def exposition() -> bytes:
     return generate_latest(REGISTRY)
 
 
-def serve(settings: Settings, service: str) -> int | None:
+def serve(settings: MonitoringSettings, service: str) -> int | None:
     """Serve ``/metrics`` on ``EQA_METRICS_PORT`` (0 = off: nothing is counted) and start counting; once per
     port and process. Returns the port, or None when off."""
     port = settings.metrics_port

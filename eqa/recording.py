@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import urlsplit
 
-from eqa.settings import Settings
+from eqa.settings import SettingsGroup
 
 log = logging.getLogger(__name__)
 APPLICATION_ID = "eqa"
@@ -76,7 +76,7 @@ VIEWER_CHECK_S = 0.3  # connect timeout of the viewer check
 _viewer_checked: dict[str, tuple[float, bool]] = {}  # url -> (when, reachable), re-checked every 10 s
 
 
-def recording_dir(settings: Settings, episode_id: str) -> Path:
+def recording_dir(settings: SettingsGroup, episode_id: str) -> Path:
     return settings.recordings_path / episode_id
 
 
@@ -105,7 +105,7 @@ class EpisodeRecorder:
     Never raises into service code: a failing log call is logged and dropped.
     """
 
-    def __init__(self, settings: Settings, episode_id: str, service: str, enabled: bool = True) -> None:
+    def __init__(self, settings: SettingsGroup, episode_id: str, service: str, enabled: bool = True) -> None:
         self.enabled = bool(enabled and settings.record)
         self.path: Path | None = None
         self.stream: Any = None

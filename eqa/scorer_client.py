@@ -38,7 +38,7 @@ from eqa.messages import (
     ValueRequest,
     ValueResult,
 )
-from eqa.settings import Settings
+from eqa.settings import ScorerSettings
 
 log = logging.getLogger(__name__)
 
@@ -59,7 +59,7 @@ class ScorerError(RuntimeError):
 
 class ScorerClient:
     def __init__(
-        self, bus: Bus, settings: Settings, retries: int = 3, timeout_s: float | None = None
+        self, bus: Bus, settings: ScorerSettings, retries: int = 3, timeout_s: float | None = None
     ) -> None:
         self.bus = bus
         self.timeout_s = float(timeout_s if timeout_s is not None else settings.scorer_timeout_s)

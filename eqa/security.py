@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from eqa import keys
-from eqa.settings import Settings
+from eqa.settings import BusSettings
 
 # Who alone may publish each stream of a robot (every stream of ``eqa.messages.STREAM_TYPES`` has one owner).
 STREAM_OWNERS: dict[tuple[str, str], str] = {
@@ -66,11 +66,11 @@ class SecurityConfigError(ValueError):
     """Security settings that cannot work together; the message says what to set."""
 
 
-def tls_on(settings: Settings) -> bool:
+def tls_on(settings: BusSettings) -> bool:
     return settings.zenoh_tls_ca is not None
 
 
-def check(settings: Settings) -> None:
+def check(settings: BusSettings) -> None:
     """Refuse incomplete or contradictory security settings with a message that says what to set."""
     cert, key, ca = settings.zenoh_tls_cert, settings.zenoh_tls_key, settings.zenoh_tls_ca
     if (cert is None) != (key is None):
@@ -156,7 +156,7 @@ def acl_config(by_cert: bool, by_user: bool, roles: tuple[str, ...] = ROLES) -> 
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
 
 
-def security_sections(settings: Settings) -> dict[str, Any]:
+def security_sections(settings: BusSettings) -> dict[str, Any]:
     """The Zenoh configuration entries (path -> value) that the security settings add. Empty when all are off."""
     check(settings)
     out: dict[str, Any] = {}
@@ -189,13 +189,13 @@ def security_sections(settings: Settings) -> dict[str, Any]:
     return out
 
 
-def apply(conf: Any, settings: Settings) -> None:
+def apply(conf: Any, settings: BusSettings) -> None:
     """Insert :func:`security_sections` into a ``zenoh.Config``."""
     for path, value in security_sections(settings).items():
         conf.insert_json5(path, json.dumps(value))
 
 
-def router_config_json5(settings: Settings) -> str:
+def router_config_json5(settings: BusSettings) -> str:
     """A whole configuration file for ``zenohd -c`` (the compose file's router) from these settings."""
     doc: dict[str, Any] = {
         "mode": "router",

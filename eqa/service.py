@@ -19,18 +19,31 @@ import signal
 import sys
 import threading
 from collections.abc import Callable
-from typing import Any
+from typing import Any, ClassVar
 
 from eqa import keys, logs, metrics, standby
 from eqa.bus import Bus
 from eqa.event_log import encode_event, summarize
 from eqa.messages import STREAM_TYPES, Message
-from eqa.settings import Settings
+from eqa.settings import (
+    BusSettings,
+    Groups,
+    MonitoringSettings,
+    ProcessSettings,
+    Settings,
+    SettingsGroup,
+    SettingsView,
+    StoreSettings,
+    view,
+)
 from eqa.store import EPISODE_STATE_TTL_S, Store, episode_journal_key, open_store
 
 log = logging.getLogger(__name__)
 
 _STOP = object()
+
+# what the shell itself reads: its process, bus and store, and its recordings and metrics
+SHELL_GROUPS: Groups = (ProcessSettings, BusSettings, StoreSettings, MonitoringSettings)
 
 
 def setup_logging(level: str = "INFO", service: str = "eqa", fmt: str = "text", instance: str | None = None) -> None:
@@ -49,10 +62,12 @@ class Service:
 
     name: str = "service"
     description: str = ""
+    # the settings groups this service reads (the shell's and its own): it keeps only those (eqa.settings.view)
+    settings_groups: ClassVar[Groups] = SHELL_GROUPS
 
-    def __init__(self, settings: Settings, bus: Bus | None = None, store: Store | None = None) -> None:
-        self.settings = settings
-        self.bus = bus or Bus(settings, self.name)
+    def __init__(self, settings: SettingsGroup, bus: Bus | None = None, store: Store | None = None) -> None:
+        self.settings: SettingsView = view(settings, self.settings_groups)
+        self.bus = bus or Bus(self.settings, self.name)
         self._store = store
         self._queue: queue.Queue[Any] = queue.Queue()
         self._stopped = threading.Event()

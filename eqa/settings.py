@@ -1,15 +1,18 @@
 """All configuration, read from ``EQA_*`` environment variables in one class.
 
 Lists (endpoints, tokens) are comma-separated. Nothing deep in the code reads the environment: services
-receive a :class:`Settings` instance. ``docker-compose.yml`` sets exactly these variables (a test checks).
+receive a :class:`Settings` instance and keep the groups of it they declare (:func:`view`; a service's
+``settings_groups``, the gateway's ``gateway.app.SETTINGS_GROUPS``), so each reads only its own knobs.
+``docker-compose.yml`` sets exactly these variables (a test checks).
 """
 
 from __future__ import annotations
 
+import functools
 import os
 import socket
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, ClassVar, Literal
 
 from pydantic import Field, field_validator, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
@@ -51,6 +54,10 @@ class ProcessSettings(SettingsGroup):
         description="a service exits when this process is no longer its parent (the launcher sets it to its own pid, "
         "so a killed launcher leaves no orphaned services); 0 = never (containers, systemd, a shell)",
     )
+
+    @property
+    def recordings_path(self) -> Path:
+        return self.data_dir / "recordings"
 
 
 class BusSettings(SettingsGroup):
@@ -100,6 +107,10 @@ class FleetSettings(SettingsGroup):
         "above the slowest step (a slow VLM), 0 = never",
     )
     step_resends_max: int = Field(default=3, ge=0, description="resends of one step before the sim gives up")
+    episode_timeout_s: float = Field(
+        default=120.0, gt=0,
+        description="no-progress time before an episode fails (the gateway's watchdog; the sim does not resume a "
+        "stored episode older than this)")
     step_redrive: bool = Field(
         default=True,
         description="when an instance of a stateful service (re)appears, the sim sends the current frame of the "
@@ -121,6 +132,11 @@ class SimulatorSettings(SettingsGroup):
     sim_width: int = Field(default=640, ge=16, le=4096)
     sim_height: int = Field(default=480, ge=12, le=4096)
     hm3d_dir: Path | None = None
+
+    @property
+    def scenes_path(self) -> Path:
+        """``scenes_dir``, else ``data_dir/scenes``: read together with :class:`ProcessSettings`."""
+        return self.scenes_dir or self.data_dir / "scenes"  # type: ignore[attr-defined]
 
 
 class ScorerSettings(SettingsGroup):
@@ -246,7 +262,6 @@ class GatewaySettings(SettingsGroup):
     episode_retention_days: float = Field(default=30.0, gt=0, description="ended episodes older than this go")
     cors_origins: CsvList = Field(default_factory=list)
     busy_policy: Literal["queue", "refuse"] = "queue"
-    episode_timeout_s: float = Field(default=120.0, gt=0, description="no-progress time before an episode fails")
     trusted_proxies: CsvList = Field(
         default_factory=list,
         description="CIDRs of reverse proxies whose X-Forwarded-For names the client (e.g. 10.0.0.0/8); empty = the "
@@ -548,10 +563,13 @@ class Settings(
     SimulatedPerceptionSettings, PlannerSettings, StopperSettings, GatewaySettings, HeliosSettings,
     ObjectLayerSettings, SimulatedDetectorSettings, MonitoringSettings, Ros2Settings, HomeSettings,
 ):
-    """All settings: every group, one flat namespace (``settings.sim_width``), each ``EQA_*`` variable read once.
+    """All settings: every group, one flat namespace (``settings.sim_width``), each ``EQA_*`` variable read and
+    validated once (the validators that relate groups are here).
 
-    A service is handed the whole object; the groups say which knobs belong together, and keep the simulated
-    perception models' knobs (benchmark settings) apart from deployment settings."""
+    A component declares the groups it reads and keeps only those (:func:`view`): a service may be handed the
+    whole object and narrows it at construction, so a knob of another group is an ``AttributeError`` there, not a
+    value that silently works. The groups also keep the simulated perception models' knobs (benchmark settings)
+    apart from deployment settings."""
 
     @model_validator(mode="after")
     def _one_answer_rule(self) -> Settings:
@@ -574,14 +592,6 @@ class Settings(
                 "EQA_HOME_MAX_BYTES")
         return self
 
-    @property
-    def scenes_path(self) -> Path:
-        return self.scenes_dir or self.data_dir / "scenes"
-
-    @property
-    def recordings_path(self) -> Path:
-        return self.data_dir / "recordings"
-
     def env(self) -> dict[str, str]:
         """This configuration as ``EQA_*`` variables (to hand to child processes)."""
         out: dict[str, str] = {}
@@ -597,3 +607,63 @@ class Settings(
 def env_names() -> set[str]:
     """Every environment variable the code reads."""
     return {f"EQA_{name.upper()}" for name in Settings.model_fields}
+
+
+Groups = tuple[type[SettingsGroup], ...]
+GROUPS: Groups = tuple(k for k in Settings.__mro__ if isinstance(k, type) and issubclass(k, SettingsGroup)
+                       and k not in (Settings, SettingsGroup))
+
+
+class SettingOutsideGroupsError(AttributeError):
+    """A read of a setting whose group the component did not declare."""
+
+
+class SettingsView(SettingsGroup):
+    """Base of the narrowed settings :func:`view` makes: read-only, and a read of a field of a group it was not
+    made with names that group."""
+
+    model_config = SettingsConfigDict(frozen=True)
+    groups: ClassVar[Groups] = ()
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        """Pickled by its groups and values (its class is made at run time, under no importable name)."""
+        return _rebuild, (self.groups, dict(self.__dict__))
+
+    def __getattr__(self, name: str) -> Any:
+        try:
+            return super().__getattr__(name)  # type: ignore[misc]
+        except AttributeError:
+            owner = next((g for g in GROUPS if name in g.model_fields or name in vars(g)), None)
+            if owner is None:
+                raise
+            raise SettingOutsideGroupsError(
+                f"{name} is a setting of {owner.__name__}, which this component does not declare (it reads "
+                f"{', '.join(g.__name__ for g in self.groups)})", name=name, obj=self) from None
+
+
+def view_class(groups: Groups) -> type[SettingsView]:
+    """The settings class of exactly ``groups`` (whatever their order), made once per set of groups."""
+    unknown = [g for g in groups if g not in GROUPS]
+    if unknown:
+        raise TypeError(f"not settings groups: {unknown}")
+    return _view_class(tuple(g for g in GROUPS if g in groups))
+
+
+@functools.cache
+def _view_class(bases: Groups) -> type[SettingsView]:
+    name = "Settings[" + ",".join(g.__name__.removesuffix("Settings") for g in bases) + "]"
+    return type(name, (SettingsView, *bases), {"__module__": __name__, "groups": bases})
+
+
+def _rebuild(groups: Groups, values: dict[str, Any]) -> SettingsView:
+    return view_class(groups).model_construct(**values)
+
+
+def view(settings: SettingsGroup, groups: Groups) -> SettingsView:
+    """``settings`` restricted to ``groups``: their fields with ``settings``' values (validated already, the
+    environment is not read again), and nothing else. ``settings`` may be a :class:`Settings` or a view holding
+    at least these groups; a view of exactly these groups is returned as it is."""
+    cls = view_class(groups)
+    if type(settings) is cls:
+        return settings  # type: ignore[return-value]
+    return cls.model_construct(**{name: getattr(settings, name) for name in cls.model_fields})

@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from eqa import metrics
-from eqa.settings import Settings
+from eqa.settings import SettingsGroup
 
 if TYPE_CHECKING:
     from eqa.messages import EpisodeEnd
@@ -545,7 +545,7 @@ def unavailable_errors() -> tuple[type[BaseException], ...]:
     return tuple(found)
 
 
-def open_store(settings: Settings, timeout_s: float = 10.0) -> Store:
+def open_store(settings: SettingsGroup, timeout_s: float = 10.0) -> Store:
     """Redis when ``EQA_REDIS_URL`` is set, else the embedded store under ``data_dir``; ``timeout_s`` bounds
     one Redis call (a server that answers HTTP requests uses less, to answer 503 soon when Redis freezes)."""
     if settings.redis_url:

@@ -2,8 +2,8 @@
 
 The settings class is the one home of every ``EQA_*`` variable; this page is derived from it so that it cannot
 drift: ``tests/kernel/test_config_doc.py`` regenerates it and compares. Sections follow the ``# --- name ---`` comments
-of the settings groups (a group's docstring says what it is for); a setting's text is its ``description=``,
-else the comment on its line or the comment block right above it.
+of the settings groups (a group's docstring says what it is for, and :func:`components` which components read
+it); a setting's text is its ``description=``, else the comment on its line or the comment block right above it.
 
     python -m eqa_app.config_doc > docs/configuration.md     # regenerate
     python -m eqa_app.config_doc --check docs/configuration.md   # exit 1 when the page is stale
@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import importlib
 import inspect
 import re
 import sys
@@ -32,6 +33,45 @@ SECTION = re.compile(r"^\s*#\s*---\s*(.+?)\s*---\s*$")
 TRACKER_REF = re.compile(r"(?:[\w/ -]+=\s*)?\bissues?\s+#?\d+(?:\s+item\s+\d+)?(?:\s*\(\w+\))?", re.IGNORECASE)
 
 
+# the services, by the name their shells have (each declares its settings groups: Service.settings_groups)
+SERVICES = {
+    "sim": "services.sim.service:SimService",
+    "mapper": "services.mapper.service:MapperService",
+    "planner": "services.planner.service:PlannerService",
+    "stopper": "services.stopper.service:StopperService",
+    "vlm_scorer": "services.vlm_scorer.service:ScorerService",
+    "ros2_bridge": "services.ros2_bridge.service:Ros2BridgeService",
+}
+
+
+def service_classes() -> dict[str, Any]:
+    """The service classes of :data:`SERVICES`."""
+    out = {}
+    for name, ref in SERVICES.items():
+        module, _, attr = ref.partition(":")
+        out[name] = getattr(importlib.import_module(module), attr)
+    return out
+
+
+def components() -> dict[str, tuple[str, tuple[type, ...] | None]]:
+    """Each component: its package and the settings groups it reads; ``None``: every group (the launcher hands
+    the whole configuration to the processes it starts)."""
+    from gateway.app import SETTINGS_GROUPS
+
+    out: dict[str, tuple[str, tuple[type, ...] | None]] = {
+        name: (SERVICES[name].partition(":")[0].rpartition(".")[0], cls.settings_groups)
+        for name, cls in service_classes().items()
+    }
+    out["gateway"] = ("gateway", SETTINGS_GROUPS)
+    out["launcher"] = ("eqa.launcher", None)
+    return out
+
+
+def readers(group: type) -> list[str]:
+    """The components that declare ``group`` (the launcher, which holds every group, is left out)."""
+    return [name for name, (_, groups) in components().items() if groups is not None and group in groups]
+
+
 @dataclass(frozen=True)
 class Row:
     section: str
@@ -41,6 +81,7 @@ class Row:
     default: str
     text: str
     about: str = ""  # the docstring of the settings group that declares the field
+    group: str = ""  # the settings group that declares the field
 
 
 def clean(text: str) -> str:
@@ -160,7 +201,8 @@ def rows(cls: type | None = None, source: str | None = None) -> list[Row]:
         owner = next((k for k in cls.__mro__ if name in inspect.get_annotations(k)), cls)
         about = clean(" ".join((inspect.getdoc(owner) or "").split())) if owner is not cls else ""
         out.append(Row(section=sections.get(line, "") or "other", note=above.get(line, ""),
-                       env=f"{prefix}{name.upper()}", type=kind, default=_default(info), text=text, about=about))
+                       env=f"{prefix}{name.upper()}", type=kind, default=_default(info), text=text, about=about,
+                       group=owner.__name__ if owner is not cls else ""))
     return out
 
 
@@ -178,7 +220,10 @@ def render(cls: type | None = None, source: str | None = None) -> str:
         "service (nothing deeper reads the environment). Lists are comma-separated. `eqa up` passes its own",
         "settings to the processes it starts; `docker-compose.yml` sets the same variables. The settings come in",
         "groups (one class each in `eqa/settings.py`, one section each below); the simulated perception models'",
-        "knobs are groups of their own: benchmark settings, not deployment settings.",
+        "knobs are groups of their own: benchmark settings, not deployment settings. Each component declares",
+        "the groups it reads and keeps only those (`eqa.settings.view`: a setting of another group is an",
+        "`AttributeError` there); each section says which components read it (`eqa up`, the launcher, holds",
+        "every group: it hands the whole configuration to the processes it starts).",
         "",
         f"This page is generated from `eqa/settings.py`: `{REGENERATE}`",
         "(`tests/kernel/test_config_doc.py` fails when it is stale).",
@@ -197,16 +242,31 @@ def render(cls: type | None = None, source: str | None = None) -> str:
         about = next((r.about for r in table if r.section == section and r.about), "")
         if remark := clean(remark.rstrip(")")) or about:
             out += [f"*{remark}*", ""]
+        groups = list(dict.fromkeys(r.group for r in table if r.section == section and r.group))
+        if groups and (names := _readers(groups)):
+            out += [f"Read by: {', '.join(names)}.", ""]
         out += header
         for r in (r for r in table if r.section == section):
             if r.note:
                 if out[-1] != header[-1]:
                     out += ["", r.note, "", *header]
                 else:
-                    out[-3:-2] = [r.note, "", header[0]]
+                    out[-2:] = [r.note, "", *header]
             out.append(f"| `{r.env}` | {_cell(r.type)} | {_cell(r.default)} | {_cell(r.text)} |")
         out.append("")
     return "\n".join(out)
+
+
+def _readers(groups: list[str]) -> list[str]:
+    """The components reading any of the settings groups named ``groups`` (of eqa.settings; others: none)."""
+    import eqa.settings
+
+    names: list[str] = []
+    for name in groups:
+        group = getattr(eqa.settings, name, None)
+        if isinstance(group, type):
+            names += [n for n in readers(group) if n not in names]
+    return names
 
 
 def _anchor(title: str) -> str:

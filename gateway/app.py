@@ -30,7 +30,18 @@ from starlette.datastructures import Headers
 from eqa import keys, logs, metrics
 from eqa.bus import Bus
 from eqa.messages import MESSAGE_TYPES, EpisodeEnd, ErrorReply, Message
-from eqa.settings import Settings
+from eqa.service import SHELL_GROUPS
+from eqa.settings import (
+    FleetSettings,
+    GatewaySettings,
+    Groups,
+    HeliosSettings,
+    HomeSettings,
+    SettingsGroup,
+    SettingsView,
+    SimulatorSettings,
+    view,
+)
 from eqa.store import StoreUnavailable, open_store, unavailable_errors
 from gateway import metrics as gateway_metrics
 from gateway.auth import Authenticator, authenticate_docs, retry_after
@@ -41,6 +52,11 @@ from gateway.routers import console, episodes, health, homes, labels, tasks
 from gateway.schemas import Problem
 
 log = logging.getLogger(__name__)
+
+# the settings groups the gateway reads: the shell's (process, bus, store, metrics), its own, the robots and the
+# episode watchdog, homes, the scenes (a request's step budget from the scene's area) and the task's pick limit
+SETTINGS_GROUPS: Groups = (*SHELL_GROUPS, FleetSettings, GatewaySettings, HomeSettings, SimulatorSettings,
+                           HeliosSettings)
 
 INBOX_MAX_DATA = 256  # data messages waiting for the episode logic; more are dropped (logged)
 CONTROL_TYPES = (EpisodeEnd, ErrorReply)  # never dropped for a running episode
@@ -69,7 +85,7 @@ class Hub:
         event.set()
 
 
-def _watchdog_period(settings: Settings) -> float:
+def _watchdog_period(settings: SettingsGroup) -> float:
     return max(0.05, min(1.0, settings.episode_timeout_s / 4))
 
 
@@ -113,7 +129,7 @@ class Inbox:
                     log.exception("handling %s of %s failed; going on", msg.kind, robot)
 
 
-async def watchdog(manager: EpisodeManager, settings: Settings) -> None:
+async def watchdog(manager: EpisodeManager, settings: SettingsGroup) -> None:
     """Time out silent episodes every :func:`_watchdog_period`; every PRUNE_EVERY_S, apply the retention of
     episodes and homes (a large backlog in batches, letting requests through between them)."""
     loop = asyncio.get_running_loop()
@@ -145,7 +161,7 @@ async def exit_with_launcher(parent_pid: int) -> None:
 async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     """The gateway's store, bus and episode manager for the app's life, with its three tasks: the inbox, the
     watchdog and, under a launcher, the exit when the launcher is gone."""
-    settings: Settings = app.state.settings
+    settings: SettingsView = app.state.settings
     loop = asyncio.get_running_loop()
     hub = Hub()
     app.state.hub = hub
@@ -215,9 +231,11 @@ async def _validation_error(_request: Request, exc: Exception) -> JSONResponse:
     return JSONResponse(status_code=status.HTTP_422_UNPROCESSABLE_CONTENT, content={"detail": detail})
 
 
-def create_app(settings: Settings, scene_area: SceneArea | None = None) -> FastAPI:
-    """The gateway app. ``scene_area`` gives a scene's floor area for the default step budget and the check
-    that a requested scene exists (the process entry passes the simulator's scene library)."""
+def create_app(settings: SettingsGroup, scene_area: SceneArea | None = None) -> FastAPI:
+    """The gateway app, reading the settings of :data:`SETTINGS_GROUPS` only. ``scene_area`` gives a scene's
+    floor area for the default step budget and the check that a requested scene exists (the process entry passes
+    the simulator's scene library)."""
+    settings = view(settings, SETTINGS_GROUPS)
     app = FastAPI(
         title="EQA gateway",
         version="1.0.0",

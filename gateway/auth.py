@@ -44,7 +44,7 @@ from dataclasses import dataclass
 
 from fastapi import HTTPException, Request, status
 
-from eqa.settings import Settings
+from eqa.settings import SettingsGroup
 
 CALLER_STATE = "eqa_caller"  # request-state key of the caller gateway.limits.BodyLimit identified and admitted
 
@@ -184,7 +184,7 @@ class Authenticator:
     """Token check, tenants and scopes, failed-auth limits (per client address, per token prefix) that never
     refuse a valid token, rate limit per caller, client address behind trusted proxies."""
 
-    def __init__(self, settings: Settings) -> None:
+    def __init__(self, settings: SettingsGroup) -> None:
         self.tokens = parse_tokens(list(settings.api_tokens))
         self.limiter = RateLimiter(settings.rate_limit_per_s)
         per_min = settings.auth_failures_per_min

@@ -73,7 +73,7 @@ from eqa.messages import (
     new_id,
 )
 from eqa.recording import recording_dir
-from eqa.settings import Settings
+from eqa.settings import SettingsGroup
 from eqa.store import Store, StoreUnavailable, episode_journal_key, stored_end, task_trace_key
 from gateway import metrics as gateway_metrics
 from gateway import state as lifecycle
@@ -186,7 +186,7 @@ def _scene_area(scene_area: SceneArea, scene: str, scenes_path: Path, hm3d_dir: 
     return float(scene_area(scene, scenes_path, hm3d_dir))
 
 
-def step_budget(settings: Settings, req: QuestionRequest, scene_area: SceneArea | None = None,
+def step_budget(settings: SettingsGroup, req: QuestionRequest, scene_area: SceneArea | None = None,
                 per_sqrt_m2: float = STEPS_PER_SQRT_M2) -> int:
     """``max_steps`` of an episode: the request's budget, else ``int(per_sqrt_m2 * sqrt(floor area))`` (a
     question: Explore-EQA section VI, T = 3 * sqrt(scene area); a task: 6, as the task benchmark), else
@@ -219,7 +219,7 @@ class EpisodeManager:
     queues, tenants, limits, retention. Thread-safe (one lock); store and bus calls are blocking, so async
     callers run these methods in a worker thread."""
 
-    def __init__(self, settings: Settings, store: Store, bus: Bus, notify: Callable[[], None] | None = None,
+    def __init__(self, settings: SettingsGroup, store: Store, bus: Bus, notify: Callable[[], None] | None = None,
                  scene_area: SceneArea | None = None) -> None:
         self.settings = settings
         self.scene_area = scene_area

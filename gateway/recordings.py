@@ -16,7 +16,7 @@ import threading
 from pathlib import Path
 
 from eqa.recording import recording_dir
-from eqa.settings import Settings
+from eqa.settings import SettingsGroup
 
 MERGED = "merged.rrd"
 _lock = threading.Lock()
@@ -49,12 +49,12 @@ def _rrd(*args: str, timeout_s: float) -> subprocess.CompletedProcess[str]:
     )
 
 
-def parts(settings: Settings, episode_id: str) -> list[Path]:
+def parts(settings: SettingsGroup, episode_id: str) -> list[Path]:
     d = recording_dir(settings, episode_id)
     return sorted(p for p in d.glob("*.rrd") if p.name != MERGED and p.stat().st_size > 0) if d.is_dir() else []
 
 
-def merge(settings: Settings, episode_id: str, timeout_s: float = 120.0) -> Path:
+def merge(settings: SettingsGroup, episode_id: str, timeout_s: float = 120.0) -> Path:
     """Path of the merged recording of an episode (re-merged when a part is newer than the cache)."""
     files = parts(settings, episode_id)
     if not files:

@@ -21,7 +21,7 @@ from support.fleet import clear_gateway_state, fleet_settings
 from support.gateway import SCENE, TOKEN
 
 from eqa.launcher import Fleet, free_port
-from eqa.settings import Settings
+from eqa.settings import SettingOutsideGroupsError, Settings, SettingsView
 from eqa.store import EmbeddedStore, RedisStore, Store
 
 REPO = Path(__file__).resolve().parents[1]
@@ -35,6 +35,26 @@ def wait_port(port: int, timeout: float = 10.0) -> None:
                 return
         time.sleep(0.05)
     raise TimeoutError(f"nothing listens on 127.0.0.1:{port}")
+
+
+@pytest.fixture(autouse=True)
+def settings_outside_groups(monkeypatch: pytest.MonkeyPatch) -> Iterator[list[str]]:
+    """Every test fails when a component read a setting outside the groups it declares (eqa.settings.view), also
+    where the AttributeError was caught on the way (a handler's error is logged, a getattr has a default). A test
+    that reads one on purpose clears the list it yields."""
+    outside: list[str] = []
+    read = SettingsView.__getattr__
+
+    def recording(self: SettingsView, name: str) -> object:
+        try:
+            return read(self, name)
+        except SettingOutsideGroupsError as exc:
+            outside.append(str(exc))
+            raise
+
+    monkeypatch.setattr(SettingsView, "__getattr__", recording)
+    yield outside
+    assert not outside, f"settings read outside the groups declared: {sorted(set(outside))}"
 
 
 @pytest.fixture(scope="session")

@@ -66,7 +66,7 @@ from eqa.messages import (
     WarmStart,
 )
 from eqa.recording import EpisodeRecorder
-from eqa.settings import Settings
+from eqa.settings import SettingsGroup
 from services.mapper.episode_map import EpisodeMap
 from services.mapper.semantic_map import QUESTION_LAYER
 
@@ -120,7 +120,7 @@ class MapperContext:
     needed), the object layer's configuration, and ``error`` (an :class:`~eqa.messages.ErrorReply` on the
     mapper's error stream)."""
 
-    def __init__(self, settings: Settings, bus: Bus | None, error: ReportError, *, scorer: Scorer | None = None,
+    def __init__(self, settings: SettingsGroup, bus: Bus | None, error: ReportError, *, scorer: Scorer | None = None,
                  detector: Detect | None = None, values: Values | None = None) -> None:
         self.settings = settings
         self.bus = bus

@@ -68,7 +68,7 @@ from eqa.messages import (
     ScoreResult,
     WarmStart,
 )
-from eqa.settings import Settings
+from eqa.settings import SettingsGroup
 from eqa.store import Store
 from services.mapper.episode_map import EpisodeMap
 from services.mapper.extension import MapperExtension, StepOutputs
@@ -168,7 +168,7 @@ class HomeMemory(MapperExtension):
 
     state_key = STATE_KEY
 
-    def __init__(self, settings: Settings, store: Callable[[], Store],
+    def __init__(self, settings: SettingsGroup, store: Callable[[], Store],
                  scorer: Callable[[], Callable[[ScoreRequest], Any]], *,
                  objects: Callable[[str], ObjectMap | None] = lambda episode_id: None,
                  detect: Callable[[], Callable[[Any], Any]] | None = None) -> None:

@@ -35,6 +35,7 @@ import numpy as np
 from eqa import robot as body
 from eqa.messages import DetectRequest, DetectResult, Frame, GazePoint, GridSpec, ObjectInstance, Task
 from eqa.recording import EpisodeRecorder
+from eqa.settings import SettingsGroup
 from services.mapper.gaze import gaze_points
 from services.mapper.objects.config import OTHER, ObjectLayerConfig
 from services.mapper.objects.layer import ObjectLayer, UpdateStats, camera_from_gaze, pixel_classes
@@ -64,18 +65,19 @@ class ObjectMapConfig:
     miss_range_m: float = 4.5
 
     @classmethod
-    def from_settings(cls, s: object) -> ObjectMapConfig:
-        g = lambda name, default: getattr(s, name, default)  # noqa: E731
+    def from_settings(cls, s: SettingsGroup) -> ObjectMapConfig:
+        """From the HELIOS and object layer settings (:class:`eqa.settings.HeliosSettings`,
+        :class:`eqa.settings.ObjectLayerSettings`)."""
         layer = ObjectLayerConfig(
-            alpha_cpa=g("helios_alpha_cpa", 3.0), alpha_cs=g("helios_alpha_cs", 1.0),
-            render_scale=g("helios_render_scale", 0.5), max_gaussians=g("helios_max_gaussians", 60_000),
-            max_new_per_frame=g("helios_max_new_per_frame", 6_000), gaze_width=g("helios_gaze_width", 96),
+            alpha_cpa=s.helios_alpha_cpa, alpha_cs=s.helios_alpha_cs, render_scale=s.helios_render_scale,
+            max_gaussians=s.helios_max_gaussians, max_new_per_frame=s.helios_max_new_per_frame,
+            gaze_width=s.helios_gaze_width,
         )
         return cls(
-            layer=layer, device=g("helios_device", "cpu"), od_object=g("helios_od_g", 0.25),
-            od_start=g("helios_od_a", 0.35), od_goal=g("helios_od_b", 0.45), cs_min=g("helios_cs_g", 0.3),
-            gaze_radius_m=g("helios_gaze_radius_m", 0.9), gaze_points=g("helios_gaze_points", 12),
-            gaze_obstacle_m=g("helios_gaze_obstacle_m", 1.0), max_instances=g("helios_max_instances", 64),
+            layer=layer, device=s.helios_device, od_object=s.helios_od_g, od_start=s.helios_od_a,
+            od_goal=s.helios_od_b, cs_min=s.helios_cs_g, gaze_radius_m=s.helios_gaze_radius_m,
+            gaze_points=s.helios_gaze_points, gaze_obstacle_m=s.helios_gaze_obstacle_m,
+            max_instances=s.helios_max_instances,
         )
 
 

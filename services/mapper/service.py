@@ -45,7 +45,16 @@ from eqa.messages import (
     StepScores,
 )
 from eqa.recording import EpisodeRecorder
-from eqa.settings import Settings
+from eqa.service import SHELL_GROUPS
+from eqa.settings import (
+    HeliosSettings,
+    HomeSettings,
+    ObjectLayerSettings,
+    PlannerSettings,
+    ScorerSettings,
+    SettingsGroup,
+    StopperSettings,
+)
 from eqa.store import Store
 from services.mapper import snapshots
 from services.mapper.answer_views import AnswerViewsExtension
@@ -84,27 +93,32 @@ class MapperService(EpisodeService[EpisodeMap]):
     hold_max_per_episode = 1  # the frame of step 0; a second one of an unknown episode is refused
     persist_answers = False  # the snapshot is the state; a resent step is answered from it (answer_again)
     state_ttl_s = 7 * 24 * 3600.0
+    # PlannerSettings: Eq. A6 temperatures and view bins of the value layers; ScorerSettings: the pool's timeout;
+    # HELIOS and its object layer; StopperSettings: joint answer memory and object evidence; homes
+    settings_groups = (*SHELL_GROUPS, PlannerSettings, ScorerSettings, HeliosSettings, ObjectLayerSettings,
+                       StopperSettings, HomeSettings)
 
-    def __init__(self, settings: Settings, bus: Bus | None = None, store: Store | None = None, *,
+    def __init__(self, settings: SettingsGroup, bus: Bus | None = None, store: Store | None = None, *,
                  scorer: Scorer | None = None, detector: Detect | None = None, values: Values | None = None) -> None:
         super().__init__(settings, bus, store)
-        self.context = MapperContext(settings, self.bus, self.error, scorer=scorer, detector=detector, values=values)
+        self.context = MapperContext(self.settings, self.bus, self.error, scorer=scorer, detector=detector,
+                                     values=values)
         self.object_layer = ObjectLayerExtension(self.context)  # HELIOS object layer of task episodes
         self.question_objects = QuestionObjectsExtension(self.context)  # object evidence of question episodes
         self.answer_memory = AnswerViewsExtension(self.context)  # joint answer memory (EQA_ANSWER_MEMORY_MODE)
         # home memory and warm start: after the object layer, whose state it starts and writes back
-        self.homes = HomeMemory(settings, lambda: self.store, self.scorer, objects=self.object_layer.maps.get,
+        self.homes = HomeMemory(self.settings, lambda: self.store, self.scorer, objects=self.object_layer.maps.get,
                                 detect=lambda: self.context.detect_and_values()[0])
         # the order of the calls and of the stored state's parts (a new extension goes at the end)
         self.extensions: list[MapperExtension] = [self.object_layer, self.question_objects, self.answer_memory,
                                                   self.homes]
         self.config = MapperConfig(
-            tau_lsv=settings.tau_lsv,
-            tau_gsv=settings.tau_gsv,
-            tau_sv=settings.tau_sv,
-            tau_sv_normal=settings.tau_sv_normal,
-            view_bins=settings.view_bins,
-            view_agree=settings.view_agree,
+            tau_lsv=self.settings.tau_lsv,
+            tau_gsv=self.settings.tau_gsv,
+            tau_sv=self.settings.tau_sv,
+            tau_sv_normal=self.settings.tau_sv_normal,
+            view_bins=self.settings.view_bins,
+            view_agree=self.settings.view_agree,
         )
         self.last_timing_ms: dict[str, float] = {}
         # runs the scorer round trip of a step while the handler thread does the score-independent work

@@ -35,7 +35,8 @@ from eqa.messages import (
     MapUpdate,
     Strategy,
 )
-from eqa.settings import Settings
+from eqa.service import SHELL_GROUPS
+from eqa.settings import HeliosSettings, SettingsGroup
 from eqa.store import Store
 from services.planner import cp_guided
 from services.planner.refusals import Refusals, plan_attempt
@@ -85,8 +86,9 @@ class PlannerService(EpisodeService[_Episode]):
     planner plans the next steps exactly as this one would have; the last goal is the step's stored answer."""
 
     name = "planner"
+    settings_groups = (*SHELL_GROUPS, HeliosSettings)  # a task's thresholds
 
-    def __init__(self, settings: Settings, bus: Bus | None = None, store: Store | None = None, *,
+    def __init__(self, settings: SettingsGroup, bus: Bus | None = None, store: Store | None = None, *,
                  params: PlannerParams | None = None) -> None:
         super().__init__(settings, bus, store)
         self.params = params or PlannerParams()

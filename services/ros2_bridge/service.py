@@ -39,8 +39,8 @@ from eqa import keys, ros
 from eqa.bus import Bus
 from eqa.messages import EpisodeCancel, EpisodeEnd, EpisodeStart, ErrorReply, Frame, Goal, Pose2D
 from eqa.robot import goal_not_taken
-from eqa.service import Service
-from eqa.settings import Settings
+from eqa.service import SHELL_GROUPS, Service
+from eqa.settings import Ros2Settings, SettingsGroup
 from eqa.store import Store
 from services.ros2_bridge import core
 
@@ -80,11 +80,12 @@ class Ros2BridgeService(Service):
     """ROS 2 robots (rmw_zenoh) in the sim's place."""
 
     name = "ros2_bridge"
+    settings_groups = (*SHELL_GROUPS, Ros2Settings)
     description = "ROS 2 bridge: robots on rmw_zenoh keep the sim's contract (frames, goals, refusals)."
 
-    def __init__(self, settings: Settings, bus: Bus | None = None, store: Store | None = None) -> None:
+    def __init__(self, settings: SettingsGroup, bus: Bus | None = None, store: Store | None = None) -> None:
         super().__init__(settings, bus, store)
-        s = settings
+        s = self.settings
         self.robots = {r: _Robot(r, s.ros2_namespace.format(robot=r), s.ros2_distro_of(r)) for r in s.ros2_robots}
         self.refused: Counter[str] = Counter()
         self._lock = threading.Lock()

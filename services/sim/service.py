@@ -43,7 +43,13 @@ from eqa.episode_service import EpisodeService
 from eqa.messages import EpisodeCancel, EpisodeEnd, EpisodeStart, Frame, Goal, Pose2D, SkillReport
 from eqa.recording import ENTITIES
 from eqa.robot import goal_not_taken
-from eqa.settings import Settings
+from eqa.service import SHELL_GROUPS
+from eqa.settings import (
+    FleetSettings,
+    Ros2Settings,
+    SettingsGroup,
+    SimulatorSettings,
+)
 from eqa.sharding import Redrive
 from eqa.store import (
     EPISODE_STATE_TTL_S,
@@ -83,7 +89,7 @@ class _Episode:
     collisions: int = 0  # base motions that hit an obstacle (services.sim.skills.path_collides), every episode
 
 
-def load_scene(settings: Settings, scene_id: str, floor: int = 0) -> Scene:
+def load_scene(settings: SettingsGroup, scene_id: str, floor: int = 0) -> Scene:
     """A scene by id: generated houses from ``scenes_path``; HM3D scans from ``hm3d_dir`` (floor height
     from ``scene_init_poses.csv`` there when present); other meshes from ``scenes_path``."""
     if not (GEN_ID.match(scene_id) or CHANGED_ID.match(scene_id)) and settings.hm3d_dir is not None:
@@ -106,11 +112,13 @@ class SimService(EpisodeService[_Episode]):
     error_stream = keys.SIM_ERROR
     answer_invalid_start = True
     persist_answers = False  # the sim answers no step input; it sends its frames again itself
+    # Ros2Settings: the robots a ROS 2 robot drives are left alone here
+    settings_groups = (*SHELL_GROUPS, FleetSettings, SimulatorSettings, Ros2Settings)
 
-    def __init__(self, settings: Settings, bus: Bus | None = None, store: Store | None = None) -> None:
+    def __init__(self, settings: SettingsGroup, bus: Bus | None = None, store: Store | None = None) -> None:
         super().__init__(settings, bus, store)
         self._scenes: OrderedDict[tuple[str, int], Renderer] = OrderedDict()
-        self._K = intrinsics(settings.sim_width, settings.sim_height)
+        self._K = intrinsics(self.settings.sim_width, self.settings.sim_height)
         self._redrive: Redrive | None = None
 
     def owns(self, robot: str) -> bool:

@@ -40,7 +40,8 @@ from eqa.messages import (
     StepScores,
 )
 from eqa.recording import recording_dir
-from eqa.settings import Settings
+from eqa.service import SHELL_GROUPS
+from eqa.settings import HomeSettings, SettingsGroup, StopperSettings
 from eqa.store import (
     EPISODE_STATE_TTL_S,
     Store,
@@ -76,8 +77,9 @@ class StopperService(EpisodeService[EpisodeRecord]):
     name = "stopper"
     description = "Decides when the robot stops exploring and what it answers (Explore-EQA section V)."
     hold_max_episodes = 256
+    settings_groups = (*SHELL_GROUPS, StopperSettings, HomeSettings)  # HomeSettings: the warm starts' CP table
 
-    def __init__(self, settings: Settings, bus: Bus | None = None, store: Store | None = None) -> None:
+    def __init__(self, settings: SettingsGroup, bus: Bus | None = None, store: Store | None = None) -> None:
         super().__init__(settings, bus, store)
         self.traces: TraceStore | None = None
 

@@ -43,8 +43,16 @@ from eqa.messages import (
     ValueResult,
 )
 from eqa.recording import EpisodeRecorder
-from eqa.service import Service
-from eqa.settings import Settings
+from eqa.service import SHELL_GROUPS, Service
+from eqa.settings import (
+    ObjectLayerSettings,
+    ScorerSettings,
+    SettingsGroup,
+    SimulatedDetectorSettings,
+    SimulatedPerceptionSettings,
+    StopperSettings,
+    view,
+)
 from eqa.store import Store
 from services.vlm_scorer.backends import Backend, make_backend
 from services.vlm_scorer.backends.base import Scores
@@ -63,15 +71,19 @@ class ScorerService(Service):
 
     name = "vlm_scorer"
     description = "VLM scorer replica: answers ScoreRequests on eqa/v1/scorer/{replica}/score."
+    # the backends' and the detector's (real and simulated); StopperSettings: whether answers are joint
+    settings_groups = (*SHELL_GROUPS, ScorerSettings, SimulatedPerceptionSettings, ObjectLayerSettings,
+                       SimulatedDetectorSettings, StopperSettings)
 
     def __init__(
         self,
-        settings: Settings,
+        settings: SettingsGroup,
         bus: Bus | None = None,
         store: Store | None = None,
         *,
         backend: Backend | None = None,
     ) -> None:
+        settings = view(settings, self.settings_groups)
         self.replica = keys.check_id(settings.scorer_replica or settings.instance, "replica")
         super().__init__(settings, bus or Bus(settings, self.name, self.replica), store)
         self.backend = backend

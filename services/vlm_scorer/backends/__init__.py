@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-from eqa.settings import Settings
+from eqa.settings import SettingsGroup
 from services.vlm_scorer.backends.base import Backend, BackendUnavailable
 
 
-def check_settings(settings: Settings) -> None:
+def check_settings(settings: SettingsGroup) -> None:
     """Cheap checks of the chosen backend's settings and of the detector's (no model is loaded), for the
     command line to refuse a fleet whose scorer could only answer errors. :class:`BackendUnavailable` says
     what to set."""
@@ -23,7 +23,7 @@ def check_settings(settings: Settings) -> None:
     check_detector_settings(settings)
 
 
-def make_backend(settings: Settings) -> Backend:
+def make_backend(settings: SettingsGroup) -> Backend:
     """The backend chosen by ``settings.scorer_backend`` (``EQA_SCORER_BACKEND``)."""
     if settings.scorer_backend == "oracle":
         from services.vlm_scorer.backends.oracle import OracleBackend

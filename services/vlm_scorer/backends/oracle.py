@@ -91,7 +91,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from eqa.messages import NOT_LISTED_CHOICE, PADDING_CHOICE, InstanceLabel, Question, ScoreRequest
-from eqa.settings import Settings
+from eqa.settings import SettingsGroup, SimulatedPerceptionSettings
 from services.vlm_scorer import commonsense as cs
 from services.vlm_scorer.backends.base import Backend, Scores, validate_request
 
@@ -188,12 +188,11 @@ class OracleParams:
         return any(getattr(self, m) > 0 for m in MISCALIBRATION_MODES)
 
     @classmethod
-    def from_settings(cls, settings: Settings) -> OracleParams:
+    def from_settings(cls, settings: SettingsGroup) -> OracleParams:
         kw = {}
-        for f in fields(cls):
-            value = getattr(settings, f"oracle_{f.name}", None)
-            if value is not None:
-                kw[f.name] = float(value)
+        for f in fields(cls):  # those with a setting of their own (the others keep their defaults)
+            if (name := f"oracle_{f.name}") in SimulatedPerceptionSettings.model_fields:
+                kw[f.name] = float(getattr(settings, name))
         return cls(**kw)
 
 
@@ -279,7 +278,7 @@ class OracleBackend(Backend):
         self.p = params or OracleParams()
 
     @classmethod
-    def from_settings(cls, settings: Settings) -> OracleBackend:
+    def from_settings(cls, settings: SettingsGroup) -> OracleBackend:
         return cls(OracleParams.from_settings(settings))
 
     # ---- perception --------------------------------------------------------------------------------------

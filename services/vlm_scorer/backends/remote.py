@@ -55,7 +55,7 @@ import numpy as np
 from PIL import Image
 
 from eqa.messages import ScoreRequest
-from eqa.settings import Settings
+from eqa.settings import SettingsGroup
 from services.vlm_scorer import prompts
 from services.vlm_scorer.backends.base import BackendUnavailable, ModelBackend, ProbeItem, Scores
 
@@ -189,7 +189,7 @@ class RemoteBackend(ModelBackend):
         self.pool = ThreadPoolExecutor(max_workers=in_flight, thread_name_prefix="remote-scorer")
 
     @classmethod
-    def from_settings(cls, settings: Settings) -> RemoteBackend:
+    def from_settings(cls, settings: SettingsGroup) -> RemoteBackend:
         return cls(
             settings.remote_base_url or "",
             settings.remote_model or "",

@@ -13,7 +13,7 @@ Backends (``EQA_DETECTOR_BACKEND``):
 
 from __future__ import annotations
 
-from eqa.settings import Settings
+from eqa.settings import SettingsGroup
 from services.vlm_scorer.backends.base import BackendUnavailable
 from services.vlm_scorer.detector.base import Detector
 
@@ -24,7 +24,7 @@ REMOTE_REFUSAL = (
 )
 
 
-def check_detector_settings(settings: Settings) -> None:
+def check_detector_settings(settings: SettingsGroup) -> None:
     """Cheap checks of the detector settings (no model loaded); :class:`BackendUnavailable` says what to set."""
     if settings.detector_backend == "hf":
         from services.vlm_scorer.detector.hf import check_detector_dir
@@ -34,7 +34,7 @@ def check_detector_settings(settings: Settings) -> None:
         raise BackendUnavailable(REMOTE_REFUSAL)
 
 
-def make_detector(settings: Settings) -> Detector:
+def make_detector(settings: SettingsGroup) -> Detector:
     """The detector chosen by ``EQA_DETECTOR_BACKEND``."""
     check_detector_settings(settings)
     if settings.detector_backend == "oracle":

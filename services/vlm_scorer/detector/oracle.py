@@ -49,7 +49,7 @@ import numpy as np
 from scipy import ndimage
 
 from eqa.messages import Detection, DetectRequest, InstanceLabel
-from eqa.settings import Settings
+from eqa.settings import SettingsGroup, SimulatedDetectorSettings
 from services.vlm_scorer import commonsense as cs
 from services.vlm_scorer.backends.base import BadRequest
 from services.vlm_scorer.detector.base import Detector, finish, make_detection, validate_detect_request
@@ -107,14 +107,13 @@ class OracleDetectorParams:
                    bleed_frac=0.0)
 
     @classmethod
-    def from_settings(cls, settings: Settings) -> OracleDetectorParams:
-        if getattr(settings, "detector_ground_truth", False):
+    def from_settings(cls, settings: SettingsGroup) -> OracleDetectorParams:
+        if settings.detector_ground_truth:
             return cls.ground_truth()
         kw = {}
-        for f in fields(cls):
-            value = getattr(settings, f"detector_oracle_{f.name}", None)
-            if value is not None:
-                kw[f.name] = float(value)
+        for f in fields(cls):  # those with a setting of their own (the others keep their defaults)
+            if (name := f"detector_oracle_{f.name}") in SimulatedDetectorSettings.model_fields:
+                kw[f.name] = float(getattr(settings, name))
         return cls(**kw)
 
 
@@ -150,7 +149,7 @@ class OracleDetector(Detector):
             self.model_name = GROUND_TRUTH_LABEL
 
     @classmethod
-    def from_settings(cls, settings: Settings) -> OracleDetector:
+    def from_settings(cls, settings: SettingsGroup) -> OracleDetector:
         return cls(OracleDetectorParams.from_settings(settings))
 
     def class_confidence(self, cls_name: str) -> float:
