@@ -490,6 +490,8 @@ class PresenceQuery(BaseModel):
     model_config = ConfigDict(extra="forbid")
     object: ClassName
     room: ClassName | None = None
+    # False: only IN_ROOM is asked (counting across views needs the room, not the object; a prompt saved per step)
+    ask_object: bool = True
 
 
 class ScoreRequest(Message):

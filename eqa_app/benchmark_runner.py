@@ -79,6 +79,7 @@ class RunResult:
     end: EpisodeEnd | None
     reason: str
     seconds: float
+    answer_counting: str | None = None  # the stopper's trace: counting across views pooled into the steps' f
 
     def trace(self, strategy: str) -> Any:
         from services.stopper.calibration import Trace, TraceStep
@@ -94,6 +95,7 @@ class RunResult:
             steps=[TraceStep(answer_probs=s.answer_probs, relevance=s.relevance) for s in self.steps],
             episode_id=self.episode_id,
             end_reason=self.reason,
+            answer_counting=self.answer_counting,
         )
 
 
@@ -156,6 +158,7 @@ class Runner:
             stop=StopConfig(rule="max_steps"),
             max_steps=question.max_steps,
             seed=question_seed(question.id),
+            draws=question.id,  # the simulated detector's draws are the question's, as in the in-process runner
             record=self.record,
             target_paths=yardstick_paths(question, self.strategy, self.settings.scenes_path),
         )
@@ -226,18 +229,22 @@ class Runner:
         # The stopper's stored trace is authoritative: the last StepScores may reach us after the EpisodeEnd
         # (two publishers, two Zenoh threads), and the stopper saw every step it decided on.
         stored = _stopper_trace(self.settings, run.episode_id) if end is not None else None
+        counting = stored.answer_counting if stored is not None else None
         if stored is not None:
             for t, s in enumerate(stored.steps):
                 if t not in run.scores:
                     run.scores[t] = StepScores(episode_id=run.episode_id, step=t, answer_probs=s.answer_probs,
                                                relevance=s.relevance)
+                elif counting is not None:  # the f the stopper decided on: the VLM's pooled with the room's count
+                    run.scores[t] = run.scores[t].model_copy(update={"answer_probs": s.answer_probs})
         steps = [run.scores[t] for t in sorted(run.scores)]
         # Keep the contiguous prefix: a trace is a causal sequence of steps 0..t.
         contiguous = [s for i, s in enumerate(steps) if s.step == i]
         if len(contiguous) != len(steps):
             log.warning("episode %s: scores of steps %s missing", run.episode_id,
                         sorted(set(range(len(steps))) - set(run.scores)))
-        return RunResult(run.question, run.episode_id, contiguous, end, reason, time.monotonic() - run.started)
+        return RunResult(run.question, run.episode_id, contiguous, end, reason, time.monotonic() - run.started,
+                         counting)
 
 
 def collect_traces(

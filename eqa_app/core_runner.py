@@ -51,6 +51,10 @@ class StepHooks:
     """What one in-process runner records (or changes) at each step of :func:`run_episode_loop`; the loop
     itself is the services'. The defaults record nothing and change nothing."""
 
+    def request(self, step: int, request: ScoreRequest) -> ScoreRequest:
+        """The step's score request as the mapper's extensions send it (:meth:`MapperExtension.score_request`)."""
+        return request
+
     def scored(self, step: int, frame: Frame, request: ScoreRequest, scores: Any) -> None:
         """The scorer's reply of the step, before the mapper applies its values."""
 
@@ -112,6 +116,7 @@ def run_episode_loop(question: Question, strategy: Strategy, cores: EpisodeCores
     for step in range(budget):
         frame, req = observe_step(cores.renderer, cores.emap, episode_id, step, pose, K, cores.width, cores.height,
                                   blind, seed)
+        req = hooks.request(step, req)
         scores = cores.scorer.score(req)
         hooks.scored(step, frame, req, scores)
         cores.emap.apply_scores(scores.lsv, scores.gsv)
@@ -147,6 +152,70 @@ class _TraceSteps(StepHooks):
         self.steps.append(self.step_type(answer_probs=list(scores.answer_probs), relevance=float(scores.relevance)))
 
 
+class _CountingTrace(_TraceSteps):
+    """Counting across views (``EQA_ANSWER_COUNTING=views``) as the services do it: the mapper's
+    :class:`~services.mapper.question_objects.QuestionObjectsExtension` (its IN_ROOM prompt, detections of the
+    simulated detector in-process, the room's extent, the step's evidence) and the stopper's :func:`decide`, whose
+    record holds the pooled ``f`` the fleet's stopper traces hold."""
+
+    def __init__(self, settings: Any, start: Any, emap: EpisodeMap) -> None:
+        from eqa.messages import DetectResult, StopConfig
+        from services.mapper.extension import MapperContext
+        from services.mapper.question_objects import QuestionObjectsExtension
+        from services.stopper.state import EpisodeRecord
+        from services.vlm_scorer.detector import make_detector
+
+        super().__init__()
+        detector = make_detector(settings)
+
+        def detect(req: Any) -> Any:
+            return DetectResult(request_id=req.request_id, episode_id=req.episode_id, step=req.step,
+                                detections=detector.detect(req), backend=settings.detector_backend)
+
+        def no_values(req: Any) -> Any:
+            raise RuntimeError("a question episode asks no value prompts")
+
+        def report(robot: str, episode_id: str | None, step: int | None, reason: str) -> None:
+            raise RuntimeError(f"episode {episode_id} step {step}: {reason}")
+
+        self.start, self.emap = start, emap
+        self.ext = QuestionObjectsExtension(MapperContext(settings, None, report, detector=detect, values=no_values))
+        self.ext.begin(emap, None, restored=False)
+        self.record = EpisodeRecord.from_start(start, start.robot)
+        self.record.stop = StopConfig(rule="max_steps")  # a trace runs full length
+        self.record.object_evidence = (settings.object_evidence_psi_min, settings.object_evidence_weight)
+        self.record.evidence_categories = ["counting"]
+        self.pending: tuple[Any, Any] | None = None
+
+    def request(self, step: int, request: ScoreRequest) -> ScoreRequest:
+        return self.ext.score_request(self.emap, request)
+
+    def scored(self, step: int, frame: Frame, request: ScoreRequest, scores: Any) -> None:
+        from services.mapper.extension import StepOutputs
+
+        self.ext.scores(self.emap, frame, scores, StepOutputs(), {}, again=False)
+        self.pending = (frame, scores)
+
+    def mapped(self, step: int, emap: EpisodeMap, step_map: MapUpdate) -> None:
+        from eqa.messages import StepScores
+        from services.mapper.extension import StepOutputs
+        from services.stopper.calibration import TraceStep
+        from services.stopper.state import decide
+
+        assert self.pending is not None
+        frame, scores = self.pending
+        out = StepOutputs()
+        self.ext.apply(self.start.robot, emap, frame, self.ext.submit(self.start.robot, emap, frame), out, {})
+        decide(self.record, StepScores(episode_id=self.start.episode_id, step=step,
+                                       answer_probs=list(scores.answer_probs), relevance=float(scores.relevance),
+                                       choices=list(self.start.question.choices), object_evidence=out.object_evidence))
+        self.steps = [TraceStep(answer_probs=p, relevance=r)
+                      for p, r in zip(self.record.probs, self.record.relevance, strict=True)]
+
+    def close(self) -> None:
+        self.ext.close()
+
+
 def core_episode(args: tuple[Any, str, dict[str, Any]]) -> Any:
     """One full-length episode of ``question`` with ``strategy`` under ``settings`` (a ``model_dump``); returns a
     :class:`services.stopper.calibration.Trace` (its ``end_reason`` says why it ended)."""
@@ -154,6 +223,7 @@ def core_episode(args: tuple[Any, str, dict[str, Any]]) -> Any:
     from eqa.settings import Settings
     from eqa_app.benchmark_runner import question_seed, yardstick_paths
     from services.mapper.episode_map import EpisodeMap, MapperConfig
+    from services.mapper.question_objects import question_target
     from services.planner.step import PlannerParams
     from services.sim.library import load_or_generate
     from services.sim.render import Renderer
@@ -165,15 +235,22 @@ def core_episode(args: tuple[Any, str, dict[str, Any]]) -> Any:
     scene = load_or_generate(question.scene, settings.scenes_path)
     seed = question_seed(question.id)
     start = EpisodeStart(episode_id=f"cores-{question.id}", robot="cores", question=question, strategy=strategy,
-                         max_steps=question.max_steps, seed=seed, record=False,
+                         max_steps=question.max_steps, seed=seed, record=False, draws=question.id,
                          target_paths=yardstick_paths(question, strategy, settings.scenes_path, scene))
     emap = EpisodeMap(start, MapperConfig(tau_lsv=settings.tau_lsv, tau_gsv=settings.tau_gsv, tau_sv=settings.tau_sv,
                                           tau_sv_normal=settings.tau_sv_normal, view_bins=settings.view_bins,
                                           view_agree=settings.view_agree))
     cores = EpisodeCores(scene, Renderer(scene), make_backend(settings), emap, PlannerParams(),
                          settings.sim_width, settings.sim_height)
-    trace = _TraceSteps()
-    reason = run_episode_loop(question, strategy, cores, episode_id=start.episode_id, seed=seed, hooks=trace)
+    target = question_target(question)
+    counting = settings.answer_counting == "views" and target is not None and target[0] == "counting"
+    trace = _CountingTrace(settings, start, emap) if counting else _TraceSteps()
+    try:
+        reason = run_episode_loop(question, strategy, cores, episode_id=start.episode_id, seed=seed, hooks=trace)
+    finally:
+        if isinstance(trace, _CountingTrace):
+            trace.close()
     return Trace(question_id=question.id, scene=question.scene, category=question.category,
                  choices=question.choices, answer=question.answer, max_steps=question.max_steps, strategy=strategy,
-                 steps=trace.steps, episode_id=start.episode_id, end_reason=reason)
+                 steps=trace.steps, episode_id=start.episode_id, end_reason=reason,
+                 answer_counting="views" if isinstance(trace, _CountingTrace) and trace.record.count_latest else None)

@@ -38,7 +38,6 @@ from eqa_app.benches.harness import RESULTS
 
 LABEL = "simulated perception model and simulated detector, not a VLM / detector"
 CATEGORIES = ("existence", "counting")
-ROOM_DILATE_CELLS = 3  # an instance counts as in the room when its centre is within 0.3 m of the room's cells
 TRACES = RESULTS / "explore-seeds" / "traces"
 
 
@@ -68,16 +67,13 @@ class CWEpisode:
 
 def run_episode(args: tuple[Any, int, str]) -> CWEpisode:
     """One full-length episode of ``question`` with ``strategy`` (module docstring, step 1)."""
-    from scipy import ndimage
-
-    from eqa import grid
     from eqa.messages import DetectResult, EpisodeStart, letters
     from eqa.settings import Settings
     from eqa_app.benchmark_runner import question_seed
     from eqa_app.core_runner import EpisodeCores, StepHooks, run_episode_loop
     from services.mapper.episode_map import EpisodeMap
     from services.mapper.question_objects import QuestionObjects
-    from services.mapper.room_extent import RoomExtent
+    from services.mapper.room_extent import RoomExtent, room_vote
     from services.planner.step import PlannerParams
     from services.sim.render import Renderer
     from services.sim.service import load_scene
@@ -114,23 +110,10 @@ def run_episode(args: tuple[Any, int, str]) -> CWEpisode:
 
         def mapped(self, step: int, emap: Any, step_map: Any) -> None:
             m, frame = emap.maps, pending["frame"]
-            # no room asked (counting in the whole house): every view is "in the region"
-            in_room = pending["in_room"] if room_kind else 1.0
-            extent.update(frame.depth, frame.intrinsics, frame.camera_pose, in_room, m.explored, m.free, m.occupied,
-                          emap.origin, emap.resolution)
+            extent.update(frame.depth, frame.intrinsics, frame.camera_pose, room_vote(pending["in_room"], room_kind),
+                          m.explored, m.free, m.occupied, emap.origin, emap.resolution)
             cov = extent.coverage(0.0, 1.0)
-            inst: list[tuple[float, bool]] = []
-            if objects is not None:
-                room = extent.room_mask()
-                near = ndimage.binary_dilation(room, iterations=ROOM_DILATE_CELLS) if room is not None else None
-                for i in objects.objects.layer.instances():
-                    if i.cls != 0:
-                        continue
-                    x, y, _ = i.centre
-                    r, c = (int(v) for v in grid.cell_of(x, y, emap.origin, emap.resolution))
-                    inside = bool(near is not None and 0 <= r < near.shape[0] and 0 <= c < near.shape[1]
-                                  and near[r, c])
-                    inst.append((float(i.psi[0]), inside))
+            inst = objects.in_room(extent.room_mask(), emap.origin, emap.resolution) if objects is not None else []
             steps.append(CWStep(pending["probs"], pending["relevance"], pending["object_yes"], pending["in_room"],
                                 cov.area_m2, cov.open_share, inst))
 
@@ -245,18 +228,28 @@ def presence_steps(ep: CWEpisode) -> list[Any]:
                          open_share=min(s.open_share, 1.0)) for s in ep.steps]
 
 
+def count_params() -> Any:
+    """Rule 2's psi_min and w: the object-evidence settings' defaults (chosen on seed 11), as the product uses."""
+    from eqa.settings import Settings
+    from services.stopper.object_evidence import EvidenceParams
+
+    fields = Settings.model_fields
+    return EvidenceParams(psi_min=fields["object_evidence_psi_min"].default,
+                          weight=fields["object_evidence_weight"].default)
+
+
+def step_evidence(ep: CWEpisode, t: int) -> Any:
+    """The object layer's evidence at step ``t`` (rule 2, :func:`services.stopper.object_evidence.count_evidence`)."""
+    from services.stopper.object_evidence import count_evidence
+
+    return count_evidence(ep.steps[t].instances, ep.steps[t].open_share)
+
+
 def layer_dist(ep: CWEpisode, t: int) -> Any:
     """The object layer's count distribution at step ``t`` (rule 2; the docs' declaration)."""
-    from eqa.messages import MAX_EVIDENCE_INSTANCES, ObjectEvidence
-    from services.stopper.object_evidence import EvidenceParams, layer_distribution
+    from services.stopper.object_evidence import layer_distribution
 
-    s = ep.steps[t]
-    psi = sorted((p for p, inside in s.instances if inside), reverse=True)[:MAX_EVIDENCE_INSTANCES]
-    ev = ObjectEvidence(category="counting", psi=psi, explored=1.0 - min(max(s.open_share, 0.0), 1.0))
-    return layer_distribution(ev, ep.choices, EvidenceParams(psi_min=COUNT_PSI_MIN, weight=COUNT_WEIGHT))
-
-
-COUNT_PSI_MIN, COUNT_WEIGHT = 0.1, 0.75  # the object-evidence defaults chosen on seed 11 (eqa/settings.py)
+    return layer_distribution(step_evidence(ep, t), ep.choices, count_params())
 
 
 def arrays(ep: CWEpisode) -> tuple[Any, Any]:
@@ -270,11 +263,9 @@ def rule_outcome(ep: CWEpisode, params: Any, budget: float) -> tuple[bool, float
     """(correct, normalised steps) of the rules at ``budget`` (fraction of T), without CP."""
     import math
 
-    import numpy as np
-
     from services.stopper.closed_world import firing_step, no_index
     from services.stopper.conformal import fallback_answer
-    from services.stopper.object_evidence import combine
+    from services.stopper.object_evidence import budget_answer
 
     f, rel = arrays(ep)
     n = max(1, min(math.floor(budget * ep.max_steps + 1e-9), len(ep.steps)))
@@ -284,9 +275,8 @@ def rule_outcome(ep: CWEpisode, params: Any, budget: float) -> tuple[bool, float
         if fire is not None and no is not None:
             return no == ep.truth, (fire + 1) / ep.max_steps
         return fallback_answer(f[:n], rel[:n]) == ep.truth, n / ep.max_steps
-    t_star = int(np.argmax(rel[:n]))
-    pooled = combine(f[t_star], layer_dist(ep, n - 1), COUNT_WEIGHT)
-    return int(np.argmax(pooled)) == ep.truth, n / ep.max_steps
+    answer = budget_answer(f[:n], rel[:n], step_evidence(ep, n - 1), ep.choices, count_params())
+    return answer == ep.truth, n / ep.max_steps
 
 
 def transformed(ep: CWEpisode, params: Any, on: bool) -> tuple[Any, Any, int | None]:
@@ -303,7 +293,8 @@ def transformed(ep: CWEpisode, params: Any, on: bool) -> tuple[Any, Any, int | N
         fire = firing_step(presence_steps(ep), params)
         f2, r2 = apply(f, rel, fire, ep.choices, params)
         return f2, r2, fire
-    return np.asarray([combine(f[t], layer_dist(ep, t), COUNT_WEIGHT) for t in range(len(ep.steps))]), rel, None
+    w = count_params().weight
+    return np.asarray([combine(f[t], layer_dist(ep, t), w) for t in range(len(ep.steps))]), rel, None
 
 
 def cp_replay(ep: CWEpisode, params: Any, on: bool, q_hat: float) -> tuple[bool, float, bool]:

@@ -13,6 +13,7 @@ hook                   when, and what it may do
                        (the home's view memory re-scored at the first frame), outputs into :class:`StepOutputs`
 ``submit``             then: send its own scorer-pool requests (a future), answered while the mapper computes
                        the frontier candidates and waits for the step's scores
+``score_request``      the step's :class:`~eqa.messages.ScoreRequest` is built: return it, changed or not
 ``scores``             the step's :class:`~eqa.messages.ScoreResult` came back (``again``: the frame of the last
                        step came again, nothing is fused twice): return it, changed or not; fill outputs
 ``apply``              the semantic values are written: fuse the answers of ``submit``, fill the step's
@@ -183,6 +184,11 @@ class MapperExtension(Protocol):
     def submit(self, robot: str, episode_map: EpisodeMap, frame: Frame) -> Future[Any] | None:
         """Send the extension's own requests for the frame; their future goes to :meth:`apply`."""
         return None
+
+    def score_request(self, episode_map: EpisodeMap, request: ScoreRequest) -> ScoreRequest:
+        """The step's score request before it goes to the pool: return it, changed or not (e.g. with the presence
+        prompts the extension needs)."""
+        return request
 
     def scores(self, episode_map: EpisodeMap, frame: Frame, result: ScoreResult, out: StepOutputs,
                timing: dict[str, float], again: bool) -> ScoreResult:

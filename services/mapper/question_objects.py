@@ -18,8 +18,16 @@ In the product (the mapper service, :class:`QuestionObjectsExtension`): a questi
 has no floor plan (the :class:`~eqa.messages.EpisodeStart` carries none and the mapper must not read the
 simulator's scene): the region is then the whole map (``rects=None``), the explored share is the observed
 share of the mapped area's bounding box, and the existence prior refers to the whole explored map, not to the
-asked room. The room kind is parsed and reported but does not narrow the region. With the whole map as the
-region only existence questions get evidence (:data:`WHOLE_MAP_CATEGORIES`, measured: counting did not gain).
+asked room. The room kind is parsed and reported but does not narrow the whole-map region. With the whole map
+as the region only existence questions get evidence (:data:`WHOLE_MAP_CATEGORIES`, measured: counting did not
+gain).
+
+Counting across views (``EQA_ANSWER_COUNTING=views``, the default): a counting question's region is instead the
+asked room's extent on the robot's own map (:class:`~services.mapper.room_extent.RoomExtent`, voted by the
+scorer's IN_ROOM answers, which the extension asks for with the step's score request; the whole viewed map when
+no room is asked), an instance counts when its centre is within ``REACH_CELLS`` of it (:meth:`QuestionObjects.in_room`)
+and the unexplored share is the room's open share (:func:`services.stopper.object_evidence.count_evidence`):
+rule 2 of ``docs/results/closed-world-answers.md``, where it was measured.
 """
 
 from __future__ import annotations
@@ -41,11 +49,14 @@ from eqa.messages import (
     Frame,
     GridSpec,
     ObjectEvidence,
+    PresenceQuery,
     Question,
+    ScoreRequest,
     ScoreResult,
 )
 from services.mapper.episode_map import EpisodeMap
 from services.mapper.extension import MapperContext, MapperExtension, StepOutputs, call_pool, failure
+from services.mapper.room_extent import RoomExtent, room_vote
 
 log = logging.getLogger(__name__)
 
@@ -185,8 +196,8 @@ class QuestionObjects:
         cfg = config or ObjectMapConfig()
         self.objects = ObjectMap([self.cls], [cfg.od_object], cfg)
 
-    def detect_request(self, frame: Frame, seed: int = 0) -> DetectRequest:
-        return self.objects.detect_request(frame, seed)
+    def detect_request(self, frame: Frame, seed: int = 0, draws: str | None = None) -> DetectRequest:
+        return self.objects.detect_request(frame, seed, draws)
 
     def integrate(self, frame: Frame, result: DetectResult) -> None:
         self.objects.integrate(frame, result)
@@ -212,6 +223,26 @@ class QuestionObjects:
                 share = region_share(explored.astype(bool), grid, self.rects)
         return ObjectEvidence(category=self.category, psi=psi, explored=min(max(share, 0.0), 1.0))
 
+    def in_room(self, room: np.ndarray | None, origin: tuple[float, float],
+                resolution: float) -> list[tuple[float, bool]]:
+        """Counting across views: ``(Psi, centre within REACH_CELLS of the room's cells)`` of every target-class
+        instance; ``room`` is :meth:`RoomExtent.room_mask` on the map's grid (None: no room yet, none inside)."""
+        from scipy import ndimage
+
+        from eqa import grid as gridm
+        from services.mapper.room_extent import REACH_CELLS
+
+        near = ndimage.binary_dilation(room, iterations=REACH_CELLS) if room is not None else None
+        out: list[tuple[float, bool]] = []
+        for inst in self.objects.layer.instances():
+            if inst.cls != 0:  # believed "other"
+                continue
+            x, y, _ = inst.centre
+            r, c = (int(v) for v in gridm.cell_of(x, y, origin, resolution))
+            inside = bool(near is not None and 0 <= r < near.shape[0] and 0 <= c < near.shape[1] and near[r, c])
+            out.append((float(inst.psi[0]), inside))
+        return out
+
     # ---- persistence (the mapper's episode state) -------------------------------------------------------
     def snapshot(self) -> bytes:
         return self.objects.snapshot()
@@ -226,7 +257,8 @@ class QuestionObjects:
 
 
 class QuestionObjectsExtension(MapperExtension):
-    """The object evidence of question episodes with ``EQA_OBJECT_EVIDENCE`` on, as a mapper extension
+    """The object evidence of question episodes (existence with ``EQA_OBJECT_EVIDENCE`` on, counting with
+    ``EQA_ANSWER_COUNTING=views``), as a mapper extension
     (:mod:`services.mapper.extension`): the episode's :class:`QuestionObjects` (``layers``), a detection per
     frame through the scorer pool (on its own worker, while the mapper waits for the question's scores), the
     step's :class:`~eqa.messages.ObjectEvidence`, and the layer in the episode's stored state. A failed
@@ -238,56 +270,92 @@ class QuestionObjectsExtension(MapperExtension):
     def __init__(self, context: MapperContext) -> None:
         self.context = context
         self.layers: dict[str, QuestionObjects] = {}
+        self.rooms: dict[str, RoomExtent] = {}  # counting across views: the asked room's extent
+        self.in_room: dict[str, float | None] = {}  # ... and the step's IN_ROOM answer, until it is fused
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mapper-question-objects")
         self._told: set[str] = set()
 
     def close(self) -> None:
         self._pool.shutdown(wait=True)
 
+    def counting_across_views(self, category: str) -> bool:
+        """Counting across views (EQA_ANSWER_COUNTING=views) for a question of ``category``."""
+        return category == "counting" and self.context.settings.answer_counting == "views"
+
     def _wanted(self, start: EpisodeStart) -> bool:
-        if not self.context.settings.object_evidence or start.task is not None:
+        settings = self.context.settings
+        if start.task is not None or not (settings.object_evidence or settings.answer_counting == "views"):
             return False
         target = question_target(start.question)
         if target is None:
-            if start.episode_id not in self._told:
+            if settings.object_evidence and start.episode_id not in self._told:
                 self._told.add(start.episode_id)
                 log.info("episode %s: object evidence on, but the question names no class to count or find "
                          "(forms: 'How many <class> ...', 'Is there a <class> ...'); no evidence", start.episode_id)
             return False
+        if self.counting_across_views(target[0]):
+            return True
+        if not settings.object_evidence:
+            return False
         if target[0] not in WHOLE_MAP_CATEGORIES:
             if start.episode_id not in self._told:
                 self._told.add(start.episode_id)
-                log.info("episode %s: no object evidence for a %s question without a floor plan (the whole map's "
-                         "count is not the asked room's; WHOLE_MAP_CATEGORIES)", start.episode_id, target[0])
+                log.info("episode %s: no whole-map object evidence for a %s question (the whole map's count is not "
+                         "the asked room's; WHOLE_MAP_CATEGORIES; EQA_ANSWER_COUNTING=views counts in the room)",
+                         start.episode_id, target[0])
             return False
         return True
 
     def _new_layer(self, start: EpisodeStart) -> None:
         layer = QuestionObjects(start.question, None, config=self.context.objects_config)
         self.layers[start.episode_id] = layer
-        log.info("episode %s: object evidence for %s '%s' (room %s: not narrowed, no floor plan)",
-                 start.episode_id, layer.category, layer.cls, layer.room_kind)
+        if self.counting_across_views(layer.category):
+            self.rooms[start.episode_id] = RoomExtent()
+            log.info("episode %s: counting '%s' across views in %s", start.episode_id, layer.cls,
+                     f"the {layer.room_kind}'s extent (IN_ROOM votes)" if layer.room_kind else "the whole map")
+        else:
+            log.info("episode %s: object evidence for %s '%s' (room %s: not narrowed, no floor plan)",
+                     start.episode_id, layer.category, layer.cls, layer.room_kind)
 
     def begin(self, episode_map: EpisodeMap, part: Any | None, restored: bool) -> None:
-        """The episode's layer when the setting is on and the question has a target (the stored one when taken
-        up from the store). No room layout is known to the mapper: the region is the whole map (module
-        docstring)."""
+        """The episode's layer when the question gets evidence (the stored one when taken up from the store):
+        whole-map evidence for an existence question with EQA_OBJECT_EVIDENCE on (no room layout is known to the
+        mapper, module docstring), counting across views in the asked room's extent with EQA_ANSWER_COUNTING=views
+        (:class:`~services.mapper.room_extent.RoomExtent`)."""
         start = episode_map.start
         if not self._wanted(start):
             return
         if part is None:
             self._new_layer(start)
             return
+        room = None
+        if isinstance(part, dict):  # counting across views: the layer and the room's extent
+            part, room = part["map"], RoomExtent.from_state(part["room"])
         self.layers[start.episode_id] = QuestionObjects.restore(start.question, part, None,
                                                                 config=self.context.objects_config)
+        if self.counting_across_views(self.layers[start.episode_id].category):
+            self.rooms[start.episode_id] = room or RoomExtent()
 
     def finish(self, episode_map: EpisodeMap) -> None:
         self.layers.pop(episode_map.episode_id, None)
+        self.rooms.pop(episode_map.episode_id, None)
+        self.in_room.pop(episode_map.episode_id, None)
         self._told.discard(episode_map.episode_id)
 
-    def dump(self, episode_id: str) -> bytes | None:
+    def dump(self, episode_id: str) -> bytes | dict[str, Any] | None:
         layer = self.layers.get(episode_id)
-        return None if layer is None else layer.snapshot()
+        if layer is None:
+            return None
+        room = self.rooms.get(episode_id)
+        return layer.snapshot() if room is None else {"map": layer.snapshot(), "room": room.state()}
+
+    def score_request(self, episode_map: EpisodeMap, request: ScoreRequest) -> ScoreRequest:
+        """Counting across views in a room: the step's IN_ROOM prompt (only it: the count is the layer's)."""
+        layer = self.layers.get(episode_map.episode_id)
+        if layer is None or episode_map.episode_id not in self.rooms or not layer.room_kind:
+            return request
+        return request.model_copy(update={"presence": PresenceQuery(object=layer.cls, room=layer.room_kind,
+                                                                    ask_object=False)})
 
     def submit(self, robot: str, episode_map: EpisodeMap, frame: Frame) -> Future[Any] | None:
         layer = self.layers.get(episode_map.episode_id)
@@ -298,15 +366,25 @@ class QuestionObjectsExtension(MapperExtension):
     def _detect(self, layer: QuestionObjects, episode_map: EpisodeMap, frame: Frame) -> tuple[Any, float]:
         detect, _ = self.context.detect_and_values()
         t0 = time.perf_counter()
-        det = call_pool(detect, layer.detect_request(frame, seed=episode_map.start.seed))
+        start = episode_map.start
+        det = call_pool(detect, layer.detect_request(frame, seed=start.seed, draws=start.draws))
         return det, (time.perf_counter() - t0) * 1000.0
 
     def apply(self, robot: str, episode_map: EpisodeMap, frame: Frame, pending: Future[Any] | None, out: StepOutputs,
               timing: dict[str, float]) -> None:
-        """Fuse the frame's detections; the step's evidence, or none (no layer, or the detection failed)."""
+        """Fuse the frame's detections (and its IN_ROOM vote into the room's extent); the step's evidence, or none
+        (no layer, or the detection failed)."""
         layer = self.layers.get(episode_map.episode_id)
         if pending is None or layer is None:
             return
+        room = self.rooms.get(episode_map.episode_id)
+        if room is not None and episode_map.maps is not None:
+            t0 = time.perf_counter()
+            m = episode_map.maps
+            room.update(frame.depth, frame.intrinsics, frame.camera_pose,
+                        room_vote(self.in_room.pop(episode_map.episode_id, None), layer.room_kind),
+                        m.explored, m.free, m.occupied, episode_map.origin, episode_map.resolution)
+            timing["question_objects_room"] = (time.perf_counter() - t0) * 1000.0
         det, ask_ms = pending.result()
         timing["question_objects_ask"] = ask_ms
         if not isinstance(det, DetectResult):
@@ -325,15 +403,31 @@ class QuestionObjectsExtension(MapperExtension):
 
     def scores(self, episode_map: EpisodeMap, frame: Frame, result: ScoreResult, out: StepOutputs,
                timing: dict[str, float], again: bool) -> ScoreResult:
-        """A step sent again gets the evidence of the stored layer (nothing is fused twice)."""
+        """The step's IN_ROOM answer for the room's extent (fused in :meth:`apply`); a step sent again gets the
+        evidence of the stored layer (nothing is fused twice)."""
+        room = self.rooms.get(episode_map.episode_id)
         if again:
+            if room is not None and room.votes_in is None and episode_map.maps is not None:
+                m = episode_map.maps  # taken up from the store before any update: the maps, no vote
+                room.update(frame.depth, frame.intrinsics, frame.camera_pose, None, m.explored, m.free, m.occupied,
+                            episode_map.origin, episode_map.resolution)
             out.object_evidence = self.evidence(episode_map)
+        elif room is not None:
+            self.in_room[episode_map.episode_id] = result.in_room
         return result
 
     def evidence(self, episode_map: EpisodeMap) -> ObjectEvidence | None:
-        """The layer's evidence on the episode's current map."""
+        """The layer's evidence on the episode's current map: counting across views, the instances within reach of
+        the asked room's extent and its open share (:func:`services.stopper.object_evidence.count_evidence`);
+        else the whole map's."""
         layer = self.layers.get(episode_map.episode_id)
         if layer is None:
             return None
+        room = self.rooms.get(episode_map.episode_id)
+        if room is not None:
+            from services.stopper.object_evidence import count_evidence
+
+            inst = layer.in_room(room.room_mask(), episode_map.origin, episode_map.resolution)
+            return count_evidence(inst, room.coverage(0.0, 1.0).open_share)
         observed = episode_map.maps.observed if episode_map.maps is not None else None
         return layer.evidence(observed, episode_map.grid() if observed is not None else None)

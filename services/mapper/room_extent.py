@@ -38,6 +38,15 @@ from services.mapper.frontiers import frontier_cells
 _EIGHT = np.ones((3, 3), dtype=bool)
 CLOSE_CELLS = 2  # closing of the voted cells, and the reach of a frontier into the room (0.2 m at 0.1 m cells)
 MAX_CELLS = 4_000_000  # a map of 200 m x 200 m at 0.1 m: refuse larger grids (memory bound)
+# an object belongs to the room when its centre lies within this many cells of the room (0.3 m at 0.1 m cells):
+# an object against a wall has its centre at the room's edge, where the voted cells end
+REACH_CELLS = 3
+
+
+def room_vote(in_room: float | None, room_kind: str | None) -> float | None:
+    """A step's vote for :meth:`RoomExtent.update`: P(Yes) to IN_ROOM when a room is asked; a question about the
+    whole house has every view "in the region" (1.0)."""
+    return in_room if room_kind else 1.0
 
 
 @dataclass(frozen=True)
@@ -109,6 +118,32 @@ class RoomExtent:
         cells = np.unique(r[ok] * observed.shape[1] + c[ok])  # one vote per cell and view
         self.votes_in.flat[cells] += p
         self.votes_out.flat[cells] += 1.0 - p
+
+    def state(self) -> dict[str, object]:
+        """The extent's votes for the mapper's stored state (the maps come back with the next update)."""
+        import io
+
+        buf = io.BytesIO()
+        empty = np.zeros((0, 0))
+        np.savez_compressed(buf, votes_in=empty if self.votes_in is None else self.votes_in,
+                            votes_out=empty if self.votes_out is None else self.votes_out)
+        return {"votes": buf.getvalue(), "origin": list(self.origin), "resolution": self.resolution,
+                "params": [self.min_votes, self.max_range_m, self.stride]}
+
+    @classmethod
+    def from_state(cls, data: dict[str, object]) -> RoomExtent:
+        import io
+
+        min_votes, max_range_m, stride = data["params"]  # type: ignore[misc]
+        ext = cls(float(min_votes), float(max_range_m), int(stride))
+        with np.load(io.BytesIO(data["votes"]), allow_pickle=False) as z:  # type: ignore[arg-type]
+            if z["votes_in"].size:
+                if z["votes_in"].size > MAX_CELLS or z["votes_in"].shape != z["votes_out"].shape:
+                    raise ValueError("stored room extent votes are malformed")
+                ext.votes_in, ext.votes_out = z["votes_in"].astype(np.float64), z["votes_out"].astype(np.float64)
+        ox, oy = data["origin"]  # type: ignore[misc]
+        ext.origin, ext.resolution = (float(ox), float(oy)), float(data["resolution"])  # type: ignore[arg-type]
+        return ext
 
     def room_mask(self) -> np.ndarray | None:
         """The room's cells (aligned with the last maps), or None before the first update."""

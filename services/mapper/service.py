@@ -316,6 +316,8 @@ class MapperService(EpisodeService[EpisodeMap]):
             depth=frame.depth,
             seed=episode_map.start.seed,
         )
+        for ext in self.extensions:  # e.g. the IN_ROOM prompt of counting across views
+            request = ext.score_request(episode_map, request)
         result = call_pool(self.scorer(), request)
         if isinstance(result, Exception | ErrorReply):
             self._error(robot, episode_map.episode_id, frame.step, f"scorer failed: {failure(result)}")

@@ -34,7 +34,7 @@ import re
 import time
 from collections.abc import Iterable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 from urllib.parse import quote
 
 import numpy as np
@@ -117,6 +117,9 @@ class Trace(BaseModel):
     # warm start: the episode started from its home's memory, with these bounds (None: a cold start, or a trace
     # that did not record it; memory_steps > 0 then still says warm)
     warm: WarmStart | None = None
+    # counting across views (EQA_ANSWER_COUNTING=views): the steps' f pooled the object layer's count in the asked
+    # room (services/stopper/object_evidence.py); None: the VLM's f alone
+    answer_counting: Literal["views"] | None = None
 
     @property
     def is_warm(self) -> bool:
@@ -319,6 +322,7 @@ def calibrate(
     ]
     prov = dict(provenance or {})
     prov["answer_rule"] = rule.name
+    prov["answer_counting"] = counting_of(items)
     prov["home"] = home
     prov.setdefault("strategies", sorted({t.strategy for t in items}))
     prov.setdefault("mean_steps", float(np.mean([len(t.steps) for t in items])))
@@ -328,6 +332,21 @@ def calibrate(
         raise CalibrationError("per-category calibration asked, but no calibration trace has a category")
     return CalibrationTable(name=name, n=n, kappas=kappas, question_ids=ids, entries=entries, provenance=prov,
                             groups=groups, categories=cats)
+
+
+def counting_of(traces: Sequence[Trace]) -> str | None:
+    """How the counting questions among ``traces`` were answered (``provenance["answer_counting"]``): "views"
+    (counting across views pooled into their f), "frame" (the VLM's f alone), None without counting questions.
+    A set that mixes both is refused: its kappas belong to no one rule."""
+    counting = [t for t in traces if t.category == "counting" or t.answer_counting is not None]
+    if not counting:
+        return None
+    views = sum(t.answer_counting == "views" for t in counting)
+    if 0 < views < len(counting):
+        raise CalibrationError(
+            f"{views} of {len(counting)} counting traces pooled counting across views and the others did not: "
+            f"calibrate on traces of one rule (EQA_ANSWER_COUNTING)")
+    return "views" if views else "frame"
 
 
 def home_of(traces: Sequence[Trace]) -> dict[str, Any]:

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,8 +38,8 @@ from eqa.messages import MAX_EVIDENCE_INSTANCES, ObjectEvidence
 NUMBER_WORDS = ("zero", "one", "two", "three", "four", "five", "six", "seven", "eight", "nine", "ten")
 MAX_TRACKED = MAX_EVIDENCE_INSTANCES  # instances reported per step
 CATEGORIES = ("counting", "existence")
-__all__ = ["CATEGORIES", "MAX_TRACKED", "EvidenceParams", "ObjectEvidence", "combine", "combined_steps",
-           "layer_distribution", "poisson_binomial"]
+__all__ = ["CATEGORIES", "MAX_TRACKED", "EvidenceParams", "ObjectEvidence", "budget_answer", "combine",
+           "combined_steps", "count_evidence", "layer_distribution", "poisson_binomial"]
 
 
 @dataclass(frozen=True)
@@ -114,6 +115,31 @@ def combine(vlm: np.ndarray | list[float], layer: np.ndarray | None, weight: flo
     logp = (1.0 - weight) * np.log(np.maximum(f, 1e-12)) + weight * np.log(np.maximum(layer, 1e-12))
     out = np.exp(logp - logp.max())
     return out / out.sum()
+
+
+def count_evidence(instances: Sequence[tuple[float, bool]], open_share: float) -> ObjectEvidence:
+    """Counting across views (docs/results/closed-world-answers.md, rule 2): the evidence of the instances whose
+    centre is in the asked room (``(Psi, inside)`` per instance,
+    :meth:`services.mapper.question_objects.QuestionObjects.in_room`), best first, with the room's open share
+    (:meth:`services.mapper.room_extent.RoomExtent.coverage`, capped at 1) as the unexplored share."""
+    psi = sorted((float(min(max(p, 0.0), 1.0)) for p, inside in instances if inside), reverse=True)
+    return ObjectEvidence(category="counting", psi=psi[:MAX_EVIDENCE_INSTANCES],
+                          explored=1.0 - min(max(float(open_share), 0.0), 1.0))
+
+
+def budget_answer(vlm_probs: np.ndarray | Sequence[Sequence[float]], relevance: np.ndarray | Sequence[float],
+                  latest: ObjectEvidence | None, choices: list[str], params: EvidenceParams) -> int:
+    """The answer at a budget with the layer pooled in: ``argmax`` of the VLM's ``f(x^t*)`` at the most relevant
+    step ``t*`` (Explore-EQA V-B) pooled with the layer's distribution at the last step (``latest``: it has fused
+    every view so far); the VLM's answer alone when the layer has nothing to say. Ties: the earliest step, the
+    first label."""
+    f = np.asarray(vlm_probs, dtype=np.float64)
+    rel = np.asarray(relevance, dtype=np.float64)
+    if f.ndim != 2 or f.shape[0] < 1 or rel.shape != (f.shape[0],):
+        raise ValueError("budget_answer needs at least one step of scores")
+    t_star = int(np.argmax(rel))
+    layer = layer_distribution(latest, choices, params) if latest is not None else None
+    return int(np.argmax(combine(f[t_star], layer, params.weight)))
 
 
 def combined_steps(probs: np.ndarray, evidence: list[ObjectEvidence | None], choices: list[str],

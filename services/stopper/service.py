@@ -127,8 +127,13 @@ class StopperService(EpisodeService[EpisodeRecord]):
         episode = EpisodeRecord.from_start(start, robot)
         episode.answer_memory = self.settings.answer_memory_k  # (answer_memory.py); fixed for the episode
         episode.answer_fusion = self.settings.answer_memory_fusion
-        if self.settings.object_evidence:  # pooled into f by object_evidence.py
+        # pooled into f by object_evidence.py: existence (whole map) with EQA_OBJECT_EVIDENCE, counting (in the
+        # asked room's extent) with EQA_ANSWER_COUNTING=views; the mapper sends the evidence of the same settings
+        categories = (["existence"] if self.settings.object_evidence else []) + (
+            ["counting"] if self.settings.answer_counting == "views" else [])
+        if categories:
             episode.object_evidence = (self.settings.object_evidence_psi_min, self.settings.object_evidence_weight)
+            episode.evidence_categories = categories  # type: ignore[assignment]
         try:
             episode.threshold = check_threshold(start)
         except ValueError as exc:

@@ -26,6 +26,7 @@ from eqa.messages import (
     EpisodeStart,
     EpisodeState,
     MemoryBounds,
+    ObjectEvidence,
     Question,
     StepScores,
     StopConfig,
@@ -41,7 +42,7 @@ from services.stopper.conformal import (
     relevance_weighted_confidence,
     step_set,
 )
-from services.stopper.object_evidence import EvidenceParams, combine, layer_distribution
+from services.stopper.object_evidence import EvidenceParams, budget_answer, combine, layer_distribution
 
 log = logging.getLogger(__name__)
 
@@ -60,6 +61,8 @@ class CalibrationChoice(BaseModel):
     mode: str | None = None  # ... and its mode: logprobs / sampling
     category: str | None = None  # Mondrian: the category whose own q_hat this is
     answer_rule: str | None = None  # the answer rule the table was calibrated with (None = single)
+    # how the table's counting traces were answered: "views" (counting across views), "frame", None (unrecorded)
+    answer_counting: str | None = None
     # the episodes the table was calibrated on (provenance "home"): cold, warm (with the memory bounds of their
     # warm starts, None when the traces did not record them) or unknown (a table that records neither)
     table_kind: Literal["cold", "warm", "unknown"] = "unknown"
@@ -122,10 +125,12 @@ def resolve_calibration(
     backend = table.provenance.get("scorer_backend")
     mode = table.provenance.get("scorer_mode")
     rule = table.provenance.get("answer_rule")
+    counting = table.provenance.get("answer_counting")
     kind, bounds = table_home(table)
     choice = CalibrationChoice(q_hat=entry.q_hat, eps=entry.eps, asked_eps=eps, n=table.n, source=where, note=note,
                                backend=str(backend) if backend else None, mode=str(mode) if mode else None,
-                               answer_rule=str(rule) if rule else None, table_kind=kind, warm_bounds=bounds)
+                               answer_rule=str(rule) if rule else None, table_kind=kind, warm_bounds=bounds,
+                               answer_counting=str(counting) if counting else None)
     return choice, ""
 
 
@@ -231,6 +236,13 @@ class EpisodeRecord(BaseModel):
     answer_fusion: str = "loglinear"
     # pool the object layer's evidence (StepScores.object_evidence) into f; None = off
     object_evidence: tuple[float, float] | None = None  # (psi_min, weight)
+    # the evidence categories pooled: existence with EQA_OBJECT_EVIDENCE, counting with EQA_ANSWER_COUNTING=views
+    evidence_categories: list[Literal["counting", "existence"]] = Field(
+        default_factory=lambda: ["counting", "existence"])
+    # counting across views: the VLM's own f of every step and the layer's latest counting evidence, for the
+    # answer at a budget (object_evidence.budget_answer: f(x^t*) pooled with the count of every view so far)
+    vlm_probs: list[list[float]] = Field(default_factory=list)
+    count_latest: ObjectEvidence | None = None
     task: bool = False  # a task episode: the planner ends it, there is no answer to give
     # warm start: the leading entries of probs / relevance are the home's re-scored views (StepScores.memory),
     # decided on before step 0 and not counted as steps
@@ -286,6 +298,7 @@ class EpisodeRecord(BaseModel):
             stop_rule=self.stop.rule,
             memory_steps=self.memory_steps,
             warm=self.warm,
+            answer_counting="views" if self.count_latest is not None else None,
         )
 
     def fallback(self) -> str | None:
@@ -293,6 +306,11 @@ class EpisodeRecord(BaseModel):
         argmax of the pooled distribution of the K most relevant views."""
         if not self.probs:
             return None
+        if (self.count_latest is not None and self.object_evidence is not None and not self.answer_rule.on
+                and len(self.vlm_probs) == len(self.probs)):
+            # counting across views: the answer at a budget pools f(x^t*) with the count of every view so far
+            params = EvidenceParams(psi_min=self.object_evidence[0], weight=self.object_evidence[1])
+            return self.labels[budget_answer(self.vlm_probs, self.relevance, self.count_latest, self.choices, params)]
         return self.labels[memory_answer(np.asarray(self.probs), np.asarray(self.relevance), self.answer_rule)]
 
     def answer_text(self, answer: str | None) -> str | None:
@@ -336,9 +354,24 @@ class RuleStep:
 StopRuleFn = Callable[[RuleStep], Decision]
 
 
+def counting_mismatch(cal: CalibrationChoice, episode: EpisodeRecord) -> str:
+    """A warning when a counting question is answered by another counting rule than the table's counting traces
+    were: the pooled f of counting across views is another score function, so Claim 1 holds only for a table
+    calibrated on traces of the same rule (a table that records none is taken as the single-frame rule)."""
+    counts = episode.count_latest is not None
+    if not counts and episode.question.category != "counting":
+        return ""
+    have = cal.answer_counting or "frame"
+    now = "views" if counts else "frame"
+    if have == now:
+        return ""
+    return (f"table calibrated with counting rule {have}, this counting question is answered with {now}: run "
+            f"`eqa calibrate` with EQA_ANSWER_COUNTING={now} for the guarantee")
+
+
 def _cp_tag(episode: EpisodeRecord, cal: CalibrationChoice, scores: StepScores, rule_now: AnswerRule) -> str:
     notes = [n for n in (cal.note, backend_mismatch(cal, scores.backend), mode_mismatch(cal, scores.mode),
-                         rule_mismatch(cal.answer_rule, rule_now)) if n]
+                         rule_mismatch(cal.answer_rule, rule_now), counting_mismatch(cal, episode)) if n]
     if rule_now.on:
         notes.append(f"answer memory {rule_now.name}")
     return (f"eps={cal.eps:g}, q_hat={cal.q_hat:.4f}, N={cal.n}" + (f" of {cal.category}" if cal.category else "")
@@ -450,11 +483,19 @@ def _record_step(episode: EpisodeRecord, scores: StepScores, memory: bool = Fals
         choices = episode.choices
     f = check_scores(scores.answer_probs, scores.relevance, len(choices))
     rel = float(scores.relevance)
-    if episode.object_evidence is not None and scores.object_evidence is not None:
+    vlm = [float(v) for v in f]
+    ev = scores.object_evidence
+    if episode.object_evidence is not None and ev is not None and ev.category in episode.evidence_categories:
         # the answer distribution used from here on (and stored in the trace, so a calibration from the
         # stopper's traces covers the combined score) pools the VLM's with the object layer's
         params = EvidenceParams(psi_min=episode.object_evidence[0], weight=episode.object_evidence[1])
-        f = combine(f, layer_distribution(scores.object_evidence, choices, params), params.weight)
+        f = combine(f, layer_distribution(ev, choices, params), params.weight)
+        if ev.category == "counting":
+            if episode.count_latest is None:  # the steps before pooled nothing: their f is the VLM's
+                episode.vlm_probs = [list(p) for p in episode.probs]
+            episode.count_latest = ev
+    if episode.count_latest is not None:
+        episode.vlm_probs.append(vlm)
     if memory:
         episode.choices = choices
         episode.memory_steps += 1

@@ -88,10 +88,10 @@ def _spoken(name: str) -> str:
 
 def presence_queries(presence: PresenceQuery) -> list[Query]:
     """PRESENCE for the object (with its article: "a mug", "an apple", "any shoes" for a plural-only class)
-    and IN_ROOM when a room is named."""
+    unless ``ask_object`` is False, and IN_ROOM when a room is named."""
     obj = _spoken(presence.object)
     article = "any" if obj.endswith("s") and not obj.endswith("ss") else "an" if obj[0] in "aeiou" else "a"
-    out = [Query("presence", PRESENCE.format(object=f"{article} {obj}"), YES_NO)]
+    out = [Query("presence", PRESENCE.format(object=f"{article} {obj}"), YES_NO)] if presence.ask_object else []
     if presence.room:
         out.append(Query("in_room", IN_ROOM.format(room=_spoken(presence.room)), YES_NO))
     return out

@@ -89,3 +89,22 @@ def test_bad_maps_are_refused():
         ext.update(*_down_camera(4.0, 4.0), 0.9, explored, free, occupied, (0.0, 0.0), 0.0)
     with pytest.raises(ValueError):
         RoomExtent(min_votes=0.0)
+
+
+def test_the_extent_survives_the_mappers_stored_state():
+    """RoomExtent.state -> the store's codec -> from_state: the same votes, and with the next maps the same room
+    (a restarted mapper continues counting across views in the room)."""
+    from eqa.codec import packb, unpackb
+    from services.mapper.room_extent import room_vote
+
+    ext = RoomExtent()
+    explored, free, occupied = _maps()
+    for _ in range(2):
+        ext.update(*_down_camera(4.0, 4.0), 0.9, explored, free, occupied, (0.0, 0.0), RES)
+    back = RoomExtent.from_state(unpackb(packb(ext.state())))
+    assert np.array_equal(back.votes_in, ext.votes_in) and np.array_equal(back.votes_out, ext.votes_out)
+    back.update(*_down_camera(4.0, 4.0), None, explored, free, occupied, (0.0, 0.0), RES)
+    assert np.array_equal(back.room_mask(), ext.room_mask())
+    assert back.coverage(2.0, 0.2) == ext.coverage(2.0, 0.2)
+    assert RoomExtent.from_state(unpackb(packb(RoomExtent().state()))).room_mask() is None
+    assert room_vote(0.3, "kitchen") == 0.3 and room_vote(None, None) == 1.0  # the whole house: every view

@@ -2,8 +2,9 @@
 benchmark ``query``) through the real mapper, scorer replica (oracle VLM + simulated detector) and stopper on
 Zenoh. With EQA_OBJECT_EVIDENCE on, the mapper parses the target from the text, asks the pool for detections,
 puts the layer's evidence into StepScores, keeps the layer over a restart; the stopper's trace holds the
-combined distribution. A counting question gets no evidence without a floor plan (WHOLE_MAP_CATEGORIES). With
-the setting off, no DetectRequest is sent and the StepScores carry none. Also the question parser on
+combined distribution. A counting question gets no whole-map evidence (WHOLE_MAP_CATEGORIES); with
+EQA_ANSWER_COUNTING=views it gets the count in the asked room's extent. With the settings off, no DetectRequest is
+sent and the StepScores carry none. Also the question parser on
 hand-written questions, including ones it must not match."""
 
 from __future__ import annotations
@@ -119,7 +120,7 @@ def test_existence_question_through_the_services_with_the_setting_on_and_off(
     chair = scene.instances[25]
     room = next(r for r in scene.rooms if r.contains(chair.position[0], chair.position[1]))
     on = settings.model_copy(update={"redis_url": redis_url, "scorer_replica": "qobj", "object_evidence": True,
-                                     "detector_oracle_background_fp": 0.0})
+                                     "answer_counting": "frame", "detector_oracle_background_fp": 0.0})
     scores: queue.Queue[StepScores] = queue.Queue()
     errors: queue.Queue[ErrorReply] = queue.Queue()
     with Bus(hub_settings, "gateway") as bus:
@@ -173,11 +174,24 @@ def test_existence_question_through_the_services_with_the_setting_on_and_off(
             assert len(third.object_evidence.psi) <= len(ev.psi) + 1  # no duplicate of the restored chair
             assert errors.empty(), errors.get()
 
-            # a counting question: no floor plan, no evidence (the whole map's count is not the room's)
+            # a counting question without counting across views: no floor plan, no whole-map evidence (the whole
+            # map's count is not the room's)
             n_detect = len(scorer.detect_requests)
             bus.publish(keys.stream(ROBOT, keys.EPISODE_START), start("ep-count", room.kind, counting=True))
             counted = run_steps(bus, scores, renderer, views, "ep-count", range(1))
             assert counted[0].object_evidence is None and len(scorer.detect_requests) == n_detect
+            mapper.stop()
+
+            # with counting across views (the default): the count in the asked room's extent
+            views_on = on.model_copy(update={"answer_counting": "views"})
+            mapper = MapperService(views_on)
+            mapper.start()
+            time.sleep(0.5)
+            bus.publish(keys.stream(ROBOT, keys.EPISODE_START), start("ep-views", room.kind, counting=True))
+            counted = run_steps(bus, scores, renderer, views, "ep-views", range(2))
+            assert all(s.object_evidence is not None and s.object_evidence.category == "counting" for s in counted)
+            assert len(scorer.detect_requests) == n_detect + 2
+            assert "ep-views" in mapper.question_objects.rooms
             mapper.stop()
 
             # the setting off: the same question, no detection request, no evidence

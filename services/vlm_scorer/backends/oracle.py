@@ -527,7 +527,9 @@ class OracleBackend(Backend):
                                                    self.clutter(req))
         out = Scores(probs, rel, lsv, gsv, proposed)
         if req.presence is not None:  # its own generator: the four numbers above do not change
-            out.object_yes, out.in_room = self.presence(req, req.presence.object, req.presence.room)
+            object_yes, out.in_room = self.presence(req, req.presence.object, req.presence.room)
+            # a PRESENCE not asked is not answered; its draws are made all the same, so IN_ROOM does not change
+            out.object_yes = object_yes if req.presence.ask_object else None
         return out
 
     def presence(self, req: ScoreRequest, category: str, room_kind: str | None) -> tuple[float, float | None]:
