@@ -33,7 +33,7 @@ def test_every_service_has_a_container_and_a_runnable_module():
         cmd = services[name]["command"]
         assert cmd[:2] == ["python", "-m"], name
         assert _module_exists(cmd[2]), f"{name}: module {cmd[2]} has no __main__.py"
-        out = subprocess.run([sys.executable, "-m", cmd[2], "--help"], capture_output=True, text=True, timeout=60,
+        out = subprocess.run([sys.executable, "-m", cmd[2], "--help"], capture_output=True, text=True, timeout=240,
                              cwd=REPO)
         assert out.returncode == 0 and "EQA_" in out.stdout, f"{cmd[2]} --help failed: {out.stderr[-500:]}"
         assert "healthcheck" in services[name], name
