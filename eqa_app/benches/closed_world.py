@@ -239,8 +239,8 @@ def count_params() -> Any:
 
 
 def step_evidence(ep: CWEpisode, t: int) -> Any:
-    """The object layer's evidence at step ``t`` (rule 2, :func:`services.stopper.object_evidence.count_evidence`)."""
-    from services.stopper.object_evidence import count_evidence
+    """The object layer's evidence at step ``t`` (rule 2, :func:`services.mapper.question_objects.count_evidence`)."""
+    from services.mapper.question_objects import count_evidence
 
     return count_evidence(ep.steps[t].instances, ep.steps[t].open_share)
 

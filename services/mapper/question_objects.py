@@ -26,7 +26,7 @@ Counting across views (``EQA_ANSWER_COUNTING=views``, the default): a counting q
 asked room's extent on the robot's own map (:class:`~services.mapper.room_extent.RoomExtent`, voted by the
 scorer's IN_ROOM answers, which the extension asks for with the step's score request; the whole viewed map when
 no room is asked), an instance counts when its centre is within ``REACH_CELLS`` of it (:meth:`QuestionObjects.in_room`)
-and the unexplored share is the room's open share (:func:`services.stopper.object_evidence.count_evidence`):
+and the unexplored share is the room's open share (:func:`count_evidence`):
 rule 2 of ``docs/results/closed-world-answers.md``, where it was measured.
 """
 
@@ -35,6 +35,7 @@ from __future__ import annotations
 import logging
 import re
 import time
+from collections.abc import Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any
 
@@ -418,16 +419,25 @@ class QuestionObjectsExtension(MapperExtension):
 
     def evidence(self, episode_map: EpisodeMap) -> ObjectEvidence | None:
         """The layer's evidence on the episode's current map: counting across views, the instances within reach of
-        the asked room's extent and its open share (:func:`services.stopper.object_evidence.count_evidence`);
+        the asked room's extent and its open share (:func:`count_evidence`);
         else the whole map's."""
         layer = self.layers.get(episode_map.episode_id)
         if layer is None:
             return None
         room = self.rooms.get(episode_map.episode_id)
         if room is not None:
-            from services.stopper.object_evidence import count_evidence
-
             inst = layer.in_room(room.room_mask(), episode_map.origin, episode_map.resolution)
             return count_evidence(inst, room.coverage(0.0, 1.0).open_share)
         observed = episode_map.maps.observed if episode_map.maps is not None else None
         return layer.evidence(observed, episode_map.grid() if observed is not None else None)
+
+
+def count_evidence(instances: Sequence[tuple[float, bool]], open_share: float) -> ObjectEvidence:
+    """Counting across views (docs/results/closed-world-answers.md, rule 2): the evidence of the instances whose
+    centre is in the asked room (``(Psi, inside)`` per instance,
+    :meth:`QuestionObjects.in_room`; the stopper pools it, services/stopper/object_evidence.py), best first,
+    with the room's open share
+    (:meth:`services.mapper.room_extent.RoomExtent.coverage`, capped at 1) as the unexplored share."""
+    psi = sorted((float(min(max(p, 0.0), 1.0)) for p, inside in instances if inside), reverse=True)
+    return ObjectEvidence(category="counting", psi=psi[:MAX_EVIDENCE_INSTANCES],
+                          explored=1.0 - min(max(float(open_share), 0.0), 1.0))

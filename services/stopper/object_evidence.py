@@ -39,7 +39,7 @@ NUMBER_WORDS = ("zero", "one", "two", "three", "four", "five", "six", "seven", "
 MAX_TRACKED = MAX_EVIDENCE_INSTANCES  # instances reported per step
 CATEGORIES = ("counting", "existence")
 __all__ = ["CATEGORIES", "MAX_TRACKED", "EvidenceParams", "ObjectEvidence", "budget_answer", "combine",
-           "combined_steps", "count_evidence", "layer_distribution", "poisson_binomial"]
+           "combined_steps", "layer_distribution", "poisson_binomial"]
 
 
 @dataclass(frozen=True)
@@ -115,16 +115,6 @@ def combine(vlm: np.ndarray | list[float], layer: np.ndarray | None, weight: flo
     logp = (1.0 - weight) * np.log(np.maximum(f, 1e-12)) + weight * np.log(np.maximum(layer, 1e-12))
     out = np.exp(logp - logp.max())
     return out / out.sum()
-
-
-def count_evidence(instances: Sequence[tuple[float, bool]], open_share: float) -> ObjectEvidence:
-    """Counting across views (docs/results/closed-world-answers.md, rule 2): the evidence of the instances whose
-    centre is in the asked room (``(Psi, inside)`` per instance,
-    :meth:`services.mapper.question_objects.QuestionObjects.in_room`), best first, with the room's open share
-    (:meth:`services.mapper.room_extent.RoomExtent.coverage`, capped at 1) as the unexplored share."""
-    psi = sorted((float(min(max(p, 0.0), 1.0)) for p, inside in instances if inside), reverse=True)
-    return ObjectEvidence(category="counting", psi=psi[:MAX_EVIDENCE_INSTANCES],
-                          explored=1.0 - min(max(float(open_share), 0.0), 1.0))
 
 
 def budget_answer(vlm_probs: np.ndarray | Sequence[Sequence[float]], relevance: np.ndarray | Sequence[float],
