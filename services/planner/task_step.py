@@ -49,11 +49,6 @@ from services.planner.task_fsm import ARRIVE_TOLERANCE_M, Action, SeenObject, Sk
 SKILL_REACH_MARGIN_M = 0.2
 SKILL_REACH_M = body.REACH_M - SKILL_REACH_MARGIN_M
 MAX_TRIES = 64  # actions asked of the machine in one step at most (each failed one removes an option)
-# A pickable object is small: its reach is measured to a footprint of at most this half-size around the estimated
-# centre. The footprint of its Gaussians grows with depth noise and with what lies around it (a towel's Gaussians
-# reach onto the cabinet), and a pick called within reach of that footprint found the object farther than the
-# arm's reach (evaluation traces: 4 of 21 failed picks).
-PICKABLE_HALF_M = 0.15
 
 
 def cut_clearances(levels: tuple[float, ...], need_m: float) -> tuple[float, ...]:
@@ -344,10 +339,7 @@ def task_step(machine: TaskMachine, grid: GridSpec, free: np.ndarray, occupied: 
                 machine.memory.choose_frontier(next(o for o in options if o.index == act.ref))  # F' (Eq. 9)
             return TaskStep(plan, "move", None, act.phase, plan.memory)
         assert act.pose is not None
-        near = act.near
-        if act.kind == "pick" and near is not None:
-            near = (near[0], near[1], min(near[2], PICKABLE_HALF_M), min(near[3], PICKABLE_HALF_M))
-        ps = plan_to_pose(grid, free, occupied, pose, act.pose, params, near=near, dist_field=dist_field,
+        ps = plan_to_pose(grid, free, occupied, pose, act.pose, params, near=act.near, dist_field=dist_field,
                           refused=memory.refused)
         if ps.plan is None:
             if act.ref is not None:

@@ -99,7 +99,7 @@ def test_a_pick_is_planned_within_reach_of_the_object_not_of_its_gaussians_footp
     assert (st.phase, st.skill) == ("picking", "pick"), st.plan.reason
     p = st.plan.pose
     assert p is not None and math.hypot(p.x - 5.0, p.y - 5.0) < 0.7  # moved in before the pick, not from 1.0 m
-    assert math.hypot(p.x - 5.0, p.y - 5.0) <= ts.SKILL_REACH_M + ts.PICKABLE_HALF_M * math.sqrt(2)
+    assert math.hypot(p.x - 5.0, p.y - 5.0) <= ts.SKILL_REACH_M + task_fsm.PICKABLE_HALF_M * math.sqrt(2)
 
 
 def test_with_cut_clearance_a_task_path_is_planned_at_the_clearance_it_is_cut_at() -> None:
