@@ -333,6 +333,14 @@ class HeliosSettings(SettingsGroup):
         default="levels", description="task paths: planned at the planner's clearance levels and cut at the mapped "
         "clearance (levels), or planned only at levels that keep the mapped clearance (cut; fewer successes on "
         "tuning seed 11, docs/results/helios-tasks.md)")
+    helios_deadline: Literal["commit", "off"] = Field(
+        default="commit", description="when the steps left are only enough to reach the best known candidate of "
+        "the phase's class, act on it (place while holding, stop in an object search, pick without a pick limit) "
+        "rather than run out of steps (commit), or keep to the paper's rule to the end (off); chosen on tuning "
+        "seed 11, docs/results/helios-tasks.md")
+    helios_max_looks: int = Field(
+        default=3, ge=1, le=12, description="gaze points one candidate is looked at from before the look rule "
+        "(Eq. 11) passes to the next (this implementation's bound; chosen on tuning seed 11)")
     helios_tau_g: float = Field(default=0.4, description="tau_g: Psi_g threshold to pick the object (Table 3: 0.5; "
                                 "0.4 chosen on tuning seed 11, docs/results/helios-tables.md)")
     helios_tau_stop: float = Field(default=0.6, description="tau_g of an object search: Psi_g threshold to stop at "

@@ -17,11 +17,14 @@ target decision (Eq. 11 with ``tau_g``), then the local search in progress, then
 (Eq. 10, :mod:`services.planner.helios`). A pick that fails (the oracle pick: target not in frame or not within
 reach) counts against the pick limit (:class:`~services.planner.decisions.PickBudget`); the instance is ruled out
 after :data:`MAX_FAILS_PER_INSTANCE` failures. A candidate is looked at from at most
-:data:`MAX_LOOKS_PER_INSTANCE` gaze points; then the look rule passes to the next candidate. With no frontier
+:attr:`Thresholds.max_looks` gaze points; then the look rule passes to the next candidate. With no frontier
 left, what was ruled out reopens (gaze points looked from, searched start receptacles, instances unreachable);
 then, with candidates of the phase's class known, the machine acts on the best of them (no pick under a pick
 limit) rather than end the episode with steps left. A skill pose the planner cannot reach leaves the instance out
-of that step; :data:`MAX_UNREACHABLE_STEPS` such steps rule it out.
+of that step; :data:`MAX_UNREACHABLE_STEPS` such steps rule it out. With the step budget known
+(``deadline`` ``commit``), the machine acts on the best known candidate of the phase's class once the steps left
+are only enough to reach it (:meth:`TaskMachine._deadline`): a robot out of steps with the object in its gripper
+has failed for certain, a place on the best goal receptacle it knows may succeed.
 Ablations: ``trusting`` has no 3D layer (the mapper gives it each frame's detections
 alone) and acts on the first detection, going to it until the skill was tried (no gaze choice, no objective);
 ``no_global`` always prefers a candidate over a frontier.
@@ -45,7 +48,10 @@ from services.planner.helios import Ablation, CandidateObservation, FrontierOpti
 ActionKind = Literal["frontier", "move", "pick", "place", "stop", "done"]
 Phase = Literal["searching", "local_search", "looking", "picking", "placing", "finished"]
 MAX_FAILS_PER_INSTANCE = 2
-MAX_LOOKS_PER_INSTANCE = 3  # gaze points visited to look again at one candidate (this implementation's bound)
+# The steps to reach a candidate, estimated from the straight line (paths in a house bend round furniture and
+# through doors) at the planner's step length, and the steps kept in hand (this implementation's estimate).
+DEADLINE_DETOUR = 1.5
+DEADLINE_MARGIN_STEPS = 1
 # A gaze pose counts as reached within this distance, here and in the path planner (task_step): one tolerance,
 # because a point the planner calls reached but the machine does not is asked for again at every step.
 ARRIVE_TOLERANCE_M = 0.5
@@ -162,11 +168,14 @@ class Thresholds:
     tau_stop: float = 0.5  # Psi_g to stop an object search at (section 4.2; Table 3's tau_g)
     value_scale: helios.ValueScale = "paper"  # Eq. 10's benefits as they are, or over the step's best (helios.values)
     path_clearance: Literal["levels", "cut"] = "levels"  # how task paths meet the mapped clearance (task_step)
+    max_looks: int = 3  # gaze points visited to look again at one candidate (this implementation's bound)
+    deadline: Literal["commit", "off"] = "off"  # act on the best candidate when the steps run out (_deadline)
 
     @classmethod
     def from_settings(cls, s: Any) -> Thresholds:
         return cls(s.helios_alpha_d, s.helios_tau_g, s.helios_tau_b, s.helios_tau_inc, s.helios_cs_a, s.helios_cs_g,
-                   s.helios_cs_b, s.helios_tau_stop, s.helios_value_scale, s.helios_path_clearance)
+                   s.helios_cs_b, s.helios_tau_stop, s.helios_value_scale, s.helios_path_clearance,
+                   s.helios_max_looks, s.helios_deadline)
 
 
 @dataclass
@@ -178,6 +187,7 @@ class TaskMachine:
     ablation: Ablation = "helios"
     pick_limit: int | None = None
     th: Thresholds = field(default_factory=Thresholds)
+    max_steps: int | None = None  # the episode's step budget (None: unknown, no deadline)
     holding: bool = False
     phase: Phase = "searching"
     budget: PickBudget = field(default_factory=PickBudget)
@@ -196,6 +206,9 @@ class TaskMachine:
     # instances whose skill pose could not be planned in this planning step (begin_step clears it; not kept)
     skip: set[int] = field(default_factory=set, repr=False, compare=False)
     reopened: bool = field(default=False, repr=False, compare=False)  # once per call of step (not kept)
+    # goals still to be carried out in the episode, this one included (an argument of step, not kept state)
+    steps_left: int | None = field(default=None, repr=False, compare=False)
+    step_m: float = field(default=3.0, repr=False, compare=False)  # the planner's longest move per step
 
     def __post_init__(self) -> None:
         if self.kind == "pick_place" and (not self.start_receptacle or not self.goal_receptacle):
@@ -206,11 +219,13 @@ class TaskMachine:
     # ---- the step ---------------------------------------------------------------------------------------
     def step(self, robot: tuple[float, float, float], frontiers: Sequence[FrontierOption],
              objects: Sequence[SeenObject], outcome: SkillOutcome | None = None,
-             committed: int | None = None) -> Action:
+             committed: int | None = None, steps_left: int | None = None, step_m: float = 3.0) -> Action:
         """The next action (module doc). ``committed``: the index of the frontier the robot is on its way to;
         it stays the frontier of choice while a frontier is what the machine goes to
-        (:func:`services.planner.helios.choose`)."""
+        (:func:`services.planner.helios.choose`). ``steps_left``: goals the episode still carries out, this one
+        included (None: unknown); ``step_m``: the longest move of one step."""
         self.committed, self.reopened = committed, False
+        self.steps_left, self.step_m = steps_left, step_m
         if self.finished is not None:
             return self.finished
         if outcome is not None:
@@ -294,11 +309,11 @@ class TaskMachine:
         return out
 
     def _unlooked(self, o: SeenObject) -> SeenObject:
-        """``o`` with the gaze points it may still be looked at from: none once MAX_LOOKS_PER_INSTANCE looks
+        """``o`` with the gaze points it may still be looked at from: none once ``th.max_looks`` looks
         are used up, else those not looked from yet. Its Psi' (Eq. 11) is that of the best of them, so a
         candidate whose looks are used up is no longer one to look at (the decision goes to the next)."""
         done = self.looked.get(o.instance_id, [])
-        if len(done) >= MAX_LOOKS_PER_INSTANCE:
+        if len(done) >= self.th.max_looks:
             left: tuple[Gaze, ...] = ()
         else:
             left = tuple(g for g in o.gaze
@@ -326,10 +341,10 @@ class TaskMachine:
 
     def _look(self, o: SeenObject, robot: tuple[float, float, float], reason: str) -> Action | None:
         """Go to the candidate's best gaze point not looked from yet (paper: one at a time). Standing at it means
-        the last frame was the look: it is marked and the next one is taken; after MAX_LOOKS_PER_INSTANCE looks
+        the last frame was the look: it is marked and the next one is taken; after ``th.max_looks`` looks
         (or none left) the candidate gets no more looks (None: the caller goes on with the search)."""
         done = self.looked.setdefault(o.instance_id, [])
-        while len(done) < MAX_LOOKS_PER_INSTANCE:
+        while len(done) < self.th.max_looks:
             g = self._approach(self._unlooked(o), robot, best=True)
             if g is None:
                 return None
@@ -343,6 +358,9 @@ class TaskMachine:
 
     def _decide(self, robot: tuple[float, float, float], frontiers: Sequence[FrontierOption],
                 objects: Sequence[SeenObject]) -> Action:
+        late = self._deadline(robot, objects)
+        if late is not None:
+            return late
         if self.kind == "find_object":
             return self._find(robot, frontiers, objects)
         if self.holding:
@@ -371,25 +389,66 @@ class TaskMachine:
         kept = ", the frontier it is on its way to" if ref == self.committed else ""
         return Action("frontier", "searching", ref, reason=f"{reason}: V {value:.3g}{kept}")
 
-    def _last_resort(self, robot: tuple[float, float, float], objects: Sequence[SeenObject]) -> Action | None:
-        """Nothing left to explore but candidates of the phase's class are known: rather than end the episode
-        with steps left, act on the best of them (highest Psi, then S) below the threshold -- a skill call
-        that may fail costs less than a certain failure. None: no candidate left. Under a pick limit a pick is
-        no last resort: a failed one ends the task, a search that goes on may still find the object."""
+    def _phase_skill(self) -> tuple[Literal["pick", "place", "stop"], str, set[int]] | None:
+        """The skill of the phase, the class it acts on and the instances it may not act on; None: no skill
+        other than through the threshold (a pick under a pick limit: a failed one ends the task, a search that
+        goes on may still find the object)."""
         if self.kind == "find_object":
-            skill, cls, excluded = "stop", self.object, self._ruled_out()
-        elif self.holding:
-            skill, cls, excluded = "place", self.goal_receptacle or "", self._bad_goals()
-        else:
-            if self.budget.limit is not None:
-                return None
-            skill, cls, excluded = "pick", self.object, self._ruled_out()
+            return "stop", self.object, self._ruled_out()
+        if self.holding:
+            return "place", self.goal_receptacle or "", self._bad_goals()
+        if self.budget.limit is not None:
+            return None
+        return "pick", self.object, self._ruled_out()
+
+    def _best_known(self, cls: str, excluded: set[int], objects: Sequence[SeenObject]
+                    ) -> tuple[float, float, SeenObject] | None:
+        """The instance believed to be ``cls`` of highest Psi (then S, then lowest id): (Psi, S, instance)."""
         pool = [(s[2], s[0], -o.instance_id, o) for o in objects if o.instance_id not in excluded
                 and (s := o.of(cls)) is not None and o.cls == cls and math.isfinite(s[2])]
         if not pool:
             return None
         psi, S, _, o = max(pool, key=lambda t: t[:3])
+        return psi, S, o
+
+    def _last_resort(self, robot: tuple[float, float, float], objects: Sequence[SeenObject]) -> Action | None:
+        """Nothing left to explore but candidates of the phase's class are known: rather than end the episode
+        with steps left, act on the best of them (highest Psi, then S) below the threshold -- a skill call
+        that may fail costs less than a certain failure. None: no candidate left, or no skill to call
+        (:meth:`_phase_skill`)."""
+        phase = self._phase_skill()
+        if phase is None:
+            return None
+        skill, cls, excluded = phase
+        best = self._best_known(cls, excluded, objects)
+        if best is None:
+            return None
+        psi, S, o = best
         return self._act_on(skill, o, robot, f"no frontier left: the best known {cls} (Psi {psi:.3f}, S {S:.3f})")
+
+    def _deadline(self, robot: tuple[float, float, float], objects: Sequence[SeenObject]) -> Action | None:
+        """The steps left are only enough to reach the best known candidate of the phase's class and call the
+        skill there (straight-line distance to its skill pose times :data:`DEADLINE_DETOUR`, at ``step_m`` a
+        step, plus :data:`DEADLINE_MARGIN_STEPS`): act on it now, whatever its Psi. Any other action ends the
+        episode at its step limit, a certain failure (holding the object: not placed); the skill on the best
+        candidate may succeed. None: no deadline (``th.deadline`` off, budget unknown, steps enough, no
+        candidate, or a pick under a pick limit)."""
+        if self.th.deadline != "commit" or self.steps_left is None:
+            return None
+        phase = self._phase_skill()
+        if phase is None:
+            return None
+        skill, cls, excluded = phase
+        best = self._best_known(cls, excluded, objects)
+        if best is None:
+            return None
+        psi, S, o = best
+        dist = max(math.hypot(o.x - robot[0], o.y - robot[1]) - SKILL_APPROACH_M, 0.0)
+        need = math.ceil(DEADLINE_DETOUR * dist / max(self.step_m, 1e-6)) + DEADLINE_MARGIN_STEPS
+        if self.steps_left > need:
+            return None
+        return self._act_on(skill, o, robot, f"{self.steps_left} steps left, about {need} needed to reach the best "
+                            f"known {cls} (Psi {psi:.3f}, S {S:.3f}): acting on it before the steps run out")
 
     # ---- pick and place ---------------------------------------------------------------------------------
     def _ruled_out(self) -> set[int]:
@@ -506,6 +565,7 @@ class TaskMachine:
         return {
             "kind": self.kind, "object": self.object, "start_receptacle": self.start_receptacle,
             "goal_receptacle": self.goal_receptacle, "ablation": self.ablation, "pick_limit": self.pick_limit,
+            "max_steps": self.max_steps,
             "th": vars(self.th), "holding": self.holding, "phase": self.phase,
             "budget": {"attempts": self.budget.attempts, "successes": self.budget.successes},
             "memory": self.memory.to_json(), "queue": [vars(g) for g in self.queue], "queue_owner": self.queue_owner,
@@ -524,7 +584,7 @@ class TaskMachine:
             return Action(**{**a, "pose": tuple(a["pose"]) if a["pose"] else None, "near": near})
 
         m = cls(d["kind"], d["object"], d["start_receptacle"], d["goal_receptacle"], d["ablation"], d["pick_limit"],
-                Thresholds(**d["th"]))
+                Thresholds(**d["th"]), d.get("max_steps"))
         m.holding, m.phase = bool(d["holding"]), d["phase"]
         m.budget = PickBudget(m.pick_limit, int(d["budget"]["attempts"]), int(d["budget"]["successes"]))
         m.memory = SearchMemory.from_json(d["memory"])

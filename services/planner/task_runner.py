@@ -32,7 +32,7 @@ class PlannerTask:
         if t is None:
             return None
         return cls(TaskMachine(t.kind, t.object, t.start_receptacle, t.goal_receptacle, start.ablation,
-                               start.pick_limit, th))
+                               start.pick_limit, th, start.max_steps))
 
     def goal(self, episode_id: str, update: MapUpdate, memory: Memory, rng: np.random.Generator,
              params: PlannerParams | None = None, before: dict[str, Any] | None = None) -> tuple[Goal, StepPlan]:
@@ -41,7 +41,8 @@ class PlannerTask:
             self.machine = TaskMachine.from_json(before)
         objects = [from_instance(o) for o in getattr(update, "objects", [])]
         st = task_step(self.machine, update.grid, update.free, update.occupied, update.pose, list(update.frontiers),
-                       objects, outcome_of(getattr(update, "skill", None)), memory, rng, params)
+                       objects, outcome_of(getattr(update, "skill", None)), memory, rng, params,
+                       step=update.step)
         plan = st.plan
         plan.memory = st.memory
         goal = Goal(episode_id=episode_id, step=update.step, pose=plan.pose, path=plan.path, frontier=plan.frontier,

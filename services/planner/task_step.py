@@ -279,18 +279,21 @@ def committed_option(memory: Memory, options: list[FrontierOption], params: Plan
 def task_step(machine: TaskMachine, grid: GridSpec, free: np.ndarray, occupied: np.ndarray, pose: Pose2D,
               frontiers: list[Frontier], objects: list[SeenObject], outcome: SkillOutcome | None,
               memory: Memory, rng: np.random.Generator, params: PlannerParams | None = None,
-              max_tries: int = MAX_TRIES) -> TaskStep:
+              max_tries: int = MAX_TRIES, step: int | None = None) -> TaskStep:
     """Ask the machine for its action and plan it (module doc). ``memory`` is the planner's frontier memory
     (not modified; the result carries the one to keep). An action that cannot be planned takes its option away
     (the frontier, the gaze point, the instance: :meth:`TaskMachine.unreachable`) and the machine is asked
     again; when ``max_tries`` actions all fail the robot turns in place to see more (a new frame, new options)
-    rather than ending the episode with steps left."""
+    rather than ending the episode with steps left. ``step``: the episode's step index; with the machine's
+    ``max_steps`` it gives the goals left (this one and those after it) for the machine's deadline."""
     params = params or PlannerParams()
     if machine.th.path_clearance == "cut":
         params = params.model_copy(update={"clearances_m": cut_clearances(params.clearances_m,
                                                                           body.mapped_clearance_m())})
     machine.begin_step()
     robot = (pose.x, pose.y, pose.yaw)
+    # the goal of step s is carried out at step s + 1; the episode's last frame is step max_steps - 1
+    steps_left = machine.max_steps - 1 - step if machine.max_steps is not None and step is not None else None
     dist_field = clearance_field(grid, occupied) if np.shape(occupied) == (grid.rows, grid.cols) else None
     # frontiers the robot already went to are no option (plan_step would refuse them and turn in place) -- while
     # others are left: when every frontier is one gone to, they are all options again (the map around them has
@@ -306,7 +309,7 @@ def task_step(machine: TaskMachine, grid: GridSpec, free: np.ndarray, occupied: 
     turn: TaskStep | None = None  # plan_step's turn in place (it counts the turns) for an unreachable frontier
     for _ in range(max_tries):
         committed = committed_option(memory, options, params)
-        act: Action = machine.step(robot, options, objects, outcome, committed)
+        act: Action = machine.step(robot, options, objects, outcome, committed, steps_left, params.max_step_m)
         outcome = None  # consumed
         if act.kind == "done":
             out = escape_move(grid, free, dist_field, pose, memory) if turn is not None and dist_field is not None \

@@ -12,7 +12,7 @@ from eqa.messages import Frontier, GridSpec, Pose2D
 from services.planner import task_fsm
 from services.planner import task_step as ts
 from services.planner.step import Memory
-from services.planner.task_fsm import MAX_LOOKS_PER_INSTANCE, Gaze, SeenObject, TaskMachine
+from services.planner.task_fsm import Gaze, SeenObject, TaskMachine
 
 ROBOT = (0.0, 0.0, 0.0)
 
@@ -47,7 +47,7 @@ def test_with_nothing_left_the_looks_reopen_instead_of_a_last_resort_pick_under_
     m = _machine(pick_limit=1)
     gaze = tuple(Gaze(0.5 * k + 1.0, 1.0, 0.0, psi_prime=0.6 - 0.01 * k) for k in range(5))
     mug = SeenObject(1, "mug", {"mug": (0.45, 0.1, 0.35)}, 2.0, 2.0, 1.0, gaze)
-    m.looked[1] = [(g.x, g.y) for g in gaze[:MAX_LOOKS_PER_INSTANCE]]
+    m.looked[1] = [(g.x, g.y) for g in gaze[:m.th.max_looks]]
     act = m.step(ROBOT, [], [mug])
     assert (act.kind, act.phase, act.ref) == ("move", "looking", 1)
     assert not m.finished and m.budget.attempts == 0

@@ -14,7 +14,7 @@ from services.planner import helios
 from services.planner import task_step as ts
 from services.planner.helios import CandidateObservation, ChosenFrontier, FrontierOption, SearchMemory, StoredCandidate
 from services.planner.step import Memory
-from services.planner.task_fsm import MAX_LOOKS_PER_INSTANCE, Gaze, SeenObject, SkillOutcome, TaskMachine, from_instance
+from services.planner.task_fsm import Gaze, SeenObject, SkillOutcome, TaskMachine, from_instance
 
 ROBOT = (0.0, 0.0, 0.0)
 
@@ -82,7 +82,7 @@ def test_a_candidate_with_its_looks_used_up_gives_way_to_the_next() -> None:
     a, b = _mug(1, 0.0, 0.6), _mug(2, 10.0, 0.55)  # a has the higher Psi': looked at first
     fr = [FrontierOption(0, -5.0, 0.0, 0.5)]
     robot = ROBOT
-    for _ in range(MAX_LOOKS_PER_INSTANCE):
+    for _ in range(m.th.max_looks):
         act = m.step(robot, fr, [a, b])
         assert (act.kind, act.phase, act.ref) == ("move", "looking", 1)
         robot = (act.pose[0], act.pose[1], 0.0)  # standing at it: the frame there was the look
