@@ -401,11 +401,12 @@ class TaskMachine:
             return None
         return "pick", self.object, self._ruled_out()
 
-    def _best_known(self, cls: str, excluded: set[int], objects: Sequence[SeenObject]
+    def _best_known(self, cls: str, excluded: set[int], objects: Sequence[SeenObject], believed: bool = True
                     ) -> tuple[float, float, SeenObject] | None:
-        """The instance believed to be ``cls`` of highest Psi (then S, then lowest id): (Psi, S, instance)."""
+        """The instance believed to be ``cls`` (``believed``; else any instance scored for ``cls``) of highest
+        Psi for ``cls`` (then S, then lowest id): (Psi, S, instance)."""
         pool = [(s[2], s[0], -o.instance_id, o) for o in objects if o.instance_id not in excluded
-                and (s := o.of(cls)) is not None and o.cls == cls and math.isfinite(s[2])]
+                and (s := o.of(cls)) is not None and (o.cls == cls or not believed) and math.isfinite(s[2])]
         if not pool:
             return None
         psi, S, _, o = max(pool, key=lambda t: t[:3])
@@ -414,17 +415,24 @@ class TaskMachine:
     def _last_resort(self, robot: tuple[float, float, float], objects: Sequence[SeenObject]) -> Action | None:
         """Nothing left to explore but candidates of the phase's class are known: rather than end the episode
         with steps left, act on the best of them (highest Psi, then S) below the threshold -- a skill call
-        that may fail costs less than a certain failure. None: no candidate left, or no skill to call
-        (:meth:`_phase_skill`)."""
+        that may fail costs less than a certain failure. With no instance believed to be of the class, the
+        instance of highest Psi for it is taken (a receptacle the layer believes to be another class may still be
+        the goal; ending the episode fails for certain). None: no instance scored for the class, or no skill to
+        call (:meth:`_phase_skill`)."""
         phase = self._phase_skill()
         if phase is None:
             return None
         skill, cls, excluded = phase
         best = self._best_known(cls, excluded, objects)
+        believed = best is not None
+        if best is None:
+            best = self._best_known(cls, excluded, objects, believed=False)
         if best is None:
             return None
         psi, S, o = best
-        return self._act_on(skill, o, robot, f"no frontier left: the best known {cls} (Psi {psi:.3f}, S {S:.3f})")
+        what = (f"the best known {cls}" if believed
+                else f"no instance believed to be a {cls}: the {o.cls} {o.instance_id}")
+        return self._act_on(skill, o, robot, f"no frontier left: {what} (Psi {psi:.3f}, S {S:.3f})")
 
     def _deadline(self, robot: tuple[float, float, float], objects: Sequence[SeenObject]) -> Action | None:
         """The steps left are only enough to reach the best known candidate of the phase's class and call the

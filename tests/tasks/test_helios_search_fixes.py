@@ -138,3 +138,16 @@ def test_a_wedged_robot_backs_out_instead_of_turning_in_place() -> None:
     field = ts.clearance_field(g, occ)
     assert p is not None and float(field[int(p.y / 0.05), int(p.x / 0.05)]) >= body.mapped_clearance_m()
     assert math.hypot(p.x - pose.x, p.y - pose.y) <= ts.ESCAPE_RADIUS_M
+
+
+def test_with_nothing_left_and_no_goal_believed_the_object_goes_on_the_best_scored_instance() -> None:
+    """No frontier, no instance believed to be the goal receptacle, steps left: ending fails for certain; the
+    instance of highest goal Psi (the layer believes it a table) may be the counter."""
+    m = _machine()
+    m.holding = True
+    table = SeenObject(4, "table", {"counter": (0.35, 0.15, 0.20), "table": (0.4, 0.15, 0.25)}, 2.0, 0.0, 1.0,
+                       (Gaze(2.5, 0.0, 0.0, psi_prime=0.3),))
+    other = SeenObject(5, "table", {"counter": (0.20, 0.15, 0.05)}, 4.0, 0.0, 1.0, (Gaze(4.5, 0.0, 0.0),))
+    act = m.step(ROBOT, [], [table, other])
+    assert (act.kind, act.ref) == ("place", 4), act
+    assert "no instance believed to be a counter" in act.reason
