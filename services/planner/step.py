@@ -257,7 +257,7 @@ def _unreachable_reason(reached: _Reach, n: int, ok: np.ndarray, dropped_note: s
     return f"none of {int(ok.sum())} frontier(s) is reachable with clearance"
 
 
-def _look_around(why: str, pose: Pose2D, n: int, mem: Memory, params: PlannerParams) -> StepPlan:
+def look_around(why: str, pose: Pose2D, n: int, mem: Memory, params: PlannerParams) -> StepPlan:
     """Rule 6: turn in place to look around, or done after a full turn without any candidate."""
     full_turn = math.ceil(360.0 / params.turn_deg)
     if mem.turns >= full_turn:
@@ -378,7 +378,7 @@ def plan_step(
     ok, dropped_note = _candidates(frontiers, grid, mem, params, exclude)
     reached = _reach(grid, free, occupied, pose, frontiers, ok, mem, params, timing)
     if not reached.reachable.any():
-        return finish(_look_around(_unreachable_reason(reached, n, ok, dropped_note, params), pose, n, mem, params))
+        return finish(look_around(_unreachable_reason(reached, n, ok, dropped_note, params), pose, n, mem, params))
 
     if explored is not None and np.shape(explored) != np.shape(free):
         return finish(StepPlan("done", f"malformed map: explored {np.shape(explored)} but free {np.shape(free)}",

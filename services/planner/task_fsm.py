@@ -149,6 +149,9 @@ class Action:
     reason: str = ""
     success: bool | None = None  # done only
     near: tuple[float, float, float, float] | None = None  # pick / place / stop: the object's x, y, half-sizes
+    # done only: the end is for want of anything to search or act on (no frontier, no candidate), not a skill's
+    # outcome or the pick limit -- the planner looks around before it accepts it
+    exhausted: bool = False
 
 
 @dataclass(frozen=True)
@@ -376,7 +379,8 @@ class TaskMachine:
         last = self._last_resort(robot, objects)
         if last is not None:
             return last
-        return self._finish(False, reason)
+        self.finished = dataclasses.replace(self._finish(False, reason), exhausted=True)
+        return self.finished
 
     def _best_frontier(self, robot: tuple[float, float, float], frontiers: Sequence[FrontierOption],
                        reason: str, objects: Sequence[SeenObject] = ()) -> Action:

@@ -41,7 +41,7 @@ from eqa import robot as body
 from eqa.messages import Frontier, GridSpec, Pose2D
 from services.planner.helios import FrontierOption
 from services.planner.paths import MapError, check_map, planning_grid, truncate
-from services.planner.step import Memory, PlannerParams, StepPlan, disk_mask, plan_step, wrap
+from services.planner.step import Memory, PlannerParams, StepPlan, disk_mask, look_around, plan_step, wrap
 from services.planner.task_fsm import ARRIVE_TOLERANCE_M, Action, SeenObject, SkillOutcome, TaskMachine
 
 # A skill pose lies this far from the object's estimated footprint at most: the oracle pick's reach less a margin
@@ -322,6 +322,14 @@ def task_step(machine: TaskMachine, grid: GridSpec, free: np.ndarray, occupied: 
                 # the episode on the first try, before any): turn in place to see more, plan_step's rule
                 machine.finished, machine.phase = None, "searching"
                 return turn
+            if act.exhausted:
+                # nothing mapped is left to search: new frames from here may open frontiers the map has not
+                # got yet (a doorway seen edge-on); a full circle of turns in place first, plan_step's rule
+                look = look_around(act.reason, pose, len(frontiers), memory.copy(), params)
+                if look.kind == "turn":
+                    machine.finished, machine.phase = None, "searching"
+                    return TaskStep(look, "move", None, "searching", look.memory)
+                return TaskStep(look, phase="finished", memory=memory)
             return TaskStep(StepPlan("done", act.reason, memory=memory.copy()), phase="finished", memory=memory)
         if act.kind == "frontier":
             assert act.ref is not None
@@ -350,7 +358,10 @@ def task_step(machine: TaskMachine, grid: GridSpec, free: np.ndarray, occupied: 
             continue
         ps.plan.reason = f"{act.reason}; {ps.plan.reason}"
         skill = act.kind if act.kind in ("pick", "place", "stop") and ps.arrived else "move"
-        return TaskStep(ps.plan, skill, act.ref, act.phase, memory.copy())
+        kept = memory.copy()
+        if ps.plan.kind == "move":
+            kept.turns = 0  # a look-around's full circle counts from where the robot stands
+        return TaskStep(ps.plan, skill, act.ref, act.phase, kept)
     out = escape_move(grid, free, dist_field, pose, memory) if dist_field is not None else None
     if out is not None:
         return TaskStep(out, "move", None, machine.phase, out.memory)

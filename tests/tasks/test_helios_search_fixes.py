@@ -151,3 +151,20 @@ def test_with_nothing_left_and_no_goal_believed_the_object_goes_on_the_best_scor
     act = m.step(ROBOT, [], [table, other])
     assert (act.kind, act.ref) == ("place", 4), act
     assert "no instance believed to be a counter" in act.reason
+
+
+def test_with_nothing_mapped_left_the_robot_looks_around_a_full_circle_before_it_ends() -> None:
+    """No frontier and no candidate (a doorway the map has not got yet): ending the episode fails for certain,
+    new frames from here may open a frontier. A full circle of turns in place, then the end with steps left."""
+    g, free, occ = _room()
+    m, mem = _machine(pick_limit=1), Memory()
+    pose = Pose2D(x=5.0, y=5.0, yaw=0.0)
+    full = math.ceil(360.0 / ts.PlannerParams().turn_deg)
+    for k in range(full):
+        st = ts.task_step(m, g, free, occ, pose, [], [], None, mem, np.random.default_rng(k))
+        assert st.plan.kind == "turn" and st.phase == "searching", st.plan.reason
+        assert "nothing left to search" in st.plan.reason and m.finished is None
+        mem, pose = st.memory, st.plan.pose
+    st = ts.task_step(m, g, free, occ, pose, [], [], None, mem, np.random.default_rng(full))
+    assert st.plan.kind == "done" and st.phase == "finished"
+    assert "even after turning in place a full circle" in st.plan.reason
