@@ -274,9 +274,9 @@ class TaskMachine:
         """Instances out of the decisions for want of a path: this step's, and those unreachable too often."""
         return self.skip | {i for i, n in self.unreachable_steps.items() if n >= MAX_UNREACHABLE_STEPS}
 
-    def _finish(self, success: bool, reason: str) -> Action:
+    def _finish(self, success: bool, reason: str, exhausted: bool = False) -> Action:
         self.phase = "finished"
-        self.finished = Action("done", "finished", reason=reason, success=success)
+        self.finished = Action("done", "finished", reason=reason, success=success, exhausted=exhausted)
         return self.finished
 
     def _take(self, out: SkillOutcome) -> Action | None:
@@ -379,8 +379,7 @@ class TaskMachine:
         last = self._last_resort(robot, objects)
         if last is not None:
             return last
-        self.finished = dataclasses.replace(self._finish(False, reason), exhausted=True)
-        return self.finished
+        return self._finish(False, reason, exhausted=True)
 
     def _best_frontier(self, robot: tuple[float, float, float], frontiers: Sequence[FrontierOption],
                        reason: str, objects: Sequence[SeenObject] = ()) -> Action:
