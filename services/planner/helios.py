@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -37,6 +37,8 @@ Ablation = Literal["helios", "no_global", "trusting"]
 ABLATIONS: tuple[str, ...] = ("helios", "no_global", "trusting")
 ValueScale = Literal["paper", "best"]
 VALUE_SCALES: tuple[str, ...] = ("paper", "best")
+# dist(r) of Eq. 10: the metres the robot travels from where it stands to the point (x, y)
+Travel = Callable[[float, float], float]
 
 
 @dataclass(frozen=True)
@@ -164,7 +166,7 @@ def candidates_of(observed: Iterable[CandidateObservation], cs_a: float,
 
 def values(robot_xy: tuple[float, float], frontiers: Sequence[FrontierOption],
            candidates: Sequence[CandidateObservation], memory: SearchMemory, alpha_d: float,
-           scale: ValueScale = "paper") -> list[Choice]:
+           scale: ValueScale = "paper", travel: Travel | None = None) -> list[Choice]:
     """Eq. 10 for every frontier and candidate, highest first (ties: candidates first, then lower index).
 
     ``scale``: ``paper`` -- the benefits ``S IG`` and ``F F0`` as Eq. 10 writes them. Their size is set by IG, a
@@ -172,7 +174,11 @@ def values(robot_xy: tuple[float, float], frontiers: Sequence[FrontierOption],
     ``alpha_d = 0.001`` per metre changes no ranking: the robot crosses the house for a frontier worth 1 % more.
     ``best`` -- each benefit over the largest benefit of this step (the best option scores 1), so ``alpha_d`` is
     the share of the best benefit one metre costs, whatever the scale of IG; the order of the benefits alone
-    (``alpha_d = 0``) is the same in both."""
+    (``alpha_d = 0``) is the same in both.
+
+    ``travel``: ``dist(r)`` as the metres the robot would travel to ``r`` (a path on the map, from the planner
+    shell); None: the straight line from the robot. The paper writes ``dist`` without saying which; the straight
+    line ranks a frontier behind a wall as near even when the way round is ten steps long."""
     if scale not in VALUE_SCALES:
         raise ValueError(f"scale must be one of {VALUE_SCALES}, got {scale!r}")
     rx, ry = robot_xy
@@ -181,7 +187,10 @@ def values(robot_xy: tuple[float, float], frontiers: Sequence[FrontierOption],
     gains += [("frontier", f.index, f.F * F0, f.x, f.y) for f in frontiers if math.isfinite(f.F)]
     top = max((g[2] for g in gains if math.isfinite(g[2])), default=0.0)
     norm = top if scale == "best" and top > 0 else 1.0
-    out = [Choice(kind, ref, gain / norm - alpha_d * math.hypot(x - rx, y - ry), x, y)  # type: ignore[arg-type]
+    def dist(x: float, y: float) -> float:
+        return travel(x, y) if travel is not None else math.hypot(x - rx, y - ry)
+
+    out = [Choice(kind, ref, gain / norm - alpha_d * dist(x, y), x, y)  # type: ignore[arg-type]
            for kind, ref, gain, x, y in gains]
     out.sort(key=lambda ch: (-ch.value, ch.kind != "candidate", ch.ref))
     return out
@@ -190,7 +199,7 @@ def values(robot_xy: tuple[float, float], frontiers: Sequence[FrontierOption],
 def choose(robot_xy: tuple[float, float], frontiers: Sequence[FrontierOption],
            observed: Sequence[CandidateObservation], memory: SearchMemory, alpha_d: float, cs_a: float,
            ablation: Ablation = "helios", committed: int | None = None,
-           scale: ValueScale = "paper") -> Choice | None:
+           scale: ValueScale = "paper", travel: Travel | None = None) -> Choice | None:
     """The next global-search target under ``ablation`` (module doc); None when there is nothing to go to.
     Stores first detections in ``memory``; the chosen frontier goes into ``F'`` only when the planner sets out
     for it (:meth:`SearchMemory.choose_frontier`).
@@ -206,7 +215,7 @@ def choose(robot_xy: tuple[float, float], frontiers: Sequence[FrontierOption],
     cands = [] if ablation == "trusting" else candidates_of(observed, cs_a, memory.visited)
     if ablation != "trusting":
         memory.observe(candidates_of(observed, cs_a))
-    ranked = values(robot_xy, frontiers, cands, memory, alpha_d, scale)
+    ranked = values(robot_xy, frontiers, cands, memory, alpha_d, scale, travel)
     if not ranked:
         return None
     best = ranked[0]

@@ -173,12 +173,13 @@ class Thresholds:
     path_clearance: Literal["levels", "cut"] = "levels"  # how task paths meet the mapped clearance (task_step)
     max_looks: int = 3  # gaze points visited to look again at one candidate (this implementation's bound)
     deadline: Literal["commit", "off"] = "off"  # act on the best candidate when the steps run out (_deadline)
+    distance: Literal["straight", "path"] = "straight"  # Eq. 10's dist: straight line or path on the map (task_step)
 
     @classmethod
     def from_settings(cls, s: Any) -> Thresholds:
         return cls(s.helios_alpha_d, s.helios_tau_g, s.helios_tau_b, s.helios_tau_inc, s.helios_cs_a, s.helios_cs_g,
                    s.helios_cs_b, s.helios_tau_stop, s.helios_value_scale, s.helios_path_clearance,
-                   s.helios_max_looks, s.helios_deadline)
+                   s.helios_max_looks, s.helios_deadline, s.helios_distance)
 
 
 @dataclass
@@ -212,6 +213,8 @@ class TaskMachine:
     # goals still to be carried out in the episode, this one included (an argument of step, not kept state)
     steps_left: int | None = field(default=None, repr=False, compare=False)
     step_m: float = field(default=3.0, repr=False, compare=False)  # the planner's longest move per step
+    # Eq. 10's dist from where the robot stands this step (an argument of step, not kept state; None: straight)
+    travel: helios.Travel | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if self.kind == "pick_place" and (not self.start_receptacle or not self.goal_receptacle):
@@ -222,13 +225,15 @@ class TaskMachine:
     # ---- the step ---------------------------------------------------------------------------------------
     def step(self, robot: tuple[float, float, float], frontiers: Sequence[FrontierOption],
              objects: Sequence[SeenObject], outcome: SkillOutcome | None = None,
-             committed: int | None = None, steps_left: int | None = None, step_m: float = 3.0) -> Action:
+             committed: int | None = None, steps_left: int | None = None, step_m: float = 3.0,
+             travel: helios.Travel | None = None) -> Action:
         """The next action (module doc). ``committed``: the index of the frontier the robot is on its way to;
         it stays the frontier of choice while a frontier is what the machine goes to
         (:func:`services.planner.helios.choose`). ``steps_left``: goals the episode still carries out, this one
-        included (None: unknown); ``step_m``: the longest move of one step."""
+        included (None: unknown); ``step_m``: the longest move of one step; ``travel``: ``dist`` of Eq. 10 from
+        the robot (:func:`services.planner.helios.values`; None: the straight line)."""
         self.committed, self.reopened = committed, False
-        self.steps_left, self.step_m = steps_left, step_m
+        self.steps_left, self.step_m, self.travel = steps_left, step_m, travel
         if self.finished is not None:
             return self.finished
         if outcome is not None:
@@ -383,7 +388,8 @@ class TaskMachine:
 
     def _best_frontier(self, robot: tuple[float, float, float], frontiers: Sequence[FrontierOption],
                        reason: str, objects: Sequence[SeenObject] = ()) -> Action:
-        ranked = helios.values(robot[:2], frontiers, [], SearchMemory(), self.th.alpha_d, self.th.value_scale)
+        ranked = helios.values(robot[:2], frontiers, [], SearchMemory(), self.th.alpha_d, self.th.value_scale,
+                               self.travel)
         if not ranked:
             return self._nothing_left(robot, frontiers, objects, f"{reason}; no frontier left to explore")
         self.phase = "searching"
@@ -517,7 +523,7 @@ class TaskMachine:
             if s is not None and o.cls == start:
                 observed.append(CandidateObservation(o.instance_id, s[0], o.ig, o.x, o.y))
         choice = helios.choose(robot[:2], frontiers, observed, self.memory, self.th.alpha_d, self.th.cs_a,
-                               self.ablation, self.committed, self.th.value_scale)
+                               self.ablation, self.committed, self.th.value_scale, self.travel)
         if choice is None:
             return self._nothing_left(robot, frontiers, objects,
                                       "nothing left to search: no frontier and no candidate start receptacle")

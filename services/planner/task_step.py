@@ -39,8 +39,8 @@ from scipy import ndimage
 from eqa import grid as gridm
 from eqa import robot as body
 from eqa.messages import Frontier, GridSpec, Pose2D
-from services.planner.helios import FrontierOption
-from services.planner.paths import MapError, check_map, planning_grid, truncate
+from services.planner.helios import FrontierOption, Travel
+from services.planner.paths import MapError, PlanningGrid, check_map, planning_grid, truncate
 from services.planner.step import Memory, PlannerParams, StepPlan, disk_mask, look_around, plan_step, wrap
 from services.planner.task_fsm import ARRIVE_TOLERANCE_M, Action, SeenObject, SkillOutcome, TaskMachine
 
@@ -248,6 +248,52 @@ def plan_to_pose(grid: GridSpec, free: np.ndarray, occupied: np.ndarray, robot: 
     return PoseStep(None, False, f"no path to ({tx:.2f}, {ty:.2f}) with clearance")
 
 
+# a frontier or a receptacle's centre counts as reached from a traversable block this near it (a receptacle's
+# half-size and more; wall and clearance keep the blocks on the far side of a wall farther than this from it)
+TRAVEL_REACH_M = 1.2
+
+
+def travel_distances(grid: GridSpec, free: np.ndarray, occupied: np.ndarray, robot: Pose2D,
+                     params: PlannerParams) -> Travel:
+    """``dist`` of Eq. 8/10 as the way the robot would travel (``EQA_HELIOS_DISTANCE=path``): to a point, the
+    geodesic on the planning grid from the robot to the nearest reachable block within :data:`TRAVEL_REACH_M` of
+    it plus the straight rest, at the first of ``params.clearances_m`` that has such a block (the levels the
+    paths are planned at). A point with none at any level gets the straight line: no path is known, and the
+    planner drops the option when its path fails. The grids are built on the first query."""
+    levels: list[PlanningGrid | None] = []
+
+    def level(k: int) -> PlanningGrid | None:
+        while len(levels) <= k:
+            pg = planning_grid(grid, free, occupied, params.clearances_m[len(levels)], params.coarse_m,
+                               params.max_blocks)
+            levels.append(pg if pg.search_from(robot.x, robot.y, params.snap_radius_m) else None)
+        return levels[k]
+
+    def travel(x: float, y: float) -> float:
+        for k in range(len(params.clearances_m)):
+            pg = level(k)
+            if pg is None or pg.dist is None:
+                continue
+            R, C = pg.dist.shape
+            bi, bj = pg.block_of(x, y)
+            rad = math.ceil(TRAVEL_REACH_M / pg.block_m)
+            r0, r1, c0, c1 = max(0, bi - rad), min(R, bi + rad + 1), max(0, bj - rad), min(C, bj + rad + 1)
+            if r0 >= r1 or c0 >= c1:
+                continue
+            win = pg.dist[r0:r1, c0:c1]
+            ii, jj = np.nonzero(np.isfinite(win))
+            if ii.size == 0:
+                continue
+            cx, cy = pg.block_centre(ii + r0, jj + c0)
+            rest = np.hypot(cx - x, cy - y)
+            near = rest <= TRAVEL_REACH_M
+            if near.any():
+                return float(np.min(win[ii[near], jj[near]] + rest[near]))
+        return math.hypot(x - robot.x, y - robot.y)
+
+    return travel
+
+
 @dataclass
 class TaskStep:
     """The goal of one task step: a plan (or done), the skill to run on arrival, the phase for events."""
@@ -295,6 +341,8 @@ def task_step(machine: TaskMachine, grid: GridSpec, free: np.ndarray, occupied: 
     # the goal of step s is carried out at step s + 1; the episode's last frame is step max_steps - 1
     steps_left = machine.max_steps - 1 - step if machine.max_steps is not None and step is not None else None
     dist_field = clearance_field(grid, occupied) if np.shape(occupied) == (grid.rows, grid.cols) else None
+    travel = travel_distances(grid, free, occupied, pose, params) \
+        if machine.th.distance == "path" and dist_field is not None and np.shape(free) == np.shape(occupied) else None
     # frontiers the robot already went to are no option (plan_step would refuse them and turn in place) -- while
     # others are left: when every frontier is one gone to, they are all options again (the map around them has
     # changed; ending the search with steps left finds nothing)
@@ -309,7 +357,8 @@ def task_step(machine: TaskMachine, grid: GridSpec, free: np.ndarray, occupied: 
     turn: TaskStep | None = None  # plan_step's turn in place (it counts the turns) for an unreachable frontier
     for _ in range(max_tries):
         committed = committed_option(memory, options, params)
-        act: Action = machine.step(robot, options, objects, outcome, committed, steps_left, params.max_step_m)
+        act: Action = machine.step(robot, options, objects, outcome, committed, steps_left, params.max_step_m,
+                                   travel)
         outcome = None  # consumed
         if act.kind == "done":
             out = escape_move(grid, free, dist_field, pose, memory) if turn is not None and dist_field is not None \

@@ -8,8 +8,8 @@ import numpy as np
 
 from eqa.messages import Frontier, GridSpec, Pose2D
 from services.planner.step import Memory, PlannerParams
-from services.planner.task_fsm import MAX_UNREACHABLE_STEPS, Gaze, SeenObject, TaskMachine
-from services.planner.task_step import plan_to_pose, task_step
+from services.planner.task_fsm import MAX_UNREACHABLE_STEPS, Gaze, SeenObject, TaskMachine, Thresholds
+from services.planner.task_step import plan_to_pose, task_step, travel_distances
 
 GRID = GridSpec(origin_x=0.0, origin_y=0.0, resolution=0.1, rows=100, cols=100)
 
@@ -102,6 +102,26 @@ def test_the_frontier_on_the_way_stays_the_choice_until_reached() -> None:
     after = task_step(m, GRID, free, occ, pose, [b_up], [], None, mem, rng)
     assert after.plan.frontier is not None and after.plan.frontier.y == 8.0  # then B
 
+
+
+def test_path_distance_ranks_a_frontier_behind_a_wall_by_the_way_round() -> None:
+    """Eq. 10's dist with EQA_HELIOS_DISTANCE=path: frontier A is 2 m from the robot through the wall at x = 5 m
+    but about 15 m the way round (the gap at the top); B is 5 m away in the open with a lower value. The straight
+    line sends the robot to A, the path to B -- for every agent, since the trusting agent and the goal-receptacle
+    search rank frontiers by the same values."""
+    free, occ = _room()
+    robot = Pose2D(x=4.0, y=2.0)
+    travel = travel_distances(GRID, free, occ, robot, PlannerParams())
+    assert 13.0 < travel(6.0, 2.0) < 17.0  # up to y = 8, over, and down again
+    assert abs(travel(1.0, 6.0) - 5.0) < 0.6  # the straight line is free
+    a = Frontier(x=6.0, y=2.0, nx=1.0, ny=0.0, size=5, sv=0.6)
+    b = Frontier(x=1.0, y=6.0, nx=-1.0, ny=0.0, size=5, sv=0.5)
+    for ablation in ("trusting", "helios"):
+        for distance, want in (("straight", 6.0), ("path", 1.0)):
+            th = Thresholds(alpha_d=0.05, value_scale="best", distance=distance)
+            m = TaskMachine("pick_place", "mug", "table", "counter", ablation=ablation, th=th)
+            st = task_step(m, GRID, free, occ, robot, [a, b], [], None, Memory(), np.random.default_rng(0))
+            assert st.plan.frontier is not None and st.plan.frontier.x == want, (ablation, distance, st.plan.reason)
 
 
 def test_a_refused_skill_pose_is_not_planned_again() -> None:
