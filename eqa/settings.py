@@ -339,9 +339,10 @@ class HeliosSettings(SettingsGroup):
         "rather than run out of steps (commit), or keep to the paper's rule to the end (off); chosen on tuning "
         "seed 11, docs/results/helios-tasks.md")
     helios_distance: Literal["straight", "path"] = Field(
-        default="straight", description="dist of Eq. 8/10 from the robot to a frontier or candidate: the straight "
-        "line (straight) or the length of the way on the map at the planner's clearance (path); "
-        "services/planner/task_step.py:travel_distances")
+        default="straight", description="dist of Eq. 10 from the robot to a frontier or candidate: the straight "
+        "line (straight) or the length of the way on the map at the planner's clearance levels (path, "
+        "services/planner/task_step.py:travel_distances); straight chosen on tuning seed 11, "
+        "docs/results/helios-tasks.md")
     helios_max_looks: int = Field(
         default=3, ge=1, le=12, description="gaze points one candidate is looked at from before the look rule "
         "(Eq. 11) passes to the next (this implementation's bound; chosen on tuning seed 11)")

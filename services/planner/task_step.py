@@ -255,7 +255,7 @@ TRAVEL_REACH_M = 1.2
 
 def travel_distances(grid: GridSpec, free: np.ndarray, occupied: np.ndarray, robot: Pose2D,
                      params: PlannerParams) -> Travel:
-    """``dist`` of Eq. 8/10 as the way the robot would travel (``EQA_HELIOS_DISTANCE=path``): to a point, the
+    """``dist`` of Eq. 10 as the way the robot would travel (``EQA_HELIOS_DISTANCE=path``): to a point, the
     geodesic on the planning grid from the robot to the nearest reachable block within :data:`TRAVEL_REACH_M` of
     it plus the straight rest, at the first of ``params.clearances_m`` that has such a block (the levels the
     paths are planned at). A point with none at any level gets the straight line: no path is known, and the
