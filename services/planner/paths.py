@@ -187,6 +187,24 @@ class PlanningGrid:
         self.timing_ms["dijkstra"] = _now_ms() - t0
         return True
 
+    def reached_near(self, x: float, y: float, radius_m: float
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The blocks :meth:`search_from` reached in the square of half-side ``radius_m`` (and one block more)
+        around ``(x, y)``: their rows, columns, centres (x, y) and geodesic metres; empty arrays when none."""
+        if self.dist is None:
+            raise RuntimeError("search_from() first")
+        R, C = self.dist.shape
+        bi, bj = self.block_of(x, y)
+        rad = math.ceil(radius_m / self.block_m) + 1
+        r0, r1, c0, c1 = max(0, bi - rad), min(R, bi + rad + 1), max(0, bj - rad), min(C, bj + rad + 1)
+        if r0 >= r1 or c0 >= c1:
+            none = np.zeros(0, np.int64)
+            return none, none, np.zeros(0), np.zeros(0), np.zeros(0)
+        ii, jj = np.nonzero(np.isfinite(self.dist[r0:r1, c0:c1]))
+        ii, jj = ii + r0, jj + c0
+        cx, cy = self.block_centre(ii, jj)
+        return ii, jj, np.asarray(cx, float), np.asarray(cy, float), self.dist[ii, jj]
+
     def block_path(self, target: tuple[int, int]) -> list[tuple[int, int]]:
         """Blocks from the start block to ``target`` (inclusive); empty when unreachable."""
         if self.dist is None or self.pred is None or self.start_block is None:

@@ -194,30 +194,22 @@ def plan_to_pose(grid: GridSpec, free: np.ndarray, occupied: np.ndarray, robot: 
         pg = planning_grid(grid, free, occupied, clearance, params.coarse_m, params.max_blocks, extra)
         if not pg.search_from(robot.x, robot.y, params.snap_radius_m) or pg.dist is None:
             continue
-        R, C = pg.dist.shape
         cxy = (near[0], near[1]) if near is not None else (tx, ty)
-        bi, bj = pg.block_of(*cxy)
         span = ARRIVE_TOLERANCE_M if near is None else SKILL_REACH_M + max(near[2], near[3])
-        rad = math.ceil(span / pg.block_m) + 1
-        r0, r1, c0, c1 = max(0, bi - rad), min(R, bi + rad + 1), max(0, bj - rad), min(C, bj + rad + 1)
-        if r0 >= r1 or c0 >= c1:
-            continue
-        win = pg.dist[r0:r1, c0:c1]
-        ii, jj = np.nonzero(np.isfinite(win))
+        ii, jj, cx, cy, geo = pg.reached_near(*cxy, span)
         if ii.size == 0:
             continue
-        cx, cy = pg.block_centre(ii + r0, jj + c0)
         e = np.hypot(cx - tx, cy - ty)
         if near is not None:
             ok = (_box_distance(cx, cy, near) <= SKILL_REACH_M) & (
                 _clearance_at(dist_field, grid, np.stack([cx, cy], axis=1)) >= need)
-            ii, jj, cx, cy, e = ii[ok], jj[ok], cx[ok], cy[ok], e[ok]
+            ii, jj, e, geo = ii[ok], jj[ok], e[ok], geo[ok]
             if ii.size == 0:
                 continue
         elif float(e.min()) > ARRIVE_TOLERANCE_M:
             continue
-        m = int(np.argmin(e + 1e-3 * win[ii, jj]))
-        block = (int(ii[m] + r0), int(jj[m] + c0))
+        m = int(np.argmin(e + 1e-3 * geo))
+        block = (int(ii[m]), int(jj[m]))
         pulled, complete, full = pg.world_path(block, params.max_step_m)
         if not pulled:
             continue
@@ -272,23 +264,13 @@ def travel_distances(grid: GridSpec, free: np.ndarray, occupied: np.ndarray, rob
     def travel(x: float, y: float) -> float:
         for k in range(len(params.clearances_m)):
             pg = level(k)
-            if pg is None or pg.dist is None:
+            if pg is None:
                 continue
-            R, C = pg.dist.shape
-            bi, bj = pg.block_of(x, y)
-            rad = math.ceil(TRAVEL_REACH_M / pg.block_m)
-            r0, r1, c0, c1 = max(0, bi - rad), min(R, bi + rad + 1), max(0, bj - rad), min(C, bj + rad + 1)
-            if r0 >= r1 or c0 >= c1:
-                continue
-            win = pg.dist[r0:r1, c0:c1]
-            ii, jj = np.nonzero(np.isfinite(win))
-            if ii.size == 0:
-                continue
-            cx, cy = pg.block_centre(ii + r0, jj + c0)
+            _, _, cx, cy, geo = pg.reached_near(x, y, TRAVEL_REACH_M)
             rest = np.hypot(cx - x, cy - y)
             near = rest <= TRAVEL_REACH_M
             if near.any():
-                return float(np.min(win[ii[near], jj[near]] + rest[near]))
+                return float(np.min(geo[near] + rest[near]))
         return math.hypot(x - robot.x, y - robot.y)
 
     return travel
