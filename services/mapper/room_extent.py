@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from eqa import grid
+from eqa import grid, npy
 from services.mapper.frontiers import frontier_cells
 
 _EIGHT = np.ones((3, 3), dtype=bool)
@@ -132,15 +132,13 @@ class RoomExtent:
 
     @classmethod
     def from_state(cls, data: dict[str, object]) -> RoomExtent:
-        import io
-
         min_votes, max_range_m, stride = data["params"]  # type: ignore[misc]
         ext = cls(float(min_votes), float(max_range_m), int(stride))
-        with np.load(io.BytesIO(data["votes"]), allow_pickle=False) as z:  # type: ignore[arg-type]
-            if z["votes_in"].size:
-                if z["votes_in"].size > MAX_CELLS or z["votes_in"].shape != z["votes_out"].shape:
-                    raise ValueError("stored room extent votes are malformed")
-                ext.votes_in, ext.votes_out = z["votes_in"].astype(np.float64), z["votes_out"].astype(np.float64)
+        z = npy.load_npz(data["votes"])  # type: ignore[arg-type]
+        if z["votes_in"].size:
+            if z["votes_in"].size > MAX_CELLS or z["votes_in"].shape != z["votes_out"].shape:
+                raise ValueError("stored room extent votes are malformed")
+            ext.votes_in, ext.votes_out = z["votes_in"].astype(np.float64), z["votes_out"].astype(np.float64)
         ox, oy = data["origin"]  # type: ignore[misc]
         ext.origin, ext.resolution = (float(ox), float(oy)), float(data["resolution"])  # type: ignore[arg-type]
         return ext

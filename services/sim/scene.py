@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from eqa import npy
 from eqa import robot as body
 from eqa.homes import CHANGED_SCENE
 
@@ -270,10 +271,10 @@ class Scene:
             scene = cls(
                 id=graph["id"],
                 seed=graph["seed"],
-                vertices=np.load(directory / "vertices.npy"),
-                triangles=np.load(directory / "triangles.npy"),
-                triangle_instance=np.load(directory / "triangle_instance.npy"),
-                triangle_colors=np.load(colors) if colors.exists() else None,
+                vertices=npy.load(directory / "vertices.npy"),
+                triangles=npy.load(directory / "triangles.npy"),
+                triangle_instance=npy.load(directory / "triangle_instance.npy"),
+                triangle_colors=npy.load(colors) if colors.exists() else None,
                 wall_height=float(graph.get("wall_height", 2.7)),
                 source=graph.get("source", "generated"),
                 rooms=[Room(r["id"], r["kind"], tuple(r["rect"])) for r in graph["rooms"]],

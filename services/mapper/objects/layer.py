@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from eqa import npy
 from services.mapper.objects import dirichlet, splat
 from services.mapper.objects.config import OTHER, ObjectLayerConfig
 from services.mapper.objects.gaussians import GaussianStore, create, spawn_pixels
@@ -296,16 +297,16 @@ class ObjectLayer:
     def restore(
         cls, data: bytes, config: ObjectLayerConfig | None = None, device: str | torch.device = "cpu"
     ) -> ObjectLayer:
-        with np.load(io.BytesIO(data), allow_pickle=False) as z:
-            if int(z["format"]) != SNAPSHOT_FORMAT:
-                raise ValueError(f"object layer snapshot format {int(z['format'])}, expected {SNAPSHOT_FORMAT}")
-            classes = [str(c) for c in z["classes"].tolist()]
-            layer = cls(classes[:-1], config, device)
-            layer.next_label, layer.step = (int(v) for v in z["meta"])
-            layer.store = GaussianStore.from_numpy(
-                {k[2:]: z[k] for k in z.files if k.startswith("g_")}, layer.device
-            )
-            if "cam_pose" in z.files:
-                hh, ww = (int(v) for v in z["cam_hw"])
-                layer.last_camera = (z["cam_pose"], z["cam_K"], hh, ww)
+        z = npy.load_npz(data)
+        if int(z["format"]) != SNAPSHOT_FORMAT:
+            raise ValueError(f"object layer snapshot format {int(z['format'])}, expected {SNAPSHOT_FORMAT}")
+        classes = [str(c) for c in z["classes"].tolist()]
+        layer = cls(classes[:-1], config, device)
+        layer.next_label, layer.step = (int(v) for v in z["meta"])
+        layer.store = GaussianStore.from_numpy(
+            {k[2:]: z[k] for k in z if k.startswith("g_")}, layer.device
+        )
+        if "cam_pose" in z:
+            hh, ww = (int(v) for v in z["cam_hw"])
+            layer.last_camera = (z["cam_pose"], z["cam_K"], hh, ww)
         return layer
