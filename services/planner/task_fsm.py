@@ -215,6 +215,9 @@ class TaskMachine:
     step_m: float = field(default=3.0, repr=False, compare=False)  # the planner's longest move per step
     # Eq. 10's dist from where the robot stands this step (an argument of step, not kept state; None: straight)
     travel: helios.Travel | None = field(default=None, repr=False, compare=False)
+    # whether the robot has turned a full circle where it stands, or has no steps left for one (an argument of
+    # step, not kept state): only then does the last resort take an instance not believed to be the class
+    looked_around: bool = field(default=True, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if self.kind == "pick_place" and (not self.start_receptacle or not self.goal_receptacle):
@@ -226,14 +229,16 @@ class TaskMachine:
     def step(self, robot: tuple[float, float, float], frontiers: Sequence[FrontierOption],
              objects: Sequence[SeenObject], outcome: SkillOutcome | None = None,
              committed: int | None = None, steps_left: int | None = None, step_m: float = 3.0,
-             travel: helios.Travel | None = None) -> Action:
+             travel: helios.Travel | None = None, looked_around: bool = True) -> Action:
         """The next action (module doc). ``committed``: the index of the frontier the robot is on its way to;
         it stays the frontier of choice while a frontier is what the machine goes to
         (:func:`services.planner.helios.choose`). ``steps_left``: goals the episode still carries out, this one
         included (None: unknown); ``step_m``: the longest move of one step; ``travel``: ``dist`` of Eq. 10 from
-        the robot (:func:`services.planner.helios.values`; None: the straight line)."""
+        the robot (:func:`services.planner.helios.values`; None: the straight line); ``looked_around``: the
+        robot turned a full circle where it stands (or has no steps left to), see :meth:`_last_resort`."""
         self.committed, self.reopened = committed, False
         self.steps_left, self.step_m, self.travel = steps_left, step_m, travel
+        self.looked_around = looked_around
         if self.finished is not None:
             return self.finished
         if outcome is not None:
@@ -426,15 +431,18 @@ class TaskMachine:
         with steps left, act on the best of them (highest Psi, then S) below the threshold -- a skill call
         that may fail costs less than a certain failure. With no instance believed to be of the class, the
         instance of highest Psi for it is taken (a receptacle the layer believes to be another class may still be
-        the goal; ending the episode fails for certain). None: no instance scored for the class, or no skill to
-        call (:meth:`_phase_skill`)."""
+        the goal; ending the episode fails for certain) -- but only once the robot has looked around where it
+        stands (``looked_around``): new frames may open a frontier, and acting on an instance of Psi near 0 ends
+        the task (tuning seed 11: a place on a kitchen counter of Psi 0.02 for "bed" with 58 steps left). None: no
+        instance scored for the class, no skill to call (:meth:`_phase_skill`), or none believed before the
+        look around."""
         phase = self._phase_skill()
         if phase is None:
             return None
         skill, cls, excluded = phase
         best = self._best_known(cls, excluded, objects)
         believed = best is not None
-        if best is None:
+        if best is None and self.looked_around:
             best = self._best_known(cls, excluded, objects, believed=False)
         if best is None:
             return None

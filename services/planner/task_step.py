@@ -337,10 +337,12 @@ def task_step(machine: TaskMachine, grid: GridSpec, free: np.ndarray, occupied: 
         memory = memory.copy()
         memory.visited = []
     turn: TaskStep | None = None  # plan_step's turn in place (it counts the turns) for an unreachable frontier
+    circle_left = max(math.ceil(360.0 / params.turn_deg) - memory.turns, 0)
+    looked_around = circle_left == 0 or (steps_left is not None and steps_left <= circle_left + 1)
     for _ in range(max_tries):
         committed = committed_option(memory, options, params)
         act: Action = machine.step(robot, options, objects, outcome, committed, steps_left, params.max_step_m,
-                                   travel)
+                                   travel, looked_around)
         outcome = None  # consumed
         if act.kind == "done":
             out = escape_move(grid, free, dist_field, pose, memory) if turn is not None and dist_field is not None \

@@ -168,3 +168,28 @@ def test_with_nothing_mapped_left_the_robot_looks_around_a_full_circle_before_it
     st = ts.task_step(m, g, free, occ, pose, [], [], None, mem, np.random.default_rng(full))
     assert st.plan.kind == "done" and st.phase == "finished"
     assert "even after turning in place a full circle" in st.plan.reason
+
+
+def test_the_last_resort_on_an_instance_not_believed_waits_for_the_look_around() -> None:
+    """Holding the object, no frontier, the only instance scored for the goal class believed to be another class:
+    the robot first turns a full circle where it stands (new frames may open a frontier; a place on it ends the
+    task), then places on it. With no steps left for the circle it places at once."""
+    g, free, occ = _room()
+    table = SeenObject(4, "table", {"counter": (0.35, 0.15, 0.20), "table": (0.4, 0.15, 0.25)}, 5.8, 5.0, 1.0,
+                       (Gaze(6.5, 5.0, math.pi, psi_prime=0.3),))
+    full = math.ceil(360.0 / ts.PlannerParams().turn_deg)
+    m, mem = _machine(), Memory()
+    m.holding = True
+    pose = Pose2D(x=5.0, y=5.0, yaw=0.0)
+    for k in range(full):
+        st = ts.task_step(m, g, free, occ, pose, [], [table], None, mem, np.random.default_rng(k))
+        assert st.plan.kind == "turn", st.plan.reason
+        mem, pose = st.memory, st.plan.pose
+    st = ts.task_step(m, g, free, occ, pose, [], [table], None, mem, np.random.default_rng(full))
+    assert st.target == 4 and st.phase == "placing", st.plan.reason
+    assert "no instance believed to be a counter" in st.plan.reason
+    late = _machine(max_steps=10)
+    late.holding = True
+    st = ts.task_step(late, g, free, occ, Pose2D(x=5.0, y=5.0, yaw=0.0), [], [table], None, Memory(),
+                      np.random.default_rng(0), step=5)  # 4 goals left: no full circle and a place
+    assert st.target == 4 and st.phase == "placing", st.plan.reason
