@@ -257,10 +257,15 @@ def _unreachable_reason(reached: _Reach, n: int, ok: np.ndarray, dropped_note: s
     return f"none of {int(ok.sum())} frontier(s) is reachable with clearance"
 
 
+def full_turn(params: PlannerParams) -> int:
+    """The turns in place of one full circle (rule 6)."""
+    return math.ceil(360.0 / params.turn_deg)
+
+
 def look_around(why: str, pose: Pose2D, n: int, mem: Memory, params: PlannerParams) -> StepPlan:
     """Rule 6: turn in place to look around, or done after a full turn without any candidate."""
-    full_turn = math.ceil(360.0 / params.turn_deg)
-    if mem.turns >= full_turn:
+    circle = full_turn(params)
+    if mem.turns >= circle:
         return StepPlan("done", f"{why}, even after turning in place a full circle", memory=mem,
                         probabilities=[0.0] * n)
     mem.turns += 1
@@ -269,7 +274,7 @@ def look_around(why: str, pose: Pose2D, n: int, mem: Memory, params: PlannerPara
     yaw = wrap(pose.yaw + math.radians(params.turn_deg))
     return StepPlan(
         "turn",
-        f"{why}: turning in place to look around ({mem.turns}/{full_turn})",
+        f"{why}: turning in place to look around ({mem.turns}/{circle})",
         pose=Pose2D(x=pose.x, y=pose.y, yaw=yaw),
         path=[(pose.x, pose.y)],
         probabilities=[0.0] * n,

@@ -41,7 +41,7 @@ from eqa import robot as body
 from eqa.messages import Frontier, GridSpec, Pose2D
 from services.planner.helios import FrontierOption, Travel
 from services.planner.paths import MapError, PlanningGrid, check_map, planning_grid, truncate
-from services.planner.step import Memory, PlannerParams, StepPlan, disk_mask, look_around, plan_step, wrap
+from services.planner.step import Memory, PlannerParams, StepPlan, disk_mask, full_turn, look_around, plan_step, wrap
 from services.planner.task_fsm import ARRIVE_TOLERANCE_M, Action, SeenObject, SkillOutcome, TaskMachine
 
 # A skill pose lies this far from the object's estimated footprint at most: the oracle pick's reach less a margin
@@ -337,7 +337,7 @@ def task_step(machine: TaskMachine, grid: GridSpec, free: np.ndarray, occupied: 
         memory = memory.copy()
         memory.visited = []
     turn: TaskStep | None = None  # plan_step's turn in place (it counts the turns) for an unreachable frontier
-    circle_left = max(math.ceil(360.0 / params.turn_deg) - memory.turns, 0)
+    circle_left = max(full_turn(params) - memory.turns, 0)
     looked_around = circle_left == 0 or (steps_left is not None and steps_left <= circle_left + 1)
     for _ in range(max_tries):
         committed = committed_option(memory, options, params)

@@ -11,7 +11,7 @@ import numpy as np
 from eqa.messages import Frontier, GridSpec, Pose2D
 from services.planner import task_fsm
 from services.planner import task_step as ts
-from services.planner.step import Memory
+from services.planner.step import Memory, full_turn
 from services.planner.task_fsm import Gaze, SeenObject, TaskMachine
 
 ROBOT = (0.0, 0.0, 0.0)
@@ -159,7 +159,7 @@ def test_with_nothing_mapped_left_the_robot_looks_around_a_full_circle_before_it
     g, free, occ = _room()
     m, mem = _machine(pick_limit=1), Memory()
     pose = Pose2D(x=5.0, y=5.0, yaw=0.0)
-    full = math.ceil(360.0 / ts.PlannerParams().turn_deg)
+    full = full_turn(ts.PlannerParams())
     for k in range(full):
         st = ts.task_step(m, g, free, occ, pose, [], [], None, mem, np.random.default_rng(k))
         assert st.plan.kind == "turn" and st.phase == "searching", st.plan.reason
@@ -177,7 +177,7 @@ def test_the_last_resort_on_an_instance_not_believed_waits_for_the_look_around()
     g, free, occ = _room()
     table = SeenObject(4, "table", {"counter": (0.35, 0.15, 0.20), "table": (0.4, 0.15, 0.25)}, 5.8, 5.0, 1.0,
                        (Gaze(6.5, 5.0, math.pi, psi_prime=0.3),))
-    full = math.ceil(360.0 / ts.PlannerParams().turn_deg)
+    full = full_turn(ts.PlannerParams())
     m, mem = _machine(), Memory()
     m.holding = True
     pose = Pose2D(x=5.0, y=5.0, yaw=0.0)
